@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# Set up a virtual environment in .venv (first run only) and run one task in it.
+#   bash scripts/run.sh demo [oapcal demo options]   the whole pipeline on built-in data
+#   bash scripts/run.sh test [pytest options]        the default test suite (+ ruff)
+#   bash scripts/run.sh test-slow                    the slow tests only (fuzzing, big stacks)
+#   bash scripts/run.sh bench                        the benchmarks in benchmarks/
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY="${PYTHON:-python3}"
+task="${1:-test}"
+shift || true
+
+if [ ! -x .venv/bin/python ]; then
+    "$PY" -m venv .venv
+fi
+stamp=.venv/.oapcal-installed
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+    .venv/bin/python -m pip install --quiet --upgrade pip
+    .venv/bin/python -m pip install --quiet -e ".[test]"
+    touch "$stamp"
+fi
+
+case "$task" in
+    demo)
+        exec .venv/bin/oapcal demo "$@"
+        ;;
+    test)
+        .venv/bin/ruff check src tests benchmarks
+        exec .venv/bin/python -m pytest -q "$@"
+        ;;
+    test-slow)
+        rc=0
+        .venv/bin/python -m pytest -q -m slow "$@" || rc=$?
+        if [ "$rc" -eq 5 ]; then echo "no slow tests are collected"; rc=0; fi
+        exit "$rc"
+        ;;
+    bench)
+        for b in benchmarks/bench_*.py; do
+            echo "== $b"
+            .venv/bin/python "$b" "$@"
+        done
+        ;;
+    *)
+        echo "usage: bash scripts/run.sh demo|test|test-slow|bench [options]" >&2
+        exit 2
+        ;;
+esac

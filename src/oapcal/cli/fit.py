@@ -1,0 +1,179 @@
+"""``oapcal fit`` and ``oapcal correct-points``."""
+
+from __future__ import annotations
+
+import click
+
+from oapcal.cli._common import (
+    INIT_HELP,
+    check_output,
+    console,
+    load_pairs,
+    parse_size,
+    points_options,
+    print_json,
+)
+
+
+@click.command("fit")
+@points_options
+@click.option(
+    "--model",
+    "model",
+    default="paper",
+    show_default=True,
+    help="Free parameters: a preset (full, paper, radial) or a comma list of names.",
+)
+@click.option("--init", "init", default="auto", show_default=True, help=INIT_HELP)
+@click.option(
+    "--normalize",
+    "normalization",
+    type=click.Choice(["none", "experiment"]),
+    default="none",
+    show_default=True,
+    help="'experiment': scale and align the reference points onto the distorted "
+    "ones as the paper did for points from another microscope.",
+)
+@click.option(
+    "--um-per-px",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Object-space size (um) of one unit of the reference points as given.",
+)
+@click.option("--image-size", default=None, help="Camera image size WxH in px, e.g. 640x480.")
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(dir_okay=False, allow_dash=True),
+    default=None,
+    help="Write the calibration file (JSON) here.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json):
+    """Fit a distortion model to point pairs (CSV with x_u,y_u,x_d,y_d)."""
+    from oapcal.calibrate import calibrate
+    from oapcal.io.calibration import save_calibration
+    from oapcal.model import parse_model
+
+    check_output(out, points)
+    size = parse_size(image_size)
+    parse_model(model)  # a bad spec fails before the file is read
+    pairs = load_pairs(points)
+    from oapcal.fit import check_enough_points
+
+    check_enough_points(len(pairs), int(parse_model(model).sum()), source=pairs.source)
+    cal = calibrate(
+        pairs.xy_u, pairs.xy_d, model, init=init, normalization=normalization,
+        um_per_px=um_per_px, image_size=size, source=pairs.source,
+    )  # fmt: skip
+    if out is not None:
+        save_calibration(cal, out)
+    if as_json:
+        print_json(fit_summary(cal))
+    elif out != "-":
+        print_fit(cal)
+    if not cal.fit["converged"]:
+        click.echo(f"oapcal: warning: the fit did not converge: {cal.fit['message']}", err=True)
+        return 3
+    return 0
+
+
+def fit_summary(cal) -> dict:
+    """The ``--json`` object of ``oapcal fit``."""
+    return {
+        "free": list(cal.free),
+        "params": cal.params_dict,
+        "stderr": {n: _finite(cal.stderr[i]) for i, n in _free_index(cal)},
+        "converged": bool(cal.fit["converged"]),
+        "aicc": _finite(cal.fit["aicc"]),
+        "residuals": {
+            k: v for k, v in cal.residuals.items() if k.endswith(("_px", "_um")) and k != "um_per_px"
+        },
+    }
+
+
+def _free_index(cal):
+    from oapcal.model import INDEX
+
+    return [(INDEX[n], n) for n in cal.free]
+
+
+def _finite(value):
+    import math
+
+    return float(value) if value is not None and math.isfinite(value) else None
+
+
+def print_fit(cal) -> None:
+    """Readable tables: parameters with errors, fit statistics, Table-1 residuals."""
+    from rich.table import Table
+
+    from oapcal.model import PARAM_NAMES
+
+    out = console()
+    table = Table(title="Fitted parameters", title_justify="left")
+    table.add_column("parameter")
+    table.add_column("value", justify="right")
+    table.add_column("std. error", justify="right")
+    for i, name in enumerate(PARAM_NAMES):
+        if name in cal.free:
+            table.add_row(name, f"{cal.params[i]:.6g}", f"{cal.stderr[i]:.3g}")
+        else:
+            table.add_row(f"[dim]{name}[/dim]", "[dim]0 (fixed)[/dim]", "")
+    out.print(table)
+    f = cal.fit
+    status = "converged" if f["converged"] else "NOT converged"
+    out.print(
+        f"{status} after {f['n_iter']} iterations ({f['message']}); {f['n_points']} points, "
+        f"RSS {f['rss']:.6g}, AICc {f['aicc']:.6g}"
+    )
+    r = cal.residuals
+    res = Table(title="Residuals after correction (paper's Table 1)", title_justify="left")
+    for col in ("", "max", "mean", "rms", "total"):
+        res.add_column(col, justify="right")
+    res.add_row("px", *(f"{r[f'{k}_px']:.4g}" for k in ("max", "mean", "rms", "total")))
+    if "max_um" in r:
+        res.add_row("um", *(f"{r[f'{k}_um']:.4g}" for k in ("max", "mean", "rms", "total")))
+    out.print(res)
+    if r.get("n_failed"):
+        out.print(f"[red]{r['n_failed']} points could not be corrected (inverse did not converge)[/red]")
+
+
+@click.command("correct-points")
+@click.argument("calib", type=click.Path(dir_okay=False))
+@points_options
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(dir_okay=False, allow_dash=True),
+    required=True,
+    help="Output CSV: the input columns plus x_c,y_c,converged.",
+)
+def correct_points_command(calib, points, out):
+    """Correct distorted points (columns x_d,y_d) with a calibration."""
+    from oapcal.io.calibration import load_calibration
+    from oapcal.io.points import write_points
+    from oapcal.model import undistort
+
+    check_output(out, calib, points)
+    cal = load_calibration(calib)
+    pairs = load_pairs(points, require=("x_d", "y_d"))
+    inverse = undistort(pairs.xy_d, cal.params)
+    fields = [f for f in pairs.fieldnames if f not in ("x_c", "y_c", "converged")]
+    fields += ["x_c", "y_c", "converged"]
+    rows = []
+    for row, xy, ok in zip(pairs.rows, inverse.xy, inverse.converged):
+        row = dict(row)
+        row["x_c"] = repr(float(xy[0])) if ok else ""
+        row["y_c"] = repr(float(xy[1])) if ok else ""
+        row["converged"] = int(bool(ok))
+        rows.append(row)
+    write_points(out, fields, rows)
+    n_bad = int((~inverse.converged).sum())
+    if n_bad:
+        click.echo(
+            f"oapcal: warning: {n_bad} of {len(rows)} points could not be corrected "
+            f"({int(inverse.folded.sum())} where the map folds over); their x_c,y_c are empty",
+            err=True,
+        )
+    return 0

@@ -1,0 +1,29 @@
+"""Named exceptions for bad input.
+
+Numerical failure (a fit that does not converge, a point whose inverse does not
+converge) is reported as a *value* (a status and a message on the result); bad
+input raises a subclass of :class:`OapcalError`, which is a :class:`ValueError`.
+The command-line interface prints ``str(error)`` as one line on stderr and exits
+with code 2, so messages must name the file, row or field, say what is wrong and
+how to fix it.
+"""
+
+
+class OapcalError(ValueError):
+    """Base class of every user-facing input error in oapcal."""
+
+
+class InputFileError(OapcalError):
+    """A file given by the user is missing, unreadable or malformed."""
+
+
+class ModelSpecError(OapcalError):
+    """A model specification names an unknown parameter or preset."""
+
+
+class DataError(OapcalError):
+    """Point data cannot support the requested operation (too few, collinear, ...)."""
+
+
+class OutputError(OapcalError):
+    """An output path is not allowed (would overwrite an input, escapes its directory, ...)."""

@@ -1,0 +1,1 @@
+"""Reading and writing oapcal's files: point pairs, calibrations, atomic outputs."""

@@ -1,0 +1,231 @@
+"""Point-pair CSV files: ``x_u,y_u,x_d,y_d`` and an optional ``id`` column.
+
+``x_u, y_u`` are the reference (undistorted) points and ``x_d, y_d`` the observed
+(distorted) ones, in px (or any unit used consistently), origin at the centre of the
+top-left pixel, x = column, y = row (``docs/conventions.md``).  Other columns are kept
+(``correct-points`` copies them) but otherwise ignored.
+
+Every problem raises :class:`~oapcal.errors.InputFileError` or
+:class:`~oapcal.errors.DataError` with a message that names the file, the line (as a
+text editor counts them, header = line 1) and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import difflib
+import io
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from oapcal.errors import DataError, InputFileError
+from oapcal.io.atomic import atomic_write
+
+PAIR_COLUMNS = ("x_u", "y_u", "x_d", "y_d")
+
+
+@dataclass(frozen=True)
+class PointPairs:
+    """Point pairs read from a file.
+
+    ``xy_u`` and ``xy_d`` are ``(N, 2)`` float arrays (NaN-filled when a column set was not
+    required and is absent); ``ids`` the ``id`` column or None; ``rows`` the raw rows (for
+    copying columns through) with ``fieldnames``; ``lines`` the file line of each row.
+    """
+
+    xy_u: np.ndarray
+    xy_d: np.ndarray
+    ids: tuple[str, ...] | None
+    rows: tuple[dict, ...]
+    fieldnames: tuple[str, ...]
+    lines: tuple[int, ...]
+    source: str
+
+    def __len__(self) -> int:
+        return len(self.xy_d)
+
+
+def _read_text(path: str | Path) -> str:
+    name = str(path)
+    if name == "-":
+        return sys.stdin.read()
+    p = Path(path)
+    if not p.exists():
+        raise InputFileError(f"{name}: no such file; check the path")
+    if p.is_dir():
+        raise InputFileError(f"{name}: is a directory, not a point file")
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise InputFileError(f"{name}: cannot be read ({exc.strerror}); check its permissions") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputFileError(
+            f"{name}: is not UTF-8 text (bad byte at offset {exc.start}); save it as UTF-8 CSV"
+        ) from None
+
+
+def _parse_float(text: str, name: str, line: int, column: str) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        shown = "an empty cell" if not (text or "").strip() else repr(text)
+        raise InputFileError(f"{name}: line {line}, column {column!r}: {shown} is not a number") from None
+    if not math.isfinite(value):
+        raise InputFileError(
+            f"{name}: line {line}, column {column!r}: {text.strip()} is not a finite number; "
+            "remove or fix this row"
+        )
+    return value
+
+
+def read_points(
+    path: str | Path,
+    require: tuple[str, ...] = PAIR_COLUMNS,
+    *,
+    check_geometry: bool = True,
+) -> PointPairs:
+    """Read a point-pair CSV (or TSV) file.
+
+    ``require`` names the columns that must be present (``correct-points`` needs only
+    ``x_d, y_d``).  With ``check_geometry``, duplicated points and collinear point sets
+    are rejected (:func:`check_geometry`).
+    """
+    name = str(path)
+    text = _read_text(path)
+    if "\x00" in text:
+        raise InputFileError(f"{name}: contains binary data (NUL bytes); give a CSV text file")
+    if not text.strip():
+        raise InputFileError(f"{name}: is empty; expected a CSV header line {','.join(PAIR_COLUMNS)}")
+    first = text.splitlines()[0]
+    delimiter = "\t" if first.count("\t") > first.count(",") else ","
+    reader = csv.reader(io.StringIO(text), delimiter=delimiter)
+    try:
+        header = [h.strip() for h in next(reader)]
+    except csv.Error as exc:
+        raise InputFileError(f"{name}: line 1: malformed CSV header ({exc})") from None
+    missing = [c for c in require if c not in header]
+    if missing:
+        hints = []
+        for col in missing:
+            close = difflib.get_close_matches(col, header, n=1, cutoff=0.6)
+            hints.append(f"{col!r}" + (f" (found {close[0]!r}: rename it)" if close else ""))
+        raise InputFileError(
+            f"{name}: line 1: missing column{'s' if len(missing) > 1 else ''} {', '.join(hints)}; "
+            f"the header must contain {','.join(require)}"
+        )
+    dupes = sorted({h for h in header if header.count(h) > 1 and h in PAIR_COLUMNS + ("id",)})
+    if dupes:
+        raise InputFileError(f"{name}: line 1: column {dupes[0]!r} appears more than once; keep one")
+    col = {h: i for i, h in enumerate(header)}
+    rows, lines, values = [], [], []
+    present = [c for c in PAIR_COLUMNS if c in col]
+    try:
+        for row in reader:
+            line = reader.line_num
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) < len(header):
+                raise InputFileError(
+                    f"{name}: line {line}: {len(row)} cells but the header has {len(header)} columns; "
+                    "fill in the missing cells"
+                )
+            values.append([_parse_float(row[col[c]], name, line, c) for c in present])
+            rows.append({h: row[i] for i, h in enumerate(header)})
+            lines.append(line)
+    except csv.Error as exc:
+        raise InputFileError(f"{name}: line {reader.line_num}: malformed CSV ({exc})") from None
+    if not rows:
+        raise InputFileError(f"{name}: has a header but no data rows; add point pairs")
+    arr = np.full((len(rows), 4), np.nan)
+    for j, c in enumerate(present):
+        arr[:, PAIR_COLUMNS.index(c)] = np.array(values)[:, j]
+    ids = tuple(r["id"].strip() for r in rows) if "id" in col else None
+    pairs = PointPairs(
+        xy_u=arr[:, :2],
+        xy_d=arr[:, 2:],
+        ids=ids,
+        rows=tuple(rows),
+        fieldnames=tuple(header),
+        lines=tuple(lines),
+        source=name,
+    )
+    if ids is not None:
+        seen: dict[str, int] = {}
+        for i, ident in enumerate(ids):
+            if ident in seen:
+                raise InputFileError(
+                    f"{name}: line {lines[i]}: id {ident!r} already used on line {seen[ident]}; "
+                    "ids must be unique"
+                )
+            seen[ident] = lines[i]
+    if check_geometry:
+        check_geometry_of(pairs)
+    return pairs
+
+
+def check_geometry_of(pairs: PointPairs) -> None:
+    """Reject duplicated points and collinear point sets (raises :class:`DataError`)."""
+    for label, xy in (("reference", pairs.xy_u), ("distorted", pairs.xy_d)):
+        if np.isnan(xy).all():
+            continue
+        _check_duplicates(xy, label, pairs)
+        _check_collinear(xy, label, pairs)
+
+
+def _check_duplicates(xy: np.ndarray, label: str, pairs: PointPairs) -> None:
+    order = np.lexsort((xy[:, 1], xy[:, 0]))
+    s = xy[order]
+    same = np.flatnonzero((s[1:] == s[:-1]).all(axis=1))
+    if same.size:
+        a, b = sorted((order[same[0]], order[same[0] + 1]))
+        x, y = xy[a]
+        raise DataError(
+            f"{pairs.source}: lines {pairs.lines[a]} and {pairs.lines[b]} have the same {label} point "
+            f"({x:g}, {y:g}); remove the duplicate"
+        )
+
+
+def _check_collinear(xy: np.ndarray, label: str, pairs: PointPairs) -> None:
+    if len(xy) < 3:
+        return
+    centred = xy - xy.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    if sv[0] == 0 or sv[1] <= 1e-9 * sv[0]:
+        raise DataError(
+            f"{pairs.source}: all {label} points lie on one line; the model needs points spread "
+            "over the field in both x and y"
+        )
+
+
+def write_points(path: str | Path, fieldnames, rows) -> None:
+    """Write rows (dicts) as CSV, atomically; ``-`` writes to stdout."""
+    if str(path) == "-":
+        writer = csv.DictWriter(sys.stdout, fieldnames=list(fieldnames), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+        return
+    with atomic_write(path) as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(fieldnames), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def write_point_pairs(path: str | Path, xy_u, xy_d, ids=None) -> None:
+    """Write a point-pair file ``id,x_u,y_u,x_d,y_d`` (``id`` only when given)."""
+    xy_u = np.asarray(xy_u, float)
+    xy_d = np.asarray(xy_d, float)
+    fields = (["id"] if ids is not None else []) + list(PAIR_COLUMNS)
+    rows = []
+    for i in range(len(xy_u)):
+        row = {"x_u": repr(float(xy_u[i, 0])), "y_u": repr(float(xy_u[i, 1])),
+               "x_d": repr(float(xy_d[i, 0])), "y_d": repr(float(xy_d[i, 1]))}  # fmt: skip
+        if ids is not None:
+            row["id"] = str(ids[i])
+        rows.append(row)
+    write_points(path, fields, rows)

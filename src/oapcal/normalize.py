@@ -1,0 +1,87 @@
+"""Normalizations of point sets used by the paper.
+
+``experiment`` (the paper's Figure 2 caption; ``--normalize experiment``): the reference
+points, which come from another imaging system, are scaled about their top-left corner
+(aspect ratio kept) so that their y range equals the distorted points' y range, then
+translated so that both sets are aligned along the top and the left (their min x and
+min y coincide).  Only the reference points change.
+
+``grid`` (the paper's simulated data; ``--normalize grid``): each of the two point sets is,
+independently, centred on the middle of its x and y ranges and scaled (aspect ratio kept)
+to span -0.5 .. +0.5 in y.  Both sets change; the distortion centre is then unknown, as in
+an experiment.
+
+>>> import numpy as np
+>>> ref = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 20.0]])
+>>> dist = np.array([[5.0, 3.0], [10.0, 3.0], [5.0, 13.0]])
+>>> normalize_experiment(ref, dist).xy_u
+array([[ 5.,  3.],
+       [10.,  3.],
+       [ 5., 13.]])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from oapcal.errors import DataError
+
+NORMALIZATIONS = ("none", "experiment", "grid")
+
+
+@dataclass(frozen=True)
+class Normalized:
+    """Normalized point sets and the factors applied.
+
+    ``scale_u`` multiplies the reference coordinates (new = (old - origin) * scale + shift),
+    so a scale of ``S`` um per px of the original reference points becomes ``S / scale_u``
+    um per unit of the normalized ones.
+    """
+
+    xy_u: np.ndarray
+    xy_d: np.ndarray
+    scale_u: float
+    scale_d: float
+
+
+def _yrange(xy: np.ndarray, label: str) -> float:
+    span = float(np.ptp(xy[:, 1]))
+    if not span > 0:
+        raise DataError(f"cannot normalize: the {label} points have no extent in y")
+    return span
+
+
+def normalize_experiment(xy_u, xy_d) -> Normalized:
+    """The paper's experimental normalization (module docstring)."""
+    xy_u = np.asarray(xy_u, float)
+    xy_d = np.asarray(xy_d, float)
+    s = _yrange(xy_d, "distorted") / _yrange(xy_u, "reference")
+    out = (xy_u - xy_u.min(axis=0)) * s + xy_d.min(axis=0)
+    return Normalized(out, xy_d.copy(), s, 1.0)
+
+
+def normalize_grid(xy_u, xy_d) -> Normalized:
+    """The paper's simulated-grid normalization (module docstring)."""
+
+    def one(xy, label):
+        xy = np.asarray(xy, float)
+        centre = 0.5 * (xy.min(axis=0) + xy.max(axis=0))
+        s = 1.0 / _yrange(xy, label)
+        return (xy - centre) * s, s
+
+    u, su = one(xy_u, "reference")
+    d, sd = one(xy_d, "distorted")
+    return Normalized(u, d, su, sd)
+
+
+def normalize(kind: str, xy_u, xy_d) -> Normalized:
+    """Apply the normalization named ``kind`` (``none``, ``experiment`` or ``grid``)."""
+    if kind in (None, "none"):
+        return Normalized(np.asarray(xy_u, float), np.asarray(xy_d, float), 1.0, 1.0)
+    if kind == "experiment":
+        return normalize_experiment(xy_u, xy_d)
+    if kind == "grid":
+        return normalize_grid(xy_u, xy_d)
+    raise DataError(f"unknown normalization {kind!r}: use one of {', '.join(NORMALIZATIONS)}")
