@@ -26,6 +26,7 @@ COMMANDS: dict[str, str] = {
     "fit": "oapcal.cli.fit:fit_command",
     "correct-points": "oapcal.cli.fit:correct_points_command",
     "demo": "oapcal.cli.demo:demo_command",
+    "simulate": "oapcal.cli.simulate:simulate_group",
 }
 
 

@@ -1,0 +1,26 @@
+"""``oapcal simulate``: a group of simulations (``relay``, ``image``)."""
+
+from __future__ import annotations
+
+import importlib
+
+import click
+
+#: name -> "module:attribute" of every ``simulate`` subcommand.
+SUBCOMMANDS: dict[str, str] = {}
+
+
+class _LazySimulate(click.Group):
+    def list_commands(self, ctx):
+        return sorted(SUBCOMMANDS)
+
+    def get_command(self, ctx, name):
+        if name not in SUBCOMMANDS:
+            return None
+        module, attr = SUBCOMMANDS[name].split(":")
+        return getattr(importlib.import_module(module), attr)
+
+
+@click.group("simulate", cls=_LazySimulate)
+def simulate_group():
+    """Simulate the optics: ray-traced relay distortion, synthetic camera images."""

@@ -1,0 +1,1 @@
+"""Images: correction maps and remapping, stacks, the USAF target, edge analysis."""
