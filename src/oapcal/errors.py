@@ -27,3 +27,7 @@ class DataError(OapcalError):
 
 class OutputError(OapcalError):
     """An output path is not allowed (would overwrite an input, escapes its directory, ...)."""
+
+
+class GeometrySpecError(OapcalError):
+    """An optical geometry is invalid (unknown setup or orientation, a negative distance, ...)."""

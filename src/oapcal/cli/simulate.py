@@ -7,7 +7,9 @@ import importlib
 import click
 
 #: name -> "module:attribute" of every ``simulate`` subcommand.
-SUBCOMMANDS: dict[str, str] = {}
+SUBCOMMANDS: dict[str, str] = {
+    "relay": "oapcal.cli.simulate_relay:relay_command",
+}
 
 
 class _LazySimulate(click.Group):

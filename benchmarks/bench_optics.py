@@ -1,0 +1,89 @@
+"""Speed of the OAP relay ray tracer.
+
+Peer: a straightforward per-ray Python loop over the same closed-form geometry (what a
+script without vectorization does), timed in the same run; plus the CLI as a whole
+process. Medians of repeats; ratios printed.
+
+    PYTHONPATH=src /work/venv/bin/python benchmarks/bench_optics.py
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from oapcal.optics.field import relay_distortion
+from oapcal.optics.relay import chief_rays, grid_distortion, oap_relay, object_grid
+
+
+def median_time(fn, repeats):
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def loop_chief_rays(relay, xy_obj):
+    """The peer: one chief ray at a time (stop at the first mirror), plain Python + NumPy."""
+    m1c = np.asarray(relay.m1.aperture_centre)
+    out = []
+    for p in xy_obj:
+        point = relay.object_plane.world(p)
+        d = m1c - point
+        d = d / np.linalg.norm(d)
+        n1 = relay.m1.normal(m1c)
+        d = d - 2 * (d @ n1) * n1
+        t = relay.m2.intersect(m1c, d)
+        hit = m1c + t * d
+        n2 = relay.m2.normal(hit)
+        d = d - 2 * (d @ n2) * n2
+        s = relay.image_plane.intersect(hit, d)
+        out.append(relay.image_plane.local(hit + s * d))
+    return np.array(out)
+
+
+def main():
+    relay = oap_relay(1)
+    small = object_grid(17, 1.0)
+    assert np.allclose(loop_chief_rays(relay, small), chief_rays(relay, small).xy_mm, atol=1e-12)
+    rows = []
+    t_vec = median_time(lambda: grid_distortion(relay, 17), 21)
+    t_loop = median_time(lambda: loop_chief_rays(relay, small), 5)
+    rows.append(("17 x 17 grid (incl. paraxial map)", t_vec, "per-ray loop", t_loop))
+    t_big = median_time(lambda: grid_distortion(relay, 1001), 3)
+    sub = object_grid(101, 1.0)
+    t_loop_big = median_time(lambda: loop_chief_rays(relay, sub), 1) * (1001 * 1001) / len(sub)
+    rows.append(("1001 x 1001 grid", t_big, "per-ray loop (extrapolated from 101 x 101)", t_loop_big))
+    stopped = oap_relay(1, stop_distance_mm=300.0)
+    t_aim = median_time(lambda: grid_distortion(stopped, 1001), 3)
+    rows.append(("1001 x 1001 grid, stop at 300 mm (Newton aiming)", t_aim, "-", float("nan")))
+    t_field = median_time(lambda: relay_distortion(1), 3)
+    rows.append(("relay_distortion() build, 640 x 480, 97 nodes", t_field, "-", float("nan")))
+    field = relay_distortion(1)
+    rng = np.random.default_rng(0)
+    px = rng.uniform([-0.5, -0.5], [639.5, 479.5], size=(640 * 480, 2))
+    rows.append(("forward, 307,200 px", median_time(lambda: field.forward(px), 3),
+                 "exact trace of the same points", median_time(lambda: field.traced(px), 3)))  # fmt: skip
+    rows.append(("inverse, 307,200 px", median_time(lambda: field.inverse(px), 3), "-", float("nan")))
+    env = dict(os.environ, PYTHONPATH="src")
+    cmd = [sys.executable, "-m", "oapcal", "simulate", "relay", "--setup", "1", "--json"]
+    t_cli = median_time(lambda: subprocess.run(cmd, env=env, capture_output=True, check=True), 5)
+    t_py = median_time(lambda: subprocess.run([sys.executable, "-c", "pass"], check=True), 5)
+    rows.append(("`oapcal simulate relay --setup 1 --json` (whole process)", t_cli,
+                 "bare `python -c pass`", t_py))  # fmt: skip
+    print(f"{'task':58s} {'oapcal':>10s}   {'peer':44s} {'peer time':>10s} {'ratio':>7s}")
+    for name, t, peer, tp in rows:
+        ratio = f"{tp / t:7.1f}" if np.isfinite(tp) else "      -"
+        tp_s = f"{tp * 1e3:8.1f}ms" if np.isfinite(tp) else "         -"
+        print(f"{name:58s} {t * 1e3:8.1f}ms   {peer:44s} {tp_s} {ratio}")
+
+
+if __name__ == "__main__":
+    main()

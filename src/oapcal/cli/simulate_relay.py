@@ -1,0 +1,187 @@
+"""``oapcal simulate relay``: ray-traced grid distortion of the OAP relay."""
+
+from __future__ import annotations
+
+import click
+
+from oapcal.cli._common import check_output, console, parse_size, print_json
+
+
+@click.command("relay")
+@click.option(
+    "--setup",
+    type=click.Choice(["1", "2"]),
+    default="1",
+    show_default=True,
+    help="The paper's setup: 1 (d1 = 860 mm) or 2 (d1 = 660 mm).",
+)
+@click.option(
+    "--d1", "d1", type=float, default=None, help="Collimated path length in mm (overrides --setup)."
+)
+@click.option(
+    "--orientation",
+    type=click.Choice(["U", "Z"], case_sensitive=False),
+    default="U",
+    show_default=True,
+    help="U: parent axes coincide (cancels astigmatism); Z: rotated 180 degrees.",
+)
+@click.option(
+    "--stop-distance",
+    type=float,
+    default=None,
+    help="Aperture stop on the collimated path, mm after the first mirror (default: at it).",
+)
+@click.option(
+    "--focal-length",
+    type=float,
+    default=50.8,
+    show_default=True,
+    help="Reflected focal length of both mirrors, mm.",
+)
+@click.option("--grid", "n", type=int, default=17, show_default=True, help="Grid points per side.")
+@click.option(
+    "--field",
+    "field_mm",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="Full width of the square object field, mm.",
+)
+@click.option(
+    "--units",
+    type=click.Choice(["mm", "px"]),
+    default="mm",
+    show_default=True,
+    help="Units of x_u,y_u,x_d,y_d in the CSV (image plane).",
+)
+@click.option("--pixel-size", type=float, default=4.8, show_default=True, help="Camera pixel size, um.")
+@click.option(
+    "--image-size",
+    default=None,
+    help="With --units px: write camera px (axis at the image centre) for a WxH image.",
+)
+@click.option(
+    "--beam-diameter",
+    type=float,
+    default=20.0,
+    show_default=True,
+    help="Collimated beam (stop) diameter for spots and NA, mm.",
+)
+@click.option("--wavelength", type=float, default=850.0, show_default=True, help="Wavelength, nm.")
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, allow_dash=True),
+    default=None,
+    help="Write the grid CSV (x_obj,y_obj,x_u,y_u,x_d,y_d,clear).",
+)
+@click.option("--plot", type=click.Path(dir_okay=False), default=None, help="Grid distortion figure (PNG).")
+@click.option(
+    "--spots", type=click.Path(dir_okay=False), default=None, help="Spot diagrams of both orientations (PNG)."
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,
+                  image_size, beam_diameter, wavelength, out, plot, spots, as_json):  # fmt: skip
+    """Trace the OAP relay: grid distortion (paraxial vs real chief rays), spots, limits."""
+    from oapcal.errors import GeometrySpecError
+
+    size = parse_size(image_size)
+    if size is not None and units != "px":
+        raise GeometrySpecError("--image-size needs --units px (camera px); drop it or add --units px")
+    for value, name in ((pixel_size, "--pixel-size"), (beam_diameter, "--beam-diameter"),
+                        (wavelength, "--wavelength")):  # fmt: skip
+        if not value > 0:
+            raise GeometrySpecError(f"{name} must be positive, got {value:g}")
+    outputs = [p for p in (out, plot, spots) if p not in (None, "-")]
+    if len(set(outputs)) < len(outputs):
+        raise GeometrySpecError("--out, --plot and --spots must be different files")
+    for path in outputs:
+        check_output(path)
+
+    from oapcal.optics.summary import simulate_relay
+
+    sim = simulate_relay(
+        int(setup), d1_mm=d1, orientation=orientation, stop_distance_mm=stop_distance,
+        focal_length_mm=focal_length, n=n, field_mm=field_mm, pixel_size_um=pixel_size,
+        beam_diameter_mm=beam_diameter, wavelength_nm=wavelength,
+    )  # fmt: skip
+    if out is not None:
+        write_grid(sim.grid, out, units, pixel_size, size)
+    if plot is not None:
+        from oapcal.optics.plot import plot_grid
+
+        plot_grid(sim.grid, plot, units=units, pixel_size_um=pixel_size)
+    if spots is not None:
+        from oapcal.optics.plot import plot_spots
+
+        plot_spots(sim.spots, spots, airy_radius_um=sim.summary["quality"]["rayleigh_um"])
+    if as_json:
+        print_json(sim.summary)
+    elif out != "-":
+        print_summary(sim.summary)
+    return 0
+
+
+def write_grid(grid, path, units, pixel_size_um, image_size=None) -> None:
+    """The grid CSV: object mm, paraxial and real image points in mm or px, clear flag."""
+    from oapcal.io.points import write_points
+
+    scale = 1.0 if units == "mm" else 1e3 / pixel_size_um
+    offset = (0.0, 0.0) if image_size is None else ((image_size[0] - 1) / 2, (image_size[1] - 1) / 2)
+    rows = []
+    for obj, u, d, ok in zip(grid.xy_obj, grid.xy_u, grid.xy_d, grid.clear):
+        rows.append({
+            "x_obj": repr(float(obj[0])), "y_obj": repr(float(obj[1])),
+            "x_u": repr(float(u[0] * scale + offset[0])), "y_u": repr(float(u[1] * scale + offset[1])),
+            "x_d": repr(float(d[0] * scale + offset[0])), "y_d": repr(float(d[1] * scale + offset[1])),
+            "clear": int(bool(ok)),
+        })  # fmt: skip
+    write_points(path, ["x_obj", "y_obj", "x_u", "y_u", "x_d", "y_d", "clear"], rows)
+
+
+def print_summary(s: dict) -> None:
+    from rich.table import Table
+
+    out = console()
+    r, g = s["relay"], s["grid"]
+    out.print(
+        f"OAP relay: d1 = {r['d1_mm']:g} mm, orientation {r['orientation']}, stop "
+        f"{r['stop_distance_mm']:g} mm after the first mirror, f = {r['focal_length_mm']:g} mm; "
+        f"{g['n']}x{g['n']} grid over {g['field_mm']:g} mm, {g['pixel_size_um']:g} um pixels; "
+        f"paraxial magnification {s['magnification']:.6f}"
+    )
+    if g["n_vignetted"]:
+        out.print(f"[yellow]{g['n_vignetted']} chief rays fall outside a mirror's diameter[/yellow]")
+    paper = s["paper"] or {}
+    d, f = s["distortion"], s["radial_fit"]
+    table = Table(title="Grid distortion |real - paraxial|", title_justify="left")
+    for col in ("", "oapcal um", "oapcal px", "paper um", "paper px"):
+        table.add_column(col, justify="right")
+
+    def cell(key):
+        return f"{paper[key]:g}" if key in paper else "-"
+
+    table.add_row("max", f"{d['max_um']:.1f}", f"{d['max_px']:.2f}", cell("max_um"), cell("max_px"))
+    table.add_row("mean", f"{d['mean_um']:.1f}", f"{d['mean_px']:.2f}", cell("mean_um"), cell("mean_px"))
+    table.add_row("max |dx|", f"{d['max_abs_dx_um']:.1f}", f"{d['max_abs_dx_px']:.2f}", "-", "-")
+    table.add_row("max |dy|", f"{d['max_abs_dy_um']:.1f}", f"{d['max_abs_dy_px']:.2f}", "-", "-")
+    table.add_row(
+        "radial fit, mean residual", f"{f['mean_residual_um']:.1f}", f"{f['mean_residual_px']:.2f}",
+        cell("radial_fit_mean_um"), cell("radial_fit_mean_px"),
+    )  # fmt: skip
+    out.print(table)
+    q = s["quality"]
+    out.print(
+        f"Beam {q['beam_diameter_mm']:g} mm at {q['wavelength_nm']:g} nm: NA {q['na']:.4f} "
+        f"(traced {q['na_traced']:.4f}; paper 0.193), Sparrow {q['sparrow_um']:.2f} um (paper 2.07), "
+        f"Rayleigh {q['rayleigh_um']:.2f} um, pixel limit {q['pixel_limit_um']:.2f} um"
+    )
+    spots = Table(title="RMS spot radius (um)", title_justify="left")
+    spots.add_column("field (mm)")
+    spots.add_column("U", justify="right")
+    spots.add_column("Z", justify="right")
+    by_field: dict = {}
+    for spot in q["spots"]:
+        by_field.setdefault(tuple(spot["field_mm"]), {})[spot["orientation"]] = spot["rms_um"]
+    for field, values in by_field.items():
+        spots.add_row(f"({field[0]:g}, {field[1]:g})", f"{values['U']:.2f}", f"{values['Z']:.2f}")
+    out.print(spots)

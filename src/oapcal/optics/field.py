@@ -1,0 +1,206 @@
+"""A dense, smoothly interpolated distortion field of a relay in camera pixels.
+
+Camera px follow ``docs/conventions.md`` (origin at the centre of the top-left pixel,
+x = column, y = row); the optical axis (the field centre) is imaged at the image centre
+``((w - 1) / 2, (h - 1) / 2)``.  *Paraxial* px are where the paraxial (linear) map puts a
+point, *real* px where its real chief ray lands.
+
+>>> field = relay_distortion(1, grid=33)
+>>> xy_d = field.forward([[100.0, 50.0]])
+>>> bool(abs(field.inverse(xy_d) - [[100.0, 50.0]]).max() < 1e-6)
+True
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from oapcal.errors import GeometrySpecError
+from oapcal.optics.relay import Relay, apply_matrix, chief_rays, oap_relay, paraxial_matrix
+
+
+@dataclass(frozen=True, eq=False)
+class DistortionField:
+    """Paraxial <-> real camera px of a relay, from a densely traced grid.
+
+    The displacement ``real - paraxial`` is traced on a regular grid of paraxial px
+    covering the image plus a margin (``x_nodes``, ``y_nodes``), and interpolated by
+    bicubic splines (``scipy.interpolate.RectBivariateSpline``, exact at the nodes).
+    ``matrix`` is the paraxial map (object mm -> image mm, see
+    :func:`oapcal.optics.relay.paraxial_matrix`).  Outside the traced grid, results are NaN.
+    """
+
+    relay: Relay
+    pixel_size_um: float
+    image_size: tuple[int, int]
+    matrix: np.ndarray
+    x_nodes: np.ndarray
+    y_nodes: np.ndarray
+    _spline_x: object
+    _spline_y: object
+    _start_tree: object = None
+    _start_nodes: object = None
+    #: ``(nx, ny)`` bool: the chief ray of a node misses a real mirror (outside its diameter).
+    vignetted_nodes: object = None
+
+    @property
+    def centre(self) -> np.ndarray:
+        """The image centre ``((w - 1) / 2, (h - 1) / 2)`` in px, where the axis is imaged."""
+        w, h = self.image_size
+        return np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+
+    def paraxial_from_object_um(self, xy_obj_um) -> np.ndarray:
+        """Object-plane um ``(..., 2)`` -> paraxial camera px ``(..., 2)`` (the linear map,
+        with the relay's magnification and image orientation)."""
+        xy = apply_matrix(self.matrix, np.asarray(xy_obj_um, float)) / self.pixel_size_um
+        return xy + self.centre
+
+    def object_um_from_paraxial(self, xy_u_px) -> np.ndarray:
+        """The inverse of :meth:`paraxial_from_object_um`."""
+        inv = np.linalg.inv(self.matrix)
+        return apply_matrix(inv, (np.asarray(xy_u_px, float) - self.centre) * self.pixel_size_um)
+
+    def _inside(self, x, y):
+        return (
+            (x >= self.x_nodes[0])
+            & (x <= self.x_nodes[-1])
+            & (y >= self.y_nodes[0])
+            & (y <= self.y_nodes[-1])
+        )
+
+    def displacement(self, xy_u_px, dx: int = 0, dy: int = 0) -> np.ndarray:
+        """Interpolated ``real - paraxial`` px (or its derivatives) at paraxial px ``(..., 2)``."""
+        xy = np.asarray(xy_u_px, dtype=float)
+        x, y = xy[..., 0], xy[..., 1]
+        out = np.stack(
+            [
+                self._spline_x.ev(x, y, dx=dx, dy=dy),
+                self._spline_y.ev(x, y, dx=dx, dy=dy),
+            ],
+            axis=-1,
+        )
+        return np.where(self._inside(x, y)[..., None], out, np.nan)
+
+    def forward(self, xy_u_px) -> np.ndarray:
+        """Paraxial camera px ``(..., 2)`` -> real (distorted) camera px ``(..., 2)``."""
+        xy = np.asarray(xy_u_px, dtype=float)
+        return xy + self.displacement(xy)
+
+    def inverse(self, xy_d_px, *, tol: float = 1e-9, max_iter: int = 30) -> np.ndarray:
+        """Real camera px ``(..., 2)`` -> paraxial camera px ``(..., 2)``.
+
+        Newton iteration on the interpolated forward map (its Jacobian from the spline
+        derivatives), started at the traced node whose real image is nearest (a k-d tree
+        over the nodes where the traced map is locally one-to-one); stops when
+        ``|forward(x) - xy_d| <= tol`` px.  Points that do not converge within ``max_iter``
+        iterations, whose solution lies outside the traced grid, or where the map folds
+        (Jacobian determinant <= 0) are NaN.
+        """
+        target = np.asarray(xy_d_px, dtype=float)
+        with np.errstate(invalid="ignore"):
+            flat = target.reshape(-1, 2)
+            ok = np.isfinite(flat).all(axis=-1)
+            start = np.full(flat.shape, np.nan)
+            _, idx = self._start_tree.query(flat[ok])
+            start[ok] = self._start_nodes[idx]
+            u = start.reshape(target.shape)
+            res = self.forward(u) - target
+            err = np.hypot(res[..., 0], res[..., 1])
+            for _ in range(max_iter):
+                active = err > tol
+                if not active.any():
+                    break
+                jxx, jyx = np.moveaxis(self.displacement(u, dx=1), -1, 0)
+                jxy, jyy = np.moveaxis(self.displacement(u, dy=1), -1, 0)
+                a, b, c, d = 1.0 + jxx, jxy, jyx, 1.0 + jyy
+                det = a * d - b * c
+                step = np.stack([d * res[..., 0] - b * res[..., 1], -c * res[..., 0] + a * res[..., 1]], -1)
+                u = np.where(active[..., None], u - step / det[..., None], u)
+                res = self.forward(u) - target
+                err = np.hypot(res[..., 0], res[..., 1])
+            jx = self.displacement(u, dx=1)
+            jy = self.displacement(u, dy=1)
+            det = (1.0 + jx[..., 0]) * (1.0 + jy[..., 1]) - jy[..., 0] * jx[..., 1]
+        return np.where(((err <= tol) & (det > 0))[..., None], u, np.nan)
+
+    def traced(self, xy_u_px) -> np.ndarray:
+        """Real camera px by tracing the chief rays exactly (no interpolation)."""
+        obj_mm = self.object_um_from_paraxial(xy_u_px) * 1e-3
+        image_mm = chief_rays(self.relay, obj_mm).xy_mm
+        return image_mm * (1e3 / self.pixel_size_um) + self.centre
+
+
+def relay_distortion(
+    setup: int | None = 1,
+    *,
+    d1_mm: float | None = None,
+    orientation: str = "U",
+    stop_distance_mm: float | None = None,
+    focal_length_mm: float = 50.8,
+    pixel_size_um: float = 4.8,
+    image_size: tuple[int, int] = (640, 480),
+    grid: int = 97,
+) -> DistortionField:
+    """The traced distortion field of a relay (:func:`oapcal.optics.relay.oap_relay`)
+    seen by a camera of ``image_size`` (w, h) px of ``pixel_size_um``.
+
+    ``grid`` nodes are traced along the longer image side (proportionally fewer along the
+    shorter) over the image plus a margin of 16 px plus 1.1 times the largest displacement
+    found on the image border, so that :meth:`DistortionField.inverse` covers every real
+    pixel of the image.  The mirrors are treated as unbounded surfaces here: at large
+    fields chief rays may fall outside the real mirrors (vignetting), see
+    ``DistortionField.vignetted_nodes``.
+    """
+    from scipy.interpolate import RectBivariateSpline
+    from scipy.spatial import cKDTree
+
+    if not (float(pixel_size_um) > 0):
+        raise GeometrySpecError(f"the pixel size must be a positive number of um, got {pixel_size_um}")
+    w, h = (int(v) for v in image_size)
+    if w < 2 or h < 2:
+        raise GeometrySpecError(f"the image size must be at least 2x2 px, got {w}x{h}")
+    if int(grid) < 8:
+        raise GeometrySpecError(f"the distortion grid needs at least 8 nodes a side, got {grid}")
+    relay = oap_relay(
+        setup, d1_mm=d1_mm, orientation=orientation, stop_distance_mm=stop_distance_mm,
+        focal_length_mm=focal_length_mm,
+    )  # fmt: skip
+    matrix = paraxial_matrix(relay)
+    probe = DistortionField(relay, float(pixel_size_um), (w, h), matrix, np.zeros(1), np.zeros(1), None, None)
+    # The largest displacement on the image border sets the margin.
+    t = np.linspace(0.0, 1.0, 65)
+    lo, hi = np.array([-0.5, -0.5]), np.array([w - 0.5, h - 0.5])
+    border = np.concatenate([
+        np.stack([lo[0] + t * (hi[0] - lo[0]), np.full_like(t, lo[1])], -1),
+        np.stack([lo[0] + t * (hi[0] - lo[0]), np.full_like(t, hi[1])], -1),
+        np.stack([np.full_like(t, lo[0]), lo[1] + t * (hi[1] - lo[1])], -1),
+        np.stack([np.full_like(t, hi[0]), lo[1] + t * (hi[1] - lo[1])], -1),
+    ])  # fmt: skip
+    shift = np.hypot(*(probe.traced(border) - border).T).max()
+    margin = 16.0 + 1.1 * shift
+    n_long = int(grid)
+    n_short = max(8, int(np.ceil(n_long * min(w, h) / max(w, h))))
+    nx, ny = (n_long, n_short) if w >= h else (n_short, n_long)
+    xs = np.linspace(lo[0] - margin, hi[0] + margin, nx)
+    ys = np.linspace(lo[1] - margin, hi[1] + margin, ny)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    nodes = np.stack([gx, gy], axis=-1)
+    disp = probe.traced(nodes) - nodes
+    if not np.isfinite(disp).all():
+        raise GeometrySpecError(
+            "some chief rays miss a mirror surface over this image; choose a smaller image or pixel size"
+        )
+    spline_x = RectBivariateSpline(xs, ys, disp[..., 0], kx=3, ky=3)
+    spline_y = RectBivariateSpline(xs, ys, disp[..., 1], kx=3, ky=3)
+    # Start points of the inverse: nodes where the traced map is locally one-to-one.
+    real = nodes + disp
+    dxx, dxy = np.gradient(real[..., 0], xs, ys)
+    dyx, dyy = np.gradient(real[..., 1], xs, ys)
+    good = (dxx * dyy - dxy * dyx) > 0
+    vignetted = ~chief_rays(relay, probe.object_um_from_paraxial(nodes) * 1e-3).clear
+    return DistortionField(
+        relay, float(pixel_size_um), (w, h), matrix, xs, ys, spline_x, spline_y,
+        cKDTree(real[good]), nodes[good], vignetted,
+    )  # fmt: skip

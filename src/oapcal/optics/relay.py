@@ -1,0 +1,347 @@
+"""The OAP relay: two identical 90-degree off-axis parabolic mirrors, exact chief rays,
+the paraxial map and grid distortion (``docs/optics.md`` explains every choice).
+
+Global frame (mm, right-handed): the object point on the axis sits at the origin, the
+focus ``F1`` of the first mirror (OAP 1 here, the paper's OAP 2), whose parent
+paraboloid opens along ``+z`` with parent focal length ``f_p = f / 2`` (vertex at
+``(0, 0, -f_p)``).  The mirror centre is ``(0, f, 0)``: light from ``F1`` leaves along
+``+y``, is folded by 90 degrees and travels along ``+z`` through the collimated space to
+the second mirror (the paper's OAP 3) centred at ``(0, f, d1)``.
+
+* Orientation ``U``: the second parent paraboloid shares the first's axis (the ``z``
+  axis) and opens along ``-z``; its focus ``F2 = (0, 0, d1)``, the outgoing chief ray
+  travels along ``-y``.  The relay is mirror-symmetric about the plane ``z = d1 / 2``;
+  this orientation cancels the field-dependent astigmatism.
+* Orientation ``Z``: the second mirror rotated by 180 degrees about the collimated
+  chief ray (``(x, y, z) -> (-x, 2f - y, z)``): focus ``(0, 2f, d1)``, outgoing chief
+  ray along ``+y``; the relay is point-symmetric about the middle of the collimated path.
+
+The fold plane is ``x = 0``; the relay is symmetric under ``x -> -x``.  The object plane
+is normal to the chief ray leaving ``F1`` (``+y``) with axes ``x_obj = +x`` and
+``y_obj = +z`` (the off-axis direction), chosen so that ``x_obj x y_obj`` points back
+towards the mirror: ``(x_obj, y_obj)`` are the column and row directions of the object
+as seen from the mirror, like a camera's.  The image plane passes through the second
+focus, normal to the outgoing chief ray, with the object axes carried along the central
+ray by the two reflections (again a camera's column and row directions).
+
+>>> relay = oap_relay(1)
+>>> relay.d1_mm, relay.orientation
+(860.0, 'U')
+>>> import numpy as np
+>>> np.round(paraxial_matrix(relay), 9) + 0.0  # an orthogonal, magnification-1 map
+array([[-1.,  0.],
+       [ 0., -1.]])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from oapcal.errors import GeometrySpecError
+from oapcal.optics.surfaces import Paraboloid, Plane, reflect
+from oapcal.optics.trace import TraceResult, trace
+
+#: Collimated path length ``d1`` (mm) of the paper's two test setups.
+SETUP_D1_MM: dict[int, float] = {1: 860.0, 2: 660.0}
+ORIENTATIONS = ("U", "Z")
+#: Reflected focal length and diameter of the paper's OAPs (mm).
+DEFAULT_FOCAL_LENGTH_MM = 50.8
+DEFAULT_DIAMETER_MM = 50.8
+
+
+@dataclass(frozen=True)
+class Relay:
+    """An OAP relay (build one with :func:`oap_relay`).
+
+    ``m1``, ``m2`` the two mirrors; ``object_plane`` (origin ``F1``), ``stop`` (a plane
+    across the collimated path, normal ``+z``, the chief rays pass through its
+    ``point``) and ``image_plane`` (origin ``F2``) carry local ``ex, ey`` axes.
+    """
+
+    focal_length_mm: float
+    diameter_mm: float
+    d1_mm: float
+    orientation: str
+    stop_distance_mm: float
+    m1: Paraboloid
+    m2: Paraboloid
+    object_plane: Plane
+    stop: Plane
+    image_plane: Plane
+    #: Transverse axes of ``m1`` used to parametrize its surface when aiming rays.
+    m1_axes: tuple = field(repr=False, default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)))
+
+    @property
+    def mirrors(self) -> tuple[Paraboloid, Paraboloid]:
+        return (self.m1, self.m2)
+
+
+def _check_positive(value, name: str) -> float:
+    value = float(value)
+    if not (np.isfinite(value) and value > 0):
+        raise GeometrySpecError(f"{name} must be a positive number of mm, got {value:g}")
+    return value
+
+
+def oap_relay(
+    setup: int | None = 1,
+    *,
+    d1_mm: float | None = None,
+    orientation: str = "U",
+    stop_distance_mm: float | None = None,
+    focal_length_mm: float = DEFAULT_FOCAL_LENGTH_MM,
+    diameter_mm: float = DEFAULT_DIAMETER_MM,
+) -> Relay:
+    """Build the relay of the paper's setup ``1`` (d1 = 860 mm) or ``2`` (660 mm), or of
+    any collimated path length ``d1_mm`` (which overrides ``setup``).
+
+    ``orientation`` is ``"U"`` (parent axes coincide; default) or ``"Z"`` (second mirror
+    rotated by 180 degrees).  ``stop_distance_mm`` puts the aperture stop on a plane
+    across the collimated path at that distance from the first mirror's centre (``None``
+    or 0: at the first mirror, so chief rays pass through its centre).  ``focal_length_mm``
+    is the reflected focal length ``f`` of both mirrors (parent focal length ``f / 2``,
+    off-axis distance ``f``), ``diameter_mm`` their diameter.
+    """
+    if d1_mm is None:
+        if setup not in SETUP_D1_MM:
+            raise GeometrySpecError(
+                f"unknown setup {setup!r}: use 1 (d1 = 860 mm) or 2 (d1 = 660 mm), or give d1 in mm"
+            )
+        d1_mm = SETUP_D1_MM[setup]
+    d1 = _check_positive(d1_mm, "d1 (the collimated path length)")
+    f = _check_positive(focal_length_mm, "the focal length")
+    diameter = _check_positive(diameter_mm, "the mirror diameter")
+    key = str(orientation).strip().upper()
+    if key not in ORIENTATIONS:
+        raise GeometrySpecError(f"unknown orientation {orientation!r}: use U (default) or Z")
+    stop = 0.0 if stop_distance_mm is None else float(stop_distance_mm)
+    if not (np.isfinite(stop) and 0.0 <= stop <= d1):
+        raise GeometrySpecError(
+            f"the stop distance {stop:g} mm is outside the collimated path: give 0 .. {d1:g} mm"
+        )
+    fp = 0.5 * f
+    m1 = Paraboloid(
+        vertex=(0.0, 0.0, -fp), axis=(0.0, 0.0, 1.0), focal_length=fp,
+        aperture_centre=(0.0, f, 0.0), aperture_radius=0.5 * diameter,
+    )  # fmt: skip
+    y_vertex = 0.0 if key == "U" else 2.0 * f
+    m2 = Paraboloid(
+        vertex=(0.0, y_vertex, d1 + fp), axis=(0.0, 0.0, -1.0), focal_length=fp,
+        aperture_centre=(0.0, f, d1), aperture_radius=0.5 * diameter,
+    )  # fmt: skip
+    obj = Plane(point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0), ex=(1.0, 0.0, 0.0), ey=(0.0, 0.0, 1.0))
+    stop_plane = Plane(point=(0.0, f, stop), normal=(0.0, 0.0, 1.0), ex=(1.0, 0.0, 0.0), ey=(0.0, 1.0, 0.0))
+    # Carry the object axes along the central ray through both reflections.
+    axes = np.array([obj.ex, obj.ey, obj.normal])
+    for mirror in (m1, m2):
+        centre = np.asarray(mirror.aperture_centre)
+        axes = reflect(axes, mirror.normal(centre)[None, :])
+    image = Plane(point=tuple(m2.focus), normal=axes[2], ex=axes[0], ey=axes[1])
+    return Relay(
+        focal_length_mm=f, diameter_mm=diameter, d1_mm=d1, orientation=key, stop_distance_mm=stop,
+        m1=m1, m2=m2, object_plane=obj, stop=stop_plane, image_plane=image,
+    )  # fmt: skip
+
+
+# ------------------------------------------------------------------------ ray aiming
+
+
+@dataclass(frozen=True)
+class AimResult:
+    """Rays from object points aimed through targets on the stop plane.
+
+    ``hit`` ``(..., 3)`` the point on the first mirror, ``direction`` ``(..., 3)`` the unit
+    direction after it, ``converged`` ``(...)`` bool (the
+    ray passes the target within ``tol``), ``miss_mm`` the remaining distance, ``n_iter``.
+    """
+
+    hit: np.ndarray
+    direction: np.ndarray
+    converged: np.ndarray
+    miss_mm: np.ndarray
+    n_iter: int
+
+
+def _stop_residual(relay: Relay, points, u, v, target_xy):
+    e1, e2 = relay.m1_axes
+    q = relay.m1.point_at(u, v, e1, e2)
+    d_in = q - points
+    d_in = d_in / np.linalg.norm(d_in, axis=-1, keepdims=True)
+    d_out = reflect(d_in, relay.m1.normal(q))
+    t = relay.stop.intersect(q, d_out)
+    return relay.stop.local(q + t[..., None] * d_out) - target_xy, q, d_out
+
+
+def aim(relay: Relay, points, target_xy, *, tol: float = 1e-10, max_iter: int = 30) -> AimResult:
+    """Find, for object points ``(..., 3)``, the rays that pass through ``target_xy``
+    ``(..., 2)`` (stop-plane coordinates, mm) after the first mirror.
+
+    The unknown is the hit point on the first mirror, parametrized by its transverse
+    coordinates ``(u, v)``; Newton iteration with a forward-difference 2x2 Jacobian
+    (step 1e-6 mm), started where a ray parallel to the mirror axis through the target
+    would hit (exact for the object point at the focus).  Converged where the ray passes
+    within ``tol`` mm of its target.
+    """
+    points = np.asarray(points, dtype=float)
+    target_xy = np.asarray(target_xy, dtype=float)
+    shape = np.broadcast_shapes(points.shape[:-1], target_xy.shape[:-1])
+    points = np.broadcast_to(points, shape + (3,))
+    target_xy = np.broadcast_to(target_xy, shape + (2,))
+    e1, e2 = (np.asarray(e) for e in relay.m1_axes)
+    start = relay.stop.world(target_xy) - np.asarray(relay.m1.vertex)
+    u = start @ e1
+    v = start @ e2
+    h = 1e-6
+    n_iter = 0
+    with np.errstate(all="ignore"):
+        res, q, d_out = _stop_residual(relay, points, u, v, target_xy)
+        miss = np.hypot(res[..., 0], res[..., 1])
+        for n_iter in range(1, max_iter + 1):
+            active = ~(miss <= tol) & np.isfinite(miss)
+            if not active.any():
+                n_iter -= 1
+                break
+            ru = _stop_residual(relay, points, u + h, v, target_xy)[0]
+            rv = _stop_residual(relay, points, u, v + h, target_xy)[0]
+            a = (ru[..., 0] - res[..., 0]) / h
+            c = (ru[..., 1] - res[..., 1]) / h
+            b = (rv[..., 0] - res[..., 0]) / h
+            d = (rv[..., 1] - res[..., 1]) / h
+            det = a * d - b * c
+            du = -(d * res[..., 0] - b * res[..., 1]) / det
+            dv = -(-c * res[..., 0] + a * res[..., 1]) / det
+            u = np.where(active, u + du, u)
+            v = np.where(active, v + dv, v)
+            res, q, d_out = _stop_residual(relay, points, u, v, target_xy)
+            miss = np.hypot(res[..., 0], res[..., 1])
+    return AimResult(hit=q, direction=d_out, converged=miss <= tol, miss_mm=miss, n_iter=n_iter)
+
+
+# ------------------------------------------------------------------------ chief rays
+
+
+@dataclass(frozen=True)
+class RayImage:
+    """Rays traced from object points to the image plane.
+
+    ``xy_mm`` ``(..., 2)`` image-plane coordinates, ``clear`` ``(...)`` bool (every ray
+    hit both mirrors inside their diameter and was aimed to tolerance); ``trace`` the
+    full :class:`~oapcal.optics.trace.TraceResult` from the first mirror on.
+    """
+
+    xy_mm: np.ndarray
+    clear: np.ndarray
+    trace: TraceResult
+
+
+def trace_through_stop(relay: Relay, xy_obj_mm, stop_xy_mm) -> RayImage:
+    """Trace rays from object points ``(..., 2)`` (object-plane mm) through points
+    ``(..., 2)`` of the stop plane (mm from its centre) to the image plane."""
+    points = relay.object_plane.world(xy_obj_mm)
+    aimed = aim(relay, points, stop_xy_mm)
+    result = trace(aimed.hit, aimed.direction, [relay.m2], relay.image_plane)
+    clear = result.clear & aimed.converged & relay.m1.inside(aimed.hit)
+    full = TraceResult((aimed.hit,) + result.hits, result.points, result.xy, result.direction, clear)
+    return RayImage(result.xy, clear, full)
+
+
+def chief_rays(relay: Relay, xy_obj_mm) -> RayImage:
+    """Real chief rays (through the stop centre) of object points ``(..., 2)`` in mm."""
+    xy_obj_mm = np.asarray(xy_obj_mm, dtype=float)
+    return trace_through_stop(relay, xy_obj_mm, np.zeros(xy_obj_mm.shape))
+
+
+def paraxial_matrix(relay: Relay, step_mm: float = 1e-4) -> np.ndarray:
+    """The 2x2 Jacobian ``d(image xy) / d(object xy)`` of the chief-ray map at the field
+    centre, by central differences (error ~ step^2 x third derivative, ~1e-9 here).
+
+    It maps object-plane mm to image-plane mm; paraxial image points are
+    ``xy_obj @ J.T``.
+    """
+    h = float(step_mm)
+    probes = np.array([[h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])
+    xy = chief_rays(relay, probes).xy_mm
+    return np.stack([(xy[0] - xy[1]) / (2 * h), (xy[2] - xy[3]) / (2 * h)], axis=-1)
+
+
+# ------------------------------------------------------------------- grid distortion
+
+
+@dataclass(frozen=True)
+class GridDistortion:
+    """Paraxial and real chief-ray image points of an object grid (all mm).
+
+    ``xy_obj`` ``(N, 2)`` object points, row by row (y outer, x inner, both ascending);
+    ``xy_u`` paraxial image points ``xy_obj @ matrix.T``; ``xy_d`` real chief-ray image
+    points; ``clear`` ``(N,)`` chief ray not vignetted; ``matrix`` the paraxial map.
+    """
+
+    relay: Relay
+    field_mm: float
+    n: int
+    xy_obj: np.ndarray
+    xy_u: np.ndarray
+    xy_d: np.ndarray
+    clear: np.ndarray
+    matrix: np.ndarray
+
+    @property
+    def displacement(self) -> np.ndarray:
+        """``xy_d - xy_u`` ``(N, 2)`` in mm."""
+        return self.xy_d - self.xy_u
+
+    @property
+    def distortion(self) -> np.ndarray:
+        """``|xy_d - xy_u|`` ``(N,)`` in mm."""
+        return np.hypot(*self.displacement.T)
+
+
+def object_grid(n: int, field_mm: float) -> np.ndarray:
+    """A square ``n x n`` grid ``(n*n, 2)`` spanning ``field_mm`` (full width), centred."""
+    if int(n) < 2:
+        raise GeometrySpecError(f"the grid needs at least 2 points a side, got {n}")
+    field_mm = _check_positive(field_mm, "the field width")
+    s = np.linspace(-0.5 * field_mm, 0.5 * field_mm, int(n))
+    gx, gy = np.meshgrid(s, s)
+    return np.stack([gx.ravel(), gy.ravel()], axis=-1)
+
+
+def grid_distortion(relay: Relay, n: int = 17, field_mm: float = 1.0) -> GridDistortion:
+    """Trace the chief rays of an ``n x n`` object grid over ``field_mm`` x ``field_mm``."""
+    xy_obj = object_grid(n, field_mm)
+    matrix = paraxial_matrix(relay)
+    real = chief_rays(relay, xy_obj)
+    return GridDistortion(relay, float(field_mm), int(n), xy_obj, apply_matrix(matrix, xy_obj), real.xy_mm,
+                          real.clear, matrix)  # fmt: skip
+
+
+def apply_matrix(matrix: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """``xy @ matrix.T`` for points ``(..., 2)``, written out (NumPy's matmul with a 2x2
+    right operand is several times slower on a million points)."""
+    xy = np.asarray(xy, dtype=float)
+    x, y = xy[..., 0], xy[..., 1]
+    return np.stack([matrix[0, 0] * x + matrix[0, 1] * y, matrix[1, 0] * x + matrix[1, 1] * y], axis=-1)
+
+
+def radial_fit(grid: GridDistortion):
+    """Fit the second-order radial model (``k1`` with free centre and magnification,
+    preset ``radial``) to a grid after the paper's grid normalization.
+
+    Returns ``(fit result, mean forward residual in mm, mean correction residual in mm)``:
+    the forward residual is ``|distort(u) - d|`` converted from normalized distorted units
+    back to image mm; the correction residual (the paper's Table-1 convention) corrects
+    the real points through the fitted inverse and compares them with the paraxial points
+    in image mm.
+    """
+    from oapcal.fit import fit
+    from oapcal.model import distort
+    from oapcal.normalize import normalize_grid
+    from oapcal.stats import correction_residuals
+
+    norm = normalize_grid(grid.xy_u, grid.xy_d)
+    result = fit(norm.xy_u, norm.xy_d, "radial", init="zero")
+    forward = np.hypot(*(distort(norm.xy_u, result.params) - norm.xy_d).T).mean() / norm.scale_d
+    corrected = correction_residuals(result.params, norm.xy_u, norm.xy_d).mean_px / norm.scale_u
+    return result, float(forward), float(corrected)
