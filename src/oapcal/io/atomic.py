@@ -17,6 +17,19 @@ from pathlib import Path
 from oapcal.errors import OutputError
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _publish(tmp: str, path: Path) -> None:
+    """Give the temporary file ordinary permissions (mkstemp makes it 0600), then rename."""
+    with contextlib.suppress(OSError):
+        os.chmod(tmp, 0o666 & ~_umask())
+    os.replace(tmp, path)
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Iterator:
     """Open a temporary file beside ``path`` and rename it to ``path`` on success.
@@ -41,7 +54,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Ite
     try:
         with os.fdopen(fd, mode, **open_kwargs) as fh:
             yield fh
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -63,7 +76,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -86,3 +99,42 @@ def ensure_not_input(output: str | os.PathLike, inputs: Iterable[str | os.PathLi
             raise OutputError(
                 f"{output}: this output would overwrite the input {inp}; choose another output path"
             )
+
+
+def safe_output_path(out_dir: str | os.PathLike, name: str | os.PathLike) -> Path:
+    """``out_dir / name``, refusing names that would escape ``out_dir``.
+
+    Refused: absolute names, names with ``..`` or empty parts, and names whose resolved
+    path leaves ``out_dir`` (through a symbolic link inside it, for instance).
+
+    >>> str(safe_output_path("out", "a.tif"))
+    'out/a.tif'
+    >>> safe_output_path("out", "../a.tif")
+    Traceback (most recent call last):
+    ...
+    oapcal.errors.OutputError: '../a.tif': an output name must stay inside the output directory out (no '..', no absolute path, no link leading out)
+    """
+    out_dir = Path(out_dir)
+    text = os.fspath(name)
+    parts = Path(text).parts
+    bad = (
+        not text
+        or os.path.isabs(text)
+        or any(part in ("..", "") for part in parts)
+        or "\x00" in text
+        or text.startswith("~")
+    )
+    target = out_dir / text
+    if not bad:
+        bad = not target.resolve().is_relative_to(out_dir.resolve())
+        # A link inside out_dir (the file itself or a folder on the way) may point elsewhere.
+        probe = target
+        while not bad and probe != out_dir and probe != probe.parent:
+            bad = probe.is_symlink()
+            probe = probe.parent
+    if bad:
+        raise OutputError(
+            f"{text!r}: an output name must stay inside the output directory {out_dir} "
+            "(no '..', no absolute path, no link leading out)"
+        )
+    return target
