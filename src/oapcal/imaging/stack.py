@@ -101,7 +101,9 @@ def expand_inputs(
             dirs.append(path)
             found = sorted(p for p in path.iterdir() if usable(p))
             if not found:
-                failures.append(FileResult(text, None, "failed", message=f"{text}: the directory holds no images"))
+                failures.append(
+                    FileResult(text, None, "failed", message=f"{text}: the directory holds no images")
+                )
             for p in found:
                 add(p)
         elif path.exists():
@@ -121,7 +123,9 @@ def expand_inputs(
             found = sorted(Path(p) for p in glob.glob(text, recursive=True))
             found = [p for p in found if usable(p) or (p.is_dir() and p.suffix.lower() in suffixes)]
             if not found:
-                failures.append(FileResult(text, None, "failed", message=f"{text}: the pattern matches no images"))
+                failures.append(
+                    FileResult(text, None, "failed", message=f"{text}: the pattern matches no images")
+                )
             for p in found:
                 add(p)
         else:
@@ -129,7 +133,9 @@ def expand_inputs(
     return files, failures, dirs
 
 
-def plan_outputs(files: Sequence[Path], out_dir: str | Path, dirs: Sequence[Path] = (), protect=()) -> list[Path]:
+def plan_outputs(
+    files: Sequence[Path], out_dir: str | Path, dirs: Sequence[Path] = (), protect=()
+) -> list[Path]:
     """The output path of every input file (``out_dir / name``), after checking that the
     output directory is not, and does not contain, an input (file or directory), that no
     two inputs share a name, and that no output is a protected file (the calibration)."""
@@ -193,7 +199,8 @@ class MapCache:
         if self.image_size and (cols, rows) != self.image_size and not self.allow:
             raise InputFileError(
                 f"{source}: image is {cols}x{rows} px but the calibration is for "
-                f"{self.image_size[0]}x{self.image_size[1]} px; give --allow-size-mismatch to correct it anyway"
+                f"{self.image_size[0]}x{self.image_size[1]} px; give --allow-size-mismatch "
+                "to correct it anyway"
             )
         if self.cmap is not None:
             shape = self.cmap.input_shape
@@ -326,7 +333,10 @@ def _correct_file(src: Path, dst: Path, cache: MapCache, interp, border, max_pix
     try:
         with open_frames(src, max_pixels) as (info, frames):
             cmap = cache.get(info.frame_shape, src)
-            with atomic_path(dst) as tmp, FrameWriter(tmp, info.kind, name, cmap.geometry.um_per_px) as writer:
+            with (
+                atomic_path(dst) as tmp,
+                FrameWriter(tmp, info.kind, name, cmap.geometry.um_per_px) as writer,
+            ):
                 out = None
                 for frame in frames:
                     out = correct_image(frame, cmap, interp, border, out=out)
@@ -338,7 +348,9 @@ def _correct_file(src: Path, dst: Path, cache: MapCache, interp, border, max_pix
     return FileResult(str(src), str(dst), "corrected", n)
 
 
-def correct_frames(frames: np.ndarray, cmap: CorrectionMap, interp: str = "linear", border: float = 0) -> np.ndarray:
+def correct_frames(
+    frames: np.ndarray, cmap: CorrectionMap, interp: str = "linear", border: float = 0
+) -> np.ndarray:
     """Correct an in-memory stack ``(frames, rows, cols[, ch])`` with one map."""
     out = np.empty((len(frames), *cmap.shape, *frames.shape[3:]), frames.dtype)
     for i, frame in enumerate(frames):

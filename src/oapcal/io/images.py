@@ -241,7 +241,10 @@ def read_image(path: str | Path, max_pixels: int = MAX_PIXELS) -> np.ndarray:
 
 def tiff_metadata(calibration_name: str | None, um_per_px: float | None) -> dict:
     """Keyword arguments for ``tifffile`` writes: JSON description and resolution tags."""
-    meta = {"software": "oapcal", "metadata": {"oapcal_calibration": calibration_name, "um_per_px": um_per_px}}
+    meta = {
+        "software": "oapcal",
+        "metadata": {"oapcal_calibration": calibration_name, "um_per_px": um_per_px},
+    }
     if um_per_px:
         meta["resolution"] = (1e4 / um_per_px, 1e4 / um_per_px)  # pixels per cm
         meta["resolutionunit"] = "CENTIMETER"
@@ -282,7 +285,9 @@ class FrameWriter:
 
             ok, buf = cv2.imencode(self.path.suffix, frame)
             if not ok:
-                raise InputFileError(f"{self.path}: OpenCV cannot encode a {frame.dtype} image as {self.path.suffix}")
+                raise InputFileError(
+                    f"{self.path}: OpenCV cannot encode a {frame.dtype} image as {self.path.suffix}"
+                )
             buf.tofile(self.path)
         self.n += 1
 
