@@ -316,7 +316,7 @@ def correct_stack(
         results[i] = _correct_file(src, dst, cache, interp, border, max_pixels, name, bar)
         bar.file()
 
-    with _Progress(progress, len(jobs), n_frames) as bar:
+    with _Progress(progress and bool(jobs), len(jobs), n_frames) as bar:
         if workers > 1 and len(jobs) > 1:
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 list(pool.map(run, jobs))

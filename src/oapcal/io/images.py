@@ -147,7 +147,9 @@ def probe(path: str | Path, max_pixels: int = MAX_PIXELS) -> ImageInfo:
         try:
             with tifffile.TiffFile(path) as tif:
                 if not tif.series:
-                    raise InputFileError(f"{path}: the TIFF file holds no image")
+                    raise InputFileError(
+                        f"{path}: cannot be read as a TIFF image (no image found; the file may be corrupt)"
+                    )
                 series = tif.series[0]
                 n_frames, frame = _tiff_layout(path, series)
                 dtype = np.dtype(series.dtype)
