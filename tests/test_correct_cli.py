@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
-from imaging_helpers import known_calibration, remap_reference, write_calibration
 
+from imaging_helpers import known_calibration, remap_reference, write_calibration
 from oapcal.imaging.stack import correct_stack
 
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
-from imaging_helpers import known_calibration, reference_maps
 
+from imaging_helpers import known_calibration, reference_maps
 from oapcal.errors import DataError, InputFileError
 from oapcal.imaging.remap import correct_image, correction_map, load_map, output_geometry, save_map
 from oapcal.model import params_from_dict, undistort

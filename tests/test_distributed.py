@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import tifffile
 import zarr
-from imaging_helpers import known_calibration, remap_reference, write_calibration
 
+from imaging_helpers import known_calibration, remap_reference, write_calibration
 from oapcal.imaging.distributed import correct_stack_dask
 from oapcal.model import params_from_dict
 

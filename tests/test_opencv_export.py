@@ -3,8 +3,8 @@ import json
 import cv2
 import numpy as np
 import pytest
-from imaging_helpers import known_calibration, reference_maps, write_calibration
 
+from imaging_helpers import known_calibration, reference_maps, write_calibration
 from oapcal.imaging.remap import output_geometry
 from oapcal.io.opencv_export import opencv_parameters
 from oapcal.model import params_from_dict
