@@ -8,7 +8,8 @@ Each subcommand lives in a module of this package and is imported only when it r
 * 2 a user error: a Click usage error, or any :class:`oapcal.errors.OapcalError`,
   printed as one line on stderr (no traceback);
 * 1 an internal error (set ``OAPCAL_DEBUG=1`` to see the traceback);
-* 3 the command ran but a numerical result failed (a fit that did not converge).
+* 3 the command ran but a numerical result failed (a fit that did not converge);
+* 4 a batch (``correct``) finished but some inputs failed (each reported on stderr).
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ COMMANDS: dict[str, str] = {
     "correct-points": "oapcal.cli.fit:correct_points_command",
     "demo": "oapcal.cli.demo:demo_command",
     "simulate": "oapcal.cli.simulate:simulate_group",
+    "correct": "oapcal.cli.correct:correct_command",
+    "export-opencv": "oapcal.cli.export:export_opencv_command",
 }
 
 

@@ -17,6 +17,23 @@ from pathlib import Path
 from oapcal.errors import OutputError
 
 
+def _read_umask() -> int:
+    mask = os.umask(0o22)
+    os.umask(mask)
+    return mask
+
+
+# Read once at import: os.umask can only be read by setting it, which is not thread-safe.
+_UMASK = _read_umask()
+
+
+def _publish(tmp: str, path: Path) -> None:
+    """Give the temporary file ordinary permissions (mkstemp makes it 0600), then rename."""
+    with contextlib.suppress(OSError):
+        os.chmod(tmp, 0o666 & ~_UMASK)
+    os.replace(tmp, path)
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Iterator:
     """Open a temporary file beside ``path`` and rename it to ``path`` on success.
@@ -41,7 +58,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Ite
     try:
         with os.fdopen(fd, mode, **open_kwargs) as fh:
             yield fh
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -63,7 +80,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -86,3 +103,43 @@ def ensure_not_input(output: str | os.PathLike, inputs: Iterable[str | os.PathLi
             raise OutputError(
                 f"{output}: this output would overwrite the input {inp}; choose another output path"
             )
+
+
+def safe_output_path(out_dir: str | os.PathLike, name: str | os.PathLike) -> Path:
+    """``out_dir / name``, refusing names that would escape ``out_dir``.
+
+    Refused: absolute names, names with ``..`` or empty parts, and names whose resolved
+    path leaves ``out_dir`` (through a symbolic link inside it, for instance).
+
+    >>> str(safe_output_path("out", "a.tif"))
+    'out/a.tif'
+    >>> try:
+    ...     safe_output_path("out", "../a.tif")
+    ... except OutputError:
+    ...     print("refused")
+    refused
+    """
+    out_dir = Path(out_dir)
+    text = os.fspath(name)
+    parts = Path(text).parts
+    bad = (
+        not text
+        or os.path.isabs(text)
+        or any(part in ("..", "") for part in parts)
+        or "\x00" in text
+        or text.startswith("~")
+    )
+    target = out_dir / text
+    if not bad:
+        bad = not target.resolve().is_relative_to(out_dir.resolve())
+        # A link inside out_dir (the file itself or a folder on the way) may point elsewhere.
+        probe = target
+        while not bad and probe != out_dir and probe != probe.parent:
+            bad = probe.is_symlink()
+            probe = probe.parent
+    if bad:
+        raise OutputError(
+            f"{text!r}: an output name must stay inside the output directory {out_dir} "
+            "(no '..', no absolute path, no link leading out)"
+        )
+    return target

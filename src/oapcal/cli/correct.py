@@ -1,0 +1,242 @@
+"""``oapcal correct``: correct images, stacks, directories (and with ``--dask``, huge stacks)."""
+
+from __future__ import annotations
+
+import click
+
+from oapcal.cli._common import check_output, console, parse_size, print_json
+
+GEOMETRY_HELP = (
+    "Output region: 'input' (default: the input's size and undistorted coordinates), 'full' "
+    "(the whole corrected field, nothing cut), 'calibrated' (the box of the calibration points)."
+)
+
+
+def geometry_options(func):
+    """``--extent``, ``--um-per-px``, ``--out-size`` (shared with ``export-opencv``)."""
+    func = click.option(
+        "--out-size",
+        default=None,
+        help="Fit the region into an output of WxH px (aspect kept). Excludes --um-per-px.",
+    )(func)
+    func = click.option(
+        "--um-per-px",
+        type=click.FloatRange(min=0, min_open=True),
+        default=None,
+        help="Output pixel size in um (needs a calibration fitted with --um-per-px).",
+    )(func)
+    func = click.option(
+        "--extent",
+        type=click.Choice(["input", "full", "calibrated"]),
+        default="input",
+        show_default=True,
+        help=GEOMETRY_HELP,
+    )(func)
+    return func
+
+
+@click.command("correct")
+@click.argument("calib", type=click.Path(dir_okay=False))
+@click.argument("inputs", nargs=-1)
+@click.option(
+    "--out-dir",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Directory for the corrected images (created; must not hold the inputs).",
+)
+@click.option(
+    "--interp",
+    type=click.Choice(["linear", "cubic", "lanczos", "nearest"]),
+    default="linear",
+    show_default=True,
+    help="Interpolation of cv2.remap.",
+)
+@click.option(
+    "--border", type=float, default=0.0, show_default=True, help="Value of pixels outside the input."
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Files corrected at once (threads); with --dask, local-cluster workers.",
+)
+@geometry_options
+@click.option(
+    "--save-map",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write the correction map (.npz, .npy or .tif/.tiff).",
+)
+@click.option(
+    "--map",
+    "map_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Use a saved map instead of building one (excludes the geometry options).",
+)
+@click.option(
+    "--allow-size-mismatch",
+    is_flag=True,
+    help="Correct images whose size differs from the calibration's.",
+)
+@click.option(
+    "--max-pixels",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Largest frame (pixels) read; checked before decoding. Default 2**28.",
+)
+@click.option("--overwrite", is_flag=True, help="Redo outputs that already exist (default: skip them).")
+@click.option("--dask", "use_dask", is_flag=True, help="Correct TIFF/zarr stacks with Dask, lazily.")
+@click.option(
+    "--scheduler",
+    default=None,
+    help="With --dask: a dask.distributed scheduler address (tcp://host:8786), or 'threads', "
+    "'synchronous', 'processes'. Default: a new local cluster.",
+)
+@click.option(
+    "--chunk-frames",
+    type=click.IntRange(min=1),
+    default=16,
+    show_default=True,
+    help="With --dask: frames per chunk (memory per task).",
+)
+@click.option(
+    "--dask-format",
+    type=click.Choice(["zarr", "tiff"]),
+    default="zarr",
+    show_default=True,
+    help="With --dask: write NAME.zarr or NAME.tif.",
+)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option("--json", "as_json", is_flag=True, help="Print the per-file results as one JSON object.")
+def correct_command(
+    calib, inputs, out_dir, interp, border, workers, extent, um_per_px, out_size, save_map, map_file,
+    allow_size_mismatch, max_pixels, overwrite, use_dask, scheduler, chunk_frames, dask_format, quiet,
+    as_json,
+):  # fmt: skip
+    """Correct images with a calibration: files, multi-page TIFF stacks, directories, globs.
+
+    Each INPUT is written to OUT_DIR under its own name and format, atomically; complete
+    outputs are skipped on a rerun. Unreadable inputs are reported and skipped; the exit
+    code is then 4.
+    """
+    from pathlib import Path
+
+    from oapcal.io.calibration import load_calibration
+    from oapcal.io.images import MAX_PIXELS
+
+    if not inputs and save_map is None:
+        raise click.UsageError("give INPUT images (with --out-dir), or --save-map to only write the map")
+    if inputs and out_dir is None:
+        raise click.UsageError("give --out-dir DIR for the corrected images")
+    if map_file and (extent != "input" or um_per_px or out_size):
+        raise click.UsageError("--map fixes the output geometry: drop --extent, --um-per-px and --out-size")
+    size = parse_size(out_size, "--out-size")
+    max_pixels = max_pixels or MAX_PIXELS
+    check_output(save_map, calib, map_file, *inputs)
+    cal = load_calibration(calib)
+    name = cal.name or Path(calib).name
+    geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
+    cmap = _prepare_map(cal, inputs, map_file, save_map, geometry, max_pixels)
+    if not inputs:
+        click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
+        return 0
+    if use_dask:
+        return _correct_dask(cal, inputs, out_dir, name, interp, border, workers, geometry, map_file,
+                             allow_size_mismatch, max_pixels, overwrite, scheduler, chunk_frames,
+                             dask_format, quiet, as_json, calib)  # fmt: skip
+    from oapcal.imaging.stack import correct_stack
+
+    report = correct_stack(
+        cal, inputs, out_dir, interp=interp, border=border, workers=workers, cmap=cmap,
+        allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, overwrite=overwrite,
+        calibration_name=name, protect=[calib] + ([map_file] if map_file else []),
+        progress=not quiet and not as_json, **({} if cmap else geometry),
+    )  # fmt: skip
+    results = [r.__dict__ for r in report.results]
+    return _finish(results, report.summary(), report.count("failed"), as_json)
+
+
+def _prepare_map(cal, inputs, map_file, save_map, geometry, max_pixels):
+    """The map given by --map, or built for --save-map (for the calibration's image size or
+    the first input's), or None (built per input size while correcting)."""
+    from oapcal.imaging.remap import correction_map, load_map
+    from oapcal.imaging.remap import save_map as write_map
+
+    if map_file:
+        cmap = load_map(map_file)
+    elif save_map:
+        shape = None
+        if cal.image_size:
+            shape = (cal.image_size[1], cal.image_size[0])
+        else:
+            from oapcal.imaging.stack import expand_inputs
+            from oapcal.io.images import probe
+
+            files = expand_inputs(inputs)[0]
+            if files:
+                shape = probe(files[0], max_pixels).frame_shape[:2]
+        if shape is None:
+            from oapcal.errors import DataError
+
+            raise DataError(
+                "--save-map needs the input image size: refit with 'oapcal fit --image-size WxH' "
+                "or give an input image"
+            )
+        cmap = correction_map(cal, shape, **geometry)
+    else:
+        return None
+    if save_map:
+        write_map(cmap, save_map)
+    return cmap
+
+
+def _correct_dask(cal, inputs, out_dir, name, interp, border, workers, geometry, map_file,
+                  allow_size_mismatch, max_pixels, overwrite, scheduler, chunk_frames, dask_format,
+                  quiet, as_json, calib):  # fmt: skip
+    from oapcal.errors import OapcalError
+    from oapcal.imaging.distributed import ZARR_SUFFIX, correct_stack_dask
+    from oapcal.imaging.stack import expand_inputs, plan_outputs
+    from oapcal.io.images import TIFF_SUFFIXES
+
+    files, failures, dirs = expand_inputs(inputs, suffixes=(*TIFF_SUFFIXES, ZARR_SUFFIX))
+    plan_outputs(files, out_dir, dirs, protect=[calib])
+    results = [f.__dict__ for f in failures]
+    n_failed = len(failures)
+    frames = 0
+    for path in files:
+        try:
+            r = correct_stack_dask(
+                cal, path, out_dir, output_format=dask_format, chunk_frames=chunk_frames, interp=interp,
+                border=border, map_path=map_file, allow_size_mismatch=allow_size_mismatch,
+                max_pixels=max_pixels, scheduler=scheduler, workers=workers, calibration_name=name,
+                overwrite=overwrite, progress=not quiet and not as_json,
+                **({} if map_file else geometry),
+            )  # fmt: skip
+        except (OapcalError, OSError) as exc:
+            n_failed += 1
+            results.append({"input": str(path), "output": None, "status": "failed", "frames": 0,
+                            "message": str(exc)})  # fmt: skip
+            continue
+        frames += r.frames
+        results.append({"input": r.input, "output": r.output, "frames": r.frames, "message": "",
+                        "status": "skipped" if r.skipped else "corrected"})  # fmt: skip
+    n_done = sum(r["status"] == "corrected" for r in results)
+    n_skip = sum(r["status"] == "skipped" for r in results)
+    summary = (
+        f"{n_done} corrected ({frames} frames), {n_skip} skipped (complete output exists), {n_failed} failed"
+    )
+    return _finish(results, summary, n_failed, as_json)
+
+
+def _finish(results, summary, n_failed, as_json) -> int:
+    """Report failures on stderr, the summary on stdout; exit 4 if any input failed."""
+    for r in results:
+        if r["status"] == "failed":
+            click.echo(f"oapcal: error: {r['message']}", err=True)
+    if as_json:
+        print_json({"results": results, "summary": summary, "failed": n_failed})
+    else:
+        console().print(summary)
+    return 4 if n_failed else 0

@@ -1,0 +1,358 @@
+"""Correct many images and long stacks: expand inputs, plan outputs, loop over frames.
+
+:func:`correct_stack` is the library form of ``oapcal correct``:
+
+* inputs are image files, directories (their image files, not recursive) and glob patterns
+  (``**`` recurses);
+* each input ``NAME`` is written as ``OUT_DIR/NAME`` in the same format (a multi-page TIFF
+  stays one multi-page TIFF), atomically: frames stream through a temporary file that is
+  renamed when the file is complete, so an existing output is always complete and a rerun
+  of an interrupted batch skips it (resume);
+* the output directory must not be, or contain, any input;
+* a corrupt or unreadable input is reported in the result and skipped; the batch goes on.
+
+Frames are read, corrected and written one at a time, so a stack never sits in memory
+whole.  One correction map is built per input frame size and reused.
+"""
+
+from __future__ import annotations
+
+import glob
+import threading
+from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from oapcal.errors import InputFileError, OapcalError, OutputError
+from oapcal.imaging.remap import CorrectionMap, correct_image, correction_map
+from oapcal.io.atomic import atomic_path, ensure_not_input, safe_output_path
+from oapcal.io.images import IMAGE_SUFFIXES, MAX_PIXELS, FrameWriter, open_frames, probe
+
+_GLOB_CHARS = set("*?[")
+
+
+@dataclass(frozen=True)
+class FileResult:
+    """What happened to one input: ``status`` is ``corrected``, ``skipped`` (its complete
+    output already existed) or ``failed`` (``message`` says why)."""
+
+    input: str
+    output: str | None
+    status: str
+    frames: int = 0
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class StackReport:
+    """Per-input results of :func:`correct_stack`, in input order."""
+
+    results: tuple[FileResult, ...]
+    geometries: dict = field(default_factory=dict)
+
+    def count(self, status: str) -> int:
+        return sum(r.status == status for r in self.results)
+
+    @property
+    def frames(self) -> int:
+        return sum(r.frames for r in self.results if r.status == "corrected")
+
+    @property
+    def ok(self) -> bool:
+        return self.count("failed") == 0
+
+    def summary(self) -> str:
+        return (
+            f"{self.count('corrected')} corrected ({self.frames} frames), "
+            f"{self.count('skipped')} skipped (complete output exists), {self.count('failed')} failed"
+        )
+
+
+def expand_inputs(
+    inputs: Iterable[str], suffixes: Sequence[str] = IMAGE_SUFFIXES
+) -> tuple[list[Path], list[FileResult], list[Path]]:
+    """Expand files, directories and glob patterns.
+
+    Returns ``(files, failures, directories)``: the image files in order (duplicates
+    dropped), a failed :class:`FileResult` for every input that names nothing usable, and
+    the directories given (whose images were taken).  Hidden files (``.name``) in
+    directories and glob matches are ignored: oapcal's temporary files are hidden.
+    """
+    files: list[Path] = []
+    failures: list[FileResult] = []
+    dirs: list[Path] = []
+    seen: set[Path] = set()
+
+    def add(path: Path) -> None:
+        key = path.resolve()
+        if key not in seen:
+            seen.add(key)
+            files.append(path)
+
+    def usable(path: Path) -> bool:
+        return path.is_file() and path.suffix.lower() in suffixes and not path.name.startswith(".")
+
+    for text in inputs:
+        path = Path(text)
+        if path.is_dir() and path.suffix.lower() not in suffixes:
+            dirs.append(path)
+            found = sorted(p for p in path.iterdir() if usable(p))
+            if not found:
+                failures.append(
+                    FileResult(text, None, "failed", message=f"{text}: the directory holds no images")
+                )
+            for p in found:
+                add(p)
+        elif path.exists():
+            if path.suffix.lower() not in suffixes:
+                failures.append(
+                    FileResult(
+                        text,
+                        None,
+                        "failed",
+                        message=f"{text}: unsupported file type {path.suffix or '(no suffix)'!r}; "
+                        f"oapcal reads {', '.join(suffixes)}",
+                    )
+                )
+            else:
+                add(path)
+        elif _GLOB_CHARS & set(text):
+            found = sorted(Path(p) for p in glob.glob(text, recursive=True))
+            found = [p for p in found if usable(p) or (p.is_dir() and p.suffix.lower() in suffixes)]
+            if not found:
+                failures.append(
+                    FileResult(text, None, "failed", message=f"{text}: the pattern matches no images")
+                )
+            for p in found:
+                add(p)
+        else:
+            failures.append(FileResult(text, None, "failed", message=f"{text}: no such file or directory"))
+    return files, failures, dirs
+
+
+def plan_outputs(
+    files: Sequence[Path], out_dir: str | Path, dirs: Sequence[Path] = (), protect=()
+) -> list[Path]:
+    """The output path of every input file (``out_dir / name``), after checking that the
+    output directory is not, and does not contain, an input (file or directory), that no
+    two inputs share a name, and that no output is a protected file (the calibration)."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputError(f"{out_dir}: the output directory is an existing file; choose a directory")
+    base = out_dir.resolve()
+    for d in dirs:
+        if d.resolve() == base or d.resolve().is_relative_to(base):
+            raise OutputError(
+                f"{out_dir}: the output directory is or contains the input directory {d}; "
+                "choose an output directory outside the inputs"
+            )
+    outputs = []
+    names: dict[str, Path] = {}
+    for path in files:
+        if path.resolve().is_relative_to(base):
+            raise OutputError(
+                f"{out_dir}: the output directory contains the input {path}; "
+                "choose an output directory outside the inputs"
+            )
+        if path.name in names:
+            raise OutputError(
+                f"{path}: has the same name as the input {names[path.name]} and both would be "
+                f"written to {out_dir / path.name}; correct them into separate output directories"
+            )
+        names[path.name] = path
+        out = safe_output_path(out_dir, path.name)
+        ensure_not_input(out, [*files, *protect])
+        outputs.append(out)
+    return outputs
+
+
+class MapCache:
+    """One correction map per input frame size, built on first use (thread-safe).
+
+    With a fixed ``cmap`` (a loaded map) every input must have the map's input size.
+    ``image_size`` ``(width, height)`` is the calibration's camera size: a frame of another
+    size is an error unless ``allow_size_mismatch``.
+    """
+
+    def __init__(
+        self,
+        calibration,
+        *,
+        cmap: CorrectionMap | None = None,
+        image_size=None,
+        allow_size_mismatch: bool = False,
+        **geometry_options,
+    ):
+        self.calibration = calibration
+        self.cmap = cmap
+        self.image_size = tuple(image_size) if image_size else None
+        self.allow = allow_size_mismatch
+        self.options = geometry_options
+        self._maps: dict[tuple[int, int], CorrectionMap] = {}
+        self._lock = threading.Lock()
+
+    def get(self, frame_shape, source) -> CorrectionMap:
+        rows, cols = int(frame_shape[0]), int(frame_shape[1])
+        if self.image_size and (cols, rows) != self.image_size and not self.allow:
+            raise InputFileError(
+                f"{source}: image is {cols}x{rows} px but the calibration is for "
+                f"{self.image_size[0]}x{self.image_size[1]} px; give --allow-size-mismatch "
+                "to correct it anyway"
+            )
+        if self.cmap is not None:
+            shape = self.cmap.input_shape
+            if shape and shape != (rows, cols) and not self.allow:
+                raise InputFileError(
+                    f"{source}: image is {cols}x{rows} px but the map was built for {shape[1]}x{shape[0]} "
+                    "px input; build a map for this size or give --allow-size-mismatch"
+                )
+            return self.cmap
+        with self._lock:
+            if (rows, cols) not in self._maps:
+                self._maps[(rows, cols)] = correction_map(self.calibration, (rows, cols), **self.options)
+            return self._maps[(rows, cols)]
+
+
+class _Progress:
+    """A Rich progress bar over files and frames on stderr (or nothing)."""
+
+    def __init__(self, enabled: bool, n_files: int, n_frames: int):
+        self.bar = None
+        if not enabled:
+            return
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self.bar = Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
+            console=Console(stderr=True),
+        )
+        self.files = self.bar.add_task("files ", total=n_files)
+        self.frames = self.bar.add_task("frames", total=n_frames)
+
+    def __enter__(self):
+        if self.bar:
+            self.bar.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.bar:
+            self.bar.stop()
+
+    def frame(self, n: int = 1):
+        if self.bar:
+            self.bar.advance(self.frames, n)
+
+    def file(self):
+        if self.bar:
+            self.bar.advance(self.files)
+
+
+def correct_stack(
+    calibration,
+    inputs: Iterable[str | Path],
+    out_dir: str | Path,
+    *,
+    interp: str = "linear",
+    border: float = 0,
+    workers: int = 1,
+    extent: str = "input",
+    um_per_px: float | None = None,
+    out_size: tuple[int, int] | None = None,
+    cmap: CorrectionMap | None = None,
+    allow_size_mismatch: bool = False,
+    max_pixels: int = MAX_PIXELS,
+    overwrite: bool = False,
+    calibration_name: str | None = None,
+    protect: Sequence[str | Path] = (),
+    progress: bool = False,
+) -> StackReport:
+    """Correct every image and stack of ``inputs`` into ``out_dir`` (see the module doc).
+
+    ``calibration`` is a :class:`~oapcal.io.calibration.Calibration` (or a parameter vector);
+    the output geometry options are those of :func:`~oapcal.imaging.remap.output_geometry`,
+    or ``cmap`` is a prebuilt map.  ``workers`` files are corrected at once (threads;
+    OpenCV's remap is itself multi-threaded).  ``protect`` lists further files that no
+    output may overwrite.  Raises :class:`~oapcal.errors.OutputError` before writing
+    anything when the output directory is not allowed; per-file problems are results.
+    """
+    files, failures, dirs = expand_inputs([str(p) for p in inputs])
+    outputs = plan_outputs(files, out_dir, dirs, protect)
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    name = calibration_name or getattr(calibration, "name", None)
+    cal_size = getattr(calibration, "image_size", None)
+    cache = MapCache(
+        calibration,
+        cmap=cmap,
+        image_size=cal_size,
+        allow_size_mismatch=allow_size_mismatch,
+        extent=extent,
+        um_per_px=um_per_px,
+        out_size=out_size,
+    )
+    jobs = []
+    results: dict[int, FileResult] = {}
+    n_frames = 0
+    for i, (src, dst) in enumerate(zip(files, outputs)):
+        if dst.exists() and not overwrite:
+            results[i] = FileResult(str(src), str(dst), "skipped")
+            continue
+        try:
+            info = probe(src, max_pixels)
+        except (OapcalError, OSError) as exc:
+            results[i] = FileResult(str(src), str(dst), "failed", message=str(exc))
+            continue
+        n_frames += info.n_frames
+        jobs.append((i, src, dst))
+
+    def run(job):
+        i, src, dst = job
+        results[i] = _correct_file(src, dst, cache, interp, border, max_pixels, name, bar)
+        bar.file()
+
+    with _Progress(progress and bool(jobs), len(jobs), n_frames) as bar:
+        if workers > 1 and len(jobs) > 1:
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                list(pool.map(run, jobs))
+        else:
+            for job in jobs:
+                run(job)
+    ordered = tuple(failures) + tuple(results[i] for i in sorted(results))
+    geometries = {shape: m.geometry for shape, m in cache._maps.items()}
+    return StackReport(ordered, geometries)
+
+
+def _correct_file(src: Path, dst: Path, cache: MapCache, interp, border, max_pixels, name, bar) -> FileResult:
+    n = 0
+    try:
+        with open_frames(src, max_pixels) as (info, frames):
+            cmap = cache.get(info.frame_shape, src)
+            with (
+                atomic_path(dst) as tmp,
+                FrameWriter(tmp, info.kind, name, cmap.geometry.um_per_px) as writer,
+            ):
+                out = None
+                for frame in frames:
+                    out = correct_image(frame, cmap, interp, border, out=out)
+                    writer.write(out.reshape(cmap.shape + frame.shape[2:]))
+                    n += 1
+                    bar.frame()
+    except (OapcalError, OSError) as exc:
+        return FileResult(str(src), str(dst), "failed", n, str(exc))
+    return FileResult(str(src), str(dst), "corrected", n)
+
+
+def correct_frames(
+    frames: np.ndarray, cmap: CorrectionMap, interp: str = "linear", border: float = 0
+) -> np.ndarray:
+    """Correct an in-memory stack ``(frames, rows, cols[, ch])`` with one map."""
+    out = np.empty((len(frames), *cmap.shape, *frames.shape[3:]), frames.dtype)
+    for i, frame in enumerate(frames):
+        out[i] = correct_image(frame, cmap, interp, border).reshape(out.shape[1:])
+    return out
