@@ -46,14 +46,23 @@ def position_covariance(xy_u, params, covariance, free) -> np.ndarray:
     idx = [INDEX[name] for name in free]
     cov = np.asarray(covariance, float)
     if cov.shape != (len(idx), len(idx)):
-        raise DataError(f"covariance must be {len(idx)} x {len(idx)} (one per free parameter), got {cov.shape}")
+        raise DataError(
+            f"covariance must be {len(idx)} x {len(idx)} (one per free parameter), got {cov.shape}"
+        )
     jp = jacobian_params(xy_u, params)[..., idx]  # (..., N, 2, k)
     ju = jacobian_point(xy_u, params)  # (..., N, 2, 2)
     det = ju[..., 0, 0] * ju[..., 1, 1] - ju[..., 0, 1] * ju[..., 1, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.stack(
-            [np.stack([ju[..., 1, 1], -ju[..., 0, 1]], -1), np.stack([-ju[..., 1, 0], ju[..., 0, 0]], -1)], -2
-        ) / det[..., None, None]
+        inv = (
+            np.stack(
+                [
+                    np.stack([ju[..., 1, 1], -ju[..., 0, 1]], -1),
+                    np.stack([-ju[..., 1, 0], ju[..., 0, 0]], -1),
+                ],
+                -2,
+            )
+            / det[..., None, None]
+        )
         inv = np.where((det > 0)[..., None, None], inv, np.nan)
         a = inv @ jp  # (..., N, 2, k)
         return a @ cov @ np.swapaxes(a, -1, -2)

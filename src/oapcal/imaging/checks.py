@@ -196,7 +196,9 @@ def check_target(
             vertical = side in ("left", "right")
             a0, a1 = (by0, by1) if vertical else (bx0, bx1)
             trim = max(2, (a1 - a0 + 1) // 5)
-            lines, pos = _crossings(image, comp.labels, k, comp.background, comp.bright, side, a0 + trim, a1 - trim)
+            lines, pos = _crossings(
+                image, comp.labels, k, comp.background, comp.bright, side, a0 + trim, a1 - trim
+            )
             if len(lines) < min_points:
                 continue
             extents[side] = (lines, pos)
@@ -228,7 +230,15 @@ def check_target(
             expected = float(min(expected_ratios, key=lambda r: abs(math.log(aspect / r))))
             error = 100.0 * (aspect / expected - 1.0)
         shapes.append(
-            ShapeCheck(k, (int(bx0), int(by0), int(bx1), int(by1)), float(width), float(height), aspect, expected, error)
+            ShapeCheck(
+                k,
+                (int(bx0), int(by0), int(bx1), int(by1)),
+                float(width),
+                float(height),
+                aspect,
+                expected,
+                error,
+            )
         )
     return TargetCheck(tuple(edges), tuple(shapes), comp.level)
 

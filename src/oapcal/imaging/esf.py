@@ -119,7 +119,9 @@ def check_roi(roi, shape, label: str = "ROI") -> tuple[int, int, int, int]:
             "(need 0 <= x0 < x1 < width and 0 <= y0 < y1 < height)"
         )
     if min(x1 - x0, y1 - y0) < 3:
-        raise DataError(f"{label}: ({x0}, {y0}, {x1}, {y1}) is too thin; give at least 4 x 4 px around the edge")
+        raise DataError(
+            f"{label}: ({x0}, {y0}, {x1}, {y1}) is too thin; give at least 4 x 4 px around the edge"
+        )
     return x0, y0, x1, y1
 
 
@@ -167,11 +169,21 @@ def fit_edge(image: np.ndarray, roi, *, um_per_px: float | None = None, label: s
         return (model(p) - data).ravel()
 
     contrast = abs(high0 - low0)
+    orientation = "vertical" if vertical else "horizontal"
+    # Noise from differences along the edge (robust: median absolute deviation).
+    noise0 = 1.4826 * float(np.median(np.abs(np.diff(data, axis=0)))) / math.sqrt(2.0) if n_v > 1 else 0.0
+    if not contrast > 5 * noise0:
+        nan = float("nan")
+        return EdgeFit(
+            roi=(x0, y0, x1, y1), orientation=orientation, sigma_px=nan, sigma_err_px=nan,
+            angle_deg=nan, centre=(nan, nan), low=min(low0, high0), high=max(low0, high0), rms=noise0,
+            ok=False, message=f"no clear edge: contrast {contrast:.3g} is below 5x the noise {noise0:.3g}",
+            um_per_px=um_per_px, label=label, distance=np.zeros(0), values=np.zeros(0),
+        )  # fmt: skip
     p0 = np.array([low0, high0, a0, b0, sigma0])
     lo_b = [-np.inf, -np.inf, -1.0, -1.0, 0.05]
     hi_b = [np.inf, np.inf, float(n_u), 1.0, float(n_u)]
     p0 = np.clip(p0, np.array(lo_b) + 1e-9, np.array(hi_b) - 1e-9)
-    orientation = "vertical" if vertical else "horizontal"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         sol = least_squares(residuals, p0, bounds=(lo_b, hi_b), x_scale="jac", method="trf")
@@ -327,7 +339,9 @@ def find_components(image: np.ndarray, min_area: int = 20) -> Components:
     h = stats[keep, cv2.CC_STAT_HEIGHT]
     boxes = np.stack([x, y, x + w - 1, y + h - 1], -1).reshape(-1, 4)
     rows, cols = image.shape
-    touches = np.stack([boxes[:, 0] == 0, boxes[:, 1] == 0, boxes[:, 2] == cols - 1, boxes[:, 3] == rows - 1], -1)
+    touches = np.stack(
+        [boxes[:, 0] == 0, boxes[:, 1] == 0, boxes[:, 2] == cols - 1, boxes[:, 3] == rows - 1], -1
+    )
     return Components(
         labels=labels,
         boxes=boxes,

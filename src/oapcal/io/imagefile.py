@@ -37,15 +37,15 @@ def read_image_grey(path: str | Path) -> np.ndarray:
         try:
             image = tifffile.imread(p)
         except Exception as exc:  # tifffile raises many types for damaged files
-            raise InputFileError(f"{name}: cannot be read as TIFF ({exc}); give a TIFF or PNG image") from None
+            raise InputFileError(
+                f"{name}: cannot be read as TIFF ({exc}); give a TIFF or PNG image"
+            ) from None
     else:
         import cv2
 
         image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         if image is None:
-            raise InputFileError(
-                f"{name}: cannot be read as an image; give a PNG, TIFF, JPEG or BMP file"
-            )
+            raise InputFileError(f"{name}: cannot be read as an image; give a PNG, TIFF, JPEG or BMP file")
         if image.ndim == 3:
             code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
             image = cv2.cvtColor(image, code)
@@ -54,9 +54,7 @@ def read_image_grey(path: str | Path) -> np.ndarray:
         weights = np.array([0.299, 0.587, 0.114])
         image = image[..., :3] @ weights
     if image.ndim != 2:
-        raise InputFileError(
-            f"{name}: has shape {image.shape}; give one grey or colour image, not a stack"
-        )
+        raise InputFileError(f"{name}: has shape {image.shape}; give one grey or colour image, not a stack")
     if min(image.shape) < 8:
         raise InputFileError(f"{name}: is only {image.shape[1]} x {image.shape[0]} px; too small to analyse")
     image = image.astype(np.float64)
