@@ -27,16 +27,23 @@ def rectangles_intensity(x, y, rects, sigma: float) -> np.ndarray:
     """Sum over rectangles ``(x0, y0, x1, y1)`` of their Gaussian-blurred indicator at ``(x, y)``."""
     x = np.asarray(x, float)
     y = np.asarray(y, float)
-    out = np.zeros(np.broadcast_shapes(x.shape, y.shape))
+    shape = np.broadcast_shapes(x.shape, y.shape)
+    x = np.broadcast_to(x, shape).ravel()
+    y = np.broadcast_to(y, shape).ravel()
+    out = np.zeros(x.shape)
+    reach = 8.0 * sigma  # Phi(-8) ~ 6e-16: beyond this the rectangle contributes nothing
     for x0, y0, x1, y1 in rects:
+        # Only points near the rectangle (speed: the erf is the costly part).
+        near = np.flatnonzero((x > x0 - reach) & (x < x1 + reach) & (y > y0 - reach) & (y < y1 + reach))
+        xs, ys = x[near], y[near]
         if sigma > 0:
-            fx = ndtr((x - x0) / sigma) - ndtr((x - x1) / sigma)
-            fy = ndtr((y - y0) / sigma) - ndtr((y - y1) / sigma)
+            fx = ndtr((xs - x0) / sigma) - ndtr((xs - x1) / sigma)
+            fy = ndtr((ys - y0) / sigma) - ndtr((ys - y1) / sigma)
         else:
-            fx = ((x >= x0) & (x < x1)).astype(float)
-            fy = ((y >= y0) & (y < y1)).astype(float)
-        out += fx * fy
-    return out
+            fx = ((xs >= x0) & (xs < x1)).astype(float)
+            fy = ((ys >= y0) & (ys < y1)).astype(float)
+        out[near] += fx * fy
+    return out.reshape(shape)
 
 
 def bar_target(

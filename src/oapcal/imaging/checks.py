@@ -178,17 +178,23 @@ def check_target(
     min_area: int = 20,
     min_points: int = 5,
     components: Components | None = None,
+    valid: np.ndarray | None = None,
 ) -> TargetCheck:
     """Straightness of the sides and aspect ratios of the bars and squares of ``image``.
 
     Corners are left out (a fifth of each side, at least 2 px), as are sides on the image
-    border and components touching it (for the aspect ratio).
+    border and components touching it (for the aspect ratio).  With a boolean ``valid``
+    mask ``(rows, cols)``, components within 2 px of an invalid pixel are left out.
     """
     image = np.asarray(image, float)
     comp = find_components(image, min_area) if components is None else components
     edges, shapes = [], []
     for index, (bx0, by0, bx1, by1) in enumerate(comp.boxes):
         k = index + 1
+        if valid is not None:
+            window = valid[max(by0 - 2, 0) : by1 + 3, max(bx0 - 2, 0) : bx1 + 3]
+            if not window.all():
+                continue
         extents = {}
         for side_index, side in enumerate(SIDES):
             if comp.touches[index, side_index]:

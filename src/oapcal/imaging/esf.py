@@ -357,7 +357,12 @@ SIDES = ("left", "top", "right", "bottom")
 
 
 def find_edge_rois(
-    image: np.ndarray, *, half_width: int = 10, min_length: int = 6, min_area: int = 20
+    image: np.ndarray,
+    *,
+    half_width: int = 10,
+    min_length: int = 6,
+    min_area: int = 20,
+    valid: np.ndarray | None = None,
 ) -> tuple[list[tuple[int, int, int, int]], list[str]]:
     """ROIs around the straight sides of the bars and squares of a target image.
 
@@ -365,7 +370,8 @@ def find_edge_rois(
     the middle of the side (corners trimmed by a fifth of the side, at least 3 px) and,
     across it, up to ``half_width`` px each way but no more than half the component's
     thickness or half the gap to the next component, so one ROI holds one edge.  Returns
-    ``(rois, labels)``; labels read like ``"bar 3 left"``.
+    ``(rois, labels)``; labels read like ``"bar 3 left"``.  With a boolean ``valid`` mask
+    ``(rows, cols)``, ROIs that hold an invalid pixel are left out.
     """
     comp = find_components(image, min_area)
     rows, cols = image.shape
@@ -410,6 +416,8 @@ def find_edge_rois(
             if c0 < 0 or c1 >= (cols if vertical else rows):
                 continue
             roi = (c0, a0, c1, a1) if vertical else (a0, c0, a1, c1)
+            if valid is not None and not valid[roi[1] : roi[3] + 1, roi[0] : roi[2] + 1].all():
+                continue
             rois.append(tuple(int(v) for v in roi))
             labels.append(f"bar {k + 1} {side}")
     return rois, labels
