@@ -27,6 +27,8 @@ COMMANDS: dict[str, str] = {
     "correct-points": "oapcal.cli.fit:correct_points_command",
     "demo": "oapcal.cli.demo:demo_command",
     "simulate": "oapcal.cli.simulate:simulate_group",
+    "esf": "oapcal.cli.esf:esf_command",
+    "report": "oapcal.cli.report:report_command",
 }
 
 

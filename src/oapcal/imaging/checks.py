@@ -205,9 +205,10 @@ def check_target(
             lines, pos = _crossings(
                 image, comp.labels, k, comp.background, comp.bright, side, a0 + trim, a1 - trim
             )
-            if len(lines) < min_points:
+            if len(lines) >= 3:  # enough for a median width
+                extents[side] = (lines, pos)
+            if len(lines) < min_points:  # too few for a line fit
                 continue
-            extents[side] = (lines, pos)
             dev, angle, ends = _line_fit(lines, pos)
             # Points and line ends back to (x, y).
             xy = np.stack([pos, lines], -1) if vertical else np.stack([lines, pos], -1)

@@ -117,7 +117,10 @@ def build_report(
         elif cal.image_size:
             shape = (int(cal.image_size[1]), int(cal.image_size[0]))
         elif cal.bounds is not None:  # the reference points' bounds plus the same margin
-            shape = (int(np.ceil(cal.bounds[3] + cal.bounds[1])) + 1, int(np.ceil(cal.bounds[2] + cal.bounds[0])) + 1)
+            shape = (
+                int(np.ceil(cal.bounds[3] + cal.bounds[1])) + 1,
+                int(np.ceil(cal.bounds[2] + cal.bounds[0])) + 1,
+            )
         else:
             shape = (480, 640)
 
@@ -137,9 +140,13 @@ def build_report(
             sections.append(
                 H.section(
                     "Residual vectors",
-                    H.png_figure(png, "residual vectors", "Each arrow goes from a reference point to where "
-                                 "its observed point lands after correction, magnified as stated; colour "
-                                 "is the residual length."),  # fmt: skip
+                    H.png_figure(
+                        png,
+                        "residual vectors",
+                        "Each arrow goes from a reference point to where "
+                        "its observed point lands after correction, magnified as stated; colour "
+                        "is the residual length.",
+                    ),  # fmt: skip
                 )
             )
 
@@ -266,7 +273,9 @@ def _params_html(cal) -> str:
 def _uncertainty_html(umap, s: dict, plots) -> str:
     png = plots.figure_png(plots.uncertainty_figure(umap))
     um = umap.um_per_px
-    headers = ["region", "share of the frame", "median [px]", "max [px]"] + (["median [um]", "max [um]"] if um else [])
+    headers = ["region", "share of the frame", "median [px]", "max [px]"] + (
+        ["median [um]", "max [um]"] if um else []
+    )
     rows = []
     for region in ("inside", "outside"):
         row = [f"{region} the hull", f"{100 * s[f'{region}_fraction']:.1f} %", s[f"{region}_median_px"],
@@ -393,8 +402,9 @@ def demo_report(out_dir, calibration, truth_params, points, *, seed: int = 0, si
     files = {"target image": out / "target.png", "report": out / "report.html"}
     with atomic_path(files["target image"]) as tmp:
         cv2.imwrite(str(tmp), image8)
-    html_text, _ = build_report(calibration, points=points, image=image8.astype(float), image_name="target.png",
-                                title="oapcal demo report", show_progress=show_progress)  # fmt: skip
+    html_text, _ = build_report(
+        calibration, points=points, image=image8.astype(float), image_name="target.png",
+        title="oapcal demo report", show_progress=show_progress,
+    )  # fmt: skip
     write_report(files["report"], html_text)
     return files
-

@@ -45,7 +45,9 @@ def _free(value, where: str) -> tuple[str, ...]:
         raise InputFileError(f"{where}: 'free' must be a list of parameter names")
     bad = [n for n in names if n and n not in PARAM_NAMES]
     if bad:
-        raise InputFileError(f"{where}: 'free' names unknown parameter {bad[0]!r}; use {' '.join(PARAM_NAMES)}")
+        raise InputFileError(
+            f"{where}: 'free' names unknown parameter {bad[0]!r}; use {' '.join(PARAM_NAMES)}"
+        )
     return tuple(n for n in PARAM_NAMES if n in names)
 
 

@@ -123,13 +123,20 @@ def uncertainty_figure(umap):
     ax = fig.add_subplot()
     step_x = umap.x[1] - umap.x[0] if len(umap.x) > 1 else 1.0
     step_y = umap.y[1] - umap.y[0] if len(umap.y) > 1 else 1.0
-    extent = (umap.x[0] - step_x / 2, umap.x[-1] + step_x / 2, umap.y[-1] + step_y / 2, umap.y[0] - step_y / 2)
+    extent = (
+        umap.x[0] - step_x / 2,
+        umap.x[-1] + step_x / 2,
+        umap.y[-1] + step_y / 2,
+        umap.y[0] - step_y / 2,
+    )
     im = ax.imshow(umap.sigma_px, cmap="magma", extent=extent, interpolation="nearest")
     _colorbar(fig, im, ax, "1-sigma position uncertainty [px]", umap.um_per_px)
     if umap.outside_hull.any():
         ax.contourf(umap.x, umap.y, umap.outside_hull.astype(float), levels=[0.5, 1.5], colors="none",
                     hatches=["//"])  # fmt: skip
-        _hull_outline(ax, umap.hull, color="cyan", label="hull of the calibration points (outside: extrapolated)")
+        _hull_outline(
+            ax, umap.hull, color="cyan", label="hull of the calibration points (outside: extrapolated)"
+        )
         ax.legend(loc="lower right", fontsize=8, framealpha=0.7)
     rows = int(round(umap.y[-1] + step_y / 2 + 0.5))
     cols = int(round(umap.x[-1] + step_x / 2 + 0.5))
@@ -153,7 +160,10 @@ def before_after_figure(before, after, check_before, check_after, um_per_px=None
     vmax = max(0.5, float(np.percentile(values, 98))) if values else 1.0
     norm = Normalize(0.0, vmax)
     lc = None
-    for ax, image, check, name in ((axes[0], before, check_before, "before"), (axes[1], after, check_after, "after")):
+    for ax, image, check, name in (
+        (axes[0], before, check_before, "before"),
+        (axes[1], after, check_after, "after"),
+    ):
         import matplotlib
 
         grey = matplotlib.colormaps["gray"].with_extremes(bad="#3b4252")  # no data: slate
@@ -172,7 +182,9 @@ def before_after_figure(before, after, check_before, check_after, um_per_px=None
         aspect = "n/a" if s["aspect_error_mean_pct"] is None else f"{s['aspect_error_mean_pct']:.1f} %"
         ax.set_title(f"{name} correction: edge RMS {straight}, aspect error {aspect}", fontsize=10)
     if lc is not None:
-        fig.colorbar(lc, ax=axes, shrink=0.8, pad=0.02).set_label("edge deviation from a straight line, RMS [px]")
+        fig.colorbar(lc, ax=axes, shrink=0.8, pad=0.02).set_label(
+            "edge deviation from a straight line, RMS [px]"
+        )
     return fig
 
 
@@ -198,7 +210,11 @@ def esf_figure(summary, n_examples: int = 8):
     ax.set_xlabel("Gaussian PSF sigma [px]")
     ax.set_ylabel("number of edges")
     ax.set_title(f"{len(good)} edges")
-    picks = [good[0]] + [good[i] for i in np.linspace(1, len(good) - 1, n_examples - 1).astype(int)] if good else []
+    picks = (
+        [good[0]] + [good[i] for i in np.linspace(1, len(good) - 1, n_examples - 1).astype(int)]
+        if good
+        else []
+    )
     for i, edge in enumerate(picks[:n_examples]):
         sub = fig.add_subplot(grid[i % 2, 1 + i // 2])
         sub.plot(edge.distance, edge.values, ".", ms=2, color="0.4", label="pixels")
