@@ -30,6 +30,8 @@ COMMANDS: dict[str, str] = {
     "simulate": "oapcal.cli.simulate:simulate_group",
     "correct": "oapcal.cli.correct:correct_command",
     "export-opencv": "oapcal.cli.export:export_opencv_command",
+    "esf": "oapcal.cli.esf:esf_command",
+    "report": "oapcal.cli.report:report_command",
 }
 
 

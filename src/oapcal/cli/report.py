@@ -1,0 +1,97 @@
+"""``oapcal report``: one self-contained HTML page about a calibration."""
+
+from __future__ import annotations
+
+import click
+
+from oapcal.cli._common import check_output, load_pairs, print_json
+
+
+@click.command("report")
+@click.argument("calib", type=click.Path(dir_okay=False))
+@click.option(
+    "--points",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Landmark pairs (CSV x_u,y_u,x_d,y_d): residual vectors and Table 1 from them.",
+)
+@click.option(
+    "--image",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="A distorted image of a bar target: before/after, straightness, aspect, ESF.",
+)
+@click.option(
+    "--selection",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Model-selection JSON (n_points, models) to tabulate.",
+)
+@click.option(
+    "--robustness",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Robustness JSON (per model: trials, not_converged, ...) to tabulate.",
+)
+@click.option(
+    "--expected-ratios",
+    default="5,1",
+    show_default=True,
+    help="Known aspect ratios (long/short side) of the target's bars and squares.",
+)
+@click.option("--title", default=None, help="Title of the page.")
+@click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="The HTML file to write.")
+@click.option("--json", "as_json", is_flag=True, help="Print the report's numbers as one JSON object.")
+def report_command(calib, points, image, selection, robustness, expected_ratios, title, out, as_json):
+    """Write an HTML report of a calibration (self-contained: images embedded)."""  # fmt: skip
+    check_output(out, calib, points, image, selection, robustness)
+    if not out.lower().endswith((".html", ".htm")):
+        raise click.BadParameter(f"{out!r} must end in .html", param_hint="--out")
+    try:
+        ratios = tuple(float(v) for v in expected_ratios.split(",") if v.strip())
+        if any(not r >= 1 for r in ratios):
+            raise ValueError
+    except ValueError:
+        raise click.BadParameter(
+            f"{expected_ratios!r} is not a comma list of ratios >= 1 such as 5,1",
+            param_hint="--expected-ratios",
+        ) from None
+    from oapcal.io.calibration import load_calibration
+    from oapcal.report import build_report, write_report
+    from oapcal.report.inputs import read_robustness, read_selection
+
+    cal = load_calibration(calib)
+    pairs = load_pairs(points) if points else None
+    img = None
+    if image:
+        from oapcal.io.imagefile import read_image_grey
+
+        img = read_image_grey(image)
+    sel = read_selection(selection) if selection else None
+    rob = read_robustness(robustness) if robustness else None
+    html_text, data = build_report(
+        cal, points=None if pairs is None else (pairs.xy_u, pairs.xy_d), image=img, image_name=image,
+        selection=sel, robustness=rob, expected_ratios=ratios, title=title,
+        show_progress=_stderr_is_terminal(),
+    )  # fmt: skip
+    write_report(out, html_text)
+    if as_json:
+        esf = None if data.esf is None else {k: v for k, v in data.esf.items() if k != "edges"}
+        print_json({"out": out, "residuals": data.residuals, "uncertainty": data.uncertainty,
+                    "checks": data.checks, "esf": esf})  # fmt: skip
+        return 0
+    r = data.residuals
+    click.echo(f"wrote {out}: residual mean {r['mean_px']:.4g} px, max {r['max_px']:.4g} px", nl=False)
+    if data.esf is not None and data.esf["sigma_mean_px"] is not None:
+        click.echo(
+            f"; ESF sigma mean {data.esf['sigma_mean_px']:.3g} px, max {data.esf['sigma_max_px']:.3g} px",
+            nl=False,
+        )
+    click.echo("")
+    return 0
+
+
+def _stderr_is_terminal() -> bool:
+    import sys
+
+    return sys.stderr.isatty()

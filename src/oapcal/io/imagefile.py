@@ -1,0 +1,63 @@
+"""Reading single images for analysis (edge spread, correction checks, reports).
+
+TIFF goes through tifffile, everything else (PNG, JPEG, BMP, ...) through OpenCV.  Colour
+images are converted to grey (ITU-R BT.601 weights, as OpenCV does); the result is a
+``float64 (rows, cols)`` array in the file's own intensity units.  Problems raise
+:class:`~oapcal.errors.InputFileError` naming the file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from oapcal.errors import InputFileError
+
+
+def read_image_grey(path: str | Path) -> np.ndarray:
+    """One grey image ``(rows, cols)`` as float64.
+
+    >>> import tempfile, pathlib, cv2
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.png"
+    >>> _ = cv2.imwrite(str(p), np.full((8, 9), 7, np.uint8))
+    >>> read_image_grey(p)[:2, :3]
+    array([[7., 7., 7.],
+           [7., 7., 7.]])
+    """
+    name = str(path)
+    p = Path(path)
+    if not p.exists():
+        raise InputFileError(f"{name}: no such image file; check the path")
+    if p.is_dir():
+        raise InputFileError(f"{name}: is a directory, not an image file")
+    if p.suffix.lower() in (".tif", ".tiff"):
+        import tifffile
+
+        try:
+            image = tifffile.imread(p)
+        except Exception as exc:  # tifffile raises many types for damaged files
+            raise InputFileError(
+                f"{name}: cannot be read as TIFF ({exc}); give a TIFF or PNG image"
+            ) from None
+    else:
+        import cv2
+
+        image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise InputFileError(f"{name}: cannot be read as an image; give a PNG, TIFF, JPEG or BMP file")
+        if image.ndim == 3:
+            code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+            image = cv2.cvtColor(image, code)
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[-1] in (3, 4):
+        weights = np.array([0.299, 0.587, 0.114])
+        image = image[..., :3] @ weights
+    if image.ndim != 2:
+        raise InputFileError(f"{name}: has shape {image.shape}; give one grey or colour image, not a stack")
+    if min(image.shape) < 8:
+        raise InputFileError(f"{name}: is only {image.shape[1]} x {image.shape[0]} px; too small to analyse")
+    image = image.astype(np.float64)
+    if not np.isfinite(image).all():
+        raise InputFileError(f"{name}: contains NaN or infinite pixel values")
+    return image

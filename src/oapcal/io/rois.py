@@ -1,0 +1,70 @@
+"""Region-of-interest files for edge analysis: CSV with columns ``x0,y0,x1,y1`` and an
+optional ``label``.
+
+Each row is a rectangle in px (x = column, y = row, origin at the centre of the top-left
+pixel) holding one straight edge: the pixels ``x0 <= col <= x1``, ``y0 <= row <= y1``.
+Problems raise :class:`~oapcal.errors.InputFileError` naming the file, line and column.
+
+>>> import tempfile, pathlib
+>>> p = pathlib.Path(tempfile.mkdtemp()) / "rois.csv"
+>>> _ = p.write_text("label,x0,y0,x1,y1\\nleft edge,10,20,30,60\\n")
+>>> read_rois(p)
+([(10, 20, 30, 60)], ['left edge'])
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+from oapcal.errors import InputFileError
+
+ROI_COLUMNS = ("x0", "y0", "x1", "y1")
+
+
+def read_rois(path) -> tuple[list[tuple[int, int, int, int]], list[str]]:
+    """Rectangles and labels (``"roi N"`` where the file has no ``label`` column)."""
+    name = str(path)
+    p = Path(path)
+    if not p.exists():
+        raise InputFileError(f"{name}: no such ROI file; check the path")
+    if p.is_dir():
+        raise InputFileError(f"{name}: is a directory, not an ROI file")
+    try:
+        text = p.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise InputFileError(f"{name}: is not UTF-8 text; save it as UTF-8 CSV") from None
+    reader = csv.reader(io.StringIO(text))
+    header = [h.strip() for h in next(reader, [])]
+    missing = [c for c in ROI_COLUMNS if c not in header]
+    if missing:
+        raise InputFileError(
+            f"{name}: line 1: missing column {missing[0]!r}; the header must contain {','.join(ROI_COLUMNS)}"
+        )
+    col = {h: i for i, h in enumerate(header)}
+    rois, labels = [], []
+    for row in reader:
+        line = reader.line_num
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) < len(header):
+            raise InputFileError(f"{name}: line {line}: {len(row)} cells but the header has {len(header)}")
+        values = []
+        for c in ROI_COLUMNS:
+            cell = row[col[c]].strip()
+            try:
+                v = float(cell)
+            except ValueError:
+                raise InputFileError(f"{name}: line {line}, column {c!r}: {cell!r} is not a number") from None
+            if v != int(v):
+                raise InputFileError(f"{name}: line {line}, column {c!r}: {cell} is not a whole pixel index")
+            values.append(int(v))
+        x0, y0, x1, y1 = values
+        if not (x1 > x0 and y1 > y0):
+            raise InputFileError(f"{name}: line {line}: need x1 > x0 and y1 > y0, got {x0},{y0},{x1},{y1}")
+        rois.append((x0, y0, x1, y1))
+        labels.append(row[col["label"]].strip() if "label" in col else f"roi {len(rois)}")
+    if not rois:
+        raise InputFileError(f"{name}: has no rectangles; add rows x0,y0,x1,y1")
+    return rois, labels

@@ -1,0 +1,173 @@
+"""How uncertain the correction is at every output pixel.
+
+The corrected image shows at output pixel ``u`` (an undistorted position) the distorted
+image sampled at ``d = distort(u; p)`` with the fitted parameters ``p``.  Had the true
+parameters been ``p + dp``, the content at ``d`` would truly belong at ``u + du`` with
+``distort(u + du; p + dp) = d``; to first order::
+
+    du = -J_u^-1 J_p dp,      J_u = d distort / d u  (2 x 2),   J_p = d distort / d p  (2 x k)
+
+so the covariance of the corrected position is ``S = A C A^T`` with ``A = J_u^-1 J_p`` and
+``C`` the fit's covariance of the ``k`` free parameters (``Calibration.covariance``, in
+``free`` order).  The map reports ``sigma_x = sqrt(S_xx)``, ``sigma_y = sqrt(S_yy)``, the
+positional 1-sigma uncertainty ``sigma = sqrt(S_xx + S_yy)`` (the RMS length of ``du``)
+and the semi-major axis of the 1-sigma ellipse, all in output px (the units of the
+reference points), and in um with the calibration's scale.
+
+Outside the convex hull of the calibration's reference points the model extrapolates;
+those pixels are flagged (``outside_hull``), whatever their sigma says.
+
+>>> from oapcal.synthetic import synthetic_pairs
+>>> from oapcal.calibrate import calibrate
+>>> data = synthetic_pairs(seed=0)
+>>> cal = calibrate(data.xy_u, data.xy_d, "paper", image_size=(640, 480))
+>>> umap = uncertainty_map(cal, step=40)
+>>> umap.sigma_px.shape, bool(umap.outside_hull[0, 0]), bool(umap.outside_hull[6, 8])
+((12, 16), True, False)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from oapcal.errors import DataError
+from oapcal.model import INDEX, jacobian_params, jacobian_point
+
+
+def position_covariance(xy_u, params, covariance, free) -> np.ndarray:
+    """Covariance ``(..., N, 2, 2)`` of the corrected position at output points ``(..., N, 2)``.
+
+    ``covariance`` is ``k x k`` over the parameters named in ``free``; see the module
+    docstring for the formula.  NaN where the map is singular (folds over).
+    """
+    xy_u = np.asarray(xy_u, float)
+    idx = [INDEX[name] for name in free]
+    cov = np.asarray(covariance, float)
+    if cov.shape != (len(idx), len(idx)):
+        raise DataError(
+            f"covariance must be {len(idx)} x {len(idx)} (one per free parameter), got {cov.shape}"
+        )
+    jp = jacobian_params(xy_u, params)[..., idx]  # (..., N, 2, k)
+    ju = jacobian_point(xy_u, params)  # (..., N, 2, 2)
+    det = ju[..., 0, 0] * ju[..., 1, 1] - ju[..., 0, 1] * ju[..., 1, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = (
+            np.stack(
+                [
+                    np.stack([ju[..., 1, 1], -ju[..., 0, 1]], -1),
+                    np.stack([-ju[..., 1, 0], ju[..., 0, 0]], -1),
+                ],
+                -2,
+            )
+            / det[..., None, None]
+        )
+        inv = np.where((det > 0)[..., None, None], inv, np.nan)
+        a = inv @ jp  # (..., N, 2, k)
+        return a @ cov @ np.swapaxes(a, -1, -2)
+
+
+def inside_hull(xy, hull) -> np.ndarray:
+    """Whether points ``(..., 2)`` lie inside (or on) the convex polygon ``hull`` ``(M, 2)``.
+
+    >>> square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    >>> inside_hull(np.array([[0.5, 0.5], [1.5, 0.5], [1.0, 0.2]]), square).tolist()
+    [True, False, True]
+    """
+    from scipy.spatial import Delaunay
+
+    xy = np.asarray(xy, float)
+    tri = Delaunay(np.asarray(hull, float))
+    flat = xy.reshape(-1, 2)
+    return (tri.find_simplex(flat, tol=1e-9) >= 0).reshape(xy.shape[:-1])
+
+
+@dataclass(frozen=True)
+class UncertaintyMap:
+    """Per-output-pixel 1-sigma positional uncertainty of the correction.
+
+    ``x`` ``(cols,)`` and ``y`` ``(rows,)`` are the output pixel coordinates sampled (every
+    ``step`` px); ``sigma_px``, ``sigma_x_px``, ``sigma_y_px``, ``sigma_major_px`` are
+    ``(rows, cols)``; ``outside_hull`` ``(rows, cols)`` bool (all False when the calibration
+    has no hull); ``hull`` the hull polygon or None.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    sigma_px: np.ndarray
+    sigma_x_px: np.ndarray
+    sigma_y_px: np.ndarray
+    sigma_major_px: np.ndarray
+    outside_hull: np.ndarray
+    hull: np.ndarray | None
+    um_per_px: float | None
+
+    @property
+    def sigma_um(self) -> np.ndarray | None:
+        return None if self.um_per_px is None else self.sigma_px * self.um_per_px
+
+    def summary(self) -> dict:
+        """Median and maximum sigma inside and outside the hull (px, and um with a scale)."""
+        out = {}
+        for label, sel in (("inside", ~self.outside_hull), ("outside", self.outside_hull)):
+            values = self.sigma_px[sel]
+            values = values[np.isfinite(values)]
+            out[f"{label}_fraction"] = float(sel.mean())
+            for stat, fn in (("median", np.median), ("max", np.max)):
+                v = float(fn(values)) if values.size else None
+                out[f"{label}_{stat}_px"] = v
+                if self.um_per_px is not None:
+                    out[f"{label}_{stat}_um"] = None if v is None else v * self.um_per_px
+        return out
+
+
+def uncertainty_map(calibration, shape: tuple[int, int] | None = None, *, step: int = 1) -> UncertaintyMap:
+    """The uncertainty map of a calibration over an output image of ``shape = (rows, cols)``
+    (default: the calibration's ``image_size``, else its reference points' bounds), sampled
+    every ``step`` px.  Computed in blocks of rows to keep memory small."""
+    if shape is None:
+        if calibration.image_size:
+            w, h = calibration.image_size
+            shape = (int(h), int(w))
+        elif calibration.bounds is not None:
+            x1, y1 = calibration.bounds[2], calibration.bounds[3]
+            shape = (int(np.ceil(y1)) + 1, int(np.ceil(x1)) + 1)
+        else:
+            raise DataError("the calibration has no image_size or bounds; give the output image shape")
+    if step < 1:
+        raise DataError(f"step must be a positive number of px, got {step}")
+    rows, cols = int(shape[0]), int(shape[1])
+    x = np.arange(0, cols, step, dtype=float)
+    y = np.arange(0, rows, step, dtype=float)
+    out = {k: np.empty((len(y), len(x))) for k in ("s", "sx", "sy", "smaj")}
+    block = max(1, 200_000 // max(len(x), 1))
+    for r0 in range(0, len(y), block):
+        gx, gy = np.meshgrid(x, y[r0 : r0 + block])
+        cov = position_covariance(np.stack([gx, gy], -1), calibration.params, calibration.covariance,
+                                  calibration.free)  # fmt: skip
+        sxx, syy, sxy = cov[..., 0, 0], cov[..., 1, 1], cov[..., 0, 1]
+        half_tr = 0.5 * (sxx + syy)
+        with np.errstate(invalid="ignore"):
+            lam = half_tr + np.sqrt(np.maximum(half_tr**2 - (sxx * syy - sxy * sxy), 0.0))
+            out["s"][r0 : r0 + block] = np.sqrt(sxx + syy)
+            out["sx"][r0 : r0 + block] = np.sqrt(sxx)
+            out["sy"][r0 : r0 + block] = np.sqrt(syy)
+            out["smaj"][r0 : r0 + block] = np.sqrt(lam)
+    hull = getattr(calibration, "hull", None)
+    if hull is not None and len(hull) >= 3:
+        gx, gy = np.meshgrid(x, y)
+        outside = ~inside_hull(np.stack([gx, gy], -1), hull)
+    else:
+        outside = np.zeros((len(y), len(x)), bool)
+    return UncertaintyMap(
+        x=x,
+        y=y,
+        sigma_px=out["s"],
+        sigma_x_px=out["sx"],
+        sigma_y_px=out["sy"],
+        sigma_major_px=out["smaj"],
+        outside_hull=outside,
+        hull=None if hull is None else np.asarray(hull, float),
+        um_per_px=calibration.um_per_px,
+    )

@@ -1,0 +1,181 @@
+"""The report and the esf/report/demo commands, through the CLI runner."""
+
+import base64
+import json
+import re
+
+import cv2
+import numpy as np
+import pytest
+
+from oapcal.calibrate import calibrate
+from oapcal.imaging.bars import bar_target, demo_layout
+from oapcal.io.calibration import save_calibration
+from oapcal.io.points import write_point_pairs
+from oapcal.synthetic import EXAMPLE_TRUTH, synthetic_pairs
+
+# A half-size version of the example distortion, centred on a 320 x 240 frame.
+TRUTH = EXAMPLE_TRUTH.copy()
+TRUTH[[8, 9, 10, 11]] = [-160.0, -120.0, 160.0, 120.0]
+TRUTH[0] *= 4
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("report")
+    data = synthetic_pairs(TRUTH, n_x=12, n_y=9, size=(320, 240), margin=20, noise_px=0.2, seed=4)
+    write_point_pairs(d / "points.csv", data.xy_u, data.xy_d)
+    cal = calibrate(data.xy_u, data.xy_d, "paper", um_per_px=4.8, image_size=(320, 240), name="test")
+    save_calibration(cal, d / "calib.json")
+    image, _ = bar_target((240, 320), demo_layout((240, 320), bar=8), sigma=1.1, low=30, high=220,
+                          params=TRUTH, noise=1.0, seed=4)  # fmt: skip
+    cv2.imwrite(str(d / "target.png"), np.clip(np.round(image), 0, 255).astype(np.uint8))
+    selection = {"n_points": len(data.xy_u), "models": [
+        {"free": list(cal.free), "k": 8, "aicc": -10.0, "delta_aicc": 0.0, "weight": 0.9, "rss": 1.0,
+         "valid": True, "reason": ""},
+        {"free": ["k1", "c_x", "c_y", "m"], "k": 4, "aicc": 50.0, "delta_aicc": 60.0, "weight": 0.0,
+         "rss": 9.0, "valid": True, "reason": ""},
+        {"free": "full", "k": 13, "aicc": None, "valid": False, "reason": "did not converge"},
+    ]}  # fmt: skip
+    selection["models"][2]["free"] = ["k1", "k2", "p1", "p2", "s1", "s2", "s3", "s4", "x_off", "y_off", "c_x",
+                                      "c_y", "m"]  # fmt: skip
+    selection["models"][2]["aicc"] = 12.5
+    (d / "sel.json").write_text(json.dumps(selection))
+    robustness = {"models": [
+        {"free": list(cal.free), "trials": 100, "not_converged": 0, "by_reason": {},
+         "param_std": {"k1": 1e-7}, "heldout_mean_error_px": 0.31},
+        {"free": "k1,k2,p1,p2,s1,s2,s3,s4,x_off,y_off,c_x,c_y,m", "trials": 100, "not_converged": 41,
+         "by_reason": {"iteration cap": 41}, "param_std": {}, "heldout_mean_error_px": 0.5},
+    ]}  # fmt: skip
+    (d / "rob.json").write_text(json.dumps(robustness))
+    return d, cal
+
+
+@pytest.fixture(scope="module")
+def report(inputs):
+    """The report made once by the CLI with every input: (path, the --json numbers)."""
+    import contextlib
+    import io
+
+    from oapcal.cli import main
+
+    d, _ = inputs
+    out = d / "report.html"
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        code = main(["report", str(d / "calib.json"), "--points", str(d / "points.csv"), "--image",
+                     str(d / "target.png"), "--selection", str(d / "sel.json"), "--robustness",
+                     str(d / "rob.json"), "--out", str(out), "--json"])  # fmt: skip
+    assert code == 0
+    return out, json.loads(stdout.getvalue())
+
+
+def test_report_is_self_contained_and_has_every_section(report, inputs):
+    report_html, _ = report
+    _, cal = inputs
+    text = report_html.read_text()
+    assert "<script" not in text and "http://" not in text and "https://" not in text
+    images = re.findall(r'<img src="data:image/png;base64,([^"]+)"', text)
+    assert len(images) == 5  # residuals, field, uncertainty, before/after, ESF
+    for b64 in images:
+        png = base64.b64decode(b64)
+        assert png[:8] == b"\x89PNG\r\n\x1a\n"
+        assert cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).shape[1] > 400
+    for heading in ("Summary", "Fitted parameters", "Residual vectors", "Distortion field",
+                    "Uncertainty of the correction", "Image before and after correction",
+                    "Edge spread functions", "Model selection", "Robustness"):  # fmt: skip
+        assert f"<h2>{heading}</h2>" in text
+    # Table 1 from the points equals the calibration's own residuals (same points, same model).
+    assert f"<td>{cal.residuals['mean_px']:.4g}</td>" in text
+    assert f"<td>{cal.residuals['mean_um']:.4g}</td>" in text
+    assert 'class="best"' in text and "did not converge" in text and "41.0 %" in text
+    assert "@media print" in text
+
+
+def test_report_numbers_show_the_correction_works(report, inputs):
+    _, numbers = report
+    _, cal = inputs
+    assert numbers["residuals"]["mean_px"] == pytest.approx(cal.residuals["mean_px"])
+    before, after = numbers["checks"]["before"], numbers["checks"]["after"]
+    assert after["n_shapes"] >= 20 and after["n_edges"] >= 90
+    assert after["straightness_max_px"] < 0.25 * before["straightness_max_px"]
+    assert after["aspect_error_mean_pct"] < 1.0 < before["aspect_error_mean_pct"]
+    assert numbers["esf"]["sigma_mean_px"] == pytest.approx(1.1, rel=0.1)  # rendered with sigma 1.1 px
+    u = numbers["uncertainty"]
+    assert 0 < u["inside_median_px"] < u["outside_max_px"]
+
+
+def test_esf_command_json_and_plot(run_cli, tmp_path):
+    image, rects = bar_target((120, 160), [(40.5, 30.5, 70.5, 90.5)], sigma=1.5, low=20, high=200, noise=1.0)
+    cv2.imwrite(str(tmp_path / "edge.png"), np.round(image).astype(np.uint8))
+    code, out, err = run_cli("esf", tmp_path / "edge.png", "--auto", "--json", "--um-per-px", "2.5",
+                             "--plot", tmp_path / "esf.png")  # fmt: skip
+    assert code == 0, err
+    result = json.loads(out)
+    assert result["n_edges"] == 4 and result["n_ok"] == 4
+    assert result["sigma_mean_px"] == pytest.approx(1.5, rel=0.05)
+    assert result["sigma_max_um"] == pytest.approx(2.5 * result["sigma_max_px"])
+    assert (tmp_path / "esf.png").read_bytes()[:4] == b"\x89PNG"
+    rois = tmp_path / "rois.csv"
+    rois.write_text("label,x0,y0,x1,y1\nleft,33,45,47,75\n")
+    code, out, _ = run_cli("esf", tmp_path / "edge.png", "--rois", rois)
+    assert code == 0 and "left" in out and "sigma max 1.5" in out
+
+
+@pytest.mark.parametrize(
+    "args,pattern",
+    [
+        (["esf", "{tmp}/nope.png"], "no such image file"),
+        (["esf", "{tmp}/edge.png", "--rois", "{tmp}/bad.csv"], "line 2, column 'y1': 'ten' is not a number"),
+        (
+            ["esf", "{tmp}/edge.png", "--rois", "{tmp}/out.csv"],
+            "is not a rectangle inside the 60 x 40 px image",
+        ),
+        (["esf", "{tmp}/flat.png"], "no straight edges found"),
+        (["report", "{tmp}/calib.json", "--out", "{tmp}/calib.json"], "would overwrite the input"),
+        (
+            ["report", "{tmp}/calib.json", "--selection", "{tmp}/bad.csv", "--out", "{tmp}/r.html"],
+            "malformed JSON",
+        ),
+        (
+            ["report", "{tmp}/calib.json", "--robustness", "{tmp}/rob.json", "--out", "{tmp}/r.html"],
+            "models[0]: missing field 'not_converged'",
+        ),
+        (
+            ["report", "{tmp}/calib.json", "--image", "{tmp}/bad.csv", "--out", "{tmp}/r.html"],
+            "cannot be read as an image",
+        ),
+    ],
+)
+def test_user_errors_exit_2_one_line_nothing_written(run_cli, tmp_path, inputs, args, pattern):
+    d, cal = inputs
+    save_calibration(cal, tmp_path / "calib.json")
+    cv2.imwrite(str(tmp_path / "edge.png"), np.zeros((40, 60), np.uint8))
+    cv2.imwrite(str(tmp_path / "flat.png"), np.full((40, 60), 9, np.uint8))
+    (tmp_path / "bad.csv").write_text("x0,y0,x1,y1\n1,2,3,ten\n")
+    (tmp_path / "out.csv").write_text("x0,y0,x1,y1\n50,2,70,30\n")
+    (tmp_path / "rob.json").write_text(json.dumps([{"free": ["k1", "m"], "trials": 3}]))
+    before = sorted(p.name for p in tmp_path.iterdir())
+    code, _, err = run_cli(*(a.format(tmp=tmp_path) for a in args))
+    assert code == 2, err
+    assert err.count("\n") == 1 and pattern in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_demo_writes_the_report(run_cli, tmp_path, monkeypatch):
+    import oapcal.report as report
+
+    calls = {}
+
+    def fake_demo_report(out_dir, calibration, truth, points, **kwargs):  # the real one is tested above
+        calls["args"] = (out_dir, calibration.name, len(points[0]))
+        np.testing.assert_array_equal(truth, EXAMPLE_TRUTH)
+        return {"report": tmp_path / "out" / "report.html"}
+
+    monkeypatch.setattr(report, "demo_report", fake_demo_report)
+    code, out, err = run_cli("demo", "--out-dir", tmp_path / "out")
+    assert code == 0, err
+    assert calls["args"][1] == "demo" and calls["args"][2] == 252
+    assert "wrote report:" in out
+    code, out, _ = run_cli("demo", "--out-dir", tmp_path / "out2", "--no-report")
+    assert code == 0 and "wrote report:" not in out
