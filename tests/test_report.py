@@ -143,7 +143,7 @@ def test_esf_command_json_and_plot(run_cli, tmp_path):
         ),
         (
             ["report", "{tmp}/calib.json", "--image", "{tmp}/bad.csv", "--out", "{tmp}/r.html"],
-            "cannot be read as an image",
+            "unsupported file type",
         ),
     ],
 )

@@ -1,6 +1,7 @@
 """Reading single images for analysis (edge spread, correction checks, reports).
 
-TIFF goes through tifffile, everything else (PNG, JPEG, BMP, ...) through OpenCV.  Colour
+Files are read by :func:`oapcal.io.images.read_image` (pixel-count limit, errors naming the
+file), TIFF through tifffile and everything else through OpenCV.  Colour
 images are converted to grey (ITU-R BT.601 weights, as OpenCV does); the result is a
 ``float64 (rows, cols)`` array in the file's own intensity units.  Problems raise
 :class:`~oapcal.errors.InputFileError` naming the file.
@@ -25,30 +26,18 @@ def read_image_grey(path: str | Path) -> np.ndarray:
     array([[7., 7., 7.],
            [7., 7., 7.]])
     """
+    from oapcal.io.images import read_image
+
     name = str(path)
     p = Path(path)
     if not p.exists():
         raise InputFileError(f"{name}: no such image file; check the path")
     if p.is_dir():
         raise InputFileError(f"{name}: is a directory, not an image file")
-    if p.suffix.lower() in (".tif", ".tiff"):
-        import tifffile
-
-        try:
-            image = tifffile.imread(p)
-        except Exception as exc:  # tifffile raises many types for damaged files
-            raise InputFileError(
-                f"{name}: cannot be read as TIFF ({exc}); give a TIFF or PNG image"
-            ) from None
-    else:
-        import cv2
-
-        image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise InputFileError(f"{name}: cannot be read as an image; give a PNG, TIFF, JPEG or BMP file")
-        if image.ndim == 3:
-            code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-            image = cv2.cvtColor(image, code)
+    # read_image checks the pixel count before decoding and names the file on any error.
+    image = read_image(p)
+    if image.ndim == 3 and image.shape[-1] in (3, 4) and p.suffix.lower() not in (".tif", ".tiff"):
+        image = image[..., [2, 1, 0]]  # OpenCV decodes colour as BGR
     image = np.asarray(image)
     if image.ndim == 3 and image.shape[-1] in (3, 4):
         weights = np.array([0.299, 0.587, 0.114])
