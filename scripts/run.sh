@@ -25,6 +25,7 @@ case "$task" in
         exec .venv/bin/oapcal demo "$@"
         ;;
     test)
+        bash scripts/ensure-chromium.sh   # the report's browser test (skips with a reason if absent)
         .venv/bin/ruff check src tests benchmarks
         exec .venv/bin/python -m pytest -q "$@"
         ;;
