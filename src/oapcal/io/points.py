@@ -35,6 +35,9 @@ class PointPairs:
     ``xy_u`` and ``xy_d`` are ``(N, 2)`` float arrays (NaN-filled when a column set was not
     required and is absent); ``ids`` the ``id`` column or None; ``rows`` the raw rows (for
     copying columns through) with ``fieldnames``; ``lines`` the file line of each row.
+    ``warnings`` lists what was read but not used (landmark files: unpaired or disabled
+    landmarks); ``where_u``/``where_d`` name each point's origin for messages (landmark
+    files; empty for point-pair CSVs, whose ``lines`` say it).
     """
 
     xy_u: np.ndarray
@@ -44,6 +47,9 @@ class PointPairs:
     fieldnames: tuple[str, ...]
     lines: tuple[int, ...]
     source: str
+    warnings: tuple[str, ...] = ()
+    where_u: tuple[str, ...] = ()
+    where_d: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.xy_d)
