@@ -33,8 +33,18 @@ def is_napari_header(first_line: str) -> bool:
 
 
 def is_bigwarp_row(first_line: str) -> bool:
+    """A header-less first line like ``"Pt-0","true",...``, or of 6 or 8 cells whose
+    coordinates are numbers (a plain CSV's header line has names there)."""
     cells = [c.strip().strip('"').lower() for c in first_line.split(",")]
-    return len(cells) in (6, 8) and cells[1] in ("true", "false")
+    if len(cells) >= 3 and cells[1] in ("true", "false"):
+        return True
+    if len(cells) not in (6, 8):
+        return False
+    try:
+        [float(c) for c in cells[2:]]
+    except ValueError:
+        return False
+    return True
 
 
 def read_napari(path, *, text: str | None = None) -> LandmarkSet:
