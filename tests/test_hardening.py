@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from landmark_writers import bigwarp_csv, labelled, napari_csv, via2_csv, via2_json, via3_json
 
+from landmark_writers import bigwarp_csv, labelled, napari_csv, via2_csv, via2_json, via3_json
 from oapcal.calibrate import calibrate
 from oapcal.errors import OapcalError
 from oapcal.io.calibration import load_calibration, save_calibration
@@ -73,8 +73,10 @@ LOADERS = {
 #: name -> (seed kind of the fuzzed file, argv).  One line per command and fuzzed input.
 COMMANDS = {
     "fit POINTS": ("points", "fit {bad} --out {out}/c.json"),
-    "fit --distorted": ("via2", "fit --distorted {bad} --reference {via2_ref} --pair-by corner --out {out}/c.json"),
-    "fit --reference": ("via2", "fit --distorted {via2} --reference {bad} --pair-by corner --out {out}/c.json"),
+    "fit --distorted": ("via2", "fit --distorted {bad} --reference {via2_ref} --pair-by corner "
+                        "--out {out}/c.json"),
+    "fit --reference": ("via2_ref", "fit --distorted {via2} --reference {bad} --pair-by corner "
+                        "--out {out}/c.json"),
     "fit bigwarp": ("bigwarp", "fit --distorted {bad} --out {out}/c.json"),
     "correct-points CALIB": ("calib", "correct-points {bad} {points} --out {out}/p.csv"),
     "correct-points POINTS": ("points", "correct-points {calib} {bad} --out {out}/p.csv"),
@@ -152,10 +154,9 @@ def _run_command(run_cli, argv: str, bad: bytes, kind: str, seeds: dict) -> None
             assert list(out.iterdir()) == [], "an output was written although the command failed"
 
 
-FAST = settings(max_examples=25, deadline=None, database=None,
-                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])  # fmt: skip
-SLOW = settings(max_examples=400, deadline=None, database=None,
-                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])  # fmt: skip
+_CHECKS = [HealthCheck.function_scoped_fixture, HealthCheck.too_slow]
+FAST = settings(max_examples=25, deadline=None, database=None, suppress_health_check=_CHECKS)
+SLOW = settings(max_examples=2000, deadline=None, database=None, suppress_health_check=_CHECKS)
 
 
 # -- property tests ------------------------------------------------------------------------------
@@ -195,7 +196,7 @@ def test_loaders_fail_cleanly_long_run(seeds, name, data):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(COMMANDS))
-@settings(SLOW, max_examples=150)
+@settings(SLOW, max_examples=400)
 @given(data=st.data())
 def test_commands_fail_cleanly_long_run(run_cli, seeds, name, data):
     kind, argv = COMMANDS[name]
@@ -207,6 +208,17 @@ def test_the_seeds_themselves_load(seeds):
     for name, (kind, loader) in LOADERS.items():
         if name != "plain CSV landmarks":
             loader(seeds[kind])
+
+
+@pytest.mark.parametrize("name", list(COMMANDS))
+def test_each_command_works_on_its_seed(run_cli, seeds, name, tmp_path):
+    """Each command line of the table succeeds on the unbroken file, so its failures under
+    fuzzing come from the breakage, not from a wrong command line."""
+    kind, argv = COMMANDS[name]
+    names = {k: str(v) for k, v in seeds.items()} | {"bad": str(seeds[kind]), "out": str(tmp_path)}
+    code, _, err = run_cli(*(a.format(**names) for a in argv.split()))
+    assert code == 0, err
+    assert len(list(tmp_path.iterdir())) == 1
 
 
 # -- the corpus of bad files ---------------------------------------------------------------------
