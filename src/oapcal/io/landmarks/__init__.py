@@ -163,7 +163,7 @@ def read_landmark_pairs(
         )
     ref = _read_one(reference, r_fmt, r_text, reference_image, opts)
     if pair_by is None and not pair_by_order:
-        common = sorted(set.intersection(*(set(lm.attrs) for lm in dist.landmarks + ref.landmarks)))
+        common = sorted(set.intersection(*(set(lm.attrs) for lm in dist.landmarks + ref.landmarks)) - {""})
         hint = f" (attributes on every landmark: {', '.join(common[:6])})" if common else ""
         raise InputFileError(
             f"{dist.source} + {ref.source}: say how landmarks pair up: --pair-by ATTR{hint}, or "
@@ -256,7 +256,8 @@ def _ignored_notes(*sets: LandmarkSet):
     for ls in sets:
         if ls.ignored:
             shown = "; ".join(ls.ignored[:3]) + ("; ..." if len(ls.ignored) > 3 else "")
-            yield f"{ls.source}: {len(ls.ignored)} entries not used ({shown})"
+            n = len(ls.ignored)
+            yield f"{ls.source}: {n} {'entry' if n == 1 else 'entries'} not used ({shown})"
 
 
 def _make_pairs(dist, ref, ref_lms, dist_lms, keys, warnings) -> PointPairs:

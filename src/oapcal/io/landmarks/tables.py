@@ -177,7 +177,7 @@ def read_table(path, *, x_column: str = "x", y_column: str = "y", origin: str = 
             )
         x = coordinate(cells[ix], name, where, f"column {header[ix]!r}") - offset
         y = coordinate(cells[iy], name, where, f"column {header[iy]!r}") - offset
-        attrs = {h: cells[i].strip() for i, h in enumerate(header) if i not in (ix, iy)}
+        attrs = {h: cells[i].strip() for i, h in enumerate(header) if i not in (ix, iy) and h}
         landmarks.append(Landmark(x, y, attrs, where))
     if not landmarks:
         raise InputFileError(f"{name}: has a header but no data rows")
