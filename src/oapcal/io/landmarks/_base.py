@@ -167,3 +167,11 @@ def csv_rows(text: str, name: str, delimiter: str = ","):
             yield line, row
     except csv.Error as exc:
         raise InputFileError(f"{name}: line {line + 1}: malformed CSV ({exc})") from None
+
+
+def first_row(rows, name: str):
+    """The first ``(line, cells)`` of :func:`csv_rows`; a file with no row raises."""
+    row = next(rows, None)
+    if row is None:
+        raise InputFileError(f"{name}: has no header line (only blank or quote-only lines)")
+    return row

@@ -22,7 +22,15 @@ import math
 import re
 
 from oapcal.errors import InputFileError
-from oapcal.io.landmarks._base import Landmark, LandmarkSet, coordinate, csv_rows, read_text, sniff_delimiter
+from oapcal.io.landmarks._base import (
+    Landmark,
+    LandmarkSet,
+    coordinate,
+    csv_rows,
+    first_row,
+    read_text,
+    sniff_delimiter,
+)
 
 _AXIS = re.compile(r"^axis-(\d+)$")
 
@@ -52,7 +60,7 @@ def read_napari(path, *, text: str | None = None) -> LandmarkSet:
     name = str(path)
     text = read_text(path, "napari points CSV") if text is None else text
     rows = csv_rows(text, name)
-    _, header = next(rows)
+    _, header = first_row(rows, name)
     header = [h.strip() for h in header]
     axes = sorted((int(m.group(1)), i) for i, h in enumerate(header) if (m := _AXIS.match(h)))
     if [a for a, _ in axes] != list(range(len(axes))) or len(axes) < 2:
@@ -162,7 +170,7 @@ def read_table(path, *, x_column: str = "x", y_column: str = "y", origin: str = 
     name = str(path)
     text = read_text(path, "landmark CSV") if text is None else text
     rows = csv_rows(text, name, sniff_delimiter(text))
-    _, header = next(rows)
+    _, header = first_row(rows, name)
     header = [h.strip() for h in header]
     ix = _column(header, x_column, name, "--x-column")
     iy = _column(header, y_column, name, "--y-column")

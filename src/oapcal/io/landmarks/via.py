@@ -27,6 +27,7 @@ from oapcal.io.landmarks._base import (
     attribute_text,
     coordinate,
     csv_rows,
+    first_row,
     read_text,
 )
 
@@ -134,7 +135,7 @@ def _via2_json_images(data: dict, name: str) -> list[tuple[str, list]]:
 def _via2_csv_images(text: str, name: str) -> list[tuple[str, list]]:
     by_name: dict[str, list] = {}
     rows = csv_rows(text, name)
-    next(rows)  # the header
+    first_row(rows, name)  # the header
     for line, cells in rows:
         where = f"line {line}"
         if len(cells) < 7:
