@@ -32,6 +32,7 @@ COMMANDS: dict[str, str] = {
     "export-opencv": "oapcal.cli.export:export_opencv_command",
     "esf": "oapcal.cli.esf:esf_command",
     "report": "oapcal.cli.report:report_command",
+    "landmarks": "oapcal.cli.landmarks:landmarks_group",
 }
 
 

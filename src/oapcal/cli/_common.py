@@ -5,8 +5,10 @@ Imports nothing heavy at module level (see :mod:`oapcal.cli`).
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
+from dataclasses import dataclass
 
 import click
 
@@ -17,16 +19,158 @@ INIT_HELP = (
 )
 
 
+class PointsUsageError(click.ClickException):
+    """A one-line usage error (exit 2) about how point data were given."""
+
+    exit_code = 2
+
+    def show(self, file=None):
+        click.echo(f"oapcal: error: {self.format_message()}", err=True)
+
+
+@dataclass(frozen=True)
+class PointsSource:
+    """Where a command's point pairs come from: a point-pair CSV (``points``) or a
+    distorted and a reference landmark file (``distorted``, ``reference``) with the options
+    that read and pair them (:func:`oapcal.io.landmarks.read_landmark_pairs`)."""
+
+    points: str | None = None
+    distorted: str | None = None
+    reference: str | None = None
+    fmt: str = "auto"
+    pair_by: str | None = None
+    pair_by_order: bool = False
+    distorted_image: str | None = None
+    reference_image: str | None = None
+    x_column: str = "x"
+    y_column: str = "y"
+    pixel_origin: str = "center"
+
+    @property
+    def paths(self) -> tuple[str, ...]:
+        """The input files (for output checks)."""
+        return tuple(p for p in (self.points, self.distorted, self.reference) if p is not None)
+
+    def __str__(self) -> str:
+        if self.points is not None:
+            return self.points
+        return " + ".join(self.paths)
+
+
+_LANDMARK_DEFAULTS = {
+    "distorted": None, "reference": None, "landmark_format": "auto", "pair_by": None,
+    "pair_by_order": False, "distorted_image": None, "reference_image": None,
+    "x_column": "x", "y_column": "y", "pixel_origin": "center",
+}  # fmt: skip
+
+
+def _landmark_decorators():
+    path = click.Path(dir_okay=False, allow_dash=True)
+    return [
+        click.option("--distorted", type=path, default=None,
+                     help="Landmarks labelled on the distorted (camera) image, instead of POINTS."),
+        click.option("--reference", type=path, default=None,
+                     help="Landmarks of the reference image (not needed for a BigWarp file, or a "
+                     "VIA file holding both images)."),
+        click.option("--format", "landmark_format", default="auto", show_default=True,
+                     type=click.Choice(["auto", "csv", "via", "napari", "bigwarp"]),
+                     help="Landmark file format; 'auto' detects it from the content."),
+        click.option("--pair-by", "pair_by", metavar="ATTR", default=None,
+                     help="Pair landmarks by this attribute / column (e.g. a corner id)."),
+        click.option("--pair-by-order", is_flag=True, default=False,
+                     help="Pair landmarks by their order in the two files."),
+        click.option("--distorted-image", metavar="NAME", default=None,
+                     help="VIA: the image whose regions are the distorted landmarks."),
+        click.option("--reference-image", metavar="NAME", default=None,
+                     help="VIA: the image whose regions are the reference landmarks."),
+        click.option("--x-column", default="x", show_default=True,
+                     help="Plain CSV/TSV landmarks: the x (column) coordinate's column."),
+        click.option("--y-column", default="y", show_default=True,
+                     help="Plain CSV/TSV landmarks: the y (row) coordinate's column."),
+        click.option("--pixel-origin", type=click.Choice(["center", "corner"]), default="center",
+                     show_default=True,
+                     help="Plain CSV/TSV landmarks: 'corner' if the top-left pixel's centre is at "
+                     "(0.5, 0.5) (e.g. ImageJ measurements)."),
+    ]  # fmt: skip
+
+
+def _source(points, options: dict) -> PointsSource:
+    given = {k: v for k, v in options.items() if v != _LANDMARK_DEFAULTS[k]}
+    if points is not None and options["distorted"] is not None:
+        raise PointsUsageError("give either POINTS or --distorted/--reference landmark files, not both")
+    if points is None and options["distorted"] is None:
+        if options["reference"] is not None:
+            raise PointsUsageError("--reference needs --distorted FILE too")
+        raise PointsUsageError(
+            "give a point-pair file POINTS, or landmark files --distorted FILE --reference FILE"
+        )
+    if points is not None and given:
+        flag = "--" + next(iter(given)).replace("landmark_format", "format").replace("_", "-")
+        raise PointsUsageError(f"{flag} applies to --distorted/--reference landmark files, not to POINTS")
+    if options["pair_by"] is not None and options["pair_by_order"]:
+        raise PointsUsageError("give either --pair-by ATTR or --pair-by-order, not both")
+    return PointsSource(
+        points=points, distorted=options["distorted"], reference=options["reference"],
+        fmt=options["landmark_format"], pair_by=options["pair_by"], pair_by_order=options["pair_by_order"],
+        distorted_image=options["distorted_image"], reference_image=options["reference_image"],
+        x_column=options["x_column"], y_column=options["y_column"], pixel_origin=options["pixel_origin"],
+    )  # fmt: skip
+
+
 def points_options(func):
-    """The ``POINTS`` argument shared by commands that read point pairs."""
-    return click.argument("points", type=click.Path(dir_okay=False, allow_dash=True))(func)
+    """Point-pair input shared by commands: a ``POINTS`` file, or ``--distorted`` and
+    ``--reference`` landmark files with ``--format``, ``--pair-by``, ... (exactly one of the
+    two ways).  The command receives one :class:`PointsSource` as ``points``; give it to
+    :func:`load_pairs` and :func:`check_output`."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        points = kwargs.pop("points")
+        options = {k: kwargs.pop(k) for k in _LANDMARK_DEFAULTS}
+        return func(*args, points=_source(points, options), **kwargs)
+
+    for decorate in reversed(_landmark_decorators()):
+        wrapper = decorate(wrapper)
+    return click.argument("points", required=False, type=click.Path(dir_okay=False, allow_dash=True))(wrapper)
 
 
-def load_pairs(points: str, require=("x_u", "y_u", "x_d", "y_d")):
-    """Read point pairs given on the command line (see :func:`oapcal.io.points.read_points`)."""
+def landmark_options(func):
+    """``--distorted/--reference/--format/--pair-by/...`` (no ``POINTS``), given to the
+    command as one :class:`PointsSource` named ``source``."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        options = {k: kwargs.pop(k) for k in _LANDMARK_DEFAULTS}
+        if options["distorted"] is None:
+            raise PointsUsageError("give the landmark files: --distorted FILE [--reference FILE]")
+        return func(*args, source=_source(None, options), **kwargs)
+
+    for decorate in reversed(_landmark_decorators()):
+        wrapper = decorate(wrapper)
+    return wrapper
+
+
+def load_pairs(points, require=("x_u", "y_u", "x_d", "y_d")):
+    """Read point pairs given on the command line: a POINTS path or a :class:`PointsSource`
+    (see :func:`oapcal.io.points.read_points`, :func:`oapcal.io.landmarks.read_landmark_pairs`).
+    What was read but not used (unpaired landmarks, ...) is reported on stderr."""
     from oapcal.io.points import read_points
 
-    return read_points(points, require=require)
+    if isinstance(points, PointsSource) and points.points is not None:
+        points = points.points
+    if not isinstance(points, PointsSource):
+        return read_points(points, require=require)
+    from oapcal.io.landmarks import read_landmark_pairs
+
+    pairs = read_landmark_pairs(
+        points.distorted, points.reference, fmt=points.fmt, pair_by=points.pair_by,
+        pair_by_order=points.pair_by_order, distorted_image=points.distorted_image,
+        reference_image=points.reference_image, x_column=points.x_column, y_column=points.y_column,
+        origin=points.pixel_origin, require=tuple(require),
+    )  # fmt: skip
+    for line in pairs.warnings:
+        click.echo(f"oapcal: warning: {line}", err=True)
+    return pairs
 
 
 def check_output(out: str | None, *inputs) -> None:
@@ -35,7 +179,10 @@ def check_output(out: str | None, *inputs) -> None:
         return
     from oapcal.io.atomic import ensure_not_input
 
-    ensure_not_input(out, inputs)
+    paths = []
+    for item in inputs:
+        paths.extend(item.paths if isinstance(item, PointsSource) else [item])
+    ensure_not_input(out, paths)
 
 
 def print_json(obj) -> None:

@@ -50,7 +50,8 @@ from oapcal.cli._common import (
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
 def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json):
-    """Fit a distortion model to point pairs (CSV with x_u,y_u,x_d,y_d)."""
+    """Fit a distortion model to point pairs: a CSV with x_u,y_u,x_d,y_d (POINTS), or
+    landmark files --distorted FILE --reference FILE (VIA, napari, BigWarp, CSV)."""
     from oapcal.calibrate import calibrate
     from oapcal.io.calibration import save_calibration
     from oapcal.model import parse_model
@@ -150,7 +151,8 @@ def print_fit(cal) -> None:
     help="Output CSV: the input columns plus x_c,y_c,converged.",
 )
 def correct_points_command(calib, points, out):
-    """Correct distorted points (columns x_d,y_d) with a calibration."""
+    """Correct distorted points (columns x_d,y_d of POINTS, or the landmarks of --distorted
+    FILE) with a calibration."""
     from oapcal.io.calibration import load_calibration
     from oapcal.io.points import write_points
     from oapcal.model import undistort

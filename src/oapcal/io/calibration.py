@@ -207,4 +207,8 @@ def load_calibration(path: str | Path) -> Calibration:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputFileError(f"{name}: line {exc.lineno}: malformed JSON ({exc.msg})") from None
+    except RecursionError:
+        raise InputFileError(f"{name}: JSON nested too deeply to be a calibration file") from None
+    except ValueError as exc:  # e.g. an integer literal with thousands of digits
+        raise InputFileError(f"{name}: unreadable JSON ({str(exc).splitlines()[0]})") from None
     return Calibration.from_dict(data, source=name)

@@ -26,6 +26,9 @@ from oapcal.errors import DataError, InputFileError
 from oapcal.io.atomic import atomic_write
 
 PAIR_COLUMNS = ("x_u", "y_u", "x_d", "y_d")
+#: Coordinates beyond this magnitude are refused: no image is that large, and the model's
+#: powers of r would overflow.
+MAX_COORD = 1.0e12
 
 
 @dataclass(frozen=True)
@@ -35,6 +38,9 @@ class PointPairs:
     ``xy_u`` and ``xy_d`` are ``(N, 2)`` float arrays (NaN-filled when a column set was not
     required and is absent); ``ids`` the ``id`` column or None; ``rows`` the raw rows (for
     copying columns through) with ``fieldnames``; ``lines`` the file line of each row.
+    ``warnings`` lists what was read but not used (landmark files: unpaired or disabled
+    landmarks); ``where_u``/``where_d`` name each point's origin for messages (landmark
+    files; empty for point-pair CSVs, whose ``lines`` say it).
     """
 
     xy_u: np.ndarray
@@ -44,6 +50,9 @@ class PointPairs:
     fieldnames: tuple[str, ...]
     lines: tuple[int, ...]
     source: str
+    warnings: tuple[str, ...] = ()
+    where_u: tuple[str, ...] = ()
+    where_d: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.xy_d)
@@ -62,6 +71,10 @@ def _read_text(path: str | Path) -> str:
         data = p.read_bytes()
     except OSError as exc:
         raise InputFileError(f"{name}: cannot be read ({exc.strerror}); check its permissions") from None
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise InputFileError(f"{name}: is UTF-16 text; save it as UTF-8 CSV")
+    if b"\x00" in data:
+        raise InputFileError(f"{name}: contains binary data (NUL bytes); give a CSV text file")
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -80,6 +93,11 @@ def _parse_float(text: str, name: str, line: int, column: str) -> float:
         raise InputFileError(
             f"{name}: line {line}, column {column!r}: {text.strip()} is not a finite number; "
             "remove or fix this row"
+        )
+    if abs(value) > MAX_COORD:
+        raise InputFileError(
+            f"{name}: line {line}, column {column!r}: {text.strip()} is far outside any image "
+            f"(limit {MAX_COORD:g}); remove or fix this row"
         )
     return value
 
@@ -172,7 +190,7 @@ def read_points(
 def check_geometry_of(pairs: PointPairs) -> None:
     """Reject duplicated points and collinear point sets (raises :class:`DataError`)."""
     for label, xy in (("reference", pairs.xy_u), ("distorted", pairs.xy_d)):
-        if np.isnan(xy).all():
+        if np.isnan(xy).any():  # a column set that was not required (and may be partial)
             continue
         _check_duplicates(xy, label, pairs)
         _check_collinear(xy, label, pairs)

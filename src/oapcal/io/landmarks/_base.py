@@ -1,0 +1,177 @@
+"""What every landmark reader shares: the landmark record, file reading, number checks.
+
+Coordinates in a :class:`Landmark` are already in oapcal's convention (origin at the
+centre of the top-left pixel, x = column, y = row; ``docs/conventions.md``): each reader
+converts from its tool's convention.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from oapcal.errors import InputFileError
+
+#: Landmark files larger than this are refused before they are read (bytes).
+MAX_FILE_BYTES = 64 * 1024 * 1024
+#: A coordinate whose magnitude exceeds this (px) is certainly not a pixel position.
+MAX_COORD = 1.0e7
+
+
+@dataclass(frozen=True)
+class Landmark:
+    """One labelled point: ``x, y`` in px (oapcal convention), its attributes as strings
+    (``{"corner": "A3"}``), and ``where`` it came from (``"line 5"``, ``"region 2"``) for
+    messages."""
+
+    x: float
+    y: float
+    attrs: dict = field(default_factory=dict)
+    where: str = ""
+
+
+@dataclass(frozen=True)
+class LandmarkSet:
+    """The landmarks of one image.
+
+    ``source`` names the file (and the image, for files that hold several);
+    ``ignored`` holds one line per landmark or region that was read but is not used
+    (a disabled BigWarp row, a VIA rectangle, ...), to be reported to the user.
+    """
+
+    source: str
+    landmarks: tuple[Landmark, ...]
+    ignored: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.landmarks)
+
+
+def read_text(path: str | Path, what: str = "landmark file") -> str:
+    """The text of ``path`` (``-`` is stdin), decoded as UTF-8 (a BOM is allowed).
+
+    Raises :class:`InputFileError` for a missing, unreadable, oversized, binary or
+    non-UTF-8 file, and for an empty one.
+    """
+    name = str(path)
+    if name == "-":
+        return _check_text(sys.stdin.read(), name, what)
+    p = Path(path)
+    if not p.exists():
+        raise InputFileError(f"{name}: no such file; check the path")
+    if p.is_dir():
+        raise InputFileError(f"{name}: is a directory, not a {what}")
+    try:
+        size = p.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise InputFileError(
+                f"{name}: is {size / 2**20:.0f} MiB; a {what} over "
+                f"{MAX_FILE_BYTES // 2**20} MiB is not read (is this the right file?)"
+            )
+        data = p.read_bytes()
+    except OSError as exc:
+        raise InputFileError(f"{name}: cannot be read ({exc.strerror}); check its permissions") from None
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise InputFileError(f"{name}: is UTF-16 text; save it as UTF-8")
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputFileError(
+            f"{name}: is not UTF-8 text (bad byte at offset {exc.start}); save it as UTF-8"
+        ) from None
+    return _check_text(text, name, what)
+
+
+def _check_text(text: str, name: str, what: str) -> str:
+    if "\x00" in text:
+        raise InputFileError(f"{name}: contains binary data (NUL bytes); give a {what} (text)")
+    if not text.strip():
+        raise InputFileError(f"{name}: is empty; give a {what} with landmarks in it")
+    return text
+
+
+def coordinate(value, source: str, where: str, axis: str) -> float:
+    """Check one coordinate read from a file: a real, finite number of sane size.
+
+    ``value`` may be a JSON number or a string from a CSV cell.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise InputFileError(
+            f"{source}: {where}: {axis} is {type(value).__name__} {_short(value)}, not a number"
+        )
+    if isinstance(value, str):
+        try:
+            number = float(value)
+        except ValueError:
+            shown = "an empty cell" if not value.strip() else _short(value)
+            raise InputFileError(f"{source}: {where}: {axis} is {shown}, not a number") from None
+    else:
+        try:
+            number = float(value)
+        except OverflowError:
+            number = math.inf
+    if not math.isfinite(number):
+        raise InputFileError(
+            f"{source}: {where}: {axis} is {_short(value)}, not a finite number; fix or remove it"
+        )
+    if abs(number) > MAX_COORD:
+        raise InputFileError(
+            f"{source}: {where}: {axis} = {number:g} px is far outside any image (limit {MAX_COORD:g}); "
+            "fix or remove it"
+        )
+    return number
+
+
+def attribute_text(value) -> str | None:
+    """A region attribute as text: strings as they are, numbers without a trailing ``.0``,
+    checkbox dicts (``{"a": true, "b": false}``) as the sorted ticked keys joined by ``+``;
+    None for values that cannot name a landmark (nested objects, null)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return value.strip()
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return str(int(value)) if value.is_integer() and abs(value) < 1e15 else repr(value)
+    if isinstance(value, dict) and all(isinstance(v, bool) for v in value.values()):
+        return "+".join(sorted(str(k) for k, v in value.items() if v))
+    return None
+
+
+def _short(value, limit: int = 30) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def sniff_delimiter(text: str) -> str:
+    """Tab if the first line has more tabs than commas, else comma."""
+    first = text.splitlines()[0] if text else ""
+    return "\t" if first.count("\t") > first.count(",") else ","
+
+
+def csv_rows(text: str, name: str, delimiter: str = ","):
+    """Yield ``(line number, cells)`` of a CSV text, skipping blank lines; malformed CSV
+    raises :class:`InputFileError` naming the line."""
+    reader = csv.reader(io.StringIO(text), delimiter=delimiter)
+    line = 0
+    try:
+        for row in reader:
+            line = reader.line_num
+            if not row or all(not c.strip() for c in row):
+                continue
+            yield line, row
+    except csv.Error as exc:
+        raise InputFileError(f"{name}: line {line + 1}: malformed CSV ({exc})") from None
+
+
+def first_row(rows, name: str):
+    """The first ``(line, cells)`` of :func:`csv_rows`; a file with no row raises."""
+    row = next(rows, None)
+    if row is None:
+        raise InputFileError(f"{name}: has no header line (only blank or quote-only lines)")
+    return row

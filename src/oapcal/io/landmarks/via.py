@@ -1,0 +1,269 @@
+"""VGG Image Annotator (VIA) point regions: VIA 2 CSV and JSON exports, VIA 3 projects.
+
+* VIA 2 CSV: ``filename,file_size,file_attributes,region_count,region_id,
+  region_shape_attributes,region_attributes``, one row per region; the two last cells are
+  JSON, a point is ``{"name":"point","cx":120,"cy":85}``.
+* VIA 2 JSON (export or project): ``{key: {"filename", "regions": [{"shape_attributes",
+  "region_attributes"}, ...]}}``, inside ``"_via_img_metadata"`` for a project.
+* VIA 3 project: ``"metadata": {id: {"vid", "xy": [1, x, y], "av": {attr_id: value}}}``
+  (shape 1 = point), images under ``"file"`` and ``"view"``, attribute names under
+  ``"attribute"``.
+
+Pixel convention: VIA draws the image with its top-left *corner* at (0, 0) and stores
+canvas positions scaled to image pixels, so the centre of the top-left pixel is
+(0.5, 0.5); VIA 2 rounds point positions to whole pixels.  oapcal puts that centre at
+(0, 0): ``x = cx - 0.5``, ``y = cy - 0.5``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import PurePath
+
+from oapcal.errors import InputFileError
+from oapcal.io.landmarks._base import (
+    Landmark,
+    LandmarkSet,
+    attribute_text,
+    coordinate,
+    csv_rows,
+    first_row,
+    read_text,
+)
+
+#: VIA's image coordinates minus this are oapcal's (corner origin -> centre origin).
+PIXEL_OFFSET = 0.5
+VIA2_CSV_HEADER = (
+    "filename", "file_size", "file_attributes", "region_count", "region_id",
+    "region_shape_attributes", "region_attributes",
+)  # fmt: skip
+_VIA3_SHAPES = {1: "point", 2: "rectangle", 3: "circle", 4: "ellipse", 5: "line", 6: "polyline",
+                7: "polygon", 8: "extreme rectangle", 9: "extreme circle"}  # fmt: skip
+
+
+def is_via_csv_header(first_line: str) -> bool:
+    cells = [c.strip().lstrip("#").strip('"') for c in first_line.split(",")]
+    return tuple(cells[:7]) == VIA2_CSV_HEADER
+
+
+def load_json(text: str, name: str):
+    """Parse JSON text; malformed or absurdly nested JSON raises :class:`InputFileError`."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputFileError(f"{name}: line {exc.lineno}: malformed JSON ({exc.msg})") from None
+    except RecursionError:
+        raise InputFileError(f"{name}: JSON nested too deeply to be a landmark file") from None
+    except ValueError as exc:  # e.g. an integer literal with thousands of digits
+        raise InputFileError(f"{name}: unreadable JSON ({str(exc).splitlines()[0]})") from None
+
+
+def json_kind(data) -> str | None:
+    """``"via3"``, ``"via2"`` or None for parsed JSON."""
+    if not isinstance(data, dict):
+        return None
+    if "metadata" in data and "file" in data and ("view" in data or "project" in data):
+        return "via3"
+    if "_via_img_metadata" in data:
+        return "via2"
+    if data and all(isinstance(v, dict) and "regions" in v for v in data.values()):
+        return "via2"
+    return None
+
+
+def read_via(path, image: str | None = None, *, text: str | None = None) -> LandmarkSet:
+    """Read the point regions of one image from a VIA 2 CSV/JSON or VIA 3 JSON file.
+
+    ``image`` picks the image by file name (or base name) when the file holds point
+    regions on several images.
+    """
+    name = str(path)
+    text = read_text(path, "VIA file") if text is None else text
+    stripped = text.lstrip()
+    if stripped.startswith(("{", "[")):
+        data = load_json(text, name)
+        kind = json_kind(data)
+        if kind == "via3":
+            images = _via3_images(data, name)
+        elif kind == "via2":
+            images = _via2_json_images(data, name)
+        else:
+            raise InputFileError(
+                f"{name}: is JSON but not a VIA 2 export or VIA 3 project (expected an object of "
+                "images with 'regions', '_via_img_metadata', or 'file'/'view'/'metadata')"
+            )
+    elif is_via_csv_header(stripped.splitlines()[0]):
+        images = _via2_csv_images(text, name)
+    else:
+        raise InputFileError(
+            f"{name}: line 1: not a VIA file (a VIA 2 CSV starts with filename,file_size,...; "
+            "VIA JSON starts with '{')"
+        )
+    return _pick_image(images, name, image)
+
+
+# -- VIA 2 ------------------------------------------------------------------------------------
+
+
+def _via2_json_images(data: dict, name: str) -> list[tuple[str, list]]:
+    meta = data.get("_via_img_metadata", data)
+    if not isinstance(meta, dict):
+        raise InputFileError(f"{name}: field '_via_img_metadata' must be an object of images")
+    images = []
+    for key, entry in meta.items():
+        if not isinstance(entry, dict):
+            raise InputFileError(f"{name}: image {key!r}: must be an object, not {type(entry).__name__}")
+        fname = entry.get("filename", key)
+        if not isinstance(fname, str):
+            raise InputFileError(f"{name}: image {key!r}: field 'filename' must be text")
+        regions = entry.get("regions", [])
+        if isinstance(regions, dict):  # VIA 1 stored regions as {"0": {...}, "1": {...}}
+            regions = list(regions.values())
+        if not isinstance(regions, list):
+            raise InputFileError(f"{name}: image {fname!r}: field 'regions' must be a list")
+        parsed = []
+        for i, region in enumerate(regions):
+            where = f"image {fname!r}, region {i}"
+            if not isinstance(region, dict):
+                raise InputFileError(f"{name}: {where}: must be an object, not {type(region).__name__}")
+            parsed.append(_via2_region(region.get("shape_attributes"), region.get("region_attributes", {}),
+                                       name, where))  # fmt: skip
+        images.append((fname, parsed, key))
+    return images
+
+
+def _via2_csv_images(text: str, name: str) -> list[tuple[str, list]]:
+    by_name: dict[str, list] = {}
+    rows = csv_rows(text, name)
+    first_row(rows, name)  # the header
+    for line, cells in rows:
+        where = f"line {line}"
+        if len(cells) < 7:
+            raise InputFileError(
+                f"{name}: {where}: {len(cells)} cells, a VIA CSV row has 7; is the file truncated?"
+            )
+        fname = cells[0].strip()
+        shape = load_json(cells[5], f"{name}: {where}: region_shape_attributes") if cells[5].strip() else {}
+        attrs = load_json(cells[6], f"{name}: {where}: region_attributes") if cells[6].strip() else {}
+        regions = by_name.setdefault(fname, [])
+        if shape == {}:  # an image without regions
+            continue
+        regions.append(_via2_region(shape, attrs, name, where))
+    return [(fname, regions, fname) for fname, regions in by_name.items()]
+
+
+def _via2_region(shape, attrs, name: str, where: str):
+    """``Landmark`` for a point region, or a string naming the ignored shape."""
+    if not isinstance(shape, dict):
+        raise InputFileError(f"{name}: {where}: 'shape_attributes' must be an object like "
+                             '{"name": "point", "cx": 10, "cy": 20}')  # fmt: skip
+    if attrs is None:
+        attrs = {}
+    if not isinstance(attrs, dict):
+        raise InputFileError(f"{name}: {where}: 'region_attributes' must be an object")
+    kind = shape.get("name")
+    if kind != "point":
+        return f"{where}: a {kind!r} region (only point regions are landmarks)"
+    for key in ("cx", "cy"):
+        if key not in shape:
+            raise InputFileError(f"{name}: {where}: point region has no {key!r}")
+    x = coordinate(shape["cx"], name, where, "cx") - PIXEL_OFFSET
+    y = coordinate(shape["cy"], name, where, "cy") - PIXEL_OFFSET
+    text_attrs = {str(k): t for k, v in attrs.items() if (t := attribute_text(v)) is not None}
+    return Landmark(x, y, text_attrs, where)
+
+
+# -- VIA 3 ------------------------------------------------------------------------------------
+
+
+def _via3_images(data: dict, name: str) -> list[tuple[str, list]]:
+    files, views, meta = data.get("file"), data.get("view"), data.get("metadata")
+    attributes = data.get("attribute", {})
+    for field, value in (("file", files), ("metadata", meta), ("attribute", attributes)):
+        if not isinstance(value, dict):
+            raise InputFileError(f"{name}: field {field!r} must be an object")
+    if views is None:
+        views = {fid: {"fid_list": [fid]} for fid in files}
+    if not isinstance(views, dict):
+        raise InputFileError(f"{name}: field 'view' must be an object")
+    anames, options = {}, {}
+    for aid, attr in attributes.items():
+        if isinstance(attr, dict):
+            anames[str(aid)] = str(attr.get("aname", aid))
+            if isinstance(attr.get("options"), dict):
+                options[str(aid)] = attr["options"]
+    view_name = {}
+    for vid, view in views.items():
+        fids = view.get("fid_list") if isinstance(view, dict) else None
+        if not isinstance(fids, list) or not fids:
+            continue
+        entry = files.get(str(fids[0]))
+        fname = entry.get("fname") if isinstance(entry, dict) else None
+        view_name[str(vid)] = fname if isinstance(fname, str) else f"file {fids[0]}"
+    images: dict[str, list] = {vid: [] for vid in view_name}
+    for mid, item in meta.items():
+        where = f"metadata {mid!r}"
+        if not isinstance(item, dict):
+            raise InputFileError(f"{name}: {where}: must be an object, not {type(item).__name__}")
+        xy, av, vid = item.get("xy", []), item.get("av", {}), str(item.get("vid"))
+        if not isinstance(xy, list):
+            raise InputFileError(f"{name}: {where}: field 'xy' must be a list like [1, x, y]")
+        if not xy:  # a file or time-segment annotation, not a region
+            continue
+        if vid not in images:
+            raise InputFileError(f"{name}: {where}: view {vid!r} is not in the project's 'view' list")
+        if not isinstance(av, dict):
+            raise InputFileError(f"{name}: {where}: field 'av' must be an object")
+        shape = xy[0]
+        if shape != 1:
+            kind = _VIA3_SHAPES.get(shape, f"shape {shape!r}") if isinstance(shape, int) else repr(shape)
+            images[vid].append(f"{where}: a {kind} region (only point regions are landmarks)")
+            continue
+        if len(xy) != 3:
+            raise InputFileError(
+                f"{name}: {where}: a point region needs xy = [1, x, y], got {len(xy)} values"
+            )
+        x = coordinate(xy[1], name, where, "x") - PIXEL_OFFSET
+        y = coordinate(xy[2], name, where, "y") - PIXEL_OFFSET
+        attrs = {}
+        for aid, value in av.items():
+            aid = str(aid)
+            label = options.get(aid, {}).get(value, value) if isinstance(value, str) else value
+            text = attribute_text(label)
+            if text is not None:
+                attrs[anames.get(aid, aid)] = text
+        images[vid].append(Landmark(x, y, attrs, where))
+    return [(view_name[vid], regions, vid) for vid, regions in images.items()]
+
+
+# -- choosing the image -----------------------------------------------------------------------
+
+
+def _pick_image(images, name: str, image: str | None) -> LandmarkSet:
+    def has_points(regions):
+        return any(isinstance(r, Landmark) for r in regions)
+
+    if image is not None:
+        chosen = [im for im in images if image in (im[0], im[2], PurePath(im[0]).name)]
+        if not chosen:
+            listed = ", ".join(repr(im[0]) for im in images[:5]) + (", ..." if len(images) > 5 else "")
+            raise InputFileError(f"{name}: has no image {image!r}; it has {listed or 'no images'}")
+        if len(chosen) > 1:
+            raise InputFileError(f"{name}: {len(chosen)} images match {image!r}; give the full file name")
+    else:
+        chosen = [im for im in images if has_points(im[1])]
+        if not chosen:
+            raise InputFileError(f"{name}: has no point regions; label the landmarks with VIA's point tool")
+        if len(chosen) > 1:
+            listed = ", ".join(repr(im[0]) for im in chosen[:5]) + (", ..." if len(chosen) > 5 else "")
+            raise InputFileError(
+                f"{name}: has point regions on {len(chosen)} images ({listed}); choose one with "
+                "--distorted-image / --reference-image"
+            )
+    fname, regions, _ = chosen[0]
+    landmarks = tuple(r for r in regions if isinstance(r, Landmark))
+    if not landmarks:
+        raise InputFileError(f"{name}: image {fname!r} has no point regions; label its landmarks as points")
+    ignored = tuple(r for r in regions if isinstance(r, str))
+    source = name if len(images) == 1 else f"{name} [{fname}]"
+    return LandmarkSet(source, landmarks, ignored)
