@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "correct-points": "oapcal.cli.fit:correct_points_command",
     "demo": "oapcal.cli.demo:demo_command",
     "simulate": "oapcal.cli.simulate:simulate_group",
+    "detect": "oapcal.cli.detect:detect_command",
 }
 
 

@@ -7,7 +7,9 @@ import importlib
 import click
 
 #: name -> "module:attribute" of every ``simulate`` subcommand.
-SUBCOMMANDS: dict[str, str] = {}
+SUBCOMMANDS: dict[str, str] = {
+    "image": "oapcal.cli.simulate_image:simulate_image_command",
+}
 
 
 class _LazySimulate(click.Group):
