@@ -36,7 +36,10 @@ def test_truth_is_the_forward_model_and_agrees_with_the_image():
     field = setup1_like_field()
     sim = simulate_image((4,), field, sigma_px=0.5, snr=None, oversample=3)
     t = usaf_target((4,))
-    paraxial = 319.5 + (t.corners_um[:, 0] - t.centre_um[0]) / 4.8, 239.5 + (t.corners_um[:, 1] - t.centre_um[1]) / 4.8
+    paraxial = (
+        319.5 + (t.corners_um[:, 0] - t.centre_um[0]) / 4.8,
+        239.5 + (t.corners_um[:, 1] - t.centre_um[1]) / 4.8,
+    )
     np.testing.assert_allclose(sim.xy_u, np.column_stack(paraxial), atol=1e-9)
     np.testing.assert_allclose(sim.xy_d, distort(sim.xy_u, field.params), atol=1e-9)
     # The intensity-weighted centre of a bar in the image (made through the inverse map)
@@ -57,7 +60,12 @@ def test_truth_is_the_forward_model_and_agrees_with_the_image():
     back = np.full(len(pix), np.inf)
     back[near] = 0
     u = field.inverse(pix[near])
-    inside = (u[:, 0] > x0 - gap / 2) & (u[:, 0] < x1 + gap / 2) & (u[:, 1] > y0 - gap / 2) & (u[:, 1] < y1 + gap / 2)
+    inside = (
+        (u[:, 0] > x0 - gap / 2)
+        & (u[:, 0] < x1 + gap / 2)
+        & (u[:, 1] > y0 - gap / 2)
+        & (u[:, 1] < y1 + gap / 2)
+    )
     sel = np.flatnonzero(near)[inside]
     wgt = sim.clean.reshape(-1)[sel] - 0.05
     c_img = (pix[sel] * wgt[:, None]).sum(axis=0) / wgt.sum()
@@ -121,4 +129,6 @@ def test_corners_outside_the_image_are_not_visible():
 )
 def test_bad_simulation_arguments(kwargs):
     with pytest.raises(DataError):
-        simulate_image((5,), identity_field(image_size=(64, 48)), oversample=kwargs.pop("oversample", 1), **kwargs)
+        simulate_image(
+            (5,), identity_field(image_size=(64, 48)), oversample=kwargs.pop("oversample", 1), **kwargs
+        )

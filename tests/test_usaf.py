@@ -84,7 +84,12 @@ def test_rendered_bar_widths_and_positions_within_a_tenth_of_a_pixel():
             x0, y0, x1, y1 = bars_px[i]
             # Integrate the rendered intensity in a box around the bar (gaps of w on both sides).
             w_px = bar_width_um(g, e) / s
-            box = (xx > x0 - 0.9 * w_px) & (xx < x1 + 0.9 * w_px) & (yy > y0 - 0.9 * w_px) & (yy < y1 + 0.9 * w_px)
+            box = (
+                (xx > x0 - 0.9 * w_px)
+                & (xx < x1 + 0.9 * w_px)
+                & (yy > y0 - 0.9 * w_px)
+                & (yy < y1 + 0.9 * w_px)
+            )
             box &= (np.abs(xx - (x0 + x1) / 2) <= (x1 - x0) / 2 + w_px - 0.5) | (orient == "H")
             box &= (np.abs(yy - (y0 + y1) / 2) <= (y1 - y0) / 2 + w_px - 0.5) | (orient == "V")
             cover = (r.image - 0.05) / 0.95 * box
@@ -111,7 +116,11 @@ def test_dark_polarity_and_group_parsing():
     bright = render_usaf((5,), image_size=(200, 160))
     dark = render_usaf((5,), image_size=(200, 160), polarity="dark")
     np.testing.assert_allclose(bright.image + dark.image, 1.05)
-    assert parse_groups("4-5") == (4, 5) and parse_groups("-2--1") == (-2, -1) and parse_groups("2,4-5") == (2, 4, 5)
+    assert (
+        parse_groups("4-5") == (4, 5)
+        and parse_groups("-2--1") == (-2, -1)
+        and parse_groups("2,4-5") == (2, 4, 5)
+    )
     for bad in ("four", "", "4,4", "8-10"):
         with pytest.raises(DataError):
             parse_groups(bad)

@@ -9,13 +9,48 @@ from oapcal.cli._common import check_output, console, print_json
 
 @click.command("detect")
 @click.argument("image", type=click.Path(dir_okay=False))
-@click.option("--target", type=click.Choice(["usaf"]), default="usaf", show_default=True, help="The target in the image.")
+@click.option(
+    "--target",
+    type=click.Choice(["usaf"]),
+    default="usaf",
+    show_default=True,
+    help="The target in the image.",
+)
 @click.option("--groups", default="4-5", show_default=True, help="USAF groups in the image, e.g. 4-5.")
-@click.option("--um-per-px", type=click.FloatRange(min=0, min_open=True), required=True, help="Scale of the reference points x_u,y_u (object um per px); about the camera's object-space pixel size.")
-@click.option("--out", "out", type=click.Path(dir_okay=False, allow_dash=True), required=True, help="Point-pair CSV: id,x_u,y_u,x_d,y_d.")
-@click.option("--truth", type=click.Path(dir_okay=False), default=None, help="Ground truth of a simulated image (id,x_d,y_d,visible) to score against.")
-@click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None, help="Save a PNG of the image with the detected corners.")
-@click.option("--max-stderr-px", type=click.FloatRange(min=0, min_open=True), default=0.3, show_default=True, help="Drop triplets whose corners are less certain than this.")
+@click.option(
+    "--um-per-px",
+    type=click.FloatRange(min=0, min_open=True),
+    required=True,
+    help="Scale of the reference points x_u,y_u (object um per px); "
+    "about the camera's object-space pixel size.",
+)
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(dir_okay=False, allow_dash=True),
+    required=True,
+    help="Point-pair CSV: id,x_u,y_u,x_d,y_d.",
+)
+@click.option(
+    "--truth",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Ground truth of a simulated image (id,x_d,y_d,visible) to score against.",
+)
+@click.option(
+    "--plot",
+    "plot",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Save a PNG of the image with the detected corners.",
+)
+@click.option(
+    "--max-stderr-px",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.3,
+    show_default=True,
+    help="Drop triplets whose corners are less certain than this.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
 def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stderr_px, as_json):
     """Detect the bar corners of a USAF-1951 target and match them to the reference target."""
@@ -29,16 +64,20 @@ def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stder
     group_list = parse_groups(groups)
     img = read_grey_image(image)
     score = _read_truth(truth) if truth else None
+    if score is not None:
+        from oapcal.errors import DataError
+        from oapcal.imaging.usaf import usaf_target
+
+        known = set(score[0])
+        missing = [i for i in usaf_target(group_list).corner_ids if i not in known]
+        if missing:
+            raise DataError(
+                f"{truth}: has no row with id {missing[0]!r}; is it the truth of this image and these groups?"
+            )
     det = detect_usaf(img, group_list, um_per_px, max_stderr_px=max_stderr_px, progress=not as_json)
     summary = det.summary()
     if score is not None:
-        ids, xy_d, visible = score
-        missing = [i for i in det.ids if i not in set(ids)]
-        if missing:
-            from oapcal.errors import DataError
-
-            raise DataError(f"{truth}: has no row with id {missing[0]!r}; is it the truth of this image and these groups?")
-        summary["truth"] = evaluate_detection(det, ids, xy_d, visible)
+        summary["truth"] = evaluate_detection(det, *score)
     if det.status != 0:
         click.echo(f"oapcal: detection failed: {det.message}", err=True)
         if as_json:

@@ -236,9 +236,14 @@ def _gauss_newton(
     converged = False
     n_iter = 0
     jtj = None
-    for n_iter in range(1, max_iter + 1):
+    for n_iter in range(1, max_iter + 1):  # noqa: B007  (n_iter is reported)
         res, smp, b_ = cur
-        cols = [b_ * smp[1][:, None] * basis, b_ * smp[2][:, None] * basis, np.ones((len(res), 1)), smp[0][:, None]]
+        cols = [
+            b_ * smp[1][:, None] * basis,
+            b_ * smp[2][:, None] * basis,
+            np.ones((len(res), 1)),
+            smp[0][:, None],
+        ]
         if fit_sigma:
             cols.append(b_ * smp[3][:, None])
         jm = np.concatenate(cols, axis=1)
@@ -304,6 +309,11 @@ def _find_target(img: np.ndarray, rects: np.ndarray, centre: np.ndarray):
 
     small = cv2.resize(cv2.GaussianBlur(img, (0, 0), 3.0), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
     small = small.astype(np.float32)
+    # Pad with the median so that a target partly outside the image can still be placed.
+    pad = (np.ceil(np.ptp(rects.reshape(-1, 2), axis=0) * 1.4 / 4) + 8).astype(int)
+    small = cv2.copyMakeBorder(
+        small, pad[1], pad[1], pad[0], pad[0], cv2.BORDER_CONSTANT, value=float(np.median(small))
+    )
     best = (-1.0, None)
     for s in np.geomspace(0.7, 1.4, 15):
         r = centre + s * (rects.reshape(-1, 2, 2) - centre)
@@ -324,7 +334,7 @@ def _find_target(img: np.ndarray, rects: np.ndarray, centre: np.ndarray):
             # Template cell (0, 0) is the scaled reference point ``lo``, and half-res pixel
             # (X, Y) is camera point (2X + 0.5, 2Y + 0.5); the scaled reference point of
             # u is centre + s (u - centre), so camera = s u + centre (1 - s) - lo + (2X + .5, 2Y + .5).
-            pix = np.array([2 * yx[1] + 0.5, 2 * yx[0] + 0.5])
+            pix = np.array([2 * (yx[1] - pad[0]) + 0.5, 2 * (yx[0] - pad[1]) + 0.5])
             best = (val, (float(s), centre * (1 - s) - lo + pix, sign))
     if best[1] is None:
         return None
@@ -362,7 +372,10 @@ def detect_usaf(
 
     found = _find_target(img, rects, ref_centre)
     if found is None or found[2] < 0.2:
-        msg = "the target was not found (no correlation with the rendered groups); check --groups and --um-per-px"
+        msg = (
+            "the target was not found (no correlation with the rendered groups); "
+            "check --groups and --um-per-px"
+        )
         return _replace(empty, message=msg)
     s, shift, score, sign = found  # camera = s u + shift
     warp = _initial_warp(s, shift, ref_centre, rects, w, h)
@@ -392,6 +405,9 @@ def detect_usaf(
             )
             warp = _Warp(warp.centre, warp.scale, res.coef, degree)
             a, b = res.a, res.b
+            if res.ncc < 0.3:
+                msg = f"registration failed (model-image correlation {res.ncc:.2f} at blur {blur} px)"
+                return _replace(empty, message=msg, ncc=res.ncc)
             if blur is None:
                 sigma = res.sigma
             bar.advance()
@@ -509,7 +525,21 @@ def _region(warp: _Warp, ref: _Reference, w: int, h: int, lo=None, hi=None) -> n
 
 
 def _refine_triplet(
-    img, warp, ref, target, bars, idx, corners_u, pred, a, b, sigma, um_per_px, *, max_stderr_px, ambiguity_ratio
+    img,
+    warp,
+    ref,
+    target,
+    bars,
+    idx,
+    corners_u,
+    pred,
+    a,
+    b,
+    sigma,
+    um_per_px,
+    *,
+    max_stderr_px,
+    ambiguity_ratio,
 ):
     """Local affine refinement of one triplet; returns (drop reason or None, xy, stderr)."""
     h, w = img.shape

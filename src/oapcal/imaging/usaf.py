@@ -219,9 +219,9 @@ def usaf_target(groups=(4, 5)) -> UsafTarget:
                         rect = (tx + 2 * b * w_um, y0, tx + (2 * b + 1) * w_um, y0 + 5 * w_um)
                     rows.append((g, e, orient, b, w_um, rect))
     bars = np.array([r[5] for r in rows], float)
-    corners = np.stack(
-        [bars[:, [0, 1]], bars[:, [2, 1]], bars[:, [2, 3]], bars[:, [0, 3]]], axis=1
-    ).reshape(-1, 2)
+    corners = np.stack([bars[:, [0, 1]], bars[:, [2, 1]], bars[:, [2, 3]], bars[:, [0, 3]]], axis=1).reshape(
+        -1, 2
+    )
     ids = tuple(f"G{g}E{e}{o}{b}C{c}" for g, e, o, b, _, _ in rows for c in range(4))
     return UsafTarget(
         groups=groups,
