@@ -264,8 +264,8 @@ def render_rectangles(
     coverages).  ``float64`` in ``[0, 1]``.
 
     >>> render_rectangles(np.array([[0.0, 0.0, 1.5, 1.0]]), (2, 3))
-    array([[0.25 , 0.375, 0.   ],
-           [0.25 , 0.375, 0.   ]])
+    array([[0.25, 0.5 , 0.  ],
+           [0.25, 0.5 , 0.  ]])
     """
     rows, cols = int(shape[0]), int(shape[1])
     out = np.zeros((rows, cols))
