@@ -41,7 +41,8 @@ def run(label, seeds, *, sigma=0.8, snr=50.0, factor=1.0):
     dmax = distortion_stats(field)["max_px"]
     print(
         f"| {label} | {sigma:g} | {snr:g} | {dmax:.0f} | {100 * a[:, 0].min():.1f} | "
-        f"{np.nanmedian(a[:, 1]):.3f} | {np.nanmax(a[:, 2]):.3f} | {int(a[:, 3].sum())} | {np.median(a[:, 4]):.1f} |",
+        f"{np.nanmedian(a[:, 1]):.3f} | {np.nanmax(a[:, 2]):.3f} | {int(a[:, 3].sum())} | "
+        f"{np.median(a[:, 4]):.1f} |",
         flush=True,
     )
 
