@@ -33,6 +33,7 @@ COMMANDS: dict[str, str] = {
     "esf": "oapcal.cli.esf:esf_command",
     "report": "oapcal.cli.report:report_command",
     "landmarks": "oapcal.cli.landmarks:landmarks_group",
+    "detect": "oapcal.cli.detect:detect_command",
 }
 
 

@@ -9,6 +9,7 @@ import click
 #: name -> "module:attribute" of every ``simulate`` subcommand.
 SUBCOMMANDS: dict[str, str] = {
     "relay": "oapcal.cli.simulate_relay:relay_command",
+    "image": "oapcal.cli.simulate_image:simulate_image_command",
 }
 
 

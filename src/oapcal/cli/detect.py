@@ -1,0 +1,144 @@
+"""``oapcal detect``: find, match and refine the landmarks of a target in a camera image."""
+
+from __future__ import annotations
+
+import click
+
+from oapcal.cli._common import check_output, console, print_json
+
+
+@click.command("detect")
+@click.argument("image", type=click.Path(dir_okay=False))
+@click.option(
+    "--target",
+    type=click.Choice(["usaf"]),
+    default="usaf",
+    show_default=True,
+    help="The target in the image.",
+)
+@click.option("--groups", default="4-5", show_default=True, help="USAF groups in the image, e.g. 4-5.")
+@click.option(
+    "--um-per-px",
+    type=click.FloatRange(min=0, min_open=True),
+    required=True,
+    help="Scale of the reference points x_u,y_u (object um per px); "
+    "about the camera's object-space pixel size.",
+)
+@click.option(
+    "--out",
+    "out",
+    type=click.Path(dir_okay=False, allow_dash=True),
+    required=True,
+    help="Point-pair CSV: id,x_u,y_u,x_d,y_d.",
+)
+@click.option(
+    "--truth",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Ground truth of a simulated image (id,x_d,y_d,visible) to score against.",
+)
+@click.option(
+    "--plot",
+    "plot",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Save a PNG of the image with the detected corners.",
+)
+@click.option(
+    "--max-stderr-px",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.3,
+    show_default=True,
+    help="Drop triplets whose corners are less certain than this.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
+def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stderr_px, as_json):
+    """Detect the bar corners of a USAF-1951 target and match them to the reference target."""
+    from oapcal.imaging.detect import detect_usaf, evaluate_detection
+    from oapcal.imaging.usaf import parse_groups
+    from oapcal.io.image_files import read_grey_image
+    from oapcal.io.points import write_point_pairs
+
+    check_output(out, image, truth)
+    check_output(plot, image, truth, out)
+    group_list = parse_groups(groups)
+    img = read_grey_image(image)
+    score = _read_truth(truth) if truth else None
+    if score is not None:
+        from oapcal.errors import DataError
+        from oapcal.imaging.usaf import usaf_target
+
+        known = set(score[0])
+        missing = [i for i in usaf_target(group_list).corner_ids if i not in known]
+        if missing:
+            raise DataError(
+                f"{truth}: has no row with id {missing[0]!r}; is it the truth of this image and these groups?"
+            )
+    det = detect_usaf(img, group_list, um_per_px, max_stderr_px=max_stderr_px, progress=not as_json)
+    summary = det.summary()
+    if score is not None:
+        summary["truth"] = evaluate_detection(det, *score)
+    if det.status != 0:
+        click.echo(f"oapcal: detection failed: {det.message}", err=True)
+        if as_json:
+            print_json(summary)
+        return 3
+    write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)
+    if plot:
+        from oapcal.imaging.detect_plot import plot_image
+
+        plot_image(
+            img, plot, title=f"{len(det.ids)} corners detected (groups {groups})",
+            points={"detected": det.xy_d}, crop=_crop(det.xy_d, img.shape),
+        )  # fmt: skip
+    if as_json:
+        print_json(summary)
+    elif out != "-":
+        _print_summary(summary)
+    return 0
+
+
+def _crop(xy, shape, pad=25.0):
+    import numpy as np
+
+    if len(xy) == 0:
+        return None
+    lo = np.maximum(xy.min(axis=0) - pad, -0.5)
+    hi = np.minimum(xy.max(axis=0) + pad, [shape[1] - 0.5, shape[0] - 0.5])
+    return np.array([lo[0], lo[1], hi[0], hi[1]])
+
+
+def _read_truth(path):
+    import numpy as np
+
+    from oapcal.errors import InputFileError
+    from oapcal.io.points import read_points
+
+    pairs = read_points(path, require=("x_d", "y_d"), check_geometry=False)
+    if pairs.ids is None or "visible" not in pairs.fieldnames:
+        raise InputFileError(f"{path}: line 1: a truth file needs the columns id,x_d,y_d,visible")
+    visible = []
+    for row, line in zip(pairs.rows, pairs.lines):
+        v = row["visible"].strip()
+        if v not in ("0", "1"):
+            raise InputFileError(f"{path}: line {line}, column 'visible': {v!r} is not 0 or 1")
+        visible.append(v == "1")
+    return pairs.ids, pairs.xy_d, np.array(visible)
+
+
+def _print_summary(s: dict) -> None:
+    out = console()
+    out.print(
+        f"found {s['found']} of {s['expected']} corners expected fully inside the image "
+        f"(coverage {100 * s['coverage']:.1f} %); {s['polarity']} bars, "
+        f"fitted blur sigma {s['sigma_px']:.2f} px, model-image correlation {s['ncc']:.3f}"
+    )
+    if s["dropped"]:
+        out.print("dropped: " + ", ".join(f"{k} {v}" for k, v in s["dropped"].items()))
+    t = s.get("truth")
+    if t:
+        out.print(
+            f"against the truth: {t['found']} of {t['visible']} fully visible corners found "
+            f"({100 * t['coverage']:.1f} %), error median {t['median_error_px']:.3f} px, "
+            f"rms {t['rms_error_px']:.3f} px, max {t['max_error_px']:.3f} px, mismatches {t['mismatches']}"
+        )

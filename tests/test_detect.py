@@ -1,0 +1,202 @@
+"""Landmark detection on simulated images: the accuracy goal, no mismatches, fit recovery."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from oapcal.imaging.detect import Detection, detect_usaf, evaluate_detection
+from oapcal.imaging.field import ModelDistortionField, setup1_like_field
+from oapcal.imaging.simulate import simulate_image
+
+
+@pytest.fixture(scope="module")
+def paper_like():
+    """The paper's conditions: sigma 0.8 px, SNR 50, ~40 px setup-1-like distortion, groups 4-5."""
+    sim = simulate_image((4, 5), setup1_like_field(), sigma_px=0.8, snr=50, seed=7)
+    return sim, detect_usaf(sim.image, (4, 5), sim.um_per_px)
+
+
+def test_detection_goal_at_paper_like_conditions(paper_like):
+    sim, det = paper_like
+    score = evaluate_detection(det, sim.ids, sim.xy_d, sim.visible)
+    assert score["visible"] == 288
+    assert score["coverage"] >= 0.95
+    assert score["median_error_px"] <= 0.25
+    assert score["mismatches"] == 0
+    assert det.status == 0 and det.polarity == "bright"
+    assert det.sigma_px == pytest.approx(0.8, abs=0.15)
+    # the reported uncertainties are of the size of the errors (not 10x off either way)
+    k = [sim.ids.index(i) for i in det.ids]
+    err = np.hypot(*(det.xy_d - sim.xy_d[k]).T)
+    assert 0.3 < np.median(det.stderr_px) / (np.median(err) / np.sqrt(np.log(4))) < 3.0
+
+
+def test_fit_on_detected_points_recovers_the_distortion(paper_like):
+    from oapcal.fit import fit
+    from oapcal.model import distort
+
+    sim, det = paper_like
+    result = fit(det.xy_u, det.xy_d, "paper", init="pixel")
+    assert result.converged
+    truth = setup1_like_field().params
+    # the fitted model predicts the true distorted corners as well as detection measured them
+    score = evaluate_detection(det, sim.ids, sim.xy_d, sim.visible)
+    model_err = np.hypot(*(distort(sim.xy_u, result.params) - distort(sim.xy_u, truth)).T)
+    assert model_err.max() < 3 * score["rms_error_px"]
+
+
+def test_dark_bars_sixteen_bits_heavier_blur():
+    sim = simulate_image((4, 5), setup1_like_field(), sigma_px=1.5, snr=30, bits=16, polarity="dark",
+                         oversample=2, seed=3)  # fmt: skip
+    det = detect_usaf(sim.image, (4, 5), 4.8)
+    score = evaluate_detection(det, sim.ids, sim.xy_d, sim.visible)
+    assert det.polarity == "dark"
+    assert score["coverage"] >= 0.95 and score["mismatches"] == 0 and score["median_error_px"] < 0.25
+
+
+def test_target_partly_outside_the_image_keeps_only_visible_correct_corners():
+    p = setup1_like_field().params.copy()
+    p[10] += 290.0  # the right part of the target leaves the image
+    sim = simulate_image((4, 5), ModelDistortionField(p), sigma_px=0.8, snr=50, oversample=2, seed=4)
+    assert 50 < sim.visible.sum() < 250
+    det = detect_usaf(sim.image, (4, 5), 4.8)
+    score = evaluate_detection(det, sim.ids, sim.xy_d, sim.visible)
+    assert score["mismatches"] == 0
+    assert score["found"] == len(det.ids)  # nothing reported outside the image
+    assert score["coverage"] >= 0.9
+    assert abs(det.n_expected - sim.visible.sum()) <= 8
+
+
+def test_no_target_is_a_status_not_an_exception():
+    rng = np.random.default_rng(0)
+    noise = rng.integers(0, 255, (480, 640)).astype(np.uint8)
+    det = detect_usaf(noise, (4, 5), 4.8)
+    assert det.status != 0 and len(det.ids) == 0 and det.message
+
+
+def test_evaluate_detection_counts_a_swapped_pair_as_two_mismatches():
+    ids = ("a", "b", "c")
+    xy = np.array([[0.0, 0.0], [2.0, 0.0], [10.0, 10.0]])
+    det = Detection(("a", "b", "c"), xy, xy[[1, 0, 2]] + 0.01, np.zeros(3), 3)
+    score = evaluate_detection(det, ids, xy, np.ones(3, bool))
+    assert score["mismatches"] == 2 and score["coverage"] == 1.0
+
+
+# ---------------------------------------------------------------------------- the CLI
+
+
+@pytest.fixture(scope="module")
+def simulated_files(tmp_path_factory):
+    from oapcal.cli import main
+
+    d = tmp_path_factory.mktemp("sim")
+    code = main(["simulate", "image", "--groups", "4-5", "--oversample", "2", "--seed", "1",
+                 "--out", str(d / "img.png"), "--truth", str(d / "truth.csv")])  # fmt: skip
+    assert code == 0
+    return d
+
+
+def test_cli_simulate_then_detect(run_cli, simulated_files, tmp_path):
+    d = simulated_files
+    with open(d / "truth.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == ["id", "x_u", "y_u", "x_d", "y_d", "visible"] and len(rows) == 288
+    out = tmp_path / "points.csv"
+    code, stdout, err = run_cli("detect", d / "img.png", "--target", "usaf", "--groups", "4-5",
+                                "--um-per-px", "4.8", "--out", out, "--truth", d / "truth.csv",
+                                "--plot", tmp_path / "det.png")  # fmt: skip
+    assert code == 0, err
+    assert "mismatches 0" in stdout
+    with open(out) as fh:
+        pts = list(csv.DictReader(fh))
+    assert list(pts[0]) == ["id", "x_u", "y_u", "x_d", "y_d"] and len(pts) >= 0.95 * 288
+    truth = {r["id"]: r for r in rows}
+    for p in pts:  # the same id scheme and the same reference positions
+        assert float(p["x_u"]) == pytest.approx(float(truth[p["id"]]["x_u"]), abs=1e-9)
+        assert abs(float(p["x_d"]) - float(truth[p["id"]]["x_d"])) < 0.5
+    assert (tmp_path / "det.png").stat().st_size < 300_000
+    # the points feed `oapcal fit`
+    code, stdout, err = run_cli("fit", out, "--model", "paper", "--json")
+    assert code == 0, err
+
+
+def test_cli_detect_json(run_cli, simulated_files, tmp_path):
+    import json
+
+    code, stdout, err = run_cli("detect", simulated_files / "img.png", "--um-per-px", "4.8",
+                                "--out", tmp_path / "p.csv", "--json")  # fmt: skip
+    assert code == 0, err
+    data = json.loads(stdout)
+    assert data["found"] == data["expected"] == 288 and data["status"] == 0
+
+
+@pytest.mark.parametrize(
+    "args,pattern",
+    [
+        (["detect", "{dir}/missing.png", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"], "no such file"),
+        (["detect", "{dir}/truth.csv", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"], "not a readable image"),
+        (
+            ["detect", "{dir}/img.png", "--um-per-px", "4.8", "--out", "{dir}/img.png"],
+            "would overwrite the input",
+        ),
+        (
+            ["detect", "{dir}/img.png", "--groups", "x", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"],
+            "not a group range",
+        ),
+        (["detect", "{tmp}/flat.png", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"], "uniform"),
+        (
+            [
+                "detect",
+                "{dir}/img.png",
+                "--um-per-px",
+                "4.8",
+                "--out",
+                "{tmp}/p.csv",
+                "--truth",
+                "{tmp}/badtruth.csv",
+            ],
+            "has no row with id",
+        ),
+        (["simulate", "image", "--out", "{tmp}/img.jpg"], "unknown image type .jpg"),
+        (["simulate", "image", "--na", "0.2", "--out", "{tmp}/i.png"], "needs both --na and --wavelength-um"),
+        (["simulate", "image", "--groups", "4-12", "--out", "{tmp}/i.png"], "groups -2 to 9"),
+        (
+            ["simulate", "image", "--calibration", "{tmp}/none.json", "--out", "{tmp}/i.png"],
+            "no such calibration file",
+        ),
+    ],
+)
+def test_cli_bad_input_exits_2_with_one_line(run_cli, simulated_files, tmp_path, args, pattern):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "flat.png"), np.full((48, 64), 7, np.uint8))
+    (tmp_path / "badtruth.csv").write_text("id,x_u,y_u,x_d,y_d,visible\nzz,1,2,3,4,1\n")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    before_dir = {p.name: p.stat().st_mtime_ns for p in simulated_files.iterdir()}
+    args = [a.format(dir=simulated_files, tmp=tmp_path) for a in args]
+    code, stdout, err = run_cli(*args)
+    assert code == 2
+    assert pattern in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written
+    assert {p.name: p.stat().st_mtime_ns for p in simulated_files.iterdir()} == before_dir
+
+
+def test_cli_relay_options(run_cli, tmp_path):
+    import importlib.util
+
+    code, _, err = run_cli("simulate", "image", "--relay-setup", "1", "--oversample", "1",
+                           "--out", tmp_path / "r.png")  # fmt: skip
+    if importlib.util.find_spec("oapcal.optics") is None:
+        assert code == 2 and "not part of this installation" in err
+    else:
+        assert code == 0 and (tmp_path / "r.png").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(5))
+def test_detection_goal_over_seeds(seed):
+    sim = simulate_image((4, 5), setup1_like_field(), sigma_px=0.8, snr=50, seed=100 + seed)
+    det = detect_usaf(sim.image, (4, 5), sim.um_per_px)
+    score = evaluate_detection(det, sim.ids, sim.xy_d, sim.visible)
+    assert score["coverage"] >= 0.95 and score["median_error_px"] <= 0.25 and score["mismatches"] == 0

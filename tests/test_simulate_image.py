@@ -1,0 +1,134 @@
+"""Image simulation: zero distortion and blur reproduce the rendering; truth agrees with the image."""
+
+import numpy as np
+import pytest
+
+from oapcal.errors import DataError
+from oapcal.imaging.field import ModelDistortionField, distortion_stats, identity_field, setup1_like_field
+from oapcal.imaging.simulate import (
+    _bilinear_upsample,
+    airy_kernel,
+    peak_electrons_for_snr,
+    simulate_image,
+)
+from oapcal.imaging.usaf import render_usaf, usaf_target
+from oapcal.model import distort
+
+
+def test_zero_distortion_and_blur_reproduce_the_rendered_target():
+    sim = simulate_image((4, 5), identity_field(), sigma_px=0, snr=None, bits=16, oversample=3)
+    ref = render_usaf((4, 5), um_per_px=4.8)
+    np.testing.assert_allclose(sim.clean, ref.image, atol=1e-6)
+    # 16-bit quantization: brightest level at 80 % of 65535
+    np.testing.assert_allclose(sim.image / (0.8 * 65535), ref.image, atol=1e-5)
+    np.testing.assert_allclose(sim.xy_d, ref.corners_px, atol=1e-9)
+    np.testing.assert_allclose(sim.xy_u, ref.corners_px, atol=1e-9)
+    assert sim.visible.all()
+
+
+def test_setup1_like_field_has_the_papers_magnitudes():
+    s = distortion_stats(setup1_like_field())
+    assert 38 < s["max_px"] < 42.5 and 10 < s["mean_px"] < 15  # paper: 40.2 px max, 12.1 px mean
+    assert s["max_y_px"] > 3 * s["max_x_px"]
+
+
+def test_truth_is_the_forward_model_and_agrees_with_the_image():
+    field = setup1_like_field()
+    sim = simulate_image((4,), field, sigma_px=0.5, snr=None, oversample=3)
+    t = usaf_target((4,))
+    paraxial = (
+        319.5 + (t.corners_um[:, 0] - t.centre_um[0]) / 4.8,
+        239.5 + (t.corners_um[:, 1] - t.centre_um[1]) / 4.8,
+    )
+    np.testing.assert_allclose(sim.xy_u, np.column_stack(paraxial), atol=1e-9)
+    np.testing.assert_allclose(sim.xy_d, distort(sim.xy_u, field.params), atol=1e-9)
+    # The intensity-weighted centre of a bar in the image (made through the inverse map)
+    # equals the area centroid of the bar's forward image, by quadrature over the bar:
+    # int distort(u) |det J(u)| du / int |det J(u)| du.
+    from oapcal.model import jacobian_determinant
+
+    x0, y0 = sim.xy_u[0]
+    x1, y1 = sim.xy_u[2]
+    g = (np.arange(200) + 0.5) / 200
+    uu = np.stack(np.meshgrid(x0 + g * (x1 - x0), y0 + g * (y1 - y0)), -1).reshape(-1, 2)
+    det = jacobian_determinant(uu, field.params)
+    c_true = (distort(uu, field.params) * det[:, None]).sum(axis=0) / det.sum()
+    gap = t.bar_width[0] / 4.8  # px
+    yy, xx = np.mgrid[0:480, 0:640]
+    pix = np.stack([xx, yy], -1).reshape(-1, 2).astype(float)
+    near = np.hypot(*(pix - c_true).T) < 40
+    back = np.full(len(pix), np.inf)
+    back[near] = 0
+    u = field.inverse(pix[near])
+    inside = (
+        (u[:, 0] > x0 - gap / 2)
+        & (u[:, 0] < x1 + gap / 2)
+        & (u[:, 1] > y0 - gap / 2)
+        & (u[:, 1] < y1 + gap / 2)
+    )
+    sel = np.flatnonzero(near)[inside]
+    wgt = sim.clean.reshape(-1)[sel] - 0.05
+    c_img = (pix[sel] * wgt[:, None]).sum(axis=0) / wgt.sum()
+    assert np.hypot(*(c_img - c_true)) < 0.05
+
+
+def test_noise_level_follows_the_peak_snr():
+    assert peak_electrons_for_snr(50, 0) == pytest.approx(2500)
+    n = peak_electrons_for_snr(50, 5)
+    assert n / np.sqrt(n + 25) == pytest.approx(50)
+    sim = simulate_image((2,), identity_field(), sigma_px=0, snr=40, bits=16, oversample=1, seed=3)
+    t = usaf_target((2,))
+    rects = t.rectangles_px(4.8, (640, 480))
+    ok = (rects[:, :2].min(axis=1) > 5) & (rects[:, 2] < 634) & (rects[:, 3] < 474)
+    area = (rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1]) * ok
+    x0, y0, x1, y1 = rects[np.argmax(area)]  # a bar > 20 px wide, > 100 px long
+    inner = sim.image[int(y0) + 3 : int(y1) - 3, int(x0) + 3 : int(x1) - 3].astype(float)
+    assert inner.size > 1000
+    assert inner.mean() / inner.std() == pytest.approx(40, rel=0.1)
+
+
+def test_airy_kernel_encircled_energy():
+    # Physics: 83.8 % of the energy lies inside the first dark ring, 91.0 % inside the second.
+    na, lam, px = 0.2, 0.8, 0.05
+    k = airy_kernel(na, lam, px, radius_zeros=3.0)
+    n = k.shape[0] // 2
+    yy, xx = np.mgrid[-n : n + 1, -n : n + 1] * px
+    r = np.hypot(xx, yy)
+    e1 = k[r < 0.61 * lam / na].sum()
+    e2 = k[r < 1.116 * lam / na].sum()
+    assert e1 / e2 == pytest.approx(0.838 / 0.910, abs=0.01)
+
+
+def test_bilinear_upsample_matches_scipy():
+    from scipy.ndimage import map_coordinates
+
+    rng = np.random.default_rng(2)
+    coarse = rng.normal(size=(7 + 2, 9 + 2, 2))
+    q = 3
+    fine = _bilinear_upsample(coarse, q, (7, 9))
+    pos_x = (np.arange(9 * q) + 0.5) / q - 0.5 + 1
+    pos_y = (np.arange(7 * q) + 0.5) / q - 0.5 + 1
+    gy, gx = np.meshgrid(pos_y, pos_x, indexing="ij")
+    for c in range(2):
+        expected = map_coordinates(coarse[..., c], [gy, gx], order=1)
+        np.testing.assert_allclose(fine[..., c], expected, atol=1e-12)
+
+
+def test_corners_outside_the_image_are_not_visible():
+    p = setup1_like_field().params.copy()
+    p[10] += 300.0  # c_x: shift the image 300 px to the right
+    sim = simulate_image((4, 5), ModelDistortionField(p), snr=None, oversample=1)
+    inside = (sim.xy_d[:, 0] >= 3) & (sim.xy_d[:, 0] <= 636)
+    np.testing.assert_array_equal(sim.visible, inside)
+    assert 0 < sim.visible.sum() < len(sim.visible)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"bits": 12}, {"oversample": 0}, {"sigma_px": -1}, {"snr": 0}, {"na": 0.2}, {"polarity": "grey"}],
+)
+def test_bad_simulation_arguments(kwargs):
+    with pytest.raises(DataError):
+        simulate_image(
+            (5,), identity_field(image_size=(64, 48)), oversample=kwargs.pop("oversample", 1), **kwargs
+        )
