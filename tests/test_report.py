@@ -160,22 +160,3 @@ def test_user_errors_exit_2_one_line_nothing_written(run_cli, tmp_path, inputs, 
     assert code == 2, err
     assert err.count("\n") == 1 and pattern in err and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == before
-
-
-def test_demo_writes_the_report(run_cli, tmp_path, monkeypatch):
-    import oapcal.report as report
-
-    calls = {}
-
-    def fake_demo_report(out_dir, calibration, truth, points, **kwargs):  # the real one is tested above
-        calls["args"] = (out_dir, calibration.name, len(points[0]))
-        np.testing.assert_array_equal(truth, EXAMPLE_TRUTH)
-        return {"report": tmp_path / "out" / "report.html"}
-
-    monkeypatch.setattr(report, "demo_report", fake_demo_report)
-    code, out, err = run_cli("demo", "--out-dir", tmp_path / "out")
-    assert code == 0, err
-    assert calls["args"][1] == "demo" and calls["args"][2] == 252
-    assert "wrote report:" in out
-    code, out, _ = run_cli("demo", "--out-dir", tmp_path / "out2", "--no-report")
-    assert code == 0 and "wrote report:" not in out

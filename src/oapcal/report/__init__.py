@@ -382,29 +382,3 @@ def _robustness_html(rob: dict) -> str:
 
 
 # ------------------------------------------------------------------------- the demo
-
-
-def demo_report(out_dir, calibration, truth_params, points, *, seed: int = 0, sigma_px: float = 1.2,
-                show_progress: bool = False) -> dict[str, Path]:  # fmt: skip
-    """Render a distorted bar target with the known ``truth_params``, and write it
-    (``target.png``) and the report (``report.html``) of ``calibration`` into ``out_dir``."""
-    import cv2
-
-    from oapcal.imaging.bars import bar_target, demo_layout
-    from oapcal.io.atomic import atomic_path
-
-    out = Path(out_dir)
-    w, h = calibration.image_size or (640, 480)
-    shape = (int(h), int(w))
-    image, _ = bar_target(shape, demo_layout(shape, bar=10), sigma=sigma_px, low=30, high=220,
-                          params=truth_params, noise=2.0, seed=seed)  # fmt: skip
-    image8 = np.clip(np.round(image), 0, 255).astype(np.uint8)
-    files = {"target image": out / "target.png", "report": out / "report.html"}
-    with atomic_path(files["target image"]) as tmp:
-        cv2.imwrite(str(tmp), image8)
-    html_text, _ = build_report(
-        calibration, points=points, image=image8.astype(float), image_name="target.png",
-        title="oapcal demo report", show_progress=show_progress,
-    )  # fmt: skip
-    write_report(files["report"], html_text)
-    return files
