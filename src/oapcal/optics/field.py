@@ -62,36 +62,39 @@ class BicubicPatches:
             ], -2)  # fmt: skip
             coef[:, :, c] = HERMITE @ corners @ HERMITE.T
         self.n_comp = len(splines)
-        self.coef = coef.reshape((self.nx - 1) * (self.ny - 1), self.n_comp, 4, 4)
+        # Layout (cell, b, comp, a) for a contiguous (n, comp, a) slab per power t^b.
+        self.coef = np.ascontiguousarray(coef.transpose(0, 1, 4, 2, 3)).reshape(
+            (self.nx - 1) * (self.ny - 1), 4, self.n_comp, 4
+        )
 
-    def __call__(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def __call__(self, x: np.ndarray, y: np.ndarray, gradient: bool = True):
         """Values, ``d/dx`` and ``d/dy``, each ``(N, n_comp)``, at points ``x, y`` (N,)
-        inside the node range (the caller masks points outside)."""
+        inside the node range (the caller masks points outside); only the values with
+        ``gradient=False``."""
         n = x.shape[0]
-        val = np.empty((n, self.n_comp))
-        ddx = np.empty((n, self.n_comp))
-        ddy = np.empty((n, self.n_comp))
+        out = [np.empty((n, self.n_comp)) for _ in range(3 if gradient else 1)]
         for lo in range(0, n, self.block):
             sl = slice(lo, min(n, lo + self.block))
-            val[sl], ddx[sl], ddy[sl] = self._block(x[sl], y[sl])
-        return val, ddx, ddy
+            for o, v in zip(out, self._block(x[sl], y[sl], gradient)):
+                o[sl] = v
+        return tuple(out) if gradient else out[0]
 
-    def _block(self, x, y):
+    def _block(self, x, y, gradient):
         sx = (x - self.x0) / self.hx
         sy = (y - self.y0) / self.hy
         i = np.clip(np.floor(sx), 0, self.nx - 2).astype(np.intp)
         j = np.clip(np.floor(sy), 0, self.ny - 2).astype(np.intp)
         s = (sx - i)[:, None]
         t = (sy - j)[:, None, None]
-        c = self.coef[i * (self.ny - 1) + j]  # (n, comp, a, b): coefficient of s^a t^b
-        c0, c1, c2, c3 = c[..., 0], c[..., 1], c[..., 2], c[..., 3]
-        tt = t * t
-        p = c0 + c1 * t + c2 * tt + c3 * (tt * t)  # (n, comp, a): polynomial in s
-        q = c1 + 2.0 * c2 * t + 3.0 * c3 * tt  # its t-derivative
-        ss = s * s
-        val = p[..., 0] + p[..., 1] * s + p[..., 2] * ss + p[..., 3] * (ss * s)
-        ddx = (p[..., 1] + 2.0 * p[..., 2] * s + 3.0 * p[..., 3] * ss) / self.hx
-        ddy = (q[..., 0] + q[..., 1] * s + q[..., 2] * ss + q[..., 3] * (ss * s)) / self.hy
+        c = self.coef[i * (self.ny - 1) + j]  # (n, b, comp, a): coefficient of s^a t^b
+        c0, c1, c2, c3 = c[:, 0], c[:, 1], c[:, 2], c[:, 3]
+        p = c0 + t * (c1 + t * (c2 + t * c3))  # (n, comp, a): Horner in t
+        val = p[..., 0] + s * (p[..., 1] + s * (p[..., 2] + s * p[..., 3]))
+        if not gradient:
+            return (val,)
+        q = c1 + t * (2.0 * c2 + 3.0 * t * c3)  # d/dt
+        ddx = (p[..., 1] + s * (2.0 * p[..., 2] + 3.0 * s * p[..., 3])) / self.hx
+        ddy = (q[..., 0] + s * (q[..., 1] + s * (q[..., 2] + s * q[..., 3]))) / self.hy
         return val, ddx, ddy
 
 
@@ -146,15 +149,17 @@ class DistortionField:
             & (y <= self.y_nodes[-1])
         )
 
-    def _evaluate(self, xy):
-        """Displacement ``(N, 2)`` and its x, y derivatives at paraxial px ``(N, 2)``; NaN
-        outside the traced grid."""
+    def _evaluate(self, xy, gradient: bool = True):
+        """Displacement ``(N, 2)`` and (``gradient``) its x, y derivatives at paraxial px
+        ``(N, 2)``; NaN outside the traced grid."""
         x, y = xy[:, 0], xy[:, 1]
         inside = self._inside(x, y)
-        out = [np.full(xy.shape, np.nan) for _ in range(3)]
         if inside.all():
-            return self._patches(x, y)
-        values = self._patches(x[inside], y[inside])
+            values = self._patches(x, y, gradient)
+            return values if gradient else (values,)
+        values = self._patches(x[inside], y[inside], gradient)
+        values = values if gradient else (values,)
+        out = [np.full(xy.shape, np.nan) for _ in values]
         for o, v in zip(out, values):
             o[inside] = v
         return tuple(out)
@@ -164,8 +169,9 @@ class DistortionField:
         xy = np.asarray(xy_u_px, dtype=float)
         if (dx, dy) in ((0, 0), (1, 0), (0, 1)) and self._patches is not None:
             flat = xy.reshape(-1, 2)
-            k = 0 if (dx, dy) == (0, 0) else (1 if dx else 2)
-            return self._evaluate(flat)[k].reshape(xy.shape)
+            if (dx, dy) == (0, 0):
+                return self._evaluate(flat, gradient=False)[0].reshape(xy.shape)
+            return self._evaluate(flat)[1 if dx else 2].reshape(xy.shape)
         x, y = xy[..., 0], xy[..., 1]
         out = np.stack(
             [

@@ -411,8 +411,9 @@ def radial_fit(grid: GridDistortion, max_side: int = RADIAL_FIT_MAX_SIDE):
     back to image mm; the correction residual (the paper's Table-1 convention) corrects
     the real points through the fitted inverse and compares them with the paraxial points
     in image mm.  Grids larger than ``max_side`` points a side are fitted on a regular
-    subgrid of ``max_side`` rows and columns (including the border; a 1001 x 1001 fit
-    would take half a minute and moves the parameters by under 1e-3 relative); both
+    subgrid of ``max_side`` rows and columns (border included): fitting all points of a
+    1001 x 1001 grid takes ~40 s, the 129 x 129 subgrid ~2 s, and its mean residuals are
+    0.4 % above the full fit's (25.47 against 25.37 um for setup 1 over 1 mm).  Both
     residuals are always means over every grid point, normalized with the whole grid.
     """
     from oapcal.fit import fit
