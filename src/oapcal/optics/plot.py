@@ -38,8 +38,13 @@ def plot_grid(grid, path, *, units: str = "mm", pixel_size_um: float = 4.8, max_
     fig.colorbar(arrows, ax=ax, label=f"|real - paraxial| / field radius {radius * scale:.4g} {units} (%)")
     ax.set_xlabel(f"x image ({units})")
     ax.set_ylabel(f"y image ({units})")
+    both = np.concatenate([u, d])
+    both = both[np.isfinite(both).all(axis=1)]
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    pad = 0.04 * (hi - lo).max()
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(hi[1] + pad, lo[1] - pad)  # y down, as a camera shows the image
     ax.set_aspect("equal")
-    ax.invert_yaxis()
     relay = grid.relay
     ax.set_title(
         f"Grid distortion, d1 = {relay.d1_mm:g} mm, orientation {relay.orientation}, "
