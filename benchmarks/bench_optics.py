@@ -1,8 +1,10 @@
 """Speed of the OAP relay ray tracer.
 
-Peer: a straightforward per-ray Python loop over the same closed-form geometry (what a
-script without vectorization does), timed in the same run; plus the CLI as a whole
-process. Medians of repeats; ratios printed.
+Peers, timed in the same run: a straightforward per-ray Python loop over the same
+closed-form geometry (what a script without vectorization does); for the distortion
+field, SciPy's ``RectBivariateSpline.ev`` (FITPACK) evaluating the same splines and
+Newton inversion on it; plus the CLI as a whole process. Medians of repeats; ratios
+printed (peer time / oapcal time).
 
     PYTHONPATH=src /work/venv/bin/python benchmarks/bench_optics.py
 """
@@ -49,6 +51,32 @@ def loop_chief_rays(relay, xy_obj):
     return np.array(out)
 
 
+def fitpack_eval(field, xy):
+    """The peer of the bicubic patches: value and both derivatives of both components."""
+    x, y = xy[:, 0], xy[:, 1]
+    return [s.ev(x, y, dx=dx, dy=dy) for s in (field._spline_x, field._spline_y)
+            for dx, dy in ((0, 0), (1, 0), (0, 1))]  # fmt: skip
+
+
+def fitpack_inverse(field, target, tol=1e-9, max_iter=30):
+    """The peer of ``DistortionField.inverse``: the same Newton iteration (same k-d tree
+    start) evaluating the splines with FITPACK."""
+    _, idx = field._start_tree.query(target)
+    u = field._start_nodes[idx].copy()
+    sx, sy = field._spline_x, field._spline_y
+    for _ in range(max_iter):
+        x, y = u[:, 0], u[:, 1]
+        rx = x + sx.ev(x, y) - target[:, 0]
+        ry = y + sy.ev(x, y) - target[:, 1]
+        if np.hypot(rx, ry).max() <= tol:
+            break
+        a, b = 1 + sx.ev(x, y, dx=1), sx.ev(x, y, dy=1)
+        c, d = sy.ev(x, y, dx=1), 1 + sy.ev(x, y, dy=1)
+        det = a * d - b * c
+        u = u - np.stack([d * rx - b * ry, -c * rx + a * ry], -1) / det[:, None]
+    return u
+
+
 def main():
     relay = oap_relay(1)
     small = object_grid(17, 1.0)
@@ -57,7 +85,7 @@ def main():
     t_vec = median_time(lambda: grid_distortion(relay, 17), 21)
     t_loop = median_time(lambda: loop_chief_rays(relay, small), 5)
     rows.append(("17 x 17 grid (incl. paraxial map)", t_vec, "per-ray loop", t_loop))
-    t_big = median_time(lambda: grid_distortion(relay, 1001), 3)
+    t_big = median_time(lambda: grid_distortion(relay, 1001), 5)
     sub = object_grid(101, 1.0)
     t_loop_big = median_time(lambda: loop_chief_rays(relay, sub), 1) * (1001 * 1001) / len(sub)
     rows.append(("1001 x 1001 grid", t_big, "per-ray loop (extrapolated from 101 x 101)", t_loop_big))
@@ -71,13 +99,22 @@ def main():
     px = rng.uniform([-0.5, -0.5], [639.5, 479.5], size=(640 * 480, 2))
     rows.append(("forward, 307,200 px", median_time(lambda: field.forward(px), 3),
                  "exact trace of the same points", median_time(lambda: field.traced(px), 3)))  # fmt: skip
-    rows.append(("inverse, 307,200 px", median_time(lambda: field.inverse(px), 3), "-", float("nan")))
+    patches = field._patches
+    assert np.allclose(patches(px[:, 0], px[:, 1])[1][:, 0], fitpack_eval(field, px)[1], atol=1e-9)
+    t_patch = median_time(lambda: patches(px[:, 0], px[:, 1]), 3)
+    t_fitpack = median_time(lambda: fitpack_eval(field, px), 3)
+    rows.append(("spline value + gradient (2 comp.), 307,200 px", t_patch,
+                 "RectBivariateSpline.ev (FITPACK), 6 calls", t_fitpack))  # fmt: skip
+    assert np.abs(fitpack_inverse(field, px) - field.inverse(px)).max() < 1e-6
+    rows.append(("inverse, 307,200 px", median_time(lambda: field.inverse(px), 3),
+                 "same Newton on FITPACK", median_time(lambda: fitpack_inverse(field, px), 3)))  # fmt: skip
     env = dict(os.environ, PYTHONPATH="src")
     cmd = [sys.executable, "-m", "oapcal", "simulate", "relay", "--setup", "1", "--json"]
     t_cli = median_time(lambda: subprocess.run(cmd, env=env, capture_output=True, check=True), 5)
     t_py = median_time(lambda: subprocess.run([sys.executable, "-c", "pass"], check=True), 5)
     rows.append(("`oapcal simulate relay --setup 1 --json` (whole process)", t_cli,
                  "bare `python -c pass`", t_py))  # fmt: skip
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"{'task':58s} {'oapcal':>10s}   {'peer':44s} {'peer time':>10s} {'ratio':>7s}")
     for name, t, peer, tp in rows:
         ratio = f"{tp / t:7.1f}" if np.isfinite(tp) else "      -"

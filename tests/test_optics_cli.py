@@ -59,3 +59,55 @@ def test_relay_help_is_lazy():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "HEAVY []" in out
+
+
+def test_relay_chosen_spot_fields_rings_and_csv_values(run_cli, tmp_path):
+    out = tmp_path / "grid.csv"
+    code, stdout, err = run_cli("simulate", "relay", "--grid", "5", "--field", "0.8", "--pixel-size", "5",
+                                "--spot-field", "0.4,-0.4", "--spot-field", "0,0", "--rings", "3",
+                                "--out", out, "--json")  # fmt: skip
+    assert code == 0, err
+    data = json.loads(stdout)
+    spots = data["quality"]["spots"]
+    assert [(s["orientation"], s["field_mm"]) for s in spots] == [
+        ("U", [0.4, -0.4]), ("U", [0.0, 0.0]), ("Z", [0.4, -0.4]), ("Z", [0.0, 0.0])
+    ]  # fmt: skip
+    assert data["quality"]["rings"] == 3
+    assert data["paper"] is None  # a 5 x 5 grid is not the paper's case
+    rows = [line.split(",") for line in out.read_text().splitlines()[1:]]
+    obj = np.array([[float(r[0]), float(r[1])] for r in rows])
+    # The object grid: 5 x 5 over 0.8 mm, x fastest, both ascending.
+    s = np.linspace(-0.4, 0.4, 5)
+    assert np.array_equal(obj, np.stack(np.meshgrid(s, s), -1).reshape(-1, 2))
+    assert {r[6] for r in rows} == {"1"}
+
+
+def test_relay_paper_px_figures_only_for_the_papers_pixels(run_cli):
+    code, stdout, err = run_cli("simulate", "relay", "--pixel-size", "5", "--rings", "2", "--json")
+    assert code == 0, err
+    paper = json.loads(stdout)["paper"]
+    assert paper["max_um"] == 193.0 and "max_px" not in paper
+
+
+@pytest.mark.parametrize(
+    "args,pattern",
+    [
+        (["--spot-field", "0.5"], "is not a point like 0.5,0.5"),
+        (["--spot-field", "a,b"], "is not a point like 0.5,0.5"),
+        (["--rings", "0"], "--rings must be at least 1"),
+    ],
+)
+def test_relay_bad_spot_options(run_cli, tmp_path, args, pattern):
+    code, _, err = run_cli("simulate", "relay", "--out", tmp_path / "g.csv", *args)
+    assert code == 2 and pattern in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_simulate_relay_reports_progress_up_to_the_total():
+    from oapcal.optics.summary import simulate_relay
+
+    calls = []
+    simulate_relay(1, n=9, rings=2, progress=lambda done, total: calls.append((done, total)))
+    totals = {t for _, t in calls}
+    assert len(totals) == 1 and calls[-1][0] == calls[-1][1]
+    assert all(a[0] <= b[0] for a, b in zip(calls, calls[1:]))

@@ -39,3 +39,43 @@ def test_paraxial_map_puts_the_axis_at_the_image_centre_with_unit_magnification(
     assert np.hypot(*(xy[2] - xy[0])) == pytest.approx(10.0, rel=1e-8)
     assert np.allclose(field.object_um_from_paraxial(xy), [[0, 0], [96, 0], [0, 48]], atol=1e-6)
     assert np.isnan(field.forward([[1e6, 0.0]])).all()  # outside the traced grid
+
+
+def test_bicubic_patches_agree_with_fitpack():
+    # The hand-written evaluator against scipy's RectBivariateSpline (FITPACK) it replaces.
+    from scipy.interpolate import RectBivariateSpline
+
+    from oapcal.optics.field import BicubicPatches
+
+    rng = np.random.default_rng(9)
+    xs = np.linspace(-3.0, 5.0, 13)
+    ys = np.linspace(1.0, 4.0, 9)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    splines = [
+        RectBivariateSpline(xs, ys, np.sin(gx) * np.cos(1.3 * gy) + 0.1 * gx * gy**2),
+        RectBivariateSpline(xs, ys, rng.normal(size=gx.shape)),
+    ]
+    x = np.concatenate([rng.uniform(-3.0, 5.0, 500), xs])  # include the nodes and both ends
+    y = np.concatenate([rng.uniform(1.0, 4.0, 500), ys[np.arange(13) % 9]])
+    val, ddx, ddy = BicubicPatches(xs, ys, splines)(x, y)
+    for c, spline in enumerate(splines):
+        scale = np.abs(spline.ev(x, y)).max()
+        assert np.abs(val[:, c] - spline.ev(x, y)).max() < 1e-12 * max(scale, 1)
+        assert np.abs(ddx[:, c] - spline.ev(x, y, dx=1)).max() < 1e-10 * max(scale, 1)
+        assert np.abs(ddy[:, c] - spline.ev(x, y, dy=1)).max() < 1e-10 * max(scale, 1)
+
+
+def test_inverse_marks_points_outside_the_traced_grid_and_non_finite_input(field):
+    xy = np.array([[1e5, 1e5], [np.nan, 3.0], [320.0, 240.0]])
+    out = field.inverse(xy)
+    assert np.isnan(out[:2]).all()
+    assert np.abs(field.forward(out[2:]) - xy[2:]).max() < 1e-6
+
+
+def test_grid_plot_of_a_large_grid_draws_a_subgrid(tmp_path):
+    from oapcal.optics.plot import plot_grid
+    from oapcal.optics.relay import grid_distortion, oap_relay
+
+    grid = grid_distortion(oap_relay(1), n=35, field_mm=1.0)
+    plot_grid(grid, tmp_path / "g.png", units="px", max_side=9)
+    assert (tmp_path / "g.png").read_bytes()[:4] == b"\x89PNG"

@@ -96,3 +96,54 @@ def test_resolution_limits_match_the_paper():
 def test_bad_geometry_raises_named_errors(kwargs, pattern):
     with pytest.raises(GeometrySpecError, match=pattern):
         oap_relay(**kwargs)
+
+
+@pytest.mark.parametrize("stop", [None, 300.0])
+def test_tracing_in_blocks_reports_progress_and_does_not_change_results(monkeypatch, stop):
+    import oapcal.optics.relay as relay_module
+
+    relay = oap_relay(1, stop_distance_mm=stop)
+    obj = np.random.default_rng(2).uniform(-0.5, 0.5, size=(1000, 2))
+    one_block = chief_rays(relay, obj)
+    monkeypatch.setattr(relay_module, "CHUNK", 64)
+    calls = []
+    blocks = chief_rays(relay, obj, progress=lambda done, total: calls.append((done, total)))
+    assert np.array_equal(blocks.xy_mm, one_block.xy_mm)
+    assert np.array_equal(blocks.clear, one_block.clear)
+    assert np.array_equal(blocks.trace.hits[1], one_block.trace.hits[1])
+    assert calls[-1] == (1000, 1000) and len(calls) == 16  # ceil(1000 / 64)
+    assert all(a[0] < b[0] for a, b in zip(calls, calls[1:]))
+
+
+def test_component_and_array_forms_of_the_surfaces_agree():
+    # The tracer's component triples against the (..., 3) array methods on a tilted mirror.
+    from oapcal.optics.surfaces import Paraboloid, join, split
+
+    rng = np.random.default_rng(4)
+    mirror = Paraboloid(vertex=(1.0, -2.0, -25.4), axis=(0.1, 0.2, 1.0), focal_length=25.4)
+    origin = rng.uniform(-10, 10, size=(50, 3)) + [0, 0, 100]
+    direction = rng.normal(size=(50, 3)) * 0.05 + [0, 0, -1]
+    t = mirror.intersect(origin, direction)
+    hit = origin + t[:, None] * direction
+    # The hit is on the surface |r_perp|^2 = 4 f_p (r . a), written out independently.
+    a = np.asarray(mirror.axis)
+    r = hit - np.asarray(mirror.vertex)
+    along = r @ a
+    perp = r - along[:, None] * a
+    assert np.abs((perp**2).sum(-1) - 4 * 25.4 * along).max() < 1e-9
+    # The normal is the normalized gradient 4 f_p a - 2 r_perp of the implicit surface.
+    grad = 4 * 25.4 * a - 2 * perp
+    assert np.allclose(mirror.normal(hit), grad / np.linalg.norm(grad, axis=-1, keepdims=True), atol=1e-14)
+    assert np.allclose(join(mirror.normal_c(split(hit))), mirror.normal(hit), atol=0)
+
+
+def test_radial_fit_of_a_large_grid_uses_a_subgrid_close_to_the_full_fit():
+    from oapcal.optics.relay import radial_fit
+
+    grid = grid_distortion(oap_relay(1), n=49, field_mm=1.0)
+    full = radial_fit(grid, max_side=49)
+    sub = radial_fit(grid, max_side=33)
+    # Residuals are means over all 49 x 49 points either way; the subgrid fit is close.
+    assert sub[1] == pytest.approx(full[1], rel=0.01)
+    assert sub[2] == pytest.approx(full[2], rel=0.01)
+    assert sub[1] != full[1]  # and it really was a different fit

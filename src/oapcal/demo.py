@@ -83,11 +83,11 @@ def run_demo(
     from oapcal.imaging.remap import correct_image, correction_map
     from oapcal.imaging.simulate import simulate_image, write_truth
     from oapcal.io.calibration import save_calibration
-    from oapcal.io.points import write_point_pairs
+    from oapcal.io.points import read_points, write_point_pairs
     from oapcal.model import distort
     from oapcal.optics import relay_distortion
     from oapcal.optics.plot import plot_grid
-    from oapcal.optics.summary import simulate_relay
+    from oapcal.optics.summary import simulate_relay, write_grid_csv
     from oapcal.select import robustness, select_models
 
     def start(name: str) -> None:
@@ -97,16 +97,14 @@ def run_demo(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
-    centre = (np.asarray(IMAGE_SIZE, float) - 1) / 2
 
     # 1. the relay's grid distortion, in camera px with the field centre at the image centre
     start("trace")
     sim = simulate_relay(1, n=17, field_mm=1.0, pixel_size_um=PIXEL_UM)
-    px_per_mm = 1e3 / PIXEL_UM
-    grid_u = sim.grid.xy_u * px_per_mm + centre
-    grid_d = sim.grid.xy_d * px_per_mm + centre
     files["relay grid"] = out / "grid.csv"
-    write_point_pairs(files["relay grid"], grid_u, grid_d, ids=range(len(grid_u)))
+    write_grid_csv(sim.grid, files["relay grid"], "px", PIXEL_UM, IMAGE_SIZE)
+    grid = read_points(files["relay grid"])
+    grid_u, grid_d = grid.xy_u, grid.xy_d
     files["relay grid plot"] = out / "grid.png"
     plot_grid(sim.grid, files["relay grid plot"], units="px", pixel_size_um=PIXEL_UM)
 

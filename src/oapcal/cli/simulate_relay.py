@@ -69,6 +69,16 @@ from oapcal.cli._common import check_output, console, parse_size, print_json
 )
 @click.option("--wavelength", type=float, default=850.0, show_default=True, help="Wavelength, nm.")
 @click.option(
+    "--spot-field",
+    "spot_fields",
+    multiple=True,
+    metavar="X,Y",
+    help="Object point (mm) of a spot diagram; repeat for more (default: centre, edges, corner).",
+)
+@click.option(
+    "--rings", type=int, default=8, show_default=True, help="Hexapolar rings of rays per spot diagram."
+)
+@click.option(
     "--out",
     type=click.Path(dir_okay=False, allow_dash=True),
     default=None,
@@ -80,11 +90,15 @@ from oapcal.cli._common import check_output, console, parse_size, print_json
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
 def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,
-                  image_size, beam_diameter, wavelength, out, plot, spots, as_json):  # fmt: skip
+                  image_size, beam_diameter, wavelength, spot_fields, rings, out, plot, spots,
+                  as_json):  # fmt: skip
     """Trace the OAP relay: grid distortion (paraxial vs real chief rays), spots, limits."""
     from oapcal.errors import GeometrySpecError
 
     size = parse_size(image_size)
+    points = [_parse_point(text) for text in spot_fields] or None
+    if rings < 1:
+        raise GeometrySpecError(f"--rings must be at least 1, got {rings}")
     if size is not None and units != "px":
         raise GeometrySpecError("--image-size needs --units px (camera px); drop it or add --units px")
     for value, name in ((pixel_size, "--pixel-size"), (beam_diameter, "--beam-diameter"),
@@ -97,23 +111,29 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
     for path in outputs:
         check_output(path)
 
-    from oapcal.optics.summary import simulate_relay
+    from oapcal.optics.summary import simulate_relay, write_grid_csv
 
-    sim = simulate_relay(
-        int(setup), d1_mm=d1, orientation=orientation, stop_distance_mm=stop_distance,
-        focal_length_mm=focal_length, n=n, field_mm=field_mm, pixel_size_um=pixel_size,
-        beam_diameter_mm=beam_diameter, wavelength_nm=wavelength,
-    )  # fmt: skip
-    if out is not None:
-        write_grid(sim.grid, out, units, pixel_size, size)
-    if plot is not None:
-        from oapcal.optics.plot import plot_grid
+    bar, update = _progress()
+    with bar:
+        update(0, 1, f"tracing {n}x{n} grid and spots")
+        sim = simulate_relay(
+            int(setup), d1_mm=d1, orientation=orientation, stop_distance_mm=stop_distance,
+            focal_length_mm=focal_length, n=n, field_mm=field_mm, pixel_size_um=pixel_size,
+            beam_diameter_mm=beam_diameter, wavelength_nm=wavelength, spot_fields=points, rings=rings,
+            progress=update,
+        )  # fmt: skip
+        if out is not None:
+            update(0, 1, "writing the grid CSV")
+            write_grid_csv(sim.grid, out, units, pixel_size, size, progress=update)
+        if plot is not None:
+            from oapcal.optics.plot import plot_grid
 
-        plot_grid(sim.grid, plot, units=units, pixel_size_um=pixel_size)
-    if spots is not None:
-        from oapcal.optics.plot import plot_spots
+            update(0, 1, "plotting")
+            plot_grid(sim.grid, plot, units=units, pixel_size_um=pixel_size)
+        if spots is not None:
+            from oapcal.optics.plot import plot_spots
 
-        plot_spots(sim.spots, spots, airy_radius_um=sim.summary["quality"]["rayleigh_um"])
+            plot_spots(sim.spots, spots, airy_radius_um=sim.summary["quality"]["rayleigh_um"])
     if as_json:
         print_json(sim.summary)
     elif out != "-":
@@ -121,21 +141,39 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
     return 0
 
 
-def write_grid(grid, path, units, pixel_size_um, image_size=None) -> None:
-    """The grid CSV: object mm, paraxial and real image points in mm or px, clear flag."""
-    from oapcal.io.points import write_points
+def _parse_point(text: str) -> tuple[float, float]:
+    """``"0.5,-0.25"`` -> ``(0.5, -0.25)`` (a --spot-field value)."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise click.BadParameter(
+            f"{text!r} is not a point like 0.5,0.5 (mm)", param_hint="--spot-field"
+        ) from None
+    return (x, y)
 
-    scale = 1.0 if units == "mm" else 1e3 / pixel_size_um
-    offset = (0.0, 0.0) if image_size is None else ((image_size[0] - 1) / 2, (image_size[1] - 1) / 2)
-    rows = []
-    for obj, u, d, ok in zip(grid.xy_obj, grid.xy_u, grid.xy_d, grid.clear):
-        rows.append({
-            "x_obj": repr(float(obj[0])), "y_obj": repr(float(obj[1])),
-            "x_u": repr(float(u[0] * scale + offset[0])), "y_u": repr(float(u[1] * scale + offset[1])),
-            "x_d": repr(float(d[0] * scale + offset[0])), "y_d": repr(float(d[1] * scale + offset[1])),
-            "clear": int(bool(ok)),
-        })  # fmt: skip
-    write_points(path, ["x_obj", "y_obj", "x_u", "y_u", "x_d", "y_d", "clear"], rows)
+
+def _progress():
+    """A Rich progress bar on stderr (drawn only on a terminal, removed when done) and its
+    update callback ``update(done, total, description=None)``."""
+    import sys
+
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
+
+    err = Console(file=sys.stderr)
+    bar = Progress(
+        TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(), TimeElapsedColumn(),
+        console=err, transient=True, disable=not err.is_terminal,
+    )  # fmt: skip
+    task = bar.add_task("tracing", total=None)
+
+    def update(done: int, total: int, description: str | None = None) -> None:
+        if description is None:
+            bar.update(task, completed=done, total=total)
+        else:
+            bar.update(task, completed=done, total=total, description=description)
+
+    return bar, update
 
 
 def print_summary(s: dict) -> None:

@@ -7,35 +7,50 @@ import numpy as np
 from oapcal.io.atomic import atomic_path
 
 
-def plot_grid(grid, path, *, units: str = "mm", pixel_size_um: float = 4.8) -> None:
+def plot_grid(grid, path, *, units: str = "mm", pixel_size_um: float = 4.8, max_side: int = 33) -> None:
     """Arrows from paraxial to real image points, coloured by distortion normalised by the
     field radius (the largest paraxial distance from the axis), in percent.  The image is
-    drawn as a camera shows it: x to the right, y down."""
+    drawn as a camera shows it: x to the right, y down.  Grids larger than ``max_side``
+    points a side are drawn on a regular subgrid (border included) so arrows stay legible;
+    the title's max and mean are over every point."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     scale = 1.0 if units == "mm" else 1e3 / pixel_size_um
-    u = grid.xy_u * scale
-    d = grid.xy_d * scale
     radius = np.hypot(*grid.xy_u.T).max()
-    colour = 100.0 * grid.distortion / radius
+    use = np.arange(len(grid.xy_u))
+    shown = grid.n
+    if grid.n > max_side:
+        k = np.unique(np.round(np.linspace(0, grid.n - 1, int(max_side))).astype(int))
+        use = (k[:, None] * grid.n + k[None, :]).ravel()
+        shown = len(k)
+    u = grid.xy_u[use] * scale
+    d = grid.xy_d[use] * scale
+    colour = 100.0 * grid.distortion[use] / radius
     fig, ax = plt.subplots(figsize=(6.4, 5.6), layout="constrained")
     arrows = ax.quiver(
         u[:, 0], u[:, 1], d[:, 0] - u[:, 0], d[:, 1] - u[:, 1], colour,
         angles="xy", scale_units="xy", scale=1.0, cmap="viridis", width=0.004,
     )  # fmt: skip
     ax.plot(u[:, 0], u[:, 1], ".", color="0.5", markersize=2)
-    fig.colorbar(arrows, ax=ax, label="distortion / field radius (%)")
+    fig.colorbar(arrows, ax=ax, label=f"|real - paraxial| / field radius {radius * scale:.4g} {units} (%)")
     ax.set_xlabel(f"x image ({units})")
     ax.set_ylabel(f"y image ({units})")
+    both = np.concatenate([u, d])
+    both = both[np.isfinite(both).all(axis=1)]
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    pad = 0.04 * (hi - lo).max()
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(hi[1] + pad, lo[1] - pad)  # y down, as a camera shows the image
     ax.set_aspect("equal")
-    ax.invert_yaxis()
     relay = grid.relay
     ax.set_title(
         f"Grid distortion, d1 = {relay.d1_mm:g} mm, orientation {relay.orientation}, "
-        f"{grid.n}x{grid.n} over {grid.field_mm:g} mm\nmax {grid.distortion.max() * 1e3:.1f} um, "
+        f"{grid.n}x{grid.n} over {grid.field_mm:g} mm"
+        + (f" (arrows: {shown}x{shown} subgrid)" if shown != grid.n else "")
+        + f"\nmax {grid.distortion.max() * 1e3:.1f} um, "
         f"mean {grid.distortion.mean() * 1e3:.1f} um (arrows: paraxial -> real)",
         fontsize=9,
     )

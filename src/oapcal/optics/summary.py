@@ -13,8 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oapcal.errors import GeometrySpecError
 from oapcal.optics.quality import (
     Spot,
+    hexapolar_pupil,
     numerical_aperture,
     pixel_limit_um,
     rayleigh_limit_um,
@@ -47,6 +49,12 @@ class RelaySimulation:
     spots: dict[str, list[Spot]]
 
 
+def default_spot_fields(field_mm: float) -> list[tuple[float, float]]:
+    """The field centre, the middle of two edges and a corner of a square field (mm)."""
+    half = 0.5 * float(field_mm)
+    return [(0.0, 0.0), (half, 0.0), (0.0, half), (half, half)]
+
+
 def simulate_relay(
     setup: int | None = 1,
     *,
@@ -59,33 +67,72 @@ def simulate_relay(
     pixel_size_um: float = 4.8,
     beam_diameter_mm: float = 20.0,
     wavelength_nm: float = 850.0,
+    spot_fields=None,
+    rings: int = 8,
+    progress=None,
 ) -> RelaySimulation:
-    """Trace the relay and summarize it (see the module docstring)."""
+    """Trace the relay and summarize it (see the module docstring).
+
+    ``spot_fields`` are the object points (mm, ``(M, 2)``) of the spot diagrams, traced
+    with ``rings`` hexapolar rings of rays (default: :func:`default_spot_fields`).
+    ``progress(done, total)`` is called as the work advances, counted in traced rays
+    (the radial fit counts as one ray per grid point).
+    """
     relay = oap_relay(
         setup, d1_mm=d1_mm, orientation=orientation, stop_distance_mm=stop_distance_mm,
         focal_length_mm=focal_length_mm,
     )  # fmt: skip
-    grid = grid_distortion(relay, n, field_mm)
+    n = int(n)
+    field_points = default_spot_fields(field_mm) if spot_fields is None else spot_fields
+    field_points = [tuple(float(v) for v in p) for p in np.asarray(field_points, dtype=float).reshape(-1, 2)]
+    if not np.isfinite(field_points).all():
+        raise GeometrySpecError("spot field points must be finite numbers of mm")
+    n_pupil = len(hexapolar_pupil(rings))
+    n_na = 360
+    total = 2 * n * n + 2 * len(field_points) * (n_pupil + 1) + n_na
+    done = 0
+
+    def advance(k: int) -> None:
+        nonlocal done
+        done += k
+        if progress is not None:
+            progress(done, total)
+
+    def sub(d: int, _t: int) -> None:
+        if progress is not None:
+            progress(done + d, total)
+
+    grid = grid_distortion(relay, n, field_mm, progress=sub)
+    advance(n * n)
     px = 1e3 / float(pixel_size_um)  # px per image mm
     disp = grid.displacement
     dist = grid.distortion
     fit_result, forward_mm, correction_mm = radial_fit(grid)
+    advance(n * n)
     magnification = float(np.sqrt(abs(np.linalg.det(grid.matrix))))
 
-    half = 0.5 * grid.field_mm
-    field_points = [(0.0, 0.0), (half, 0.0), (0.0, half), (half, half)]
     spots = {}
     for key in ("U", "Z"):
         other = relay if key == relay.orientation else oap_relay(
             setup, d1_mm=relay.d1_mm, orientation=key, stop_distance_mm=relay.stop_distance_mm,
             focal_length_mm=focal_length_mm,
         )  # fmt: skip
-        spots[key] = [spot_diagram(other, p, beam_diameter_mm) for p in field_points]
+        spots[key] = []
+        for p in field_points:
+            spots[key].append(spot_diagram(other, p, beam_diameter_mm, rings))
+            advance(n_pupil + 1)
     na = numerical_aperture(beam_diameter_mm, relay.focal_length_mm)
+    na_traced = traced_numerical_aperture(relay, beam_diameter_mm, n_na)
+    advance(n_na)
     paper_case = (
         relay.d1_mm == 860.0 and relay.orientation == "U" and grid.n == 17 and grid.field_mm == 1.0
         and relay.focal_length_mm == 50.8
     )  # fmt: skip
+    paper = None
+    if paper_case:
+        paper = dict(PAPER_SETUP1)
+        if float(pixel_size_um) != 4.8:  # the paper's px figures are for 4.8 um pixels
+            paper = {k: v for k, v in paper.items() if not k.endswith("_px")}
     summary = {
         "relay": {
             "d1_mm": relay.d1_mm,
@@ -124,8 +171,9 @@ def simulate_relay(
         "quality": {
             "beam_diameter_mm": float(beam_diameter_mm),
             "wavelength_nm": float(wavelength_nm),
+            "rings": int(rings),
             "na": na,
-            "na_traced": traced_numerical_aperture(relay, beam_diameter_mm),
+            "na_traced": na_traced,
             "sparrow_um": sparrow_limit_um(na, wavelength_nm),
             "rayleigh_um": rayleigh_limit_um(na, wavelength_nm),
             "pixel_limit_um": pixel_limit_um(pixel_size_um, magnification),
@@ -140,6 +188,46 @@ def simulate_relay(
                 for s in spots[key]
             ],  # fmt: skip
         },
-        "paper": dict(PAPER_SETUP1) if paper_case else None,
+        "paper": paper,
     }
     return RelaySimulation(grid, summary, spots)
+
+
+def write_grid_csv(grid: GridDistortion, path, units: str = "mm", pixel_size_um: float = 4.8,
+                   image_size=None, progress=None) -> None:  # fmt: skip
+    """Write the grid CSV ``x_obj,y_obj,x_u,y_u,x_d,y_d,clear`` (``docs/cli.md``).
+
+    Object points in mm; paraxial and real image points in image-plane mm, or with
+    ``units="px"`` in px of ``pixel_size_um`` (axis at 0, 0; with ``image_size`` (w, h)
+    camera px with the axis at the image centre).  Numbers are written with Python's
+    shortest round-trip ``repr``; atomically, ``-`` writes to stdout.
+    ``progress(done, total)`` is called per block of rows.
+    """
+    import sys
+
+    from oapcal.io.atomic import atomic_write
+
+    scale = 1.0 if units == "mm" else 1e3 / float(pixel_size_um)
+    offset = np.zeros(2) if image_size is None else (np.asarray(image_size, float) - 1.0) / 2.0
+    values = np.concatenate([grid.xy_obj, grid.xy_u * scale + offset, grid.xy_d * scale + offset], axis=1)
+    clear = grid.clear
+
+    def write(fh) -> None:
+        fh.write("x_obj,y_obj,x_u,y_u,x_d,y_d,clear\n")
+        n = len(values)
+        block = 1 << 16
+        for lo in range(0, n, block):
+            hi = min(n, lo + block)
+            rows = values[lo:hi].tolist()
+            flags = clear[lo:hi].tolist()
+            fh.write(
+                "".join(",".join(map(repr, r)) + (",1\n" if ok else ",0\n") for r, ok in zip(rows, flags))
+            )
+            if progress is not None:
+                progress(hi, n)
+
+    if str(path) == "-":
+        write(sys.stdout)
+        return
+    with atomic_write(path) as fh:
+        write(fh)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.optics.surfaces import Paraboloid, Plane, reflect
+from oapcal.optics.surfaces import Paraboloid, Plane, Vec, axpy_c, dot_c, join, reflect_c, split, unit_c
 
 
 @dataclass(frozen=True)
@@ -38,16 +38,35 @@ class TraceResult:
     clear: np.ndarray
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+def reflect_at_c(mirror: Paraboloid, origin: Vec, direction: Vec) -> tuple[Vec, Vec]:
+    """:func:`reflect_at` on component triples; ``direction`` must be unit."""
+    t = mirror.intersect_c(origin, direction)
+    hit = axpy_c(t, direction, origin)
+    return hit, reflect_c(direction, mirror.normal_c(hit))
 
 
 def reflect_at(mirror: Paraboloid, origin: np.ndarray, direction: np.ndarray):
     """Intersect rays with one mirror and reflect them: ``(hit, new unit direction)``."""
-    direction = _unit(np.asarray(direction, dtype=float))
-    t = mirror.intersect(origin, direction)
-    hit = origin + t[..., None] * direction
-    return hit, reflect(direction, mirror.normal(hit))
+    origin = np.asarray(origin, dtype=float)
+    direction = np.asarray(direction, dtype=float)
+    hit, out = reflect_at_c(mirror, split(origin), unit_c(split(direction)))
+    return join(hit), join(out)
+
+
+def trace_c(origin: Vec, direction: Vec, mirrors: Sequence[Paraboloid], plane: Plane):
+    """:func:`trace` on component triples (``direction`` unit): returns ``(hits, points,
+    (x, y), direction, clear)`` with vectors as component triples."""
+    clear = True
+    hits = []
+    for mirror in mirrors:
+        origin, direction = reflect_at_c(mirror, origin, direction)
+        hits.append(origin)
+        clear = clear & mirror.inside_c(origin)
+    t = plane.intersect_c(origin, direction)
+    points = axpy_c(t, direction, origin)
+    xy = plane.local_c(points)
+    clear = clear & np.isfinite(t) & np.isfinite(dot_c(points, points))
+    return hits, points, xy, direction, clear
 
 
 def trace(
@@ -60,13 +79,13 @@ def trace(
     ``mirrors`` in order, then onto ``plane`` (where they meet its extension, before or
     after the last mirror)."""
     origin, direction = np.broadcast_arrays(np.asarray(origin, float), np.asarray(direction, float))
-    clear = np.ones(origin.shape[:-1], dtype=bool)
-    hits = []
-    for mirror in mirrors:
-        origin, direction = reflect_at(mirror, origin, direction)
-        hits.append(origin)
-        clear &= mirror.inside(origin)
-    t = plane.intersect(origin, direction)
-    points = origin + t[..., None] * direction
-    clear &= np.isfinite(points).all(axis=-1)
-    return TraceResult(tuple(hits), points, plane.local(points), direction, clear)
+    shape = origin.shape
+    hits, points, xy, out, clear = trace_c(split(origin), unit_c(split(direction)), mirrors, plane)
+    xy = np.stack(np.broadcast_arrays(*(np.asarray(c, dtype=float) for c in xy)), axis=-1)
+
+    def full(v):
+        return np.broadcast_to(join(v), shape).copy()
+
+    xy = np.broadcast_to(xy, shape[:-1] + (2,)).copy()
+    clear = np.broadcast_to(clear, shape[:-1]).copy()
+    return TraceResult(tuple(full(h) for h in hits), full(points), xy, full(out), clear)
