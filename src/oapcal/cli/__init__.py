@@ -27,6 +27,8 @@ COMMANDS: dict[str, str] = {
     "correct-points": "oapcal.cli.fit:correct_points_command",
     "demo": "oapcal.cli.demo:demo_command",
     "simulate": "oapcal.cli.simulate:simulate_group",
+    "select": "oapcal.cli.select:select_command",
+    "robustness": "oapcal.cli.select:robustness_command",
 }
 
 
