@@ -172,6 +172,35 @@ def _solve_spd(lhs, rhs, k, out, work):
 
 
 @numba.njit(**_JIT)
+def _solve_lu(lhs, rhs, k, out, work):
+    """Gaussian elimination with partial pivoting (what ``np.linalg.solve`` does), for the
+    rare steps where Cholesky meets a non-positive pivot; a zero pivot gives a NaN step."""
+    for i in range(k):
+        out[i] = rhs[i]
+        for j in range(k):
+            work[i, j] = lhs[i, j]
+    for c in range(k):
+        piv = c
+        for i in range(c + 1, k):
+            if abs(work[i, c]) > abs(work[piv, c]):
+                piv = i
+        if piv != c:
+            for j in range(k):
+                work[c, j], work[piv, j] = work[piv, j], work[c, j]
+            out[c], out[piv] = out[piv], out[c]
+        for i in range(c + 1, k):
+            f = work[i, c] / work[c, c]
+            for j in range(c, k):
+                work[i, j] -= f * work[c, j]
+            out[i] -= f * out[c]
+    for i in range(k - 1, -1, -1):
+        s = out[i]
+        for j in range(i + 1, k):
+            s -= work[i, j] * out[j]
+        out[i] = s / work[i, i]
+
+
+@numba.njit(**_JIT)
 def _lm_one(u, d, pts, mask, p, max_iter, ftol, xtol, gtol):
     """Levenberg-Marquardt for one item, in place on ``p``; the algorithm of
     :func:`oapcal.fit.fit_batch` step for step.  Returns (status, n_iter, cost)."""
@@ -229,13 +258,7 @@ def _lm_one(u, d, pts, mask, p, max_iter, ftol, xtol, gtol):
                 lhs[i, j] = a_s[i, j]
             lhs[i, i] += lam
         if not _solve_spd(lhs, g_s, k, step_s, work):
-            if np.isfinite(lhs).all() and np.isfinite(g_s).all():
-                sol = np.linalg.lstsq(lhs, g_s.copy(), rcond=-1.0)[0]
-                for i in range(k):
-                    step_s[i] = sol[i]
-            else:  # a non-finite Jacobian: the step is NaN, as np.linalg.solve gives
-                for i in range(k):
-                    step_s[i] = np.nan
+            _solve_lu(lhs, g_s, k, step_s, work)
         for i in range(k):
             step_s[i] = -step_s[i]
         # predicted = -(g_s . s + 0.5 s^T A_s s)
