@@ -138,18 +138,22 @@ def main():
     print(f"AICc agreement on {rel.size} models valid in both: {(rel <= 1e-6).sum()} within 1e-6 relative, "
           f"max rel diff {rel.max():.2e}; validity differs for {disagree_valid}")  # fmt: skip
     if far:
-        print(f"  the {len(far)} models beyond 1e-6 are poor fits, dAICc >= {min(far):.0f} from the best "
-              "(the two LM codes stop at different points of their flat, multi-minimum cost)")
+        print(
+            f"  the {len(far)} models beyond 1e-6 are poor fits, dAICc >= {min(far):.0f} from the best "
+            "(the two LM codes stop at different points of their flat, multi-minimum cost)"
+        )
     best_peer = peer.get(sel.best.bits)
     if best_peer is not None:
-        print(f"best model: oapcal AICc {sel.best.aicc:.9f}, SciPy {best_peer[0]:.9f}, "
-              f"rel diff {abs(best_peer[0] - sel.best.aicc) / abs(sel.best.aicc):.1e}")
+        print(
+            f"best model: oapcal AICc {sel.best.aicc:.9f}, SciPy {best_peer[0]:.9f}, "
+            f"rel diff {abs(best_peer[0] - sel.best.aicc) / abs(sel.best.aicc):.1e}"
+        )
     peer_best = min((aicc, b) for b, (aicc, valid) in peer.items() if valid)[1]
     same = peer_best == sel.best.bits
     scope = "all 4096" if args.full else f"the {len(peer)} models it fitted"
     rank = 1 + [m.bits for m in sel.models].index(peer_best)
     print(f"SciPy's best among {scope}: {','.join(names_from_mask(masks[peer_best]))} -> "
-          f"{'SAME' if same else 'DIFFERENT'} model as oapcal (oapcal rank of SciPy's choice: {rank})")  # fmt: skip
+          f"{'SAME' if same else 'DIFFERENT'} model as oapcal (its oapcal rank: {rank})")  # fmt: skip
 
 
 if __name__ == "__main__":
