@@ -311,3 +311,20 @@ def test_mask_bits_round_trip_in_selection(grid_selection):
     m = grid_selection.models[5]
     np.testing.assert_array_equal(mask_from_bits(m.bits), parse_model(m.free))
     assert m.free[-1] == "m" and INDEX["m"] == 12
+
+
+def test_hand_written_linear_solvers_equal_numpy():
+    from oapcal._batchfit import _solve_lu, _solve_spd
+
+    rng = np.random.default_rng(8)
+    for k in (1, 5, 13):
+        m = rng.normal(size=(k, k))
+        spd = m @ m.T + 0.1 * np.eye(k)
+        rhs = rng.normal(size=k)
+        out, work = np.empty(k), np.zeros((k, k))
+        assert _solve_spd(spd, rhs, k, out, work)
+        np.testing.assert_allclose(out, np.linalg.solve(spd, rhs), rtol=1e-10)
+        _solve_lu(m, rhs, k, out, work)  # general matrix, needs pivoting
+        np.testing.assert_allclose(out, np.linalg.solve(m, rhs), rtol=1e-8)
+    indefinite = np.array([[1.0, 2.0], [2.0, 1.0]])
+    assert not _solve_spd(indefinite, np.ones(2), 2, np.empty(2), np.zeros((2, 2)))

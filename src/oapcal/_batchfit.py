@@ -65,63 +65,109 @@ class ManyFits:
 
 
 @numba.njit(fastmath=_FASTMATH, **_JIT)
-def _residuals_and_jacobian(p, u, d, pts, free, k, want_jac, jac, res, jx, jy):
-    """Fill ``res (2n,)`` (model - data) and, if ``want_jac``, ``jac (k, 2n)``; return the cost."""
+def _residuals_and_jacobian(p, u, d, pts, free, k, want_jac, jac, res, work):
+    """Fill ``res (2n,)`` = model - data (x residuals first, then y) and, if ``want_jac``,
+    ``jac (k, 2n)`` (same layout, one row per free parameter); return the cost.
+
+    ``work (9, n)`` holds per-point intermediate values, so that every loop runs over
+    contiguous memory and vectorises.
+    """
     k1, k2, p1, p2, s1, s2, s3, s4 = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]
     xo, yo, cx, cy, m = p[8], p[9], p[10], p[11], p[12]
+    n = pts.shape[0]
+    xs_, ys_, xb_, yb_, r2_ = work[0], work[1], work[2], work[3], work[4]
+    a_, b_, c_, d_ = work[5], work[6], work[7], work[8]
     cost = 0.0
-    for j in range(pts.shape[0]):
+    for j in range(n):
         q = pts[j]
         xs = u[q, 0] + xo
         ys = u[q, 1] + yo
         xb = m * xs
         yb = m * ys
         r2 = xb * xb + yb * yb
-        r4 = r2 * r2
         radial = 1.0 + r2 * (k1 + k2 * r2)
         xy2 = 2.0 * xb * yb
         rx = xb * radial + p1 * xy2 + p2 * (r2 + 2.0 * xb * xb) + r2 * (s1 + s2 * r2) + cx - d[q, 0]
         ry = yb * radial + p1 * (r2 + 2.0 * yb * yb) + p2 * xy2 + r2 * (s3 + s4 * r2) + cy - d[q, 1]
-        res[2 * j] = rx
-        res[2 * j + 1] = ry
+        res[j] = rx
+        res[n + j] = ry
         cost += rx * rx + ry * ry
-        if want_jac:
-            drad = 2.0 * (k1 + 2.0 * k2 * r2)
-            sx = 2.0 * (s1 + 2.0 * s2 * r2)
-            sy = 2.0 * (s3 + 2.0 * s4 * r2)
-            a = radial + drad * xb * xb + 2.0 * p1 * yb + 6.0 * p2 * xb + xb * sx
-            b = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + yb * sx
-            c = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + xb * sy
-            dd = radial + drad * yb * yb + 6.0 * p1 * yb + 2.0 * p2 * xb + yb * sy
-            jx[0] = xb * r2
-            jx[1] = xb * r4
-            jx[2] = xy2
-            jx[3] = r2 + 2.0 * xb * xb
-            jx[4] = r2
-            jx[5] = r4
-            jx[6] = 0.0
-            jx[7] = 0.0
-            jx[8] = a * m
-            jx[9] = b * m
-            jx[10] = 1.0
-            jx[11] = 0.0
-            jx[12] = a * xs + b * ys
-            jy[0] = yb * r2
-            jy[1] = yb * r4
-            jy[2] = r2 + 2.0 * yb * yb
-            jy[3] = xy2
-            jy[4] = 0.0
-            jy[5] = 0.0
-            jy[6] = r2
-            jy[7] = r4
-            jy[8] = c * m
-            jy[9] = dd * m
-            jy[10] = 0.0
-            jy[11] = 1.0
-            jy[12] = c * xs + dd * ys
-            for i in range(k):
-                jac[i, 2 * j] = jx[free[i]]
-                jac[i, 2 * j + 1] = jy[free[i]]
+        xs_[j] = xs
+        ys_[j] = ys
+        xb_[j] = xb
+        yb_[j] = yb
+        r2_[j] = r2
+    if not want_jac:
+        return 0.5 * cost
+    for j in range(n):
+        xb = xb_[j]
+        yb = yb_[j]
+        r2 = r2_[j]
+        radial = 1.0 + r2 * (k1 + k2 * r2)
+        drad = 2.0 * (k1 + 2.0 * k2 * r2)
+        sx = 2.0 * (s1 + 2.0 * s2 * r2)
+        sy = 2.0 * (s3 + 2.0 * s4 * r2)
+        a_[j] = radial + drad * xb * xb + 2.0 * p1 * yb + 6.0 * p2 * xb + xb * sx
+        b_[j] = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + yb * sx
+        c_[j] = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + xb * sy
+        d_[j] = radial + drad * yb * yb + 6.0 * p1 * yb + 2.0 * p2 * xb + yb * sy
+    # One column of d(residual)/d(parameter) per free parameter, as in
+    # oapcal.model.jacobian_params; one branch per parameter outside the point loop.
+    for i in range(k):
+        col = jac[i]
+        f = free[i]
+        if f == 0:  # k1
+            for j in range(n):
+                col[j] = xb_[j] * r2_[j]
+                col[n + j] = yb_[j] * r2_[j]
+        elif f == 1:  # k2
+            for j in range(n):
+                col[j] = xb_[j] * r2_[j] * r2_[j]
+                col[n + j] = yb_[j] * r2_[j] * r2_[j]
+        elif f == 2:  # p1
+            for j in range(n):
+                col[j] = 2.0 * xb_[j] * yb_[j]
+                col[n + j] = r2_[j] + 2.0 * yb_[j] * yb_[j]
+        elif f == 3:  # p2
+            for j in range(n):
+                col[j] = r2_[j] + 2.0 * xb_[j] * xb_[j]
+                col[n + j] = 2.0 * xb_[j] * yb_[j]
+        elif f == 4:  # s1
+            for j in range(n):
+                col[j] = r2_[j]
+                col[n + j] = 0.0
+        elif f == 5:  # s2
+            for j in range(n):
+                col[j] = r2_[j] * r2_[j]
+                col[n + j] = 0.0
+        elif f == 6:  # s3
+            for j in range(n):
+                col[j] = 0.0
+                col[n + j] = r2_[j]
+        elif f == 7:  # s4
+            for j in range(n):
+                col[j] = 0.0
+                col[n + j] = r2_[j] * r2_[j]
+        elif f == 8:  # x_off
+            for j in range(n):
+                col[j] = a_[j] * m
+                col[n + j] = c_[j] * m
+        elif f == 9:  # y_off
+            for j in range(n):
+                col[j] = b_[j] * m
+                col[n + j] = d_[j] * m
+        elif f == 10:  # c_x
+            for j in range(n):
+                col[j] = 1.0
+                col[n + j] = 0.0
+        elif f == 11:  # c_y
+            for j in range(n):
+                col[j] = 0.0
+                col[n + j] = 1.0
+        elif f == 12:  # m
+            for j in range(n):
+                col[j] = a_[j] * xs_[j] + b_[j] * ys_[j]
+                col[n + j] = c_[j] * xs_[j] + d_[j] * ys_[j]
     return 0.5 * cost
 
 
@@ -209,8 +255,7 @@ def _lm_one(u, d, pts, mask, p, max_iter, ftol, xtol, gtol):
     n2 = 2 * pts.shape[0]
     jac = np.empty((k, n2))
     res = np.empty(n2)
-    jx = np.empty(N_PARAMS)
-    jy = np.empty(N_PARAMS)
+    pwork = np.empty((9, pts.shape[0]))
     a = np.empty((k, k))
     g = np.empty(k)
     lhs = np.empty((k, k))
@@ -221,7 +266,7 @@ def _lm_one(u, d, pts, mask, p, max_iter, ftol, xtol, gtol):
     dcol = np.empty(k)
     p_new = p.copy()
 
-    cost = _residuals_and_jacobian(p, u, d, pts, free, k, False, jac, res, jx, jy)
+    cost = _residuals_and_jacobian(p, u, d, pts, free, k, False, jac, res, pwork)
     status = 0
     n_iter = 0
     if not np.isfinite(cost):
@@ -233,7 +278,7 @@ def _lm_one(u, d, pts, mask, p, max_iter, ftol, xtol, gtol):
     need_jac = True
     for _ in range(max_iter * 4):
         if need_jac:
-            _residuals_and_jacobian(p, u, d, pts, free, k, True, jac, res, jx, jy)
+            _residuals_and_jacobian(p, u, d, pts, free, k, True, jac, res, pwork)
             _normal_equations(jac, res, k, a, g)
             n_iter += 1
             need_jac = False
@@ -283,7 +328,7 @@ def _lm_one(u, d, pts, mask, p, max_iter, ftol, xtol, gtol):
             snorm += step_s[i] ** 2
             if not np.isfinite(p_new[q]):
                 finite_new = False
-        cost_new = _residuals_and_jacobian(p_new, u, d, pts, free, k, False, jac, res, jx, jy)
+        cost_new = _residuals_and_jacobian(p_new, u, d, pts, free, k, False, jac, res, pwork)
         actual = cost - cost_new
         rho = actual / predicted if predicted > 0.0 else -1.0
         accept = np.isfinite(cost_new) and actual > 0.0 and rho > 1e-4
