@@ -466,10 +466,11 @@ def _invert_point(p, xd, yd, tol, max_iter):
     fy -= yd
     err = np.hypot(fx, fy)
     done = err <= tol
+    # (a, b, c, d) is always the point Jacobian at (x, y): each trial evaluation returns
+    # it too, so an accepted step needs no second evaluation.
     for _ in range(max_iter):
         if done or not np.isfinite(err):
             break
-        _, _, a, b, c, d = _forward(p, x, y)
         det = a * d - b * c
         sx = -(d * fx - b * fy) / det
         sy = -(-c * fx + a * fy) / det
@@ -478,11 +479,12 @@ def _invert_point(p, xd, yd, tol, max_iter):
         yn = y
         fxn = fx
         fyn = fy
+        an, bn, cn, dn = a, b, c, d
         err_new = err
         for _h in range(11):
             xn = x + t * sx
             yn = y + t * sy
-            fxn, fyn, _, _, _, _ = _forward(p, xn, yn)
+            fxn, fyn, an, bn, cn, dn = _forward(p, xn, yn)
             fxn -= xd
             fyn -= yd
             err_new = np.hypot(fxn, fyn)
@@ -495,11 +497,11 @@ def _invert_point(p, xd, yd, tol, max_iter):
             y = yn
             fx = fxn
             fy = fyn
+            a, b, c, d = an, bn, cn, dn
             err = err_new
         done = err <= tol
         if stalled and not done:
             err = np.inf
-    _, _, a, b, c, d = _forward(p, x, y)
     det = a * d - b * c
     folded = (not det > 0.0) and np.isfinite(det)
     converged = done and (not folded) and np.isfinite(x) and np.isfinite(y)
