@@ -65,18 +65,17 @@ class ManyFits:
 
 
 @numba.njit(fastmath=_FASTMATH, **_JIT)
-def _residuals_and_jacobian(p, u, d, pts, free, k, want_jac, jac, res, work):
-    """Fill ``res (2n,)`` = model - data (x residuals first, then y) and, if ``want_jac``,
-    ``jac (k, 2n)`` (same layout, one row per free parameter); return the cost.
+def _residuals(p, u, d, pts, res, work):
+    """Fill ``res (2n,)`` = model - data (x residuals first, then y) and rows 0-4 of
+    ``work (9, n)`` with per-point values that :func:`_jacobian` reuses; return the cost.
 
-    ``work (9, n)`` holds per-point intermediate values, so that every loop runs over
-    contiguous memory and vectorises.
+    Keeping per-point values in rows makes every loop run over contiguous memory and
+    vectorise.
     """
     k1, k2, p1, p2, s1, s2, s3, s4 = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]
     xo, yo, cx, cy, m = p[8], p[9], p[10], p[11], p[12]
     n = pts.shape[0]
     xs_, ys_, xb_, yb_, r2_ = work[0], work[1], work[2], work[3], work[4]
-    a_, b_, c_, d_ = work[5], work[6], work[7], work[8]
     cost = 0.0
     for j in range(n):
         q = pts[j]
@@ -97,8 +96,18 @@ def _residuals_and_jacobian(p, u, d, pts, free, k, want_jac, jac, res, work):
         xb_[j] = xb
         yb_[j] = yb
         r2_[j] = r2
-    if not want_jac:
-        return 0.5 * cost
+    return 0.5 * cost
+
+
+@numba.njit(fastmath=_FASTMATH, **_JIT)
+def _jacobian(p, free, k, jac, work):
+    """Fill ``jac (k, 2n)`` at ``p`` from the values :func:`_residuals` left in ``work``
+    for the same ``p``."""
+    k1, k2, p1, p2, s1, s2, s3, s4 = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]
+    m = p[12]
+    n = work.shape[1]
+    xs_, ys_, xb_, yb_, r2_ = work[0], work[1], work[2], work[3], work[4]
+    a_, b_, c_, d_ = work[5], work[6], work[7], work[8]
     for j in range(n):
         xb = xb_[j]
         yb = yb_[j]
@@ -168,7 +177,6 @@ def _residuals_and_jacobian(p, u, d, pts, free, k, want_jac, jac, res, work):
             for j in range(n):
                 col[j] = a_[j] * xs_[j] + b_[j] * ys_[j]
                 col[n + j] = c_[j] * xs_[j] + d_[j] * ys_[j]
-    return 0.5 * cost
 
 
 @numba.njit(fastmath=_FASTMATH, **_JIT)
@@ -266,7 +274,7 @@ def _lm_one(u, d, pts, mask, p, max_iter, ftol, xtol, gtol):
     dcol = np.empty(k)
     p_new = p.copy()
 
-    cost = _residuals_and_jacobian(p, u, d, pts, free, k, False, jac, res, pwork)
+    cost = _residuals(p, u, d, pts, res, pwork)
     status = 0
     n_iter = 0
     if not np.isfinite(cost):
@@ -278,7 +286,9 @@ def _lm_one(u, d, pts, mask, p, max_iter, ftol, xtol, gtol):
     need_jac = True
     for _ in range(max_iter * 4):
         if need_jac:
-            _residuals_and_jacobian(p, u, d, pts, free, k, True, jac, res, pwork)
+            # The work rows and residuals hold the values at p: the last evaluation was at
+            # p (the start, or an accepted trial step).
+            _jacobian(p, free, k, jac, pwork)
             _normal_equations(jac, res, k, a, g)
             n_iter += 1
             need_jac = False
@@ -328,7 +338,7 @@ def _lm_one(u, d, pts, mask, p, max_iter, ftol, xtol, gtol):
             snorm += step_s[i] ** 2
             if not np.isfinite(p_new[q]):
                 finite_new = False
-        cost_new = _residuals_and_jacobian(p_new, u, d, pts, free, k, False, jac, res, pwork)
+        cost_new = _residuals(p_new, u, d, pts, res, pwork)
         actual = cost - cost_new
         rho = actual / predicted if predicted > 0.0 else -1.0
         accept = np.isfinite(cost_new) and actual > 0.0 and rho > 1e-4
