@@ -45,7 +45,19 @@ def _progress(description: str):
 def _write_json(path: str, obj) -> None:
     import json
 
-    text = json.dumps(obj, indent=1, allow_nan=False) + "\n"
+    # One line per model (or per robustness entry): readable, and 4,096 models stay compact.
+    lines = []
+    for key, value in obj.items():
+        if key == "models" and isinstance(value, list):
+            inner = ",\n".join("  " + json.dumps(v, allow_nan=False) for v in value)
+            lines.append(f' "models": [\n{inner}\n ]')
+        elif key == "models" and isinstance(value, dict):
+            entries = (f"  {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in value.items())
+            inner = ",\n".join(entries)
+            lines.append(f' "models": {{\n{inner}\n }}')
+        else:
+            lines.append(f" {json.dumps(key)}: {json.dumps(value, allow_nan=False)}")
+    text = "{\n" + ",\n".join(lines) + "\n}\n"
     if path == "-":
         click.echo(text, nl=False)
         return
@@ -153,9 +165,10 @@ def print_selection(sel, top: int, source: str = "") -> None:
             row.append(_fmt(m.cv_mean_error, ".4g") + (f" ({m.cv_failed} failed)" if m.cv_failed else ""))
         table.add_row(*row)
     out.print(table)
+    where = "the normalized coordinates of the fit" if sel.normalization != "none" else "the points' units"
     out.print(
-        f"K = free parameters + 1 (the error variance); n = {2 * sel.n_points} residuals; RSS in the "
-        "fit's (normalized) coordinates; errors in the units of the reference points as given."
+        f"K = free parameters + 1 (the error variance); n = {2 * sel.n_points} residuals; RSS in {where}; "
+        "errors in the units of the reference points as given."
     )
     bad = [m for m in sel.models if not m.valid]
     if bad:
