@@ -328,3 +328,20 @@ def test_hand_written_linear_solvers_equal_numpy():
         np.testing.assert_allclose(out, np.linalg.solve(m, rhs), rtol=1e-8)
     indefinite = np.array([[1.0, 2.0], [2.0, 1.0]])
     assert not _solve_spd(indefinite, np.ones(2), 2, np.empty(2), np.zeros((2, 2)))
+
+
+def test_invert_and_score_equals_numpy_inverse():
+    from oapcal._batchfit import invert_and_score
+
+    xy_u = paraxial_grid(9)
+    xy_d = distort(xy_u, EXAMPLE_TRUTH) + np.random.default_rng(1).normal(0, 0.2, xy_u.shape)
+    params = np.stack([EXAMPLE_TRUTH, params_from_dict({"k1": -1e-5, "m": 1.0})])  # the second folds
+    rss, mean, n_bad, n_folded = invert_and_score(params, xy_d, xy_u)
+    ref = undistort(xy_d, params)
+    for i in range(2):
+        ok = ref.converged[i]
+        dist = np.hypot(*(ref.xy[i][ok] - xy_u[ok]).T)
+        assert n_bad[i] == (~ok).sum() and n_folded[i] == ref.folded[i].sum()
+        assert rss[i] == pytest.approx(np.sum(dist**2), rel=1e-12)
+        assert mean[i] == pytest.approx(dist.mean(), rel=1e-12)
+    assert n_bad[0] == 0 and n_folded[1] > 0

@@ -181,6 +181,7 @@ def _jacobian(p, free, k, jac, work):
 
 @numba.njit(fastmath=_FASTMATH, **_JIT)
 def _normal_equations(jac, res, k, a, g):
+    """``a = J^T J`` and ``g = J^T r`` over the free columns (contiguous rows of ``jac``)."""
     n2 = jac.shape[1]
     for i in range(k):
         s = 0.0
@@ -474,7 +475,7 @@ def _invert_point(p, xd, yd, tol, max_iter):
     fx, fy, a, b, c, d = _forward(p, x, y)
     fx -= xd
     fy -= yd
-    err = np.hypot(fx, fy)
+    err = np.sqrt(fx * fx + fy * fy)
     done = err <= tol
     # (a, b, c, d) is always the point Jacobian at (x, y): each trial evaluation returns
     # it too, so an accepted step needs no second evaluation.
@@ -497,7 +498,7 @@ def _invert_point(p, xd, yd, tol, max_iter):
             fxn, fyn, an, bn, cn, dn = _forward(p, xn, yn)
             fxn -= xd
             fyn -= yd
-            err_new = np.hypot(fxn, fyn)
+            err_new = np.sqrt(fxn * fxn + fyn * fyn)
             if (err_new < err) or (err_new <= tol):
                 break
             t *= 0.5
@@ -549,6 +550,51 @@ def invert_many(params, xy_d, *, idx=None, tol: float = 1e-10, max_iter: int = 5
     folded = np.zeros((n_items, n), dtype=np.bool_)
     _invert_many(params, xy_d, idx, float(tol), int(max_iter), out, converged, folded)
     return out, converged, folded
+
+
+@numba.njit(parallel=True, **_JIT)
+def _invert_score_many(params, xy_d, xy_u, tol, max_iter, rss, mean_dist, n_bad, n_folded):
+    for b in numba.prange(params.shape[0]):
+        s2 = 0.0
+        s1 = 0.0
+        bad = 0
+        fold = 0
+        for j in range(xy_d.shape[0]):
+            x, y, ok, fo = _invert_point(params[b], xy_d[j, 0], xy_d[j, 1], tol, max_iter)
+            if ok:
+                dx = x - xy_u[j, 0]
+                dy = y - xy_u[j, 1]
+                s2 += dx * dx + dy * dy
+                s1 += np.sqrt(dx * dx + dy * dy)
+            else:
+                bad += 1
+            if fo:
+                fold += 1
+        rss[b] = s2
+        mean_dist[b] = s1 / max(xy_d.shape[0] - bad, 1)
+        n_bad[b] = bad
+        n_folded[b] = fold
+
+
+def invert_and_score(params, xy_d, xy_u, *, tol: float = 1e-10, max_iter: int = 50):
+    """Correct all points ``xy_d (N, 2)`` through each model ``params (B, 13)`` (as
+    :func:`invert_many`) and compare with ``xy_u (N, 2)`` without storing the points.
+
+    Returns ``(rss, mean_dist, n_bad, n_folded)``, each ``(B,)``: the sum of squared and
+    the mean Euclidean corrected-minus-reference distances over the points whose inverse
+    converged, the number of points whose inverse failed, and how many of those fold.
+    """
+    params = np.ascontiguousarray(np.atleast_2d(params), dtype=float)
+    n_items = len(params)
+    rss = np.empty(n_items)
+    mean_dist = np.empty(n_items)
+    n_bad = np.zeros(n_items, dtype=np.int64)
+    n_folded = np.zeros(n_items, dtype=np.int64)
+    _invert_score_many(
+        params, np.ascontiguousarray(xy_d, dtype=float), np.ascontiguousarray(xy_u, dtype=float),
+        float(tol), int(max_iter), rss, mean_dist, n_bad, n_folded,
+    )  # fmt: skip
+    return rss, mean_dist, n_bad, n_folded
 
 
 @numba.njit(parallel=True, **_JIT)

@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from oapcal._batchfit import fit_many, invert_many, min_jacobian_determinant
+from oapcal._batchfit import fit_many, invert_and_score, invert_many, min_jacobian_determinant
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.fit import STATUS_MESSAGES, initial_params
 from oapcal.model import (
@@ -194,17 +194,14 @@ def score_models(xy_u, xy_d, masks, init="zero", *, max_iter: int = 200, progres
     for start in range(0, n_models, chunk):
         sl = slice(start, min(start + chunk, n_models))
         fits = fit_many(xy_u, xy_d, masks[sl], p0[sl], max_iter=max_iter)
-        xy_c, ok, folded = invert_many(fits.params, xy_d)
-        diff = xy_c - xy_u[None]
-        all_ok = ok.all(axis=1)
-        with np.errstate(invalid="ignore"):
-            out["rss"][sl] = np.where(all_ok, np.einsum("bij,bij->b", diff, diff), np.nan)
-            dist = np.hypot(diff[..., 0], diff[..., 1])
-            out["mean_error"][sl] = np.where(all_ok, dist.mean(axis=1), np.nan)
+        rss, mean_dist, n_bad, n_folded = invert_and_score(fits.params, xy_d, xy_u)
+        all_ok = n_bad == 0
+        out["rss"][sl] = np.where(all_ok, rss, np.nan)
+        out["mean_error"][sl] = np.where(all_ok, mean_dist, np.nan)
         out["params"][sl] = fits.params
         out["status"][sl] = fits.status
-        out["n_bad"][sl] = (~ok).sum(axis=1)
-        out["n_folded"][sl] = folded.sum(axis=1)
+        out["n_bad"][sl] = n_bad
+        out["n_folded"][sl] = n_folded
         if progress is not None:
             progress(sl.stop, n_models)
     n = 2 * len(xy_u)
@@ -528,8 +525,9 @@ def robustness(
             if ok.any():
                 xy_c, conv, _ = invert_many(fits.params[ok], d, idx=held[sl][ok])
                 err = np.hypot(*np.moveaxis(xy_c - u[held[sl][ok]], -1, 0))
-                with np.errstate(invalid="ignore"):
-                    h = np.where(conv.any(axis=1), np.nanmean(np.where(conv, err, np.nan), axis=1), np.nan)
+                n_ok = conv.sum(axis=1)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    h = np.where(n_ok > 0, np.where(conv, err, 0.0).sum(axis=1) / np.maximum(n_ok, 1), np.nan)
                 rows = np.arange(sl.start, sl.stop)[ok]
                 heldout[j, rows] = h
                 held_bad[j, rows] = (~conv).sum(axis=1)
