@@ -345,3 +345,19 @@ def test_invert_and_score_equals_numpy_inverse():
         assert rss[i] == pytest.approx(np.sum(dist**2), rel=1e-12)
         assert mean[i] == pytest.approx(dist.mean(), rel=1e-12)
     assert n_bad[0] == 0 and n_folded[1] > 0
+
+
+def test_hull_grid_equals_matplotlib_point_in_polygon():
+    from matplotlib.path import Path
+    from scipy.spatial import ConvexHull
+
+    from oapcal.select import hull_grid
+
+    xy = np.random.default_rng(0).normal(size=(50, 2))
+    ours = hull_grid(xy, 41)
+    assert np.array_equal(ours[:50], xy)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 41), np.linspace(lo[1], hi[1], 41))
+    grid = np.stack([gx.ravel(), gy.ravel()], -1)
+    inside = Path(xy[ConvexHull(xy).vertices]).contains_points(grid)
+    np.testing.assert_array_equal(ours[50:], grid[inside])

@@ -417,16 +417,18 @@ class Robustness:
 def hull_grid(xy: np.ndarray, n: int = 41) -> np.ndarray:
     """The points ``xy (N, 2)`` plus an ``n x n`` grid over their bounding box clipped to
     their convex hull: where the fold-over test looks."""
-    from scipy.spatial import Delaunay, QhullError
+    from scipy.spatial import ConvexHull, QhullError
 
     xy = np.asarray(xy, float)
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n))
     grid = np.stack([gx.ravel(), gy.ravel()], -1)
     try:
-        inside = Delaunay(xy).find_simplex(grid) >= 0
+        eq = ConvexHull(xy).equations  # rows (a, b, c): inside where a x + b y + c <= 0
     except QhullError:
         raise DataError("the reference points are all on one line; they span no area to test") from None
+    tol = 1e-12 * float(np.abs(xy).max())
+    inside = (grid @ eq[:, :2].T + eq[:, 2] <= tol).all(axis=1)
     return np.concatenate([xy, grid[inside]])
 
 
