@@ -34,6 +34,8 @@ COMMANDS: dict[str, str] = {
     "report": "oapcal.cli.report:report_command",
     "landmarks": "oapcal.cli.landmarks:landmarks_group",
     "detect": "oapcal.cli.detect:detect_command",
+    "select": "oapcal.cli.select:select_command",
+    "robustness": "oapcal.cli.select:robustness_command",
 }
 
 
