@@ -113,9 +113,11 @@ def run_demo(
     selection = select_models(grid_u, grid_d, normalization="grid", init="zero")
     files["model selection"] = out / "selection.json"
     _write_json(files["model selection"], selection.to_dict())
-    chosen = selection.best.free
-    if "x_off" not in chosen:  # the paper adds x_off to the AICc choice (its Eq. 2)
-        chosen = tuple(n for n in _names() if n in chosen or n == "x_off")
+    # In camera px the origin is the image corner, not the distortion centre, so the centre
+    # terms (x_off, y_off, c_x, c_y) are always needed there; the selection on the centred
+    # grid decides the distortion terms.  (The paper likewise added x_off to its choice.)
+    frame = ("x_off", "y_off", "c_x", "c_y")
+    chosen = tuple(n for n in _names() if n in selection.best.free or n in frame)
 
     # 3. a camera image of the target through the traced relay
     start("simulate")
