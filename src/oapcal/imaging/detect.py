@@ -5,9 +5,14 @@ instead it registers the whole known target to the image, so every detected corn
 matched by construction, and then refines and checks each bar triplet locally
 (``docs/detection.md``):
 
-1. **Find the target.** Normalised cross-correlation (``cv2.matchTemplate``) of the
-   blurred image with the rendered target at scales 0.7-1.4 gives a similarity transform
-   and the polarity (bright or dark bars).
+1. **Find the target and its orientation.** Normalised cross-correlation
+   (``cv2.matchTemplate``) of the blurred image with the rendered target at scales 0.7-1.4,
+   in each of the 8 orientations of :data:`oapcal.imaging.usaf.ORIENTATIONS` (quarter
+   turns, with and without a mirror flip), gives the orientation, a similarity transform
+   and the polarity (bright or dark bars).  An orientation whose runner-up scores at least
+   :data:`ORIENTATION_RATIO` of it is ambiguous: the detection fails.  From here on the
+   reference target is the one turned into this orientation about the image centre, so
+   the output ``x_u, y_u`` share the camera's axes.
 2. **Register the target densely, coarse to fine.** A polynomial warp ``u = W(x)`` from
    camera px ``x`` to reference px ``u`` is fitted by Gauss-Newton to every pixel around
    the target, the model image being ``a + b * R(W(x))`` with ``R`` the area-sampled target
@@ -24,6 +29,11 @@ matched by construction, and then refines and checks each bar triplet locally
    could belong to a neighbouring bar), a copy of the fit shifted by one bar period fits
    almost as well (``ambiguous``), a corner's standard error exceeds ``max_stderr_px``,
    or a corner is not fully inside the image.
+5. **Check the global alignment.** A smooth model (``full``, Eq. 1) is fitted to all
+   matched pairs; pairs off it by more than a robust limit are dropped
+   (``inconsistent``), and the whole detection is refused when a quarter of them are,
+   when the fit fails, or when fewer than :data:`MIN_KEPT_FRACTION` of the expected
+   corners survive (:func:`check_consistency`).
 
 Coordinates follow ``docs/conventions.md``; reference px are the target at ``um_per_px``
 with its bounding-box centre at the image centre (``oapcal.imaging.usaf``).
@@ -53,6 +63,9 @@ ORIENTATION_RATIO = 0.9
 CONSISTENCY_FLOOR_PX = 0.5
 CONSISTENCY_SIGMAS = 5.0
 CONSISTENCY_MAX_FRACTION = 0.25
+#: The registration is refused when fewer than this fraction of the corners it expects
+#: inside the image pass the local checks (a wrong orientation keeps none).
+MIN_KEPT_FRACTION = 0.25
 
 
 @dataclass(frozen=True)
