@@ -156,6 +156,13 @@ def test_consistency_check_refuses_a_wrong_alignment():
     assert check.status == 1 and "inconsistent" in check.message and not check.consistent.any()
 
 
+def test_consistency_check_refuses_pairs_that_fit_no_smooth_model_well():
+    xy_u, xy_d, width = _smooth_pairs()
+    noisy = xy_d + np.random.default_rng(2).normal(0, 0.8, xy_d.shape)  # rms 1.1 px
+    check = check_consistency(xy_u, noisy, 10 * width)
+    assert check.status == 1 and "doubtful" in check.message
+
+
 def test_consistency_check_needs_enough_pairs():
     xy_u, xy_d, width = _smooth_pairs()
     assert check_consistency(xy_u[:20], xy_d[:20], width[:20]).model == "paper"

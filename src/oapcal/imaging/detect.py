@@ -63,6 +63,10 @@ ORIENTATION_RATIO = 0.9
 CONSISTENCY_FLOOR_PX = 0.5
 CONSISTENCY_SIGMAS = 5.0
 CONSISTENCY_MAX_FRACTION = 0.25
+#: ... and above this rms residual (px) of the consistent pairs: an empirical limit between
+#: a right detection through the relay at 94 px distortion (0.39 px, the model's own misfit)
+#: and a wrong alignment at 161 px that was smooth enough to fit (0.93 px).
+CONSISTENCY_MAX_RMS_PX = 0.75
 #: The registration is refused when fewer than this fraction of the corners it expects
 #: inside the image pass the local checks (a wrong orientation keeps none).
 MIN_KEPT_FRACTION = 0.25
@@ -534,6 +538,12 @@ def detect_usaf(
     keep = check.consistent
     dropped["inconsistent"] = int((~keep).sum())
     keep_idx = keep_idx[keep]
+    if len(keep_idx) < MIN_KEPT_FRACTION * n_expected:
+        msg = (
+            f"the registration is unreliable: only {len(keep_idx)} of {n_expected} expected corners "
+            f"passed the checks (model-image correlation {global_ncc:.2f}); nothing was kept"
+        )
+        return _replace(empty, dropped={k: v for k, v in dropped.items() if v}, message=msg, **common)
     return Detection(
         ids=tuple(target.corner_ids[i] for i in keep_idx),
         xy_u=corners_u[keep_idx],
@@ -584,6 +594,7 @@ def check_consistency(
     floor_px: float = CONSISTENCY_FLOOR_PX,
     n_sigma: float = CONSISTENCY_SIGMAS,
     max_fraction: float = CONSISTENCY_MAX_FRACTION,
+    max_rms_px: float = CONSISTENCY_MAX_RMS_PX,
 ) -> Consistency:
     """Check that matched pairs follow one smooth distortion: fit ``model``
     (:func:`oapcal.fit.fit`, the pixel start) to the pairs and flag every pair whose
@@ -593,9 +604,11 @@ def check_consistency(
 
     A pair off by a whole bar (a mismatch) is at least ``width_px`` from its true position
     and cannot follow the smooth model; a correct pair is within the model's own error.
-    The alignment is refused (``status`` 1) when the fit does not converge or more than
+    The alignment is refused (``status`` 1) when the fit does not converge, when more than
     ``max_fraction`` of the pairs are flagged (then the model is fitted to wrong pairs
-    as much as to right ones and nothing can be trusted).
+    as much as to right ones and nothing can be trusted), or when the rms residual of
+    the rest exceeds ``max_rms_px`` (a wrong alignment can be smooth, but rarely as
+    smooth as a real distortion; the limit is empirical, see :data:`CONSISTENCY_MAX_RMS_PX`).
 
     ``model="auto"``: ``full`` from 40 pairs, ``paper`` from 16, no check below
     (``model`` None in the result); ``None``: no check.
@@ -635,6 +648,12 @@ def check_consistency(
             ~everything, model, rms, worst, n, 1,
             f"the global alignment is inconsistent: {n_bad} of {n} matched corners are off the "
             f"smooth {model} model (rms residual of the rest {rms:.2f} px); nothing was kept",
+        )  # fmt: skip
+    if not rms <= max_rms_px:
+        return Consistency(
+            ~everything, model, rms, worst, n, 1,
+            f"the global alignment is doubtful: the {model} model fits the matched corners with an rms "
+            f"residual of {rms:.2f} px (limit {max_rms_px:g} px); nothing was kept",
         )  # fmt: skip
     return Consistency(keep, model, rms, worst, n_bad)
 
