@@ -134,8 +134,9 @@ def test_cli_detect_json(run_cli, simulated_files, tmp_path):
 @pytest.mark.parametrize(
     "args,pattern",
     [
-        (["detect", "{dir}/missing.png", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"], "no such file"),
-        (["detect", "{dir}/truth.csv", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"], "not a readable image"),
+        (["detect", "{dir}/missing.png", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"], "no such image file"),
+        (["detect", "{dir}/truth.csv", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"], "unsupported file"),
+        (["detect", "{tmp}/broken.png", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"], "not a valid PNG"),
         (
             ["detect", "{dir}/img.png", "--um-per-px", "4.8", "--out", "{dir}/img.png"],
             "would overwrite the input",
@@ -171,6 +172,7 @@ def test_cli_bad_input_exits_2_with_one_line(run_cli, simulated_files, tmp_path,
     import cv2
 
     cv2.imwrite(str(tmp_path / "flat.png"), np.full((48, 64), 7, np.uint8))
+    (tmp_path / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n")
     (tmp_path / "badtruth.csv").write_text("id,x_u,y_u,x_d,y_d,visible\nzz,1,2,3,4,1\n")
     before = sorted(p.name for p in tmp_path.iterdir())
     before_dir = {p.name: p.stat().st_mtime_ns for p in simulated_files.iterdir()}

@@ -6,6 +6,12 @@ import click
 
 from oapcal.cli._common import check_output, console, print_json
 
+#: ``auto`` and the keys of ``oapcal.imaging.usaf.ORIENTATIONS`` (written out so that this
+#: module imports only click; a test checks that they agree).
+ORIENTATION_CHOICES = (
+    "auto", "none", "rot90", "rot180", "rot270", "flip-x", "flip-y", "transpose", "anti-transpose",
+)  # fmt: skip
+
 
 @click.command("detect")
 @click.argument("image", type=click.Path(dir_okay=False))
@@ -51,18 +57,26 @@ from oapcal.cli._common import check_output, console, print_json
     show_default=True,
     help="Drop triplets whose corners are less certain than this.",
 )
+@click.option(
+    "--orientation",
+    type=click.Choice(ORIENTATION_CHOICES),
+    default="auto",
+    show_default=True,
+    help="The target's orientation in the image (turned about the image centre; "
+    "docs/detection.md); auto: find it.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
-def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stderr_px, as_json):
+def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stderr_px, orientation, as_json):
     """Detect the bar corners of a USAF-1951 target and match them to the reference target."""
     from oapcal.imaging.detect import detect_usaf, evaluate_detection
     from oapcal.imaging.usaf import parse_groups
-    from oapcal.io.image_files import read_grey_image
+    from oapcal.io.imagefile import read_image_grey
     from oapcal.io.points import write_point_pairs
 
     check_output(out, image, truth)
     check_output(plot, image, truth, out)
     group_list = parse_groups(groups)
-    img = read_grey_image(image)
+    img = read_image_grey(image)
     score = _read_truth(truth) if truth else None
     if score is not None:
         from oapcal.errors import DataError
@@ -74,12 +88,17 @@ def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stder
             raise DataError(
                 f"{truth}: has no row with id {missing[0]!r}; is it the truth of this image and these groups?"
             )
-    det = detect_usaf(img, group_list, um_per_px, max_stderr_px=max_stderr_px, progress=not as_json)
+    det = detect_usaf(
+        img, group_list, um_per_px, orientation=orientation, max_stderr_px=max_stderr_px,
+        progress=not as_json,
+    )  # fmt: skip
     summary = det.summary()
     if score is not None:
         summary["truth"] = evaluate_detection(det, *score)
     if det.status != 0:
         click.echo(f"oapcal: detection failed: {det.message}", err=True)
+        if score is not None and not as_json:
+            _print_summary(summary)
         if as_json:
             print_json(summary)
         return 3
@@ -128,11 +147,24 @@ def _read_truth(path):
 
 def _print_summary(s: dict) -> None:
     out = console()
+    m = s["orientation_matrix"]
+    scores = list(s["orientation_scores"].items())
+    runner_up = f", next {scores[1][0]} {scores[1][1]:.3f}" if len(scores) > 1 else ""
+    out.print(
+        f"target orientation {s['orientation']} (x_u,y_u = centre + [[{m[0][0]}, {m[0][1]}], "
+        f"[{m[1][0]}, {m[1][1]}]] (reference - centre); correlation {scores[0][1]:.3f}{runner_up})"
+    )
     out.print(
         f"found {s['found']} of {s['expected']} corners expected fully inside the image "
         f"(coverage {100 * s['coverage']:.1f} %); {s['polarity']} bars, "
         f"fitted blur sigma {s['sigma_px']:.2f} px, model-image correlation {s['ncc']:.3f}"
     )
+    c = s["consistency"]
+    if c.get("model"):
+        out.print(
+            f"consistency: {c['model']} model fitted to the matched corners, rms residual "
+            f"{c['rms_px']:.3f} px, max {c['max_px']:.3f} px, {c['inconsistent']} inconsistent dropped"
+        )
     if s["dropped"]:
         out.print("dropped: " + ", ".join(f"{k} {v}" for k, v in s["dropped"].items()))
     t = s.get("truth")

@@ -125,7 +125,7 @@ def simulate_image_command(
     from oapcal.imaging.field import identity_field, setup1_like_field
     from oapcal.imaging.simulate import simulate_image, write_truth
     from oapcal.imaging.usaf import parse_groups
-    from oapcal.io.image_files import write_image
+    from oapcal.io.images import write_image
 
     check_output(out, calibration)
     check_output(truth, calibration, out)
@@ -141,9 +141,9 @@ def simulate_image_command(
     from pathlib import Path
 
     from oapcal.errors import OutputError
-    from oapcal.io.image_files import IMAGE_SUFFIXES
+    from oapcal.io.images import LOSSLESS_SUFFIXES
 
-    if Path(out).suffix.lower() not in IMAGE_SUFFIXES:
+    if Path(out).suffix.lower() not in LOSSLESS_SUFFIXES:
         raise OutputError(
             f"{out}: unknown image type {Path(out).suffix or '(none)'}; use .png, .tif or .tiff"
         )
@@ -173,7 +173,10 @@ def simulate_image_command(
         f"{int(sim.visible.sum())} of {len(sim.ids)} corners fully visible"
     )
     if truth is not None:
-        click.echo(f"wrote {truth}: reference x_u,y_u at {sim.um_per_px:.6g} um/px")
+        click.echo(
+            f"wrote {truth}: reference x_u,y_u at {sim.um_per_px:.6g} um/px, "
+            f"target orientation {sim.orientation}"
+        )
     return 0
 
 

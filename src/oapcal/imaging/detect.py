@@ -5,9 +5,14 @@ instead it registers the whole known target to the image, so every detected corn
 matched by construction, and then refines and checks each bar triplet locally
 (``docs/detection.md``):
 
-1. **Find the target.** Normalised cross-correlation (``cv2.matchTemplate``) of the
-   blurred image with the rendered target at scales 0.7-1.4 gives a similarity transform
-   and the polarity (bright or dark bars).
+1. **Find the target and its orientation.** Normalised cross-correlation
+   (``cv2.matchTemplate``) of the blurred image with the rendered target at scales 0.7-1.4,
+   in each of the 8 orientations of :data:`oapcal.imaging.usaf.ORIENTATIONS` (quarter
+   turns, with and without a mirror flip), gives the orientation, a similarity transform
+   and the polarity (bright or dark bars).  An orientation whose runner-up scores at least
+   :data:`ORIENTATION_RATIO` of it is ambiguous: the detection fails.  From here on the
+   reference target is the one turned into this orientation about the image centre, so
+   the output ``x_u, y_u`` share the camera's axes.
 2. **Register the target densely, coarse to fine.** A polynomial warp ``u = W(x)`` from
    camera px ``x`` to reference px ``u`` is fitted by Gauss-Newton to every pixel around
    the target, the model image being ``a + b * R(W(x))`` with ``R`` the area-sampled target
@@ -24,6 +29,11 @@ matched by construction, and then refines and checks each bar triplet locally
    could belong to a neighbouring bar), a copy of the fit shifted by one bar period fits
    almost as well (``ambiguous``), a corner's standard error exceeds ``max_stderr_px``,
    or a corner is not fully inside the image.
+5. **Check the global alignment.** A smooth model (``full``, Eq. 1) is fitted to all
+   matched pairs; pairs off it by more than a robust limit are dropped
+   (``inconsistent``), and the whole detection is refused when a quarter of them are,
+   when the fit fails, or when fewer than :data:`MIN_KEPT_FRACTION` of the expected
+   corners survive (:func:`check_consistency`).
 
 Coordinates follow ``docs/conventions.md``; reference px are the target at ``um_per_px``
 with its bounding-box centre at the image centre (``oapcal.imaging.usaf``).
@@ -36,7 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.imaging.usaf import render_rectangles, usaf_target
+from oapcal.imaging.usaf import ORIENTATIONS, orientation_matrix, render_rectangles, usaf_target
 
 #: (Gaussian blur of both images in px, polynomial degree) of the registration levels;
 #: the last level (blur None) uses the image as it is and fits the blur.
@@ -44,7 +54,22 @@ LEVELS = ((6.0, 1), (3.0, 2), (1.5, 3), (None, 4))
 #: Reference raster cells per reference px.
 RASTER_OVERSAMPLE = 2
 #: Reason keys of dropped triplets, in the order they are checked.
-DROP_REASONS = ("not_converged", "contrast", "moved", "ambiguous", "uncertain", "outside")
+DROP_REASONS = ("not_converged", "contrast", "moved", "ambiguous", "uncertain", "outside", "inconsistent")
+#: The orientation is ambiguous when the second-best orientation's correlation reaches
+#: this fraction of the best (measured on relay images: about 0.6).
+ORIENTATION_RATIO = 0.9
+#: Consistency check (:func:`check_consistency`): residual limit ``max(SIGMAS * s, FLOOR)``
+#: px, capped at half a bar width; refuse the alignment above MAX_FRACTION flagged pairs.
+CONSISTENCY_FLOOR_PX = 0.5
+CONSISTENCY_SIGMAS = 5.0
+CONSISTENCY_MAX_FRACTION = 0.25
+#: ... and above this rms residual (px) of the consistent pairs: an empirical limit between
+#: a right detection through the relay at 94 px distortion (0.39 px, the model's own misfit)
+#: and a wrong alignment at 161 px that was smooth enough to fit (0.93 px).
+CONSISTENCY_MAX_RMS_PX = 0.75
+#: The registration is refused when fewer than this fraction of the corners it expects
+#: inside the image pass the local checks (a wrong orientation keeps none).
+MIN_KEPT_FRACTION = 0.25
 
 
 @dataclass(frozen=True)
@@ -71,6 +96,9 @@ class Detection:
     polarity: str = "bright"
     sigma_px: float = float("nan")
     ncc: float = float("nan")
+    orientation: str = "none"
+    orientation_scores: dict = field(default_factory=dict)
+    consistency: dict = field(default_factory=dict)
     predicted: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -89,6 +117,10 @@ class Detection:
             "polarity": self.polarity,
             "sigma_px": self.sigma_px,
             "ncc": self.ncc,
+            "orientation": self.orientation,
+            "orientation_matrix": orientation_matrix(self.orientation).tolist(),
+            "orientation_scores": dict(self.orientation_scores),
+            "consistency": dict(self.consistency),
         }
 
 
@@ -347,36 +379,69 @@ def detect_usaf(
     groups=(4, 5),
     um_per_px: float = 4.8,
     *,
+    orientation: str = "auto",
     sigma_hint_px: float = 1.0,
     max_stderr_px: float = 0.3,
     ambiguity_ratio: float = 1.5,
+    orientation_ratio: float = ORIENTATION_RATIO,
+    consistency_model: str | None = "auto",
     progress: bool = False,
 ) -> Detection:
     """Find, match and refine the bar corners of USAF ``groups`` in ``image`` (module docstring).
 
     ``um_per_px`` is the scale of the reference points (object um per reference px); it
     should be close to the object-space size of a camera pixel (within the 0.7-1.4 range
-    searched).  Returns a :class:`Detection`; a target that cannot be found is a
-    ``status != 0`` result, not an exception.
+    searched).  ``orientation`` is the target's orientation in the image (a key of
+    :data:`oapcal.imaging.usaf.ORIENTATIONS`), or ``"auto"`` to find it: the one of the 8
+    whose rendered target correlates best with the image; when the second best reaches
+    ``orientation_ratio`` of the best score the orientation is ambiguous and the detection
+    fails.  The reference points ``xy_u`` are the target turned into that orientation
+    about the image centre (:meth:`~oapcal.imaging.usaf.UsafTarget.reference_px`), so a
+    model fitted to the pairs has ``m`` close to +1.
+
+    ``consistency_model`` is the model (``"full"``, ``"paper"``, ...) fitted to the matched
+    pairs to check the global alignment (:func:`check_consistency`); ``"auto"`` uses
+    ``full`` from 40 corners, ``paper`` from 16, and skips the check below; ``None`` skips it.
+
+    Returns a :class:`Detection`; a target that cannot be found, an ambiguous orientation
+    or an inconsistent alignment is a ``status != 0`` result, not an exception.
     """
     if not um_per_px > 0:
         raise DataError(f"um_per_px {um_per_px}: must be positive")
+    if orientation != "auto":
+        orientation_matrix(orientation)  # raises for an unknown name
     img = _to_float_image(image)
     h, w = img.shape
     target = usaf_target(groups)
-    rects = target.rectangles_px(um_per_px, (w, h))
-    corners_u = target.reference_px(um_per_px, (w, h))
-    ref = _Reference(rects)
     ref_centre = (np.asarray((w, h), float) - 1) / 2
     empty = Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1, "")
 
-    found = _find_target(img, rects, ref_centre)
+    candidates = list(ORIENTATIONS) if orientation == "auto" else [orientation]
+    scores = {}
+    for name in candidates:
+        found = _find_target(img, target.rectangles_px(um_per_px, (w, h), name), ref_centre)
+        scores[name] = (found[2], found) if found is not None else (-1.0, None)
+    ranked = sorted(scores, key=lambda k: -scores[k][0])
+    best = ranked[0]
+    score_table = {k: round(float(scores[k][0]), 4) for k in ranked}
+    found = scores[best][1]
+    empty = _replace(empty, orientation=best, orientation_scores=score_table)
     if found is None or found[2] < 0.2:
         msg = (
             "the target was not found (no correlation with the rendered groups); "
             "check --groups and --um-per-px"
         )
         return _replace(empty, message=msg)
+    if len(ranked) > 1 and scores[ranked[1]][0] >= orientation_ratio * scores[best][0]:
+        msg = (
+            f"the target's orientation is ambiguous: {best} scores {scores[best][0]:.3f} and "
+            f"{ranked[1]} {scores[ranked[1]][0]:.3f}; give the orientation (--orientation)"
+        )
+        return _replace(empty, message=msg)
+    rects = target.rectangles_px(um_per_px, (w, h), best)
+    corners_u = target.reference_px(um_per_px, (w, h), best)
+    swap_axes = orientation_matrix(best)[0, 0] == 0  # a quarter turn: H bars run vertically
+    ref = _Reference(rects)
     s, shift, score, sign = found  # camera = s u + shift
     warp = _initial_warp(s, shift, ref_centre, rects, w, h)
 
@@ -384,7 +449,7 @@ def detect_usaf(
     a, b = (0.05, 0.9) if sign > 0 else (0.95, -0.9)
     import cv2
 
-    with _Progress(progress, len(LEVELS) + len(target.triplets())) as bar:
+    with _Progress(progress, len(LEVELS) + len(target.triplets()) + 1) as bar:
         for blur, degree in LEVELS:
             warp = warp.with_degree(degree)
             values_img = img if blur is None else cv2.GaussianBlur(img, (0, 0), blur)
@@ -436,7 +501,7 @@ def detect_usaf(
                 continue
             reason, xy, se = _refine_triplet(
                 img, warp, ref, target, bars, idx, corners_u, pred, a, b, sigma, um_per_px,
-                max_stderr_px=max_stderr_px, ambiguity_ratio=ambiguity_ratio,
+                max_stderr_px=max_stderr_px, ambiguity_ratio=ambiguity_ratio, swap_axes=swap_axes,
             )  # fmt: skip
             bar.advance()
             if reason is not None:
@@ -449,22 +514,148 @@ def detect_usaf(
                     keep_idx.append(i)
                     keep_xy.append(xy[k])
                     keep_se.append(se[k])
-    order = np.argsort(keep_idx)
-    keep_idx = np.asarray(keep_idx, int)[order]
-    return Detection(
-        ids=tuple(target.corner_ids[i] for i in keep_idx),
-        xy_u=corners_u[keep_idx],
-        xy_d=np.asarray(keep_xy, float).reshape(-1, 2)[order],
-        stderr_px=np.asarray(keep_se, float)[order],
+        order = np.argsort(keep_idx)
+        keep_idx = np.asarray(keep_idx, int)[order]
+        keep_xy = np.asarray(keep_xy, float).reshape(-1, 2)[order]
+        keep_se = np.asarray(keep_se, float)[order]
+        width_px = target.corner_width_um[keep_idx] / um_per_px
+        check = check_consistency(corners_u[keep_idx], keep_xy, width_px, consistency_model)
+        bar.advance()
+    common = dict(
         n_expected=n_expected,
-        dropped={k: v for k, v in dropped.items() if v},
-        status=0,
-        message="ok",
         polarity="bright" if b > 0 else "dark",
         sigma_px=_camera_sigma(warp, sigma),
         ncc=global_ncc,
-        predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
+        orientation=best,
+        orientation_scores=score_table,
+        consistency=check.summary(),
     )
+    if check.status != 0:
+        dropped["inconsistent"] = len(keep_idx)
+        return _replace(
+            empty, dropped={k: v for k, v in dropped.items() if v}, message=check.message, **common
+        )
+    keep = check.consistent
+    dropped["inconsistent"] = int((~keep).sum())
+    keep_idx = keep_idx[keep]
+    if len(keep_idx) < MIN_KEPT_FRACTION * n_expected:
+        msg = (
+            f"the registration is unreliable: only {len(keep_idx)} of {n_expected} expected corners "
+            f"passed the checks (model-image correlation {global_ncc:.2f}); nothing was kept"
+        )
+        return _replace(empty, dropped={k: v for k, v in dropped.items() if v}, message=msg, **common)
+    return Detection(
+        ids=tuple(target.corner_ids[i] for i in keep_idx),
+        xy_u=corners_u[keep_idx],
+        xy_d=keep_xy[keep],
+        stderr_px=keep_se[keep],
+        dropped={k: v for k, v in dropped.items() if v},
+        status=0,
+        message="ok",
+        predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
+        **common,
+    )
+
+
+@dataclass(frozen=True)
+class Consistency:
+    """The global consistency check of matched pairs (:func:`check_consistency`).
+
+    ``consistent`` (bool per pair); ``model`` the fitted model (None: not checked);
+    ``rms_px`` the rms residual of the consistent pairs, ``threshold_px`` the residual
+    limit (per pair); ``status`` 0, or 1 when the alignment is refused (``message``).
+    """
+
+    consistent: np.ndarray
+    model: str | None
+    rms_px: float
+    max_px: float
+    n_inconsistent: int
+    status: int = 0
+    message: str = "ok"
+
+    def summary(self) -> dict:
+        return {
+            "model": self.model,
+            "rms_px": self.rms_px,
+            "max_px": self.max_px,
+            "inconsistent": self.n_inconsistent,
+            "status": self.status,
+            "message": self.message,
+        }
+
+
+def check_consistency(
+    xy_u: np.ndarray,
+    xy_d: np.ndarray,
+    width_px: np.ndarray,
+    model: str | None = "auto",
+    *,
+    floor_px: float = CONSISTENCY_FLOOR_PX,
+    n_sigma: float = CONSISTENCY_SIGMAS,
+    max_fraction: float = CONSISTENCY_MAX_FRACTION,
+    max_rms_px: float = CONSISTENCY_MAX_RMS_PX,
+) -> Consistency:
+    """Check that matched pairs follow one smooth distortion: fit ``model``
+    (:func:`oapcal.fit.fit`, the pixel start) to the pairs and flag every pair whose
+    residual exceeds ``min(max(n_sigma * s, floor_px), width_px / 2)``, with ``s`` a
+    robust rms of the residuals (1.2 x their median); refit without the flagged pairs
+    until nothing changes (at most 8 times).
+
+    A pair off by a whole bar (a mismatch) is at least ``width_px`` from its true position
+    and cannot follow the smooth model; a correct pair is within the model's own error.
+    The alignment is refused (``status`` 1) when the fit does not converge, when more than
+    ``max_fraction`` of the pairs are flagged (then the model is fitted to wrong pairs
+    as much as to right ones and nothing can be trusted), or when the rms residual of
+    the rest exceeds ``max_rms_px`` (a wrong alignment can be smooth, but rarely as
+    smooth as a real distortion; the limit is empirical, see :data:`CONSISTENCY_MAX_RMS_PX`).
+
+    ``model="auto"``: ``full`` from 40 pairs, ``paper`` from 16, no check below
+    (``model`` None in the result); ``None``: no check.
+    """
+    from oapcal.fit import fit
+    from oapcal.model import distort
+
+    n = len(xy_u)
+    everything = np.ones(n, bool)
+    if model == "auto":
+        model = "full" if n >= 40 else "paper" if n >= 16 else None
+    if model is None:
+        return Consistency(everything, None, float("nan"), float("nan"), 0)
+    keep = everything
+    width_px = np.asarray(width_px, float)
+    for _ in range(8):
+        result = fit(xy_u[keep], xy_d[keep], model, init="pixel")
+        if not result.converged:
+            return Consistency(
+                ~everything, model, float("nan"), float("nan"), n, 1,
+                f"the global alignment could not be checked: the {model} model did not converge "
+                f"on the matched corners ({result.message})",
+            )  # fmt: skip
+        r = np.hypot(*(distort(xy_u, result.params) - xy_d).T)
+        s = 1.2 * float(np.median(r[keep]))
+        limit = np.minimum(max(n_sigma * s, floor_px), 0.5 * width_px)
+        new = r <= limit
+        if (new == keep).all() or new.sum() < 0.5 * n:
+            keep = new
+            break
+        keep = new
+    n_bad = int((~keep).sum())
+    rms = float(np.sqrt(np.mean(r[keep] ** 2))) if keep.any() else float("nan")
+    worst = float(r[keep].max()) if keep.any() else float("nan")
+    if n_bad > max_fraction * n:
+        return Consistency(
+            ~everything, model, rms, worst, n, 1,
+            f"the global alignment is inconsistent: {n_bad} of {n} matched corners are off the "
+            f"smooth {model} model (rms residual of the rest {rms:.2f} px); nothing was kept",
+        )  # fmt: skip
+    if not rms <= max_rms_px:
+        return Consistency(
+            ~everything, model, rms, worst, n, 1,
+            f"the global alignment is doubtful: the {model} model fits the matched corners with an rms "
+            f"residual of {rms:.2f} px (limit {max_rms_px:g} px); nothing was kept",
+        )  # fmt: skip
+    return Consistency(keep, model, rms, worst, n_bad)
 
 
 def _camera_sigma(warp: _Warp, sigma_ref: float) -> float:
@@ -540,6 +731,7 @@ def _refine_triplet(
     *,
     max_stderr_px,
     ambiguity_ratio,
+    swap_axes=False,
 ):
     """Local affine refinement of one triplet; returns (drop reason or None, xy, stderr)."""
     h, w = img.shape
@@ -573,7 +765,7 @@ def _refine_triplet(
         return "moved", None, None
     # Ambiguity: the same fit shifted by one bar period (2 w) across the bars.
     orient = target.bar_orientation[bars[0]]
-    axis = 1 if orient == "H" else 0
+    axis = 1 if (orient == "H") != swap_axes else 0
     best = res.cost
     shifted = []
     for sgn in (-1.0, 1.0):

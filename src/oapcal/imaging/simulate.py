@@ -19,7 +19,9 @@ The chain, for every camera pixel (``docs/usaf.md``):
    80 % of full scale).
 
 The ground truth lists every bar corner: ``x_u, y_u`` its reference position at
-``um_per_px`` (:meth:`oapcal.imaging.usaf.UsafTarget.reference_px`), ``x_d, y_d`` its true
+``um_per_px`` (:meth:`oapcal.imaging.usaf.UsafTarget.reference_px`) turned into the
+image's orientation (the orientation nearest to the field's paraxial map, e.g. ``rot180``
+for the relay, whose paraxial map is ``-I``), ``x_d, y_d`` its true
 position in the camera image, and ``visible`` whether it lies at least
 :data:`VISIBLE_MARGIN_PX` inside the image.  The target's bounding-box centre is put on the
 optical axis.
@@ -36,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.imaging.usaf import intensity, render_rectangles, usaf_target
+from oapcal.imaging.usaf import intensity, nearest_orientation, render_rectangles, usaf_target
 
 #: A corner is *fully visible* when it is at least this far (px) inside the image.
 VISIBLE_MARGIN_PX = 3.0
@@ -51,7 +53,9 @@ class SimulatedImage:
     ``image`` ``(h, w)`` uint8 or uint16; ``clean`` the noise-free float image in relative
     intensity (brightest level 1); ``ids``, ``xy_u`` (reference px at ``um_per_px``),
     ``xy_d`` (true camera px), ``visible`` (bool) per corner; ``peak_electrons`` the
-    electrons at the brightest level (None without noise).
+    electrons at the brightest level (None without noise); ``orientation`` the target's
+    orientation in the image (a key of :data:`oapcal.imaging.usaf.ORIENTATIONS`), which
+    ``xy_u`` follows.
     """
 
     image: np.ndarray
@@ -63,6 +67,7 @@ class SimulatedImage:
     um_per_px: float
     groups: tuple[int, ...]
     peak_electrons: float | None
+    orientation: str = "none"
 
 
 def _paraxial_affine(field) -> tuple[np.ndarray, np.ndarray]:
@@ -171,6 +176,7 @@ def simulate_image(
     p0, mat = _paraxial_affine(field)
     mat_inv = np.linalg.inv(mat)
     paraxial_scale = float(np.sqrt(abs(np.linalg.det(mat))))  # px per um
+    orientation = nearest_orientation(mat)
     ref_scale = float(um_per_px) if um_per_px is not None else 1.0 / paraxial_scale
     centre_um = target.centre_um
 
@@ -239,12 +245,13 @@ def simulate_image(
         image=image,
         clean=clean,
         ids=target.corner_ids,
-        xy_u=target.reference_px(ref_scale, (w, h)),
+        xy_u=target.reference_px(ref_scale, (w, h), orientation),
         xy_d=xy_d,
         visible=visible,
         um_per_px=ref_scale,
         groups=target.groups,
         peak_electrons=peak,
+        orientation=orientation,
     )
 
 

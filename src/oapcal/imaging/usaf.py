@@ -46,6 +46,59 @@ GAP_W = 2.0
 #: Corner order of a bar: top-left, top-right, bottom-right, bottom-left (y down).
 CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
 
+#: The 8 orientations of the target in an image (the dihedral group of the square): the
+#: 2x2 matrix ``T`` that maps a reference offset ``(dx, dy)`` from the image centre to
+#: ``T @ (dx, dy)``, in image px (x right, y *down*).  Turns are as seen on the displayed
+#: image: ``rot90`` turns the target 90 degrees counter-clockwise (its right side goes up),
+#: ``rot270`` clockwise; ``flip-x`` mirrors left-right (x -> -x), ``flip-y`` top-bottom,
+#: ``transpose`` swaps x and y, ``anti-transpose`` swaps them with both signs changed.
+ORIENTATIONS: dict[str, tuple[tuple[int, int], tuple[int, int]]] = {
+    "none": ((1, 0), (0, 1)),
+    "rot90": ((0, 1), (-1, 0)),
+    "rot180": ((-1, 0), (0, -1)),
+    "rot270": ((0, -1), (1, 0)),
+    "flip-x": ((-1, 0), (0, 1)),
+    "flip-y": ((1, 0), (0, -1)),
+    "transpose": ((0, 1), (1, 0)),
+    "anti-transpose": ((0, -1), (-1, 0)),
+}
+
+
+def orientation_matrix(name: str) -> np.ndarray:
+    """The 2x2 integer matrix of an orientation in :data:`ORIENTATIONS`.
+
+    >>> orientation_matrix("rot90") @ [1, 0]   # the target's +x (right) points up (-y)
+    array([ 0, -1])
+    """
+    try:
+        return np.array(ORIENTATIONS[name], dtype=int)
+    except KeyError:
+        raise DataError(f"orientation {name!r}: use one of {', '.join(ORIENTATIONS)}") from None
+
+
+def nearest_orientation(matrix) -> str:
+    """The orientation whose matrix is nearest (Frobenius norm) to ``matrix / sqrt(|det|)``:
+    e.g. the orientation of an image made through a linear map with magnification.
+
+    >>> nearest_orientation([[-0.21, 0.0], [0.0, -0.2]])
+    'rot180'
+    """
+    m = np.asarray(matrix, float)
+    m = m / np.sqrt(abs(np.linalg.det(m)))
+    return min(ORIENTATIONS, key=lambda k: float(np.sum((m - np.array(ORIENTATIONS[k])) ** 2)))
+
+
+def orient_px(xy, orientation: str, image_size: tuple[int, int]) -> np.ndarray:
+    """Apply an orientation about the image centre ``c = ((w - 1) / 2, (h - 1) / 2)``:
+    ``c + T (xy - c)`` for points ``(..., 2)``.
+
+    >>> orient_px([[0.0, 0.0]], "rot180", (640, 480)).tolist()
+    [[639.0, 479.0]]
+    """
+    centre = (np.asarray(image_size, float) - 1.0) / 2.0
+    t = orientation_matrix(orientation)
+    return centre + (np.asarray(xy, float) - centre) @ t.T
+
 
 def line_pairs_per_mm(group: int, element: int) -> float:
     """The standard's resolution of an element: ``2 ** (group + (element - 1) / 6)`` lp/mm."""
@@ -179,21 +232,30 @@ class UsafTarget:
         order = sorted(keys, key=lambda k: (-self.bar_width[keys[k][0]], k[2]))
         return [np.array(keys[k]) for k in order]
 
-    def reference_px(self, um_per_px: float, image_size: tuple[int, int]) -> np.ndarray:
+    def reference_px(
+        self, um_per_px: float, image_size: tuple[int, int], orientation: str = "none"
+    ) -> np.ndarray:
         """Corners in reference px at ``um_per_px``: :attr:`centre_um` at the image centre
-        ``((w - 1) / 2, (h - 1) / 2)`` (the convention of ``detect`` and ``simulate image``)."""
-        return self.to_reference_px(self.corners_um, um_per_px, image_size)
+        ``c = ((w - 1) / 2, (h - 1) / 2)``, turned by ``orientation`` about ``c``
+        (:func:`orient_px`); the convention of ``detect`` and ``simulate image``."""
+        return self.to_reference_px(self.corners_um, um_per_px, image_size, orientation)
 
-    def to_reference_px(self, xy_um, um_per_px: float, image_size: tuple[int, int]) -> np.ndarray:
+    def to_reference_px(
+        self, xy_um, um_per_px: float, image_size: tuple[int, int], orientation: str = "none"
+    ) -> np.ndarray:
         """Object um -> reference px (see :meth:`reference_px`)."""
         centre_px = (np.asarray(image_size, float) - 1.0) / 2.0
-        return (np.asarray(xy_um, float) - self.centre_um) / float(um_per_px) + centre_px
+        xy = (np.asarray(xy_um, float) - self.centre_um) / float(um_per_px) + centre_px
+        return xy if orientation == "none" else orient_px(xy, orientation, image_size)
 
-    def rectangles_px(self, um_per_px: float, image_size: tuple[int, int]) -> np.ndarray:
-        """Bars as ``(n, 4)`` rectangles in reference px (see :meth:`reference_px`)."""
-        lo = self.to_reference_px(self.bars[:, :2], um_per_px, image_size)
-        hi = self.to_reference_px(self.bars[:, 2:], um_per_px, image_size)
-        return np.concatenate([lo, hi], axis=1)
+    def rectangles_px(
+        self, um_per_px: float, image_size: tuple[int, int], orientation: str = "none"
+    ) -> np.ndarray:
+        """Bars as ``(n, 4)`` rectangles ``x0, y0, x1, y1`` (``x0 < x1``, ``y0 < y1``) in
+        reference px (see :meth:`reference_px`)."""
+        a = self.to_reference_px(self.bars[:, :2], um_per_px, image_size, orientation)
+        b = self.to_reference_px(self.bars[:, 2:], um_per_px, image_size, orientation)
+        return np.concatenate([np.minimum(a, b), np.maximum(a, b)], axis=1)
 
 
 def usaf_target(groups=(4, 5)) -> UsafTarget:

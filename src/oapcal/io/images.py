@@ -28,6 +28,8 @@ from oapcal.errors import InputFileError
 TIFF_SUFFIXES = (".tif", ".tiff")
 OPENCV_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 IMAGE_SUFFIXES = TIFF_SUFFIXES + OPENCV_SUFFIXES
+#: Files that keep every value of an 8- or 16-bit grey image (no JPEG, no 8-bit-only BMP).
+LOSSLESS_SUFFIXES = (".png",) + TIFF_SUFFIXES
 #: dtypes that ``cv2.remap`` can correct.
 DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
 #: Default per-frame pixel limit (``--max-pixels``): 2**28, e.g. 16384 x 16384.
