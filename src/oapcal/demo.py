@@ -171,11 +171,13 @@ def run_demo(
     if report:
         start("report")
         from oapcal.report import build_report, write_report
+        from oapcal.report.inputs import read_robustness, read_selection
 
         html_text, _ = build_report(
             cal, points=(detection.xy_u, detection.xy_d), image=image.image.astype(float),
-            image_name="distorted.png", selection=selection.to_dict(),
-            robustness=rob.to_dict() if rob is not None else None, title="oapcal demo: setup 1",
+            image_name="distorted.png", selection=read_selection(files["model selection"]),
+            robustness=read_robustness(files["robustness"]) if rob is not None else None,
+            title="oapcal demo: setup 1",
         )  # fmt: skip
         files["report"] = out / "report.html"
         write_report(files["report"], html_text)

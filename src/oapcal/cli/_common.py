@@ -204,7 +204,9 @@ def console():
     """A Rich console on stdout."""
     from rich.console import Console
 
-    return Console(file=sys.stdout, highlight=False)
+    # Off a terminal Rich assumes 80 columns and wraps tables; files and pipes get 120.
+    width = None if sys.stdout.isatty() else 120
+    return Console(file=sys.stdout, highlight=False, width=width)
 
 
 def parse_size(text: str | None, option: str = "--image-size"):

@@ -77,10 +77,11 @@ def read_selection(path) -> dict:
             raise InputFileError(f"{where}: missing field 'free'")
         model = dict(entry)
         model["free"] = _free(entry["free"], where)
-        model["aicc"] = _number(entry, "aicc", where, required=True)
+        model["valid"] = bool(entry.get("valid", True))
+        # models that could not be scored carry aicc = null (oapcal select --json)
+        model["aicc"] = _number(entry, "aicc", where, required=model["valid"])
         for key in ("k", "delta_aicc", "weight", "rss"):
             model[key] = _number(entry, key, where)
-        model["valid"] = bool(entry.get("valid", True))
         model["reason"] = str(entry.get("reason") or "")
         models.append(model)
     n_points = data.get("n_points")
