@@ -112,7 +112,8 @@ def print_fit(cal) -> None:
     from oapcal.model import PARAM_NAMES
 
     out = console()
-    table = Table(title="Fitted parameters", title_justify="left")
+    out.print("[bold]Fitted parameters[/bold]")
+    table = Table()
     table.add_column("parameter")
     table.add_column("value", justify="right")
     table.add_column("std. error", justify="right")
@@ -129,7 +130,8 @@ def print_fit(cal) -> None:
         f"RSS {f['rss']:.6g}, AICc {f['aicc']:.6g}"
     )
     r = cal.residuals
-    res = Table(title="Residuals after correction (paper's Table 1)", title_justify="left")
+    out.print("[bold]Residuals after correction (paper's Table 1)[/bold]")
+    res = Table()
     for col in ("", "max", "mean", "rms", "total"):
         res.add_column(col, justify="right")
     res.add_row("px", *(f"{r[f'{k}_px']:.4g}" for k in ("max", "mean", "rms", "total")))
