@@ -220,3 +220,26 @@ def parse_size(text: str | None, option: str = "--image-size"):
     except ValueError:
         raise click.BadParameter(f"{text!r} is not a size like 640x480", param_hint=option) from None
     return (w, h)
+
+
+def progress_bar(description: str = ""):
+    """A Rich progress bar on stderr (drawn only on a terminal, removed when done) and its
+    callback ``update(done, total, description=None)``, which library functions take as
+    their ``progress`` argument.  Use the bar as a context manager around the work."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    err = Console(file=sys.stderr)
+    bar = Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        console=err, transient=True, disable=not err.is_terminal,
+    )  # fmt: skip
+    task = bar.add_task(description, total=None)
+
+    def update(done: int, total: int, description: str | None = None) -> None:
+        if description is None:
+            bar.update(task, completed=done, total=total)
+        else:
+            bar.update(task, completed=done, total=total, description=description)
+
+    return bar, update

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, load_pairs, points_options
+from oapcal.cli._common import check_output, console, load_pairs, points_options, progress_bar
 
 SELECT_INIT_HELP = (
     "Starting values of every fit: 'zero' (all 0, m = 1; the paper's choice for normalized "
@@ -15,31 +15,6 @@ NORMALIZE_HELP = (
     "-0.5..0.5 in y (the paper's simulated grids); 'experiment': scale and align the reference "
     "points onto the distorted ones; 'none': use the points as given."
 )
-
-
-def _progress(description: str):
-    """A Rich progress bar on stderr (shown only on a terminal) and its update callback."""
-    import sys
-
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    err = Console(file=sys.stderr)
-    bar = Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=err,
-        transient=True,
-        disable=not err.is_terminal,
-    )
-    task = bar.add_task(description, total=None)
-
-    def update(done: int, total: int) -> None:
-        bar.update(task, completed=done, total=total)
-
-    return bar, update
 
 
 def _write_json(path: str, obj) -> None:
@@ -118,7 +93,7 @@ def select_command(points, normalization, init, top, cv, seed, json_out):
     from oapcal.select import select_models
 
     initial_params(init, pairs.xy_u[:1], pairs.xy_d[:1], [True] * 13)  # a bad --init fails here
-    bar, update = _progress("fitting 4,096 models")
+    bar, update = progress_bar("fitting 4,096 models")
     with bar:
         sel = select_models(
             pairs.xy_u, pairs.xy_d, normalization=normalization, init=init, cv=cv, cv_top=top,
@@ -235,7 +210,7 @@ def robustness_command(
     from oapcal.select import robustness
 
     initial_params(init, pairs.xy_u[:1], pairs.xy_d[:1], [True] * 13)
-    bar, update = _progress(f"{trials} trials x {len(specs)} models")
+    bar, update = progress_bar(f"{trials} trials x {len(specs)} models")
     with bar:
         result = robustness(
             pairs.xy_u, pairs.xy_d, specs, trials=trials, fraction=fraction, seed=seed, init=init,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, parse_size, print_json
+from oapcal.cli._common import check_output, console, parse_size, print_json, progress_bar
 
 
 @click.command("relay")
@@ -113,7 +113,7 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
 
     from oapcal.optics.summary import simulate_relay, write_grid_csv
 
-    bar, update = _progress()
+    bar, update = progress_bar("tracing")
     with bar:
         update(0, 1, f"tracing {n}x{n} grid and spots")
         sim = simulate_relay(
@@ -150,30 +150,6 @@ def _parse_point(text: str) -> tuple[float, float]:
             f"{text!r} is not a point like 0.5,0.5 (mm)", param_hint="--spot-field"
         ) from None
     return (x, y)
-
-
-def _progress():
-    """A Rich progress bar on stderr (drawn only on a terminal, removed when done) and its
-    update callback ``update(done, total, description=None)``."""
-    import sys
-
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
-
-    err = Console(file=sys.stderr)
-    bar = Progress(
-        TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(), TimeElapsedColumn(),
-        console=err, transient=True, disable=not err.is_terminal,
-    )  # fmt: skip
-    task = bar.add_task("tracing", total=None)
-
-    def update(done: int, total: int, description: str | None = None) -> None:
-        if description is None:
-            bar.update(task, completed=done, total=total)
-        else:
-            bar.update(task, completed=done, total=total, description=description)
-
-    return bar, update
 
 
 def print_summary(s: dict) -> None:
