@@ -25,11 +25,7 @@ import click
 def demo_command(out_dir, seed, trials, no_report):
     """Run the whole method on built-in data: trace the relay, select the model, simulate
     and detect a USAF target, fit, test robustness, correct the image, write a report."""
-    import sys
-
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from oapcal.cli._common import console
+    from oapcal.cli._common import console, progress_bar
     from oapcal.cli.fit import print_fit
     from oapcal.demo import STEPS, run_demo
 
@@ -37,17 +33,14 @@ def demo_command(out_dir, seed, trials, no_report):
     if trials == 0:
         skipped.add("robustness")
     steps = [s for s in STEPS if s not in skipped]
-    with Progress(
-        TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
-        disable=not sys.stderr.isatty(), transient=True,
-    ) as bar:  # fmt: skip
-        task = bar.add_task("demo", total=len(steps))
+    bar, update = progress_bar("demo")
+    with bar:
 
         def step(name):
-            bar.update(task, description=f"demo: {name}", completed=steps.index(name))
+            update(steps.index(name), len(steps), f"demo: {name}")
 
         result = run_demo(out_dir, seed=seed, trials=trials, report=not no_report, step=step)
-        bar.update(task, completed=len(steps))
+        update(len(steps), len(steps))
 
     out = console()
     d = result.relay["distortion"]
