@@ -6,7 +6,7 @@ field, SciPy's ``RectBivariateSpline.ev`` (FITPACK) evaluating the same splines 
 Newton inversion on it; plus the CLI as a whole process. Medians of repeats; ratios
 printed (peer time / oapcal time).
 
-    PYTHONPATH=src /work/venv/bin/python benchmarks/bench_optics.py
+    PYTHONPATH=src .venv/bin/python benchmarks/bench_optics.py
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Where does USAF corner detection fail?  A seeded sweep of blur, noise and distortion.
 
-Run: OPENBLAS_NUM_THREADS=1 PYTHONPATH=src /work/venv/bin/python benchmarks/sweep_detection.py [--seeds N]
+Run: OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/sweep_detection.py [--seeds N]
 
 Every row simulates groups 4-5 on a 640x480, 4.8 um camera (oapcal.imaging.simulate) and
 detects the corners (oapcal.imaging.detect); one parameter changes from the paper-like

@@ -1,7 +1,7 @@
 """Make the pictures of docs/usaf.md and docs/detection.md (simulated, detected, corrected)
 for the ray-traced relay of setup 1 (the image is turned by 180 degrees).
 
-Run: PYTHONPATH=src /work/venv/bin/python scripts/make_usaf_pictures.py
+Run: PYTHONPATH=src .venv/bin/python scripts/make_usaf_pictures.py
 """
 
 from __future__ import annotations
