@@ -106,6 +106,7 @@ COMMANDS = {
 #: Rows whose intact-file run takes seconds (plots, detection, many fits): fuzzed only in the
 #: slow job, where a fuzzed file that stays valid costs a full run.
 HEAVY = {"robustness POINTS", "esf IMAGE", "report CALIB", "report POINTS", "detect IMAGE", "select POINTS"}
+LIGHT = [n for n in COMMANDS if n not in HEAVY]
 
 # -- strategies ----------------------------------------------------------------------------------
 
@@ -201,6 +202,11 @@ def _loader_property(name, seeds, data):
         _check_loader(loader, path)
 
 
+def _command_property(run_cli, name, seeds, data):
+    kind, argv = COMMANDS[name]
+    _run_command(run_cli, argv, data.draw(malformed(seeds[kind].read_bytes()), label="file"), kind, seeds)
+
+
 @pytest.mark.parametrize("name", list(LOADERS))
 @FAST
 @given(data=st.data())
@@ -208,12 +214,11 @@ def test_loaders_fail_cleanly(seeds, name, data):
     _loader_property(name, seeds, data)
 
 
-@pytest.mark.parametrize("name", [n for n in COMMANDS if n not in HEAVY])
+@pytest.mark.parametrize("name", LIGHT)
 @settings(FAST, max_examples=12)
 @given(data=st.data())
 def test_commands_fail_cleanly(run_cli, seeds, name, data):
-    kind, argv = COMMANDS[name]
-    _run_command(run_cli, argv, data.draw(malformed(seeds[kind].read_bytes()), label="file"), kind, seeds)
+    _command_property(run_cli, name, seeds, data)
 
 
 @pytest.mark.slow
@@ -225,12 +230,11 @@ def test_loaders_fail_cleanly_long_run(seeds, name, data):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [n for n in COMMANDS if n not in HEAVY])
+@pytest.mark.parametrize("name", LIGHT)
 @settings(SLOW, max_examples=400)
 @given(data=st.data())
 def test_commands_fail_cleanly_long_run(run_cli, seeds, name, data):
-    kind, argv = COMMANDS[name]
-    _run_command(run_cli, argv, data.draw(malformed(seeds[kind].read_bytes()), label="file"), kind, seeds)
+    _command_property(run_cli, name, seeds, data)
 
 
 @pytest.mark.slow
@@ -238,8 +242,7 @@ def test_commands_fail_cleanly_long_run(run_cli, seeds, name, data):
 @settings(SLOW, max_examples=30)
 @given(data=st.data())
 def test_heavy_commands_fail_cleanly(run_cli, seeds, name, data):
-    kind, argv = COMMANDS[name]
-    _run_command(run_cli, argv, data.draw(malformed(seeds[kind].read_bytes()), label="file"), kind, seeds)
+    _command_property(run_cli, name, seeds, data)
 
 
 def test_the_seeds_themselves_load(seeds):

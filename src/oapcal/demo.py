@@ -18,7 +18,6 @@ Everything goes into one directory; :class:`DemoResult` lists the files and numb
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,24 +46,6 @@ class DemoResult:
     extra: dict = field(default_factory=dict)
 
 
-def _write_json(path: Path, data: dict) -> None:
-    from oapcal.io.atomic import atomic_write
-
-    with atomic_write(path) as fh:
-        json.dump(data, fh, indent=1, allow_nan=False)
-        fh.write("\n")
-
-
-def _write_png(path: Path, image: np.ndarray) -> None:
-    import cv2
-
-    from oapcal.io.atomic import atomic_path
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"{path}: OpenCV could not write the image")
-
-
 def run_demo(
     out_dir: str | Path,
     *,
@@ -83,6 +64,8 @@ def run_demo(
     from oapcal.imaging.remap import correct_image, correction_map
     from oapcal.imaging.simulate import simulate_image, write_truth
     from oapcal.io.calibration import save_calibration
+    from oapcal.io.images import write_image
+    from oapcal.io.jsonfile import write_json
     from oapcal.io.points import read_points, write_point_pairs
     from oapcal.model import distort
     from oapcal.optics import relay_distortion
@@ -112,7 +95,7 @@ def run_demo(
     start("select")
     selection = select_models(grid_u, grid_d, normalization="grid", init="zero")
     files["model selection"] = out / "selection.json"
-    _write_json(files["model selection"], selection.to_dict())
+    write_json(files["model selection"], selection.to_dict())
     # In camera px the origin is the image corner, not the distortion centre, so the centre
     # terms (x_off, y_off, c_x, c_y) are always needed there; the selection on the centred
     # grid decides the distortion terms.  (The paper likewise added x_off to its choice.)
@@ -124,7 +107,7 @@ def run_demo(
     relay_field = relay_distortion(1, pixel_size_um=PIXEL_UM, image_size=IMAGE_SIZE)
     image = simulate_image(GROUPS, relay_field, sigma_px=0.8, snr=50, seed=seed)
     files["simulated image"] = out / "distorted.png"
-    _write_png(files["simulated image"], image.image)
+    write_image(files["simulated image"], image.image)
     files["ground truth"] = out / "truth.csv"
     write_truth(files["ground truth"], image)
 
@@ -135,7 +118,7 @@ def run_demo(
     files["detected points"] = out / "points.csv"
     write_point_pairs(files["detected points"], detection.xy_u, detection.xy_d, ids=detection.ids)
     detection_summary = {**detection.summary(), **scores}
-    _write_json(out / "detection.json", _finite(detection_summary))
+    write_json(out / "detection.json", detection_summary)
     files["detection summary"] = out / "detection.json"
 
     # 5. fit the selected model to the detected pairs (Table 1)
@@ -159,13 +142,13 @@ def run_demo(
             init="pixel",
         )  # fmt: skip
         files["robustness"] = out / "robustness.json"
-        _write_json(files["robustness"], rob.to_dict())
+        write_json(files["robustness"], rob.to_dict())
 
     # 7. the corrected image
     start("correct")
     corrected = correct_image(image.image, correction_map(cal, image.image.shape[:2]), "cubic")
     files["corrected image"] = out / "corrected.png"
-    _write_png(files["corrected image"], corrected)
+    write_image(files["corrected image"], corrected)
 
     # 8. the report
     if report:
@@ -199,16 +182,3 @@ def _names():
     from oapcal.model import PARAM_NAMES
 
     return PARAM_NAMES
-
-
-def _finite(data: dict) -> dict:
-    out = {}
-    for key, value in data.items():
-        if isinstance(value, float) and not np.isfinite(value):
-            value = None
-        elif isinstance(value, dict):
-            value = _finite(value)
-        elif isinstance(value, np.generic):
-            value = value.item()
-        out[key] = value
-    return out

@@ -61,6 +61,7 @@ import numpy as np
 from oapcal._batchfit import fit_many, invert_and_score, invert_many, min_jacobian_determinant
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.fit import STATUS_MESSAGES, initial_params
+from oapcal.io.jsonfile import finite_or_none
 from oapcal.model import (
     PARAM_NAMES,
     all_masks,
@@ -112,17 +113,17 @@ class ModelScore:
         out = {
             "free": list(self.free),
             "k": self.k,
-            "aicc": _finite_or_none(self.aicc),
-            "delta_aicc": _finite_or_none(self.delta_aicc),
-            "weight": _finite_or_none(self.weight),
-            "rss": _finite_or_none(self.rss),
+            "aicc": finite_or_none(self.aicc),
+            "delta_aicc": finite_or_none(self.delta_aicc),
+            "weight": finite_or_none(self.weight),
+            "rss": finite_or_none(self.rss),
             "valid": self.valid,
             "reason": self.reason,
-            "mean_error": _finite_or_none(self.mean_error),
+            "mean_error": finite_or_none(self.mean_error),
             "bits": self.bits,
         }
         if self.cv_mean_error is not None or self.cv_failed:
-            out["cv_mean_error"] = _finite_or_none(self.cv_mean_error)
+            out["cv_mean_error"] = finite_or_none(self.cv_mean_error)
             out["cv_failed"] = self.cv_failed
         return out
 
@@ -159,10 +160,6 @@ class Selection:
             "cv_folds": self.cv_folds,
             "models": [m.to_dict() for m in self.models],
         }
-
-
-def _finite_or_none(value):
-    return float(value) if value is not None and np.isfinite(value) else None
 
 
 def _starts(init, xy_u, xy_d, masks: np.ndarray) -> np.ndarray:
@@ -381,10 +378,10 @@ class ModelRobustness:
             "trials": self.trials,
             "not_converged": self.not_converged,
             "by_reason": dict(self.by_reason),
-            "param_std": {n: _finite_or_none(v) for n, v in self.param_std.items()},
-            "heldout_mean_error_px": _finite_or_none(self.heldout_mean_error),
+            "param_std": {n: finite_or_none(v) for n, v in self.param_std.items()},
+            "heldout_mean_error_px": finite_or_none(self.heldout_mean_error),
             "heldout_failed_points": self.heldout_failed,
-            "reference_rms": _finite_or_none(self.reference_rms),
+            "reference_rms": finite_or_none(self.reference_rms),
         }
 
 

@@ -81,6 +81,8 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
 
 def fit_summary(cal) -> dict:
     """The ``--json`` object of ``oapcal fit``."""
+    from oapcal.io.jsonfile import finite_or_none as _finite
+
     return {
         "free": list(cal.free),
         "params": cal.params_dict,
@@ -97,12 +99,6 @@ def _free_index(cal):
     from oapcal.model import INDEX
 
     return [(INDEX[n], n) for n in cal.free]
-
-
-def _finite(value):
-    import math
-
-    return float(value) if value is not None and math.isfinite(value) else None
 
 
 def print_fit(cal) -> None:

@@ -17,31 +17,6 @@ NORMALIZE_HELP = (
 )
 
 
-def _write_json(path: str, obj) -> None:
-    import json
-
-    # One line per model (or per robustness entry): readable, and 4,096 models stay compact.
-    lines = []
-    for key, value in obj.items():
-        if key == "models" and isinstance(value, list):
-            inner = ",\n".join("  " + json.dumps(v, allow_nan=False) for v in value)
-            lines.append(f' "models": [\n{inner}\n ]')
-        elif key == "models" and isinstance(value, dict):
-            entries = (f"  {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in value.items())
-            inner = ",\n".join(entries)
-            lines.append(f' "models": {{\n{inner}\n }}')
-        else:
-            lines.append(f" {json.dumps(key)}: {json.dumps(value, allow_nan=False)}")
-    text = "{\n" + ",\n".join(lines) + "\n}\n"
-    if path == "-":
-        click.echo(text, nl=False)
-        return
-    from oapcal.io.atomic import atomic_write
-
-    with atomic_write(path) as fh:
-        fh.write(text)
-
-
 def _wide_console():
     """The shared console, at least 150 columns wide when stdout is not a terminal."""
     out = console()
@@ -100,7 +75,9 @@ def select_command(points, normalization, init, top, cv, seed, json_out):
             seed=seed, progress=update,
         )  # fmt: skip
     if json_out is not None:
-        _write_json(json_out, sel.to_dict())
+        from oapcal.io.jsonfile import write_json
+
+        write_json(json_out, sel.to_dict())
     if json_out != "-":
         print_selection(sel, top, source=pairs.source)
     if sel.n_valid == 0:
@@ -217,7 +194,9 @@ def robustness_command(
             normalization=normalization, wrong_minimum_ratio=wrong_minimum_ratio, progress=update,
         )  # fmt: skip
     if json_out is not None:
-        _write_json(json_out, result.to_dict())
+        from oapcal.io.jsonfile import write_json
+
+        write_json(json_out, result.to_dict())
     if json_out != "-":
         print_robustness(result, source=pairs.source)
     return 0

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.imaging.esf import SIDES, Components, find_components
+from oapcal.io.jsonfile import finite_or_none
 
 
 @dataclass(frozen=True)
@@ -113,16 +114,12 @@ class TargetCheck:
     def summary(self) -> dict:
         return {
             "n_edges": len(self.edges),
-            "straightness_rms_px": _finite(self.straightness_rms_px),
-            "straightness_max_px": _finite(self.straightness_max_px),
+            "straightness_rms_px": finite_or_none(self.straightness_rms_px),
+            "straightness_max_px": finite_or_none(self.straightness_max_px),
             "n_shapes": len(self.shapes),
-            "aspect_error_mean_pct": _finite(self.aspect_error_mean_pct),
-            "aspect_error_max_pct": _finite(self.aspect_error_max_pct),
+            "aspect_error_mean_pct": finite_or_none(self.aspect_error_mean_pct),
+            "aspect_error_max_pct": finite_or_none(self.aspect_error_max_pct),
         }
-
-
-def _finite(value):
-    return float(value) if value is not None and math.isfinite(value) else None
 
 
 def _crossings(image, labels, k, background, bright, side, a0, a1):

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError
+from oapcal.io.jsonfile import finite_or_none
 
 
 @dataclass(frozen=True)
@@ -80,23 +81,19 @@ class EdgeFit:
             "label": self.label,
             "roi": list(self.roi),
             "orientation": self.orientation,
-            "sigma_px": _finite(self.sigma_px),
-            "sigma_err_px": _finite(self.sigma_err_px),
-            "angle_deg": _finite(self.angle_deg),
-            "centre": [_finite(v) for v in self.centre],
-            "low": _finite(self.low),
-            "high": _finite(self.high),
-            "rms": _finite(self.rms),
+            "sigma_px": finite_or_none(self.sigma_px),
+            "sigma_err_px": finite_or_none(self.sigma_err_px),
+            "angle_deg": finite_or_none(self.angle_deg),
+            "centre": [finite_or_none(v) for v in self.centre],
+            "low": finite_or_none(self.low),
+            "high": finite_or_none(self.high),
+            "rms": finite_or_none(self.rms),
             "ok": bool(self.ok),
             "message": self.message,
         }
         if self.um_per_px is not None:
-            out["sigma_um"] = _finite(self.sigma_um)
+            out["sigma_um"] = finite_or_none(self.sigma_um)
         return out
-
-
-def _finite(value):
-    return float(value) if value is not None and math.isfinite(value) else None
 
 
 def erf_edge(d, low, high, sigma):
@@ -262,13 +259,13 @@ class EsfSummary:
         out = {
             "n_edges": len(self.edges),
             "n_ok": len(self.good),
-            "sigma_max_px": _finite(self.sigma_max_px),
-            "sigma_mean_px": _finite(self.sigma_mean_px),
+            "sigma_max_px": finite_or_none(self.sigma_max_px),
+            "sigma_mean_px": finite_or_none(self.sigma_mean_px),
         }
         if self.um_per_px is not None:
             out["um_per_px"] = self.um_per_px
-            out["sigma_max_um"] = _finite(self.sigma_max_px * self.um_per_px)
-            out["sigma_mean_um"] = _finite(self.sigma_mean_px * self.um_per_px)
+            out["sigma_max_um"] = finite_or_none(self.sigma_max_px * self.um_per_px)
+            out["sigma_mean_um"] = finite_or_none(self.sigma_mean_px * self.um_per_px)
         out["edges"] = [e.to_dict() for e in self.edges]
         return out
 

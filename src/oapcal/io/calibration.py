@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -30,6 +29,8 @@ import numpy as np
 from oapcal import __version__
 from oapcal.errors import InputFileError
 from oapcal.io.atomic import atomic_write
+from oapcal.io.jsonfile import json_safe
+from oapcal.io.textfile import read_json
 from oapcal.model import INDEX, N_PARAMS, PARAM_NAMES, parse_model
 
 FORMAT = "oapcal-calibration"
@@ -38,21 +39,6 @@ VERSION = 1
 
 def _schema() -> dict:
     return json.loads(resources.files("oapcal.io").joinpath("calibration.schema.json").read_text())
-
-
-def _clean(value):
-    """JSON-safe copy: NumPy scalars to Python, non-finite floats to None."""
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_clean(v) for v in value]
-    if isinstance(value, (np.bool_, bool)):
-        return bool(value)
-    if isinstance(value, (np.integer, int)):
-        return int(value)
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(value) else None
-    return value
 
 
 @dataclass(frozen=True)
@@ -88,7 +74,7 @@ class Calibration:
         return {n: float(v) for n, v in zip(PARAM_NAMES, self.params)}
 
     def to_dict(self) -> dict:
-        return _clean(
+        return json_safe(
             {
                 "format": FORMAT,
                 "version": VERSION,
@@ -192,23 +178,7 @@ def save_calibration(calibration: Calibration, path: str | Path) -> None:
 def load_calibration(path: str | Path) -> Calibration:
     """Read and validate a calibration file; errors name the file and the bad field."""
     name = str(path)
-    p = Path(path)
-    if not p.exists():
-        raise InputFileError(f"{name}: no such calibration file; run 'oapcal fit' to make one")
-    if p.is_dir():
-        raise InputFileError(f"{name}: is a directory, not a calibration file")
-    try:
-        text = p.read_bytes().decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputFileError(f"{name}: is not UTF-8 JSON text; give an oapcal calibration file") from None
-    except OSError as exc:
-        raise InputFileError(f"{name}: cannot be read ({exc.strerror})") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputFileError(f"{name}: line {exc.lineno}: malformed JSON ({exc.msg})") from None
-    except RecursionError:
-        raise InputFileError(f"{name}: JSON nested too deeply to be a calibration file") from None
-    except ValueError as exc:  # e.g. an integer literal with thousands of digits
-        raise InputFileError(f"{name}: unreadable JSON ({str(exc).splitlines()[0]})") from None
+    data = read_json(
+        path, "calibration file", missing="no such calibration file; run 'oapcal fit' to make one"
+    )
     return Calibration.from_dict(data, source=name)

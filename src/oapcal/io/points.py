@@ -24,6 +24,7 @@ import numpy as np
 
 from oapcal.errors import DataError, InputFileError
 from oapcal.io.atomic import atomic_write
+from oapcal.io.textfile import read_text
 
 PAIR_COLUMNS = ("x_u", "y_u", "x_d", "y_d")
 #: Coordinates beyond this magnitude are refused: no image is that large, and the model's
@@ -58,31 +59,6 @@ class PointPairs:
         return len(self.xy_d)
 
 
-def _read_text(path: str | Path) -> str:
-    name = str(path)
-    if name == "-":
-        return sys.stdin.read()
-    p = Path(path)
-    if not p.exists():
-        raise InputFileError(f"{name}: no such file; check the path")
-    if p.is_dir():
-        raise InputFileError(f"{name}: is a directory, not a point file")
-    try:
-        data = p.read_bytes()
-    except OSError as exc:
-        raise InputFileError(f"{name}: cannot be read ({exc.strerror}); check its permissions") from None
-    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
-        raise InputFileError(f"{name}: is UTF-16 text; save it as UTF-8 CSV")
-    if b"\x00" in data:
-        raise InputFileError(f"{name}: contains binary data (NUL bytes); give a CSV text file")
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise InputFileError(
-            f"{name}: is not UTF-8 text (bad byte at offset {exc.start}); save it as UTF-8 CSV"
-        ) from None
-
-
 def _parse_float(text: str, name: str, line: int, column: str) -> float:
     try:
         value = float(text)
@@ -115,7 +91,7 @@ def read_points(
     are rejected (:func:`check_geometry`).
     """
     name = str(path)
-    text = _read_text(path)
+    text = read_text(path, "point file")
     if "\x00" in text:
         raise InputFileError(f"{name}: contains binary data (NUL bytes); give a CSV text file")
     if not text.strip():

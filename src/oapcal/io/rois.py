@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import csv
 import io
-from pathlib import Path
 
 from oapcal.errors import InputFileError
 
@@ -26,15 +25,9 @@ ROI_COLUMNS = ("x0", "y0", "x1", "y1")
 def read_rois(path) -> tuple[list[tuple[int, int, int, int]], list[str]]:
     """Rectangles and labels (``"roi N"`` where the file has no ``label`` column)."""
     name = str(path)
-    p = Path(path)
-    if not p.exists():
-        raise InputFileError(f"{name}: no such ROI file; check the path")
-    if p.is_dir():
-        raise InputFileError(f"{name}: is a directory, not an ROI file")
-    try:
-        text = p.read_bytes().decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise InputFileError(f"{name}: is not UTF-8 text; save it as UTF-8 CSV") from None
+    from oapcal.io.textfile import read_text
+
+    text = read_text(path, "ROI file", missing="no such ROI file; check the path")
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in ROI_COLUMNS if c not in header]

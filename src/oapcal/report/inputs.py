@@ -17,26 +17,14 @@ are required; other keys may be absent.  Problems raise
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 from oapcal.errors import InputFileError
 from oapcal.model import PARAM_NAMES
 
 
 def _load_json(path) -> object:
-    name = str(path)
-    p = Path(path)
-    if not p.exists():
-        raise InputFileError(f"{name}: no such file; check the path")
-    if p.is_dir():
-        raise InputFileError(f"{name}: is a directory, not a JSON file")
-    try:
-        return json.loads(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise InputFileError(f"{name}: is not UTF-8 JSON text") from None
-    except json.JSONDecodeError as exc:
-        raise InputFileError(f"{name}: line {exc.lineno}: malformed JSON ({exc.msg})") from None
+    from oapcal.io.textfile import read_json
+
+    return read_json(path, "JSON file")
 
 
 def _free(value, where: str) -> tuple[str, ...]:

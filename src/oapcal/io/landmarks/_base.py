@@ -10,14 +10,13 @@ from __future__ import annotations
 import csv
 import io
 import math
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from oapcal.errors import InputFileError
+from oapcal.io.textfile import read_text as _read_text
 
 #: Landmark files larger than this are refused before they are read (bytes).
-MAX_FILE_BYTES = 64 * 1024 * 1024
 #: A coordinate whose magnitude exceeds this (px) is certainly not a pixel position.
 MAX_COORD = 1.0e7
 
@@ -52,38 +51,9 @@ class LandmarkSet:
 
 
 def read_text(path: str | Path, what: str = "landmark file") -> str:
-    """The text of ``path`` (``-`` is stdin), decoded as UTF-8 (a BOM is allowed).
-
-    Raises :class:`InputFileError` for a missing, unreadable, oversized, binary or
-    non-UTF-8 file, and for an empty one.
-    """
-    name = str(path)
-    if name == "-":
-        return _check_text(sys.stdin.read(), name, what)
-    p = Path(path)
-    if not p.exists():
-        raise InputFileError(f"{name}: no such file; check the path")
-    if p.is_dir():
-        raise InputFileError(f"{name}: is a directory, not a {what}")
-    try:
-        size = p.stat().st_size
-        if size > MAX_FILE_BYTES:
-            raise InputFileError(
-                f"{name}: is {size / 2**20:.0f} MiB; a {what} over "
-                f"{MAX_FILE_BYTES // 2**20} MiB is not read (is this the right file?)"
-            )
-        data = p.read_bytes()
-    except OSError as exc:
-        raise InputFileError(f"{name}: cannot be read ({exc.strerror}); check its permissions") from None
-    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
-        raise InputFileError(f"{name}: is UTF-16 text; save it as UTF-8")
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise InputFileError(
-            f"{name}: is not UTF-8 text (bad byte at offset {exc.start}); save it as UTF-8"
-        ) from None
-    return _check_text(text, name, what)
+    """The text of ``path`` (``-`` is stdin): :func:`oapcal.io.textfile.read_text`, and
+    an empty file is refused."""
+    return _check_text(_read_text(path, what), str(path), what)
 
 
 def _check_text(text: str, name: str, what: str) -> str:

@@ -17,7 +17,6 @@ canvas positions scaled to image pixels, so the centre of the top-left pixel is
 
 from __future__ import annotations
 
-import json
 from pathlib import PurePath
 
 from oapcal.errors import InputFileError
@@ -30,6 +29,7 @@ from oapcal.io.landmarks._base import (
     first_row,
     read_text,
 )
+from oapcal.io.textfile import parse_json
 
 #: VIA's image coordinates minus this are oapcal's (corner origin -> centre origin).
 PIXEL_OFFSET = 0.5
@@ -48,14 +48,7 @@ def is_via_csv_header(first_line: str) -> bool:
 
 def load_json(text: str, name: str):
     """Parse JSON text; malformed or absurdly nested JSON raises :class:`InputFileError`."""
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputFileError(f"{name}: line {exc.lineno}: malformed JSON ({exc.msg})") from None
-    except RecursionError:
-        raise InputFileError(f"{name}: JSON nested too deeply to be a landmark file") from None
-    except ValueError as exc:  # e.g. an integer literal with thousands of digits
-        raise InputFileError(f"{name}: unreadable JSON ({str(exc).splitlines()[0]})") from None
+    return parse_json(text, name, "landmark file")
 
 
 def json_kind(data) -> str | None:
