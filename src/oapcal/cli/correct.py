@@ -196,6 +196,10 @@ def _correct_dask(cal, inputs, out_dir, name, interp, border, workers, geometry,
                   allow_size_mismatch, max_pixels, overwrite, scheduler, chunk_frames, dask_format,
                   quiet, as_json, calib):  # fmt: skip
     from oapcal.errors import OapcalError
+    from oapcal.extras import EXTRAS, require
+
+    for module in EXTRAS["dask"]:  # before any work: a missing extra is one clear error
+        require(module, "dask")
     from oapcal.imaging.distributed import ZARR_SUFFIX, correct_stack_dask
     from oapcal.imaging.stack import expand_inputs, plan_outputs
     from oapcal.io.images import TIFF_SUFFIXES

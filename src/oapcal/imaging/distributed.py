@@ -78,8 +78,11 @@ def _read_tiff_frames(
 def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_PIXELS):
     """A Dask array ``(frames, rows, cols[, ch])`` over a TIFF stack or zarr array, one
     chunk per ``chunk_frames`` frames; nothing is read until it is computed."""
-    import dask
-    import dask.array as da
+    from oapcal.extras import require
+
+    dask = require("dask")
+    da = require("dask.array")
+    require("zarr")
 
     path = Path(path)
     if chunk_frames < 1:
@@ -170,6 +173,9 @@ def dask_scheduler(scheduler: str | None = None, workers: int | None = None):
     if scheduler in LOCAL_SCHEDULERS:
         yield scheduler, max(2, workers or os.cpu_count() or 1)
         return
+    from oapcal.extras import require
+
+    require("distributed")
     from distributed import Client, LocalCluster
 
     if scheduler is None:

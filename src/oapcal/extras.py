@@ -1,0 +1,38 @@
+"""Optional dependencies: what each extra brings and the message when it is missing.
+
+``pip install 'oapcal[dask]'`` adds Dask, distributed and zarr (out-of-core stacks,
+``oapcal correct --dask``).  The core never imports them at module level.
+
+>>> require("math").sqrt(4.0)
+2.0
+>>> require("surely_not_installed_module", "dask")
+Traceback (most recent call last):
+...
+oapcal.extras.MissingExtraError: surely_not_installed_module is not installed: it comes with the 'dask' extra; install it with: pip install 'oapcal[dask]'
+"""
+
+from __future__ import annotations
+
+import importlib
+from types import ModuleType
+
+from oapcal.errors import OapcalError
+
+#: The extras of pyproject.toml and the top-level modules each provides.
+EXTRAS: dict[str, tuple[str, ...]] = {"dask": ("dask", "distributed", "zarr")}
+
+
+class MissingExtraError(OapcalError, ImportError):
+    """An optional dependency is not installed; the message says which extra brings it."""
+
+
+def require(module: str, extra: str = "dask") -> ModuleType:
+    """Import ``module`` (e.g. ``"dask.array"``), or raise :class:`MissingExtraError`
+    naming the extra that installs it."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise MissingExtraError(
+            f"{module} is not installed: it comes with the {extra!r} extra; "
+            f"install it with: pip install 'oapcal[{extra}]'"
+        ) from None

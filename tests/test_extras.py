@@ -1,0 +1,36 @@
+"""Optional extras: a missing one is named with the command that installs it."""
+
+import sys
+
+import numpy as np
+import pytest
+import tifffile
+
+from imaging_helpers import write_calibration
+from oapcal.extras import EXTRAS, MissingExtraError, require
+
+
+@pytest.fixture
+def without_dask(monkeypatch):
+    """Make ``import dask`` (and distributed, zarr) fail as on a machine without the extra."""
+    for name in list(sys.modules):
+        if name.split(".")[0] in EXTRAS["dask"]:
+            monkeypatch.delitem(sys.modules, name)
+    for name in EXTRAS["dask"]:
+        monkeypatch.setitem(sys.modules, name, None)  # None in sys.modules -> ImportError
+
+
+def test_require_names_the_extra(without_dask):
+    with pytest.raises(MissingExtraError, match=r"pip install 'oapcal\[dask\]'"):
+        require("dask.array")
+    assert issubclass(MissingExtraError, ImportError)
+
+
+def test_correct_dask_without_the_extra_says_how_to_install_it(tmp_path, without_dask, run_cli):
+    cal_path = write_calibration(tmp_path / "calib.json")
+    tifffile.imwrite(tmp_path / "s.tif", np.zeros((2, 480, 640), np.uint8))
+    code, out, err = run_cli("correct", cal_path, tmp_path / "s.tif", "--dask", "--out-dir", tmp_path / "out")
+    assert code == 2, err
+    assert "pip install 'oapcal[dask]'" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "out" / "s.zarr").exists()
