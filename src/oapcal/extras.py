@@ -5,10 +5,11 @@
 
 >>> require("math").sqrt(4.0)
 2.0
->>> require("surely_not_installed_module", "dask")
-Traceback (most recent call last):
-...
-oapcal.extras.MissingExtraError: surely_not_installed_module is not installed: it comes with the 'dask' extra; install it with: pip install 'oapcal[dask]'
+>>> try:
+...     require("surely_not_installed_module", "dask")
+... except MissingExtraError as exc:
+...     print(str(exc).split(": ")[-1])
+pip install 'oapcal[dask]'
 """
 
 from __future__ import annotations

@@ -61,7 +61,6 @@ import numpy as np
 from oapcal._batchfit import fit_many, invert_and_score, invert_many, min_jacobian_determinant
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.fit import STATUS_MESSAGES, initial_params
-from oapcal.io.jsonfile import finite_or_none
 from oapcal.model import (
     PARAM_NAMES,
     all_masks,
@@ -70,6 +69,7 @@ from oapcal.model import (
     parse_model,
 )
 from oapcal.normalize import normalize
+from oapcal.records import finite_or_none
 from oapcal.stats import information_criteria
 
 #: Reasons a robustness trial does not converge, in the order they are tested.

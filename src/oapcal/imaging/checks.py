@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.imaging.esf import SIDES, Components, find_components
-from oapcal.io.jsonfile import finite_or_none
+from oapcal.records import finite_or_none
 
 
 @dataclass(frozen=True)

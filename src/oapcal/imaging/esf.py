@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.io.jsonfile import finite_or_none
+from oapcal.records import finite_or_none
 
 
 @dataclass(frozen=True)

@@ -13,31 +13,12 @@ True
 from __future__ import annotations
 
 import json
-import math
 import sys
 from pathlib import Path
 
-import numpy as np
+from oapcal.records import finite_or_none, json_safe
 
-
-def finite_or_none(value) -> float | None:
-    """``float(value)``, or None when it is None, NaN or infinite."""
-    return float(value) if value is not None and math.isfinite(value) else None
-
-
-def json_safe(value):
-    """A JSON-ready copy: NumPy scalars and arrays to Python, non-finite floats to None."""
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return finite_or_none(value)
-    return value
+__all__ = ["dumps", "finite_or_none", "json_safe", "write_json"]
 
 
 def dumps(obj: dict) -> str:
