@@ -67,6 +67,9 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
         from oapcal.io.imagefile import read_image_grey
 
         img = read_image_grey(image)
+        from oapcal.io.calibration import check_model_region
+
+        check_model_region(cal, (img.shape[1], img.shape[0]), source=calib)
     sel = read_selection(selection) if selection else None
     rob = read_robustness(robustness) if robustness else None
     html_text, data = build_report(

@@ -155,7 +155,7 @@ def simulate_image_command(
         from oapcal.imaging.field import ModelDistortionField
         from oapcal.io.calibration import load_calibration
 
-        field = ModelDistortionField.from_calibration(load_calibration(calibration), size)
+        field = ModelDistortionField.from_calibration(load_calibration(calibration, size), size)
     elif field_name == "none":
         field = identity_field(pixel_size_um, size)
     else:

@@ -13,7 +13,13 @@ Layout (``docs/file-formats.md`` has an annotated example)::
      "bounds": [x_min, y_min, x_max, y_max] of the reference points, or null,
      "hull": convex hull of the reference points [[x, y], ...], or null}
 
-Non-finite numbers are written as null.
+Non-finite numbers are written as null.  On reading, every number must be finite (NaN,
+Infinity and numbers too large for a double are refused, naming the field), the
+parameters must lie in :data:`PARAM_LIMIT` with ``m`` in :data:`M_RANGE`, ``um_per_px`` in
+:data:`UM_PER_PX_RANGE`, each side of ``image_size`` at most :data:`MAX_IMAGE_SIDE`,
+``bounds`` must be ordered and ``hull`` a polygon; and the model must be usable where it
+is applied: finite and not folding over (Jacobian determinant > 0) on the reference points'
+bounds and on the ``image_size`` frame (:func:`check_model_region`).
 """
 
 from __future__ import annotations
@@ -35,6 +41,17 @@ from oapcal.model import INDEX, N_PARAMS, PARAM_NAMES, parse_model
 
 FORMAT = "oapcal-calibration"
 VERSION = 1
+
+#: Largest absolute value of any parameter (far beyond any real fit in px, um or mm).
+PARAM_LIMIT = 1e30
+#: Allowed range of the magnification ``m``.
+M_RANGE = (1e-12, 1e12)
+#: Allowed range of ``um_per_px`` (1 pm to 1 m per px).
+UM_PER_PX_RANGE = (1e-6, 1e6)
+#: Largest side of ``image_size`` (px).
+MAX_IMAGE_SIDE = 1_000_000
+#: Points per side of the grid on which :func:`check_model_region` evaluates the model.
+CHECK_GRID = 65
 
 
 def _schema() -> dict:
@@ -98,6 +115,7 @@ class Calibration:
     @classmethod
     def from_dict(cls, data: dict, source: str = "calibration") -> Calibration:
         validate(data, source)
+        _check_numbers(data, source)
         free = tuple(n for n in PARAM_NAMES if n in data["free"])
         params = np.array([float(data["params"][n]) for n in PARAM_NAMES])
         for name in PARAM_NAMES:
@@ -122,7 +140,7 @@ class Calibration:
         cov = cov.reshape(k, k)
         size = data.get("image_size")
         hull = data.get("hull")
-        return cls(
+        cal = cls(
             free=free,
             params=params,
             stderr=stderr,
@@ -138,6 +156,8 @@ class Calibration:
             oapcal_version=data.get("oapcal_version", "unknown"),
             created_utc=data.get("created_utc", "unknown"),
         )
+        check_model_region(cal, source=source)
+        return cal
 
 
 def validate(data, source: str = "calibration") -> None:
@@ -163,6 +183,116 @@ def validate(data, source: str = "calibration") -> None:
         raise InputFileError(f"{source}: field '{where}': {error.message}")
 
 
+def _where(path) -> str:
+    return ".".join(str(p) for p in path)
+
+
+def _walk_numbers(value, path=()):
+    """(path, number) for every number (not bool) in a JSON value."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            yield from _walk_numbers(item, (*path, key))
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            yield from _walk_numbers(item, (*path, i))
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        yield path, value
+
+
+def _check_numbers(data: dict, source: str) -> None:
+    """Every number finite and every field in its range (after the schema)."""
+    import math
+
+    for path, value in _walk_numbers(data):
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:  # an integer too large for a double
+            finite = False
+        if not finite:
+            raise InputFileError(
+                f"{source}: field '{_where(path)}' is {value if isinstance(value, float) else 'too large'}; "
+                "calibration numbers must be finite (write null where a statistic is unknown)"
+            )
+    for name in PARAM_NAMES:
+        value = float(data["params"][name])
+        if abs(value) > PARAM_LIMIT:
+            raise InputFileError(
+                f"{source}: field 'params.{name}' is {value:g}, beyond +-{PARAM_LIMIT:g}; "
+                "this is not a fitted model (refit with 'oapcal fit')"
+            )
+    m = float(data["params"]["m"])
+    if not M_RANGE[0] <= m <= M_RANGE[1]:
+        raise InputFileError(
+            f"{source}: field 'params.m' is {m:g}; the magnification m must be between "
+            f"{M_RANGE[0]:g} and {M_RANGE[1]:g} (positive)"
+        )
+    um = data.get("um_per_px")
+    if um is not None and not UM_PER_PX_RANGE[0] <= um <= UM_PER_PX_RANGE[1]:
+        raise InputFileError(
+            f"{source}: field 'um_per_px' is {um:g}; it must be between {UM_PER_PX_RANGE[0]:g} and "
+            f"{UM_PER_PX_RANGE[1]:g} um per px (or null)"
+        )
+    size = data.get("image_size")
+    if size is not None and max(size) > MAX_IMAGE_SIDE:
+        raise InputFileError(
+            f"{source}: field 'image_size' is {size[0]}x{size[1]}; a side over {MAX_IMAGE_SIDE} px is "
+            "not a camera image"
+        )
+    bounds = data.get("bounds")
+    if bounds is not None and not (bounds[0] < bounds[2] and bounds[1] < bounds[3]):
+        raise InputFileError(
+            f"{source}: field 'bounds' is {bounds}; it must be [x_min, y_min, x_max, y_max] with "
+            "x_min < x_max and y_min < y_max"
+        )
+    hull = data.get("hull")
+    if hull is not None and len(hull) < 3:
+        raise InputFileError(
+            f"{source}: field 'hull' has {len(hull)} vertices; a convex hull needs at least 3 (or null)"
+        )
+
+
+def check_model_region(calibration, size: tuple[int, int] | None = None, *, source: str = "calibration"):
+    """Refuse a model that is not finite or folds over (Jacobian determinant <= 0) where it is
+    applied: over the reference points' ``bounds``, the calibration's ``image_size`` frame,
+    and the frame of ``size = (width, height)`` px if given (the image it is applied to).
+
+    The model is evaluated on a :data:`CHECK_GRID` x :data:`CHECK_GRID` grid over each region.
+    Raises :class:`InputFileError` naming the first bad point.
+
+    >>> from oapcal.model import params_from_dict
+    >>> check_model_region(params_from_dict({"k1": 1e-7}), (640, 480))
+    >>> try:
+    ...     check_model_region(params_from_dict({"k1": -1e-5}), (640, 480), source="c.json")
+    ... except InputFileError as e:
+    ...     print(str(e)[:60])
+    c.json: the model folds over at (x, y) = (189.703, 0) inside
+    """
+    from oapcal.model import distort, jacobian_determinant
+
+    params = np.asarray(getattr(calibration, "params", calibration), float)
+    regions = []
+    bounds = getattr(calibration, "bounds", None)
+    if bounds is not None:
+        regions.append((tuple(float(b) for b in bounds), "reference points' bounds"))
+    for frame in (getattr(calibration, "image_size", None), size):
+        if frame is not None:
+            w, h = int(frame[0]), int(frame[1])
+            regions.append(((0.0, 0.0, float(max(w - 1, 1)), float(max(h - 1, 1))), f"{w}x{h} px image"))
+    with np.errstate(all="ignore"):
+        for (x0, y0, x1, y1), what in regions:
+            gx, gy = np.meshgrid(np.linspace(x0, x1, CHECK_GRID), np.linspace(y0, y1, CHECK_GRID))
+            xy = np.stack([gx.ravel(), gy.ravel()], -1)
+            det = jacobian_determinant(xy, params)
+            bad = ~(np.isfinite(distort(xy, params)).all(-1) & np.isfinite(det) & (det > 0))
+            if bad.any():
+                x, y = xy[np.argmax(bad)]
+                how = "folds over" if np.isfinite(det[np.argmax(bad)]) else "is not finite"
+                raise InputFileError(
+                    f"{source}: the model {how} at (x, y) = ({x:.6g}, {y:.6g}) inside the {what}; "
+                    "it cannot correct there (refit with more points or a smaller model)"
+                )
+
+
 def save_calibration(calibration: Calibration, path: str | Path) -> None:
     """Write a calibration file atomically (``-`` writes to stdout)."""
     text = json.dumps(calibration.to_dict(), indent=2) + "\n"
@@ -175,10 +305,16 @@ def save_calibration(calibration: Calibration, path: str | Path) -> None:
         fh.write(text)
 
 
-def load_calibration(path: str | Path) -> Calibration:
-    """Read and validate a calibration file; errors name the file and the bad field."""
+def load_calibration(path: str | Path, image_size: tuple[int, int] | None = None) -> Calibration:
+    """Read and validate a calibration file; errors name the file and the bad field.
+
+    With ``image_size = (width, height)`` the model must also be finite and not fold over on
+    that image (:func:`check_model_region`)."""
     name = str(path)
     data = read_json(
         path, "calibration file", missing="no such calibration file; run 'oapcal fit' to make one"
     )
-    return Calibration.from_dict(data, source=name)
+    cal = Calibration.from_dict(data, source=name)
+    if image_size is not None:
+        check_model_region(cal, image_size, source=name)
+    return cal
