@@ -1,0 +1,94 @@
+"""The public API: the names at the top level, what they are, and a cheap ``import oapcal``."""
+
+import inspect
+import subprocess
+import sys
+
+import pytest
+
+import oapcal
+
+#: The curated top level. A change here is a change of the public API: update the
+#: README and docs/architecture.md with it.
+PUBLIC = {
+    "__version__",
+    "PARAM_NAMES",
+    "PRESETS",
+    "parse_model",
+    "distort",
+    "undistort",
+    "fit",
+    "FitResult",
+    "calibrate",
+    "correction_residuals",
+    "select_models",
+    "Selection",
+    "cross_validate",
+    "robustness",
+    "Robustness",
+    "Calibration",
+    "load_calibration",
+    "save_calibration",
+    "PointPairs",
+    "read_points",
+    "write_point_pairs",
+    "correction_map",
+    "CorrectionMap",
+    "correct_image",
+    "relay_distortion",
+    "usaf_target",
+    "simulate_image",
+    "detect_usaf",
+    "OapcalError",
+    "InputFileError",
+    "DataError",
+    "ModelSpecError",
+}
+
+
+def test_all_is_pinned():
+    assert set(oapcal.__all__) == PUBLIC
+    assert len(oapcal.__all__) == len(set(oapcal.__all__))
+
+
+@pytest.mark.parametrize("name", sorted(PUBLIC - {"__version__"}))
+def test_each_name_resolves_and_is_documented(name):
+    value = getattr(oapcal, name)
+    if callable(value):
+        assert inspect.getdoc(value), f"oapcal.{name} has no docstring"
+    assert name in dir(oapcal)
+
+
+def test_unknown_name_is_an_attribute_error():
+    with pytest.raises(AttributeError, match="no attribute 'nonexistent'"):
+        oapcal.nonexistent  # noqa: B018
+
+
+def test_errors_are_value_errors():
+    assert issubclass(oapcal.DataError, oapcal.OapcalError)
+    assert issubclass(oapcal.OapcalError, ValueError)
+
+
+def test_import_is_cheap():
+    code = (
+        "import sys, oapcal; heavy = [m for m in ('numba', 'matplotlib', 'dask', 'cv2', 'scipy') "
+        "if m in sys.modules]; print(','.join(heavy))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""
+
+
+def test_the_readme_example_runs(tmp_path):
+    """The README's Python example, against the top level only."""
+    import numpy as np
+
+    from oapcal.synthetic import synthetic_pairs
+
+    data = synthetic_pairs(seed=1)
+    cal = oapcal.calibrate(data.xy_u, data.xy_d, model="paper", um_per_px=4.8, image_size=(640, 480))
+    oapcal.save_calibration(cal, tmp_path / "calib.json")
+    back = oapcal.load_calibration(tmp_path / "calib.json")
+    np.testing.assert_allclose(back.params, cal.params)
+    corrected = oapcal.undistort(data.xy_d, back.params)
+    assert corrected.converged.all()
+    assert np.abs(corrected.xy - data.xy_u).max() < 2.0  # the synthetic pairs' noise is 0.3 px
