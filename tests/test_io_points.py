@@ -77,3 +77,23 @@ def test_missing_binary_and_non_utf8_files(tmp_path):
 def test_only_required_columns(tmp_path):
     pts = read_points(write(tmp_path, "x_d,y_d\n1,2\n3,5\n4,1\n"), require=("x_d", "y_d"))
     assert np.isnan(pts.xy_u).all() and pts.xy_d.shape == (3, 2)
+
+
+def test_points_spread_below_float_resolution_are_refused(tmp_path):
+    """Issue 14 item 6: coordinates near 1e-300 once fitted to k1 = inf with exit 0."""
+
+    path = tmp_path / "tiny.csv"
+    path.write_text(
+        "x_u,y_u,x_d,y_d\n0,0,0,0\n1e-300,0,1e-300,0\n0,1e-300,0,1e-300\n1e-300,1e-300,1e-300,1e-300\n"
+    )
+    with pytest.raises(DataError, match=r"tiny\.csv: the reference points spread over only 1e-300 x 1e-300"):
+        read_points(path)
+
+
+def test_landmarks_spread_below_float_resolution_are_refused(tmp_path):
+    from oapcal.io.landmarks import read_landmark_pairs
+
+    (tmp_path / "d.csv").write_text("id,x,y\na,0,0\nb,1e-300,0\nc,0,1e-300\nd,1e-300,1e-300\n")
+    (tmp_path / "r.csv").write_text("id,x,y\na,0,0\nb,10,0\nc,0,10\nd,10,10\n")
+    with pytest.raises(DataError, match=r"d\.csv: the paired distorted landmark points spread over only"):
+        read_landmark_pairs(tmp_path / "d.csv", tmp_path / "r.csv", pair_by="id")

@@ -187,7 +187,9 @@ def check_output(out: str | None, *inputs) -> None:
 
 def print_json(obj) -> None:
     """Print one JSON object on stdout."""
-    sys.stdout.write(json.dumps(obj, indent=2, allow_nan=False, default=_json_default) + "\n")
+    from oapcal.io.jsonfile import json_safe
+
+    sys.stdout.write(json.dumps(json_safe(obj), indent=2, allow_nan=False, default=_json_default) + "\n")
 
 
 def _json_default(value):

@@ -67,6 +67,7 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
         pairs.xy_u, pairs.xy_d, model, init=init, normalization=normalization,
         um_per_px=um_per_px, image_size=size, source=pairs.source,
     )  # fmt: skip
+    _check_fit_usable(cal, pairs.source)
     if out is not None:
         save_calibration(cal, out)
     if as_json:
@@ -77,6 +78,34 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
         click.echo(f"oapcal: warning: the fit did not converge: {cal.fit['message']}", err=True)
         return 3
     return 0
+
+
+class FitFailed(click.ClickException):
+    """The fit ran but gave no usable model (exit 3, nothing written)."""
+
+    exit_code = 3
+
+    def show(self, file=None):
+        click.echo(f"oapcal: error: {self.format_message()}", err=True)
+
+
+def _check_fit_usable(cal, source: str) -> None:
+    """Refuse to write or report a fit whose numbers are not finite or whose model folds over
+    on its own points (exit 3)."""
+    import numpy as np
+
+    from oapcal.errors import InputFileError
+    from oapcal.io.calibration import check_model_region
+
+    if not np.isfinite(cal.params).all():
+        raise FitFailed(
+            f"{source}: the fit gave non-finite parameters (the points do not "
+            "determine the model); nothing written. Check the points, or fit a smaller --model"
+        )
+    try:
+        check_model_region(cal, source=source)
+    except InputFileError as exc:
+        raise FitFailed(f"{exc}; nothing written") from None
 
 
 def fit_summary(cal) -> dict:

@@ -185,7 +185,38 @@ def _check_duplicates(xy: np.ndarray, label: str, pairs: PointPairs) -> None:
         )
 
 
+#: Smallest spread (max - min, in x and in y) of a point set, absolutely and relative to its
+#: largest coordinate: below it the fit's arithmetic loses the points' layout.
+MIN_SPREAD = 1e-6
+MIN_RELATIVE_SPREAD = 1e-9
+
+
+def check_spread(xy: np.ndarray, label: str, source: str) -> None:
+    """Refuse degenerate coordinates (raises :class:`DataError`): spread over less than
+    :data:`MIN_SPREAD` units in x or y, or less than :data:`MIN_RELATIVE_SPREAD`
+    of their size (e.g. all near 1e-300, or 1e8 +- 1e-3).
+
+    >>> try:
+    ...     check_spread(np.array([[0, 0], [1e-300, 2e-300], [3e-300, 0]]), "reference", "p.csv")
+    ... except DataError as e:
+    ...     print(str(e)[:60])
+    p.csv: the reference points spread over only 3e-300 x 2e-300
+    """
+    xy = np.asarray(xy, float)
+    if len(xy) == 0 or not np.isfinite(xy).all():
+        return
+    size = float(np.abs(xy).max())
+    spread = xy.max(axis=0) - xy.min(axis=0)
+    if spread.min() < max(MIN_SPREAD, MIN_RELATIVE_SPREAD * size):
+        raise DataError(
+            f"{source}: the {label} points spread over only {spread[0]:.3g} x {spread[1]:.3g} units; "
+            f"a fit needs them spread over at least {MIN_SPREAD:g} units (and {MIN_RELATIVE_SPREAD:g} of "
+            "their size) in both x and y; check the units and the columns"
+        )
+
+
 def _check_collinear(xy: np.ndarray, label: str, pairs: PointPairs) -> None:
+    check_spread(xy, label, pairs.source)
     if len(xy) < 3:
         return
     centred = xy - xy.mean(axis=0)

@@ -323,6 +323,9 @@ def _check_geometry(pairs: PointPairs) -> None:
                     f"same point ({p[0]:g}, {p[1]:g}); remove the duplicate"
                 )
             seen[p] = i
+        from oapcal.io.points import check_spread
+
+        check_spread(xy, f"paired {label} landmark", where[0].split(": ")[0])
         if len(xy) >= 3:
             sv = np.linalg.svd(xy - xy.mean(axis=0), compute_uv=False)
             if sv[0] == 0 or sv[1] <= 1e-9 * sv[0]:

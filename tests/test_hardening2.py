@@ -1,0 +1,84 @@
+"""Hardening, round two: absurd options, degenerate data, the environment's errors,
+multi-output commands, terminal safety.  Each test is a case that once crashed, hung or
+wrote something wrong; every failure must be one line on stderr, exit 2 (3 for a fit that
+gives no usable model) and nothing written."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from oapcal.calibrate import calibrate
+from oapcal.io.calibration import save_calibration
+from oapcal.io.points import write_point_pairs
+from oapcal.synthetic import synthetic_pairs
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("inputs")
+    data = synthetic_pairs(n_x=6, n_y=5, seed=3)
+    write_point_pairs(d / "points.csv", data.xy_u, data.xy_d)
+    save_calibration(calibrate(data.xy_u, data.xy_d, um_per_px=4.8, image_size=(640, 480)), d / "calib.json")
+    return {"points": d / "points.csv", "calib": d / "calib.json", "xy_u": data.xy_u, "xy_d": data.xy_d}
+
+
+def one_error(code, err, expect_code=2):
+    assert code == expect_code, err
+    assert err.startswith("oapcal: error: ") and err.count("\n") == 1, repr(err)
+
+
+def nothing_in(directory: Path):
+    assert [p.name for p in directory.iterdir()] == []
+
+
+# -- item 6: degenerate points ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scale,shift", [(1e-300, 0), (1e-6, 1e11)])
+@pytest.mark.parametrize("as_json", [False, True])
+def test_fit_on_degenerate_points_is_exit_2(run_cli, files, tmp_path, scale, shift, as_json):
+    path = tmp_path / "tiny.csv"  # all near 1e-300, or 1e11 +- 1e-3: the layout is lost in rounding
+    write_point_pairs(path, files["xy_u"] * scale + shift, files["xy_d"] * scale + shift)
+    out = tmp_path / "out"
+    out.mkdir()
+    code, stdout, err = run_cli("fit", path, "--out", out / "c.json", *(["--json"] if as_json else []))
+    one_error(code, err)
+    assert "tiny.csv: the reference points" in err and stdout == ""
+    nothing_in(out)
+
+
+def test_fit_with_non_finite_result_is_exit_3_and_writes_nothing(run_cli, files, tmp_path, monkeypatch):
+    import oapcal.calibrate
+
+    real = oapcal.calibrate.calibrate
+
+    def broken(*args, **kwargs):
+        cal = real(*args, **kwargs)
+        cal.params[0] = np.inf
+        return cal
+
+    monkeypatch.setattr(oapcal.calibrate, "calibrate", broken)
+    code, stdout, err = run_cli("fit", files["points"], "--out", tmp_path / "c.json", "--json")
+    one_error(code, err, 3)
+    assert "non-finite parameters" in err and "nothing written" in err and stdout == ""
+    nothing_in(tmp_path)
+
+
+def test_fit_whose_model_folds_inside_the_image_is_not_written(run_cli, tmp_path):
+    from oapcal.model import distort, params_from_dict
+
+    # barrel distortion fitted on 640x480: it turns back about 1300 px from the centre
+    gx, gy = np.meshgrid(np.linspace(0, 639, 12), np.linspace(0, 479, 9))
+    xy_u = np.stack([gx.ravel(), gy.ravel()], -1)
+    truth = params_from_dict({"k1": -2e-7, "x_off": -320, "y_off": -240, "c_x": 320, "c_y": 240, "m": 1})
+    write_point_pairs(tmp_path / "p.csv", xy_u, distort(xy_u, truth))
+    out = tmp_path / "out"
+    out.mkdir()
+    code, _, err = run_cli("fit", tmp_path / "p.csv", "--out", out / "c.json", "--image-size", "640x480")
+    assert code == 0, err
+    (out / "c.json").unlink()
+    code, _, err = run_cli("fit", tmp_path / "p.csv", "--out", out / "c.json", "--image-size", "4000x4000")
+    one_error(code, err, 3)
+    assert "folds over" in err and "4000x4000 px image" in err and "nothing written" in err
+    nothing_in(out)
