@@ -1,4 +1,4 @@
-"""The USAF-1951 resolution target: geometry, bar-corner table and an area-sampled renderer.
+"""The USAF-1951 resolution target: its true layout, bar-corner table and an area-sampled renderer.
 
 Numbers of the standard (MIL-STD-150A, the 1951 USAF resolving power test target):
 
@@ -8,16 +8,29 @@ Numbers of the standard (MIL-STD-150A, the 1951 USAF resolving power test target
 * each element is a horizontal and a vertical *triplet*: three bars ``w`` wide and ``5 w``
   long separated by gaps ``w`` wide (a triplet is a ``5 w x 5 w`` square);
 * groups come in pairs (even ``g``, odd ``g + 1``), called *layers*; each layer is the next
-  larger one scaled by 1/4 and nested in its centre.  Within a layer the odd group's
-  elements 1-6 run down the right side from the upper right corner; the even group's
-  element 1 is at the lower right and its elements 2-6 run down the left side.
+  larger one scaled by 1/4 and nested inside it.
 
-oapcal's layout choices where the standard's drawing gives dimensions we do not reproduce
-(``docs/usaf.md``): inside an element the horizontal-bar triplet is on the left, the
-vertical-bar triplet on the right, ``2 w`` apart; consecutive elements in a column are
-``2 w`` apart (``w`` of the lower element); the two columns of a layer leave a ``2 w1`` gap
-(``w1`` = bar width of the even group's element 1) around the hole that holds the next
-layer.  Digits and the reference squares are not drawn: only bars carry landmarks.
+The layout of a layer, in units of ``w1`` (bar width of the even group's element 1), as
+drawn by the standard's target and measured on real targets (``docs/usaf.md``):
+
+* the even group's elements 2-6 form the *left column*, left-aligned, drawn "digit,
+  horizontal bars, vertical bars" from left to right, the two triplets ``2 w`` apart;
+* the odd group's elements 1-6 form the *right column*, right-aligned, drawn "vertical bars,
+  horizontal bars, digit"; both columns start at the top of the layer and each element is
+  ``2 w`` (of the element above) below the one above, i.e. element tops are ``7 w`` apart;
+* the even group's element 1 is drawn like the right column ("vertical, horizontal,
+  digit"), right-aligned and bottom-aligned with the left column: the layer is a square of
+  side ``S = 7 (F + F^2 + F^3 + F^4) + 5 F^5 = 23.96 w1``, ``F = 2^(-1/6)``;
+* the reference square fills the gap between the left column's element 2 (``2 w2`` from
+  it) and the right column's element 1 (``2 w`` of that element from it), top-aligned;
+* the next layer (scaled 1/4) sits below the square, between the columns, at
+  ``(11.90, 9.07) w1`` (its top-left corner; measured, see ``docs/usaf.md``);
+* group numbers stand above the columns, element numbers beside each element (the
+  boxes :attr:`UsafTarget.labels` are approximate: they are for masking, not landmarks).
+
+Makers differ in the size of the square, in the gap between the columns and in the
+position and mirroring of the nested layers; :data:`LAYOUTS` holds the layouts measured on
+real targets (``"compact"`` is the default).
 
 Coordinates: object space in um, x to the right and y *down* (as in the image), origin at
 the centre of the nested spiral of layers.  Every bar corner has an id such as
@@ -26,8 +39,8 @@ the centre of the nested spiral of layers.  Every bar corner has an id such as
 2 bottom-right, 3 bottom-left.
 
 >>> t = usaf_target((4, 5))
->>> len(t.bars), len(t.corner_ids)
-(72, 288)
+>>> len(t.bars), len(t.corner_ids), len(t.squares)
+(72, 288, 1)
 >>> round(bar_width_um(4, 1), 4), round(line_pairs_per_mm(5, 6), 2)
 (31.25, 57.02)
 """
@@ -40,8 +53,8 @@ import numpy as np
 
 from oapcal.errors import DataError
 
-#: Gap between the triplets of an element, between elements and around the nested layer,
-#: in bar widths (oapcal's layout choice, see the module docstring).
+#: Gap between the two triplets of an element and between consecutive elements of a column,
+#: in bar widths of the element (of the upper element between elements).  MIL-STD-150A layout.
 GAP_W = 2.0
 #: Corner order of a bar: top-left, top-right, bottom-right, bottom-left (y down).
 CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
@@ -142,44 +155,159 @@ def parse_groups(text: str | tuple | list) -> tuple[int, ...]:
 
 # --------------------------------------------------------------------------- layout
 
+#: Ratio of the bar widths of consecutive elements.
+F = 2.0 ** (-1.0 / 6.0)
+#: Side of a layer (height of the left column), in w1 = bar width of the even group's element 1.
+LAYER_SIZE_W1 = 7.0 * (F + F**2 + F**3 + F**4) + 5.0 * F**5
 
-def _layer_local() -> tuple[list[tuple[int, int, float, float, float]], np.ndarray, np.ndarray]:
-    """One layer in units of ``w1`` (even group, element 1), origin at its top-left corner.
 
-    Returns the elements as ``(group offset 0|1, element, w, x_left, y_top)``, the layer's
-    bounding-box centre and the centre of its hole (where the next layer goes).
+@dataclass(frozen=True)
+class UsafLayout:
+    """Where a maker's target puts what the standard leaves open, in units of ``w1``.
+
+    ``extra_width_w1``: added to the layer's width between the square and the right column
+    (0: the layer is a square of side :data:`LAYER_SIZE_W1`); ``square_height_w1``: height of
+    the reference square (None: as wide as it is); ``inner_offset_w1``: top-left corner of the
+    next layer inside a layer; ``mirrored_layers``: even groups whose layer is drawn mirrored
+    left-right (odd group on the left), as some whole-target prints do.
     """
-    r = 2.0 ** (-1.0 / 6.0)
-    w_even = {e: r ** (e - 1) for e in range(1, 7)}
-    w_odd = {e: 0.5 * r ** (e - 1) for e in range(1, 7)}
-    width = lambda w: (10.0 + GAP_W) * w  # noqa: E731  two 5w triplets and a gap
-    height = lambda w: 5.0 * w  # noqa: E731
-    left_w = max(width(w_even[e]) for e in range(2, 7))
-    right_w = max(width(w_odd[e]) for e in range(1, 7))
-    # Layer width W: left column, gap, hole (the next layer, W/4 wide), gap, right column.
-    total_w = (left_w + 2 * GAP_W + right_w) / (1.0 - 0.25)
-    elements = []
+
+    name: str
+    inner_offset_w1: tuple[float, float]
+    extra_width_w1: float = 0.0
+    square_height_w1: float | None = None
+    mirrored_layers: tuple[int, ...] = ()
+
+    @property
+    def width_w1(self) -> float:
+        return LAYER_SIZE_W1 + self.extra_width_w1
+
+
+#: Layouts measured on real targets (``docs/usaf.md``).  ``compact``: chrome-on-glass targets of
+#: current makers (the Fourier-ptychography and the LAB-UMK images; the same drawing as
+#: public renderings of the standard); ``whole-target``: the digitised whole target with the
+#: header "RESOLVING POWER TEST TARGET" (wider, taller square; layer 0-1 mirrored).
+LAYOUTS: dict[str, UsafLayout] = {
+    "compact": UsafLayout("compact", inner_offset_w1=(11.90, 9.07)),
+    "whole-target": UsafLayout(
+        "whole-target",
+        inner_offset_w1=(12.9, 9.3),
+        extra_width_w1=2.1,
+        square_height_w1=7.4,
+        mirrored_layers=(0,),
+    ),
+}
+
+# Approximate label boxes (measured on the compact target), w1 units: digit heights and the
+# gap between a digit and its triplet.  Labels are for masking only.
+_DIGIT_H_EVEN, _DIGIT_H_ODD, _GROUP_H = 2.4, 1.45, 2.95
+_CHAR_W = 0.62  # width of one character per unit of height
+
+
+def layout(name_or_layout: str | UsafLayout | None = None) -> UsafLayout:
+    """A :class:`UsafLayout` from its name in :data:`LAYOUTS` (None: ``"compact"``)."""
+    if isinstance(name_or_layout, UsafLayout):
+        return name_or_layout
+    key = "compact" if name_or_layout is None else name_or_layout
+    try:
+        return LAYOUTS[key]
+    except KeyError:
+        raise DataError(f"layout {key!r}: use one of {', '.join(LAYOUTS)}") from None
+
+
+def _label_box(text: str, height: float, *, cx=None, x_left=None, x_right=None, cy=None, bottom=None):
+    wd = _CHAR_W * height * len(text)
+    if cx is not None:
+        x0 = cx - wd / 2
+    elif x_left is not None:
+        x0 = x_left
+    else:
+        x0 = x_right - wd
+    y0 = cy - height / 2 if cy is not None else bottom - height
+    return (x0, y0, x0 + wd, y0 + height)
+
+
+def _layer_local(lay: UsafLayout, g_even: int):
+    """One unmirrored layer in units of ``w1``, origin at its top-left corner.
+
+    Returns triplets ``(group, element, "H"|"V", w, x0, y0)`` (the triplet's ``5 w`` square),
+    squares ``(x0, y0, x1, y1)`` and labels ``(kind, group, element, text, box)``.
+    """
+    size, width = LAYER_SIZE_W1, lay.width_w1
+    trip, labels = [], []
     y = 0.0
-    for e in range(2, 7):  # even group elements 2-6 down the left side
-        if e > 2:
-            y += GAP_W * w_even[e]
-        elements.append((0, e, w_even[e], 0.0, y))
-        y += height(w_even[e])
-    left_h = y
+    for e in range(2, 7):  # even group, left column: digit, H, V
+        w = F ** (e - 1)
+        trip += [(g_even, e, "H", w, 0.0, y), (g_even, e, "V", w, 7.0 * w, y)]
+        labels.append(
+            ("element", g_even, e, str(e), _label_box(str(e), _DIGIT_H_EVEN, x_right=-1.55, cy=y + 2.5 * w))
+        )
+        y += 7.0 * w
     y = 0.0
-    for e in range(1, 7):  # odd group elements 1-6 down the right side from the upper right
-        if e > 1:
-            y += GAP_W * w_odd[e]
-        elements.append((1, e, w_odd[e], total_w - width(w_odd[e]), y))
-        y += height(w_odd[e])
-    y += GAP_W * w_even[1]  # even group element 1 at the lower right
-    elements.append((0, 1, w_even[1], total_w - width(w_even[1]), y))
-    right_h = y + height(w_even[1])
-    total_h = max(left_h, right_h)
-    hole_top, hole_bottom = 0.0, y - GAP_W * w_even[1]
-    hole = np.array([left_w + GAP_W + 0.5 * (total_w / 4), 0.5 * (hole_top + hole_bottom)])
-    bbox_centre = np.array([total_w / 2, total_h / 2])
-    return elements, bbox_centre, hole
+    for e in range(1, 7):  # odd group, right column: V, H, digit
+        w = 0.5 * F ** (e - 1)
+        trip += [(g_even + 1, e, "V", w, width - 12.0 * w, y), (g_even + 1, e, "H", w, width - 5.0 * w, y)]
+        labels.append(
+            (
+                "element",
+                g_even + 1,
+                e,
+                str(e),
+                _label_box(str(e), _DIGIT_H_ODD, x_left=width + 0.75, cy=y + 2.5 * w),
+            )
+        )
+        y += 7.0 * w
+    y1 = size - 5.0  # even group, element 1: V, H, digit, bottom right
+    trip += [(g_even, 1, "V", 1.0, width - 12.0, y1), (g_even, 1, "H", 1.0, width - 5.0, y1)]
+    labels.append(
+        ("element", g_even, 1, "1", _label_box("1", _DIGIT_H_EVEN, x_left=width + 1.5, cy=size - 2.5))
+    )
+    labels.append(
+        (
+            "group",
+            g_even,
+            1,
+            str(g_even),
+            _label_box(str(g_even), _GROUP_H, x_left=width + 1.5, bottom=y1 - 0.15),
+        )
+    )
+    labels.append(
+        ("group", g_even, 2, str(g_even), _label_box(str(g_even), _GROUP_H, cx=6.0 * F, bottom=-1.35))
+    )
+    labels.append(
+        (
+            "group",
+            g_even + 1,
+            1,
+            str(g_even + 1),
+            _label_box(str(g_even + 1), _GROUP_H, cx=width - 3.0, bottom=-1.35),
+        )
+    )
+    sq_x0, sq_x1 = 14.0 * F, width - 7.0
+    sq_h = lay.square_height_w1 if lay.square_height_w1 is not None else sq_x1 - sq_x0
+    return trip, [(sq_x0, 0.0, sq_x1, sq_h)], labels
+
+
+def _layer_origins(lay: UsafLayout, groups) -> dict[int, tuple[np.ndarray, bool]]:
+    """Top-left corner (um, spiral centre at 0) and mirroring of the layer of every even group."""
+    pos, out, mirrored = np.zeros(2), {}, False
+    g_hi = max(40, max(groups) + 2)
+    for g in range(-2, g_hi + 1, 2):
+        s = bar_width_um(g, 1)
+        mirrored = g in lay.mirrored_layers
+        out[g] = (pos.copy(), mirrored)
+        ox, oy = lay.inner_offset_w1
+        if mirrored:
+            ox = lay.width_w1 - ox - lay.width_w1 / 4
+        pos = pos + s * np.array([ox, oy])
+    limit = pos  # the spiral's centre (layers beyond g_hi are far below a nm)
+    return {g: (p - limit, m) for g, (p, m) in out.items()}
+
+
+def _triplet_bars(orient: str, w: float, x0: float, y0: float) -> list[tuple[float, float, float, float]]:
+    if orient == "H":
+        return [(x0, y0 + 2 * b * w, x0 + 5 * w, y0 + (2 * b + 1) * w) for b in range(3)]
+    return [(x0 + 2 * b * w, y0, x0 + (2 * b + 1) * w, y0 + 5 * w) for b in range(3)]
 
 
 @dataclass(frozen=True)
@@ -190,6 +318,13 @@ class UsafTarget:
     ``bar_orientation`` (``"H"`` or ``"V"``), ``bar_index`` (0..2) describe each bar and
     ``bar_width`` its width w in um.  ``corners_um`` ``(4 n, 2)`` lists the 4 corners of each
     bar in order (corner index 0..3, see :data:`CORNER_NAMES`) with ids ``corner_ids``.
+
+    Not landmarks, but part of the target (for masking or matching): ``squares`` ``(m, 4)``
+    the reference squares of the layers of ``groups`` (``square_group``: the layer's even
+    group); ``labels`` ``(k, 4)`` approximate boxes of the printed numbers with
+    ``label_text``, ``label_kind`` (``"element"`` digit beside an element or ``"group"``
+    number) and ``label_group``, ``label_element`` (for a group number: the element it stands
+    above, 1 or 2 for the even group, 1 for the odd group).
     """
 
     groups: tuple[int, ...]
@@ -201,11 +336,25 @@ class UsafTarget:
     bar_width: np.ndarray
     corner_ids: tuple[str, ...] = field(repr=False)
     corners_um: np.ndarray = field(repr=False)
+    squares: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)), repr=False)
+    square_group: np.ndarray = field(default_factory=lambda: np.zeros(0, int), repr=False)
+    labels: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)), repr=False)
+    label_text: tuple[str, ...] = field(default=(), repr=False)
+    label_kind: tuple[str, ...] = field(default=(), repr=False)
+    label_group: np.ndarray = field(default_factory=lambda: np.zeros(0, int), repr=False)
+    label_element: np.ndarray = field(default_factory=lambda: np.zeros(0, int), repr=False)
+    layout: str = "compact"
 
     @property
     def bbox_um(self) -> np.ndarray:
         """``(x0, y0, x1, y1)`` of all bars."""
         return np.array([*self.bars[:, :2].min(axis=0), *self.bars[:, 2:].max(axis=0)])
+
+    @property
+    def full_bbox_um(self) -> np.ndarray:
+        """``(x0, y0, x1, y1)`` of the bars, squares and labels."""
+        r = np.concatenate([self.bars, self.squares, self.labels])
+        return np.array([*r[:, :2].min(axis=0), *r[:, 2:].max(axis=0)])
 
     @property
     def centre_um(self) -> np.ndarray:
@@ -232,6 +381,12 @@ class UsafTarget:
         order = sorted(keys, key=lambda k: (-self.bar_width[keys[k][0]], k[2]))
         return [np.array(keys[k]) for k in order]
 
+    def triplet_boxes(self) -> np.ndarray:
+        """The ``5 w x 5 w`` square of each triplet of :meth:`triplets` (same order), ``(t, 4)`` um."""
+        return np.array(
+            [[*self.bars[b, :2].min(axis=0), *self.bars[b, 2:].max(axis=0)] for b in self.triplets()]
+        )
+
     def reference_px(
         self, um_per_px: float, image_size: tuple[int, int], orientation: str = "none"
     ) -> np.ndarray:
@@ -248,38 +403,57 @@ class UsafTarget:
         xy = (np.asarray(xy_um, float) - self.centre_um) / float(um_per_px) + centre_px
         return xy if orientation == "none" else orient_px(xy, orientation, image_size)
 
+    def boxes_px(
+        self, boxes_um, um_per_px: float, image_size: tuple[int, int], orientation: str = "none"
+    ) -> np.ndarray:
+        """Any ``(n, 4)`` um boxes (e.g. :attr:`squares`, :attr:`labels`) as rectangles
+        ``x0, y0, x1, y1`` (``x0 < x1``, ``y0 < y1``) in reference px (see :meth:`reference_px`)."""
+        boxes_um = np.asarray(boxes_um, float).reshape(-1, 4)
+        a = self.to_reference_px(boxes_um[:, :2], um_per_px, image_size, orientation)
+        b = self.to_reference_px(boxes_um[:, 2:], um_per_px, image_size, orientation)
+        return np.concatenate([np.minimum(a, b), np.maximum(a, b)], axis=1)
+
     def rectangles_px(
         self, um_per_px: float, image_size: tuple[int, int], orientation: str = "none"
     ) -> np.ndarray:
         """Bars as ``(n, 4)`` rectangles ``x0, y0, x1, y1`` (``x0 < x1``, ``y0 < y1``) in
         reference px (see :meth:`reference_px`)."""
-        a = self.to_reference_px(self.bars[:, :2], um_per_px, image_size, orientation)
-        b = self.to_reference_px(self.bars[:, 2:], um_per_px, image_size, orientation)
-        return np.concatenate([np.minimum(a, b), np.maximum(a, b)], axis=1)
+        return self.boxes_px(self.bars, um_per_px, image_size, orientation)
 
 
-def usaf_target(groups=(4, 5)) -> UsafTarget:
-    """The bars and bar corners of ``groups`` (see the module docstring for the layout)."""
+def usaf_target(groups=(4, 5), layout_name: str | UsafLayout | None = None) -> UsafTarget:
+    """The bars, bar corners, squares and labels of ``groups`` (module docstring for the
+    layout) in the layout ``layout_name`` (:data:`LAYOUTS`, default ``"compact"``)."""
     groups = parse_groups(groups)
-    local, bbox_centre, hole = _layer_local()
-    d = hole - bbox_centre / 4.0
-    rows = []
-    for g in groups:
-        g_even = g - (g % 2)
-        s = bar_width_um(g_even, 1)  # um per layer unit
-        origin = -(4.0 / 3.0) * s * d  # layer origin relative to the spiral centre
-        for odd, e, w, x_left, y_top in local:
-            if g_even + odd != g:
+    lay = layout(layout_name)
+    origins = _layer_origins(lay, groups)
+    width = lay.width_w1
+    rows, squares, square_group, labels = [], [], [], []
+    for g_even in sorted({g - (g % 2) for g in groups}):
+        s = bar_width_um(g_even, 1)
+        origin, mirrored = origins[g_even]
+        trip, sq, lab = _layer_local(lay, g_even)
+
+        def place(box, _o=origin, _s=s, _m=mirrored):
+            x0, y0, x1, y1 = box
+            if _m:
+                x0, x1 = width - x1, width - x0
+            return (_o[0] + _s * x0, _o[1] + _s * y0, _o[0] + _s * x1, _o[1] + _s * y1)
+
+        for g, e, orient, w, x0, y0 in trip:
+            if g not in groups:
                 continue
-            w_um = s * w
-            x0, y0 = origin + s * np.array([x_left, y_top])
-            for orient, tx in (("H", x0), ("V", x0 + (5.0 + GAP_W) * w_um)):
-                for b in range(3):
-                    if orient == "H":
-                        rect = (tx, y0 + 2 * b * w_um, tx + 5 * w_um, y0 + (2 * b + 1) * w_um)
-                    else:
-                        rect = (tx + 2 * b * w_um, y0, tx + (2 * b + 1) * w_um, y0 + 5 * w_um)
-                    rows.append((g, e, orient, b, w_um, rect))
+            bx0, by0, _, _ = place((x0, y0, x0 + 5 * w, y0 + 5 * w))
+            for b, rect in enumerate(_triplet_bars(orient, s * w, bx0, by0)):
+                rows.append((g, e, orient, b, s * w, rect))
+        for box in sq:
+            squares.append(place(box))
+            square_group.append(g_even)
+        for kind, g, e, text, box in lab:
+            if g in groups:
+                labels.append((kind, g, e, text, place(box)))
+    # bars in a fixed order: by group, element, orientation, bar
+    rows.sort(key=lambda r: (r[0], r[1], r[2], r[3]))
     bars = np.array([r[5] for r in rows], float)
     corners = np.stack([bars[:, [0, 1]], bars[:, [2, 1]], bars[:, [2, 3]], bars[:, [0, 3]]], axis=1).reshape(
         -1, 2
@@ -295,6 +469,14 @@ def usaf_target(groups=(4, 5)) -> UsafTarget:
         bar_width=np.array([r[4] for r in rows]),
         corner_ids=ids,
         corners_um=corners,
+        squares=np.array(squares, float).reshape(-1, 4),
+        square_group=np.array(square_group, int),
+        labels=np.array([r[4] for r in labels], float).reshape(-1, 4),
+        label_text=tuple(r[3] for r in labels),
+        label_kind=tuple(r[0] for r in labels),
+        label_group=np.array([r[1] for r in labels], int),
+        label_element=np.array([r[2] for r in labels], int),
+        layout=lay.name,
     )
 
 
@@ -366,6 +548,74 @@ class RenderedTarget:
     um_per_px: float
 
 
+def render_digits(
+    boxes: np.ndarray,
+    texts,
+    shape: tuple[int, int],
+    *,
+    start: tuple[float, float] = (0.0, 0.0),
+    step: float = 1.0,
+    supersample: int = 4,
+) -> np.ndarray:
+    """Coverage ``(rows, cols)`` of printed numbers: each text drawn upright in its box
+    ``x0, y0, x1, y1`` (same cell convention as :func:`render_rectangles`) with OpenCV's
+    Hershey simplex font, stroke about 0.14 of the height, ``supersample``-fold area sampling.
+
+    The standard's digits are another font; these approximate their size, place and ink
+    (about 35 % of the box), enough for masking and for realistic simulated images.
+
+    >>> cov = render_digits(np.array([[2.0, 2.0, 8.0, 12.0]]), ["4"], (14, 10))
+    >>> bool(cov[2:12, 2:8].sum() > 10 and cov[:, :2].sum() == 0)
+    True
+    """
+    import cv2
+
+    rows, cols = int(shape[0]), int(shape[1])
+    out = np.zeros((rows, cols))
+    ss = int(supersample)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for (x0, y0, x1, y1), text in zip(np.asarray(boxes, float).reshape(-1, 4), texts):
+        c0, r0 = (x0 - start[0]) / step + 0.5, (y0 - start[1]) / step + 0.5  # cell-edge units
+        c1, r1 = (x1 - start[0]) / step + 0.5, (y1 - start[1]) / step + 0.5
+        ic0, ir0 = max(0, int(np.floor(c0))), max(0, int(np.floor(r0)))
+        ic1, ir1 = min(cols, int(np.ceil(c1))), min(rows, int(np.ceil(r1)))
+        if ic0 >= ic1 or ir0 >= ir1 or (r1 - r0) * ss < 6:
+            continue
+        hi_h, hi_w = (ir1 - ir0) * ss, (ic1 - ic0) * ss
+        canvas = np.zeros((hi_h, hi_w), np.uint8)
+        box_h, box_w = (r1 - r0) * ss, (c1 - c0) * ss
+        thick = max(1, int(round(0.14 * box_h)))
+        (tw, th), _ = cv2.getTextSize(text, font, 1.0, thick)
+        scale = min((box_h - thick) / th, (box_w - thick) / max(tw, 1))
+        (tw, th), _ = cv2.getTextSize(text, font, scale, thick)
+        ox = (c0 - ic0) * ss + (box_w - tw) / 2
+        oy = (r0 - ir0) * ss + (box_h + th) / 2
+        cv2.putText(canvas, text, (int(round(ox)), int(round(oy))), font, scale, 255, thick, cv2.LINE_AA)
+        block = canvas.reshape(ir1 - ir0, ss, ic1 - ic0, ss).mean(axis=(1, 3)) / 255.0
+        out[ir0:ir1, ic0:ic1] += block
+    return np.clip(out, 0.0, 1.0, out=out)
+
+
+def target_coverage(
+    target: UsafTarget,
+    shape: tuple[int, int],
+    *,
+    start: tuple[float, float] = (0.0, 0.0),
+    step: float = 1.0,
+    squares: bool = True,
+    digits: bool = True,
+) -> np.ndarray:
+    """Coverage of the whole target in object space (cells of ``step`` um, centre of cell
+    ``[0, 0]`` at ``start`` um): bars and squares area-sampled (:func:`render_rectangles`),
+    numbers drawn by :func:`render_digits`."""
+    rects = target.bars if not squares else np.concatenate([target.bars, target.squares])
+    cover = render_rectangles(rects, shape, start=start, step=step)
+    if digits and len(target.labels):
+        cover += render_digits(target.labels, target.label_text, shape, start=start, step=step)
+        np.clip(cover, 0.0, 1.0, out=cover)
+    return cover
+
+
 def render_usaf(
     groups=(4, 5),
     *,
@@ -373,9 +623,14 @@ def render_usaf(
     image_size: tuple[int, int] = (640, 480),
     polarity: str = "bright",
     background: float = 0.05,
+    squares: bool = True,
+    digits: bool = True,
+    layout_name: str | UsafLayout | None = None,
 ) -> RenderedTarget:
     """Render ``groups`` at ``um_per_px`` into an ``image_size`` (w, h) image, area-sampled,
-    with the target's bounding-box centre at the image centre (:meth:`UsafTarget.reference_px`).
+    with the bars' bounding-box centre at the image centre (:meth:`UsafTarget.reference_px`):
+    bars, the reference squares (``squares``) and the printed numbers (``digits``) of the
+    true layout ``layout_name``.
 
     >>> r = render_usaf((4, 5), um_per_px=4.8)
     >>> r.image.shape, r.corners_px.shape
@@ -383,9 +638,13 @@ def render_usaf(
     """
     if not um_per_px > 0:
         raise DataError(f"um_per_px {um_per_px}: must be positive")
-    target = usaf_target(groups)
+    target = usaf_target(groups, layout_name)
     w, h = (int(v) for v in image_size)
-    cover = render_rectangles(target.rectangles_px(um_per_px, (w, h)), (h, w))
+    # reference px -> um: x_um = centre_um + (x_px - c) * S; cell (0, 0) is pixel (0, 0)
+    start = tuple(target.centre_um - (np.array([w, h], float) - 1.0) / 2.0 * um_per_px)
+    cover = target_coverage(
+        target, (h, w), start=start, step=float(um_per_px), squares=squares, digits=digits
+    )
     return RenderedTarget(
         image=intensity(cover, polarity, background),
         corner_ids=target.corner_ids,
