@@ -82,3 +82,103 @@ def test_fit_whose_model_folds_inside_the_image_is_not_written(run_cli, tmp_path
     one_error(code, err, 3)
     assert "folds over" in err and "4000x4000 px image" in err and "nothing written" in err
     nothing_in(out)
+
+
+# -- item 13: the environment's errors ----------------------------------------------------------
+
+_NO_WRITE = Path("/sys")
+
+
+def _unwritable_dir() -> Path:
+    """A directory in which not even root may create files (sysfs)."""
+    import tempfile
+
+    try:
+        fd, name = tempfile.mkstemp(dir=_NO_WRITE)
+    except OSError:
+        return _NO_WRITE
+    import os
+
+    os.close(fd)
+    os.unlink(name)
+    pytest.skip("/sys accepts new files here, so there is no unwritable directory to test with")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        "fit {points} --out {d}/c.json",
+        "report {calib} --out {d}/r.html",
+        "export-opencv {calib} --out {d}/cv.yml",
+        "correct {calib} {img} --out-dir {tmp}/o --save-map {d}/m.npz",
+        "landmarks convert --distorted {points} --x-column x_d --y-column y_d --out {d}/p.csv",
+        "simulate relay --grid 5 --out {d}/g.csv",
+        "select {points} --json {d}/s.json",
+    ],
+)
+def test_unwritable_output_directory_is_a_user_error(run_cli, files, tmp_path, argv):
+    import cv2
+
+    d = _unwritable_dir()
+    cv2.imwrite(str(tmp_path / "img.png"), np.zeros((48, 64), np.uint8))
+    names = {
+        "points": files["points"],
+        "calib": files["calib"],
+        "d": d,
+        "tmp": tmp_path,
+        "img": tmp_path / "img.png",
+    }
+    code, _, err = run_cli(*argv.format(**names).split())
+    one_error(code, err)
+    assert f"{d}/" in err and "cannot create files in /sys" in err and ".tmp" not in err
+
+
+def test_a_write_failing_midway_names_the_output_not_the_temp_file(run_cli, files, tmp_path, monkeypatch):
+    import errno
+    import os
+
+    import oapcal.io.atomic
+
+    def full(tmp, path):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
+
+    monkeypatch.setattr(oapcal.io.atomic, "_publish", full)
+    code, _, err = run_cli("fit", files["points"], "--out", tmp_path / "calib.json")
+    one_error(code, err)
+    assert f"{tmp_path / 'calib.json'}: No space left on device; the disk is full" in err, err
+    nothing_in(tmp_path)
+
+
+def test_unreadable_input_directory_is_a_user_error(run_cli, files, tmp_path, monkeypatch):
+    import errno
+
+    (tmp_path / "raw").mkdir()
+
+    real = Path.iterdir
+
+    def denied(self):  # as chmod 000 would for a user other than root
+        if self.name == "raw":
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        return real(self)
+
+    monkeypatch.setattr(Path, "iterdir", denied)
+    code, _, err = run_cli("correct", files["calib"], tmp_path / "raw", "--out-dir", tmp_path / "out")
+    assert code in (2, 4) and "raw: Permission denied" in err and "internal error" not in err, err
+
+
+def test_json_to_a_full_stdout_is_exit_2():
+    import subprocess
+    import sys
+
+    if not Path("/dev/full").exists():
+        pytest.skip("/dev/full is absent on this system")
+    data = synthetic_pairs(n_x=5, n_y=4, seed=3)
+    rows = "".join(f"{a},{b},{c},{d}\n" for (a, b), (c, d) in zip(data.xy_u, data.xy_d))
+    argv = ["robustness", "-", "--models", "paper", "--trials", "3", "--json", "-"]
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run(
+            [sys.executable, "-m", "oapcal", *argv], input="x_u,y_u,x_d,y_d\n" + rows,
+            stdout=full, stderr=subprocess.PIPE, text=True, timeout=300,
+        )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr == "oapcal: error: standard output: cannot be written (No space left on device)\n"

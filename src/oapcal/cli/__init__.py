@@ -6,7 +6,9 @@ Each subcommand lives in a module of this package and is imported only when it r
 
 * 0 success;
 * 2 a user error: a Click usage error, or any :class:`oapcal.errors.OapcalError`,
-  printed as one line on stderr (no traceback);
+  printed as one line on stderr (no traceback); likewise an error of the environment
+  (an :class:`OSError`: permissions, a full disk, stdout that cannot be written), naming the
+  user's path rather than a temporary file beside it, and running out of memory;
 * 1 an internal error (set ``OAPCAL_DEBUG=1`` to see the traceback);
 * 3 the command ran but a numerical result failed (a fit that did not converge);
 * 4 a batch (``correct``) finished but some inputs failed (each reported on stderr).
@@ -14,9 +16,12 @@ Each subcommand lives in a module of this package and is imported only when it r
 
 from __future__ import annotations
 
+import errno
 import importlib
 import os
+import re
 import sys
+from pathlib import Path
 
 import click
 
@@ -86,6 +91,16 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         click.echo("oapcal: interrupted", err=True)
         return 130
+    except OSError as exc:  # the environment's: permissions, a full disk, a vanished file
+        click.echo(f"oapcal: error: {environment_message(exc)}", err=True)
+        return 2
+    except MemoryError:
+        click.echo(
+            "oapcal: error: not enough memory for this command; choose smaller options "
+            "(image size, grid, trials) or free memory",
+            err=True,
+        )
+        return 2
     except Exception as exc:  # an internal error, not the user's
         if os.environ.get("OAPCAL_DEBUG"):
             raise
@@ -95,4 +110,51 @@ def main(argv: list[str] | None = None) -> int:
             err=True,
         )
         return 1
-    return result if isinstance(result, int) else 0
+    code = result if isinstance(result, int) else 0
+    try:
+        sys.stdout.flush()
+    except OSError as exc:
+        _silence_stdout()
+        click.echo(f"oapcal: error: standard output: cannot be written ({exc.strerror})", err=True)
+        return 2
+    return code
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's final flush of data that could not
+    be written does not print a second error."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        pass
+
+
+#: A temporary file of :mod:`oapcal.io.atomic`: ``.NAME.RANDOM.tmp`` or ``.STEM.RANDOM.tmpSUFFIX``.
+_TEMP_NAME = re.compile(r"^\.(?P<stem>.+)\.[A-Za-z0-9_]{8}\.tmp(?P<suffix>\.[^.]*)?$")
+
+
+def environment_message(exc: OSError) -> str:
+    """One line for an :class:`OSError` from the environment, naming the user's path (the
+    destination, not a hidden temporary file beside it) and what to do."""
+    if exc.filename is None and exc.errno in (errno.EPIPE, errno.ENOSPC, errno.EBADF):
+        _silence_stdout()
+        return f"standard output: cannot be written ({exc.strerror or exc})"
+    name = "" if exc.filename is None else os.fsdecode(exc.filename)
+    if name:
+        path = Path(name)
+        m = _TEMP_NAME.match(path.name)
+        if m:
+            name = str(path.with_name(m["stem"] + (m["suffix"] or "")))
+    what = exc.strerror or str(exc)
+    hint = {
+        errno.EACCES: "check the permissions",
+        errno.EPERM: "check the permissions",
+        errno.EROFS: "the file system is read-only; choose another place",
+        errno.ENOSPC: "the disk is full; free space or choose another place",
+        errno.EDQUOT: "the disk quota is exceeded; free space or choose another place",
+        errno.ENOENT: "check the path",
+        errno.ENAMETOOLONG: "choose a shorter name",
+    }.get(exc.errno, "check the path and the disk")
+    return f"{name or 'a file'}: {what}; {hint}"

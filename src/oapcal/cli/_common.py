@@ -174,7 +174,9 @@ def load_pairs(points, require=("x_u", "y_u", "x_d", "y_d")):
 
 
 def check_output(out: str | None, *inputs) -> None:
-    """Refuse an output path that would overwrite one of the inputs."""
+    """Refuse, before any work, an output path that would overwrite one of the inputs, whose
+    directory does not exist, or in which no file can be created (permissions, a read-only
+    file system: tried by creating and removing an empty temporary file)."""
     if out is None or out == "-":
         return
     from oapcal.io.atomic import ensure_not_input
@@ -183,6 +185,37 @@ def check_output(out: str | None, *inputs) -> None:
     for item in inputs:
         paths.extend(item.paths if isinstance(item, PointsSource) else [item])
     ensure_not_input(out, paths)
+    check_writable(out)
+
+
+def check_writable(out) -> None:
+    """Raise :class:`~oapcal.errors.OutputError` naming ``out`` unless a file can be created
+    in its directory, and ``out`` is not a directory."""
+    import errno
+    import os
+    import tempfile
+    from pathlib import Path
+
+    from oapcal.errors import OutputError
+
+    path = Path(out)
+    directory = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise OutputError(f"{out}: is a directory; give a file name for this output")
+    if not directory.is_dir():
+        what = "is not a directory" if directory.exists() else "does not exist; create it first"
+        raise OutputError(f"{out}: the output directory {directory} {what}")
+    if len(os.fsencode(path.name)) > 255:
+        raise OutputError(f"{out}: the file name is longer than 255 bytes; choose a shorter name")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".oapcal-", suffix=".probe", dir=directory)
+    except OSError as exc:
+        hint = "the file system is read-only" if exc.errno == errno.EROFS else "check its permissions"
+        raise OutputError(
+            f"{out}: cannot create files in {directory} ({exc.strerror}); {hint} or choose another place"
+        ) from None
+    os.close(fd)
+    os.unlink(tmp)
 
 
 def print_json(obj) -> None:
