@@ -67,6 +67,7 @@ def run_demo(
     from oapcal.io.images import write_image
     from oapcal.io.jsonfile import write_json
     from oapcal.io.points import read_points, write_point_pairs
+    from oapcal.io.results import save_robustness, save_selection
     from oapcal.model import distort
     from oapcal.optics import relay_distortion
     from oapcal.optics.plot import plot_grid
@@ -95,7 +96,7 @@ def run_demo(
     start("select")
     selection = select_models(grid_u, grid_d, normalization="grid", init="zero")
     files["model selection"] = out / "selection.json"
-    write_json(files["model selection"], selection.to_dict())
+    save_selection(selection, files["model selection"])
     # In camera px the origin is the image corner, not the distortion centre, so the centre
     # terms (x_off, y_off, c_x, c_y) are always needed there; the selection on the centred
     # grid decides the distortion terms.  (The paper likewise added x_off to its choice.)
@@ -142,7 +143,7 @@ def run_demo(
             init="pixel",
         )  # fmt: skip
         files["robustness"] = out / "robustness.json"
-        write_json(files["robustness"], rob.to_dict())
+        save_robustness(rob, files["robustness"])
 
     # 7. the corrected image
     start("correct")

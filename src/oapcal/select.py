@@ -72,6 +72,8 @@ from oapcal.normalize import normalize
 from oapcal.records import finite_or_none
 from oapcal.stats import information_criteria
 
+#: Codes of the reasons a model of a selection is invalid (``ModelScore.reason_code``).
+INVALID_REASONS = ("not_converged", "too_few_residuals", "inverse_failed", "aicc_not_finite")
 #: Reasons a robustness trial does not converge, in the order they are tested.
 REASONS = ("non_finite", "iteration_cap", "stalled", "folded", "wrong_minimum")
 _STATUS_REASON = {-1: "non_finite", 0: "iteration_cap", -2: "stalled"}
@@ -89,7 +91,8 @@ class ModelScore:
     ``k`` is the number of free parameters (``m`` included; AICc uses ``K = k + 1``);
     ``rss`` the sum of squared corrected-minus-reference residuals in the coordinates of
     the fit (after normalization); ``mean_error`` the mean Euclidean corrected error in
-    the units of the reference points as given; ``reason`` is empty for a valid model.
+    the units of the reference points as given; ``reason`` is empty for a valid model,
+    else a message whose kind is ``reason_code`` (one of :data:`INVALID_REASONS`).
     ``cv_mean_error`` is the cross-validated mean error on held-out points (same units),
     ``None`` unless cross-validation ran for this model.
     """
@@ -107,6 +110,7 @@ class ModelScore:
     fit_status: int
     cv_mean_error: float | None = None
     cv_failed: int = 0
+    reason_code: str = ""
 
     def to_dict(self) -> dict:
         """The JSON entry: ``free k aicc delta_aicc weight rss valid reason`` and extras."""
@@ -119,6 +123,8 @@ class ModelScore:
             "rss": finite_or_none(self.rss),
             "valid": self.valid,
             "reason": self.reason,
+            "reason_code": self.reason_code,
+            "fit_status": self.fit_status,
             "mean_error": finite_or_none(self.mean_error),
             "bits": self.bits,
         }
@@ -237,24 +243,28 @@ def select_models(
     scores = score_models(u, d, masks, init, max_iter=max_iter, progress=progress)
     k = masks.sum(axis=1)
     big_k = k + 1
-    reasons = []
+    reasons, codes = [], []
     for i in range(len(masks)):
         status = int(scores["status"][i])
         if status <= 0:
             why = STATUS_MESSAGES[status].removeprefix("not converged: ")
-            reasons.append(f"fit did not converge ({why})")
+            code, reason = "not_converged", f"fit did not converge ({why})"
         elif n - big_k[i] - 1 <= 0:
-            reasons.append(f"too few residuals for AICc: n - K - 1 = {n - big_k[i] - 1} <= 0")
+            code = "too_few_residuals"
+            reason = f"too few residuals for AICc: n - K - 1 = {n - big_k[i] - 1} <= 0"
         elif scores["n_bad"][i]:
-            reasons.append(
+            code = "inverse_failed"
+            reason = (
                 f"inverse failed at {scores['n_bad'][i]} of {n_points} points "
                 f"({scores['n_folded'][i]} where the fitted map folds over)"
             )
         elif not np.isfinite(scores["aicc"][i]):
-            reasons.append(f"AICc is not finite (RSS = {scores['rss'][i]:.3g})")
+            code, reason = "aicc_not_finite", f"AICc is not finite (RSS = {scores['rss'][i]:.3g})"
         else:
-            reasons.append("")
-    valid = np.array([r == "" for r in reasons])
+            code, reason = "", ""
+        codes.append(code)
+        reasons.append(reason)
+    valid = np.array([c == "" for c in codes])
     aicc = scores["aicc"]
     bits = bits_from_mask(masks)
     # Valid models by AICc (ties: fewer parameters, then bits); invalid ones after them,
@@ -289,6 +299,7 @@ def select_models(
             valid=bool(valid[i]),
             reason=reasons[i],
             fit_status=int(scores["status"][i]),
+            reason_code=codes[i],
             cv_mean_error=cv_err[i][0] if i in cv_err else None,
             cv_failed=cv_err[i][1] if i in cv_err else 0,
         )

@@ -75,9 +75,9 @@ def select_command(points, normalization, init, top, cv, seed, json_out):
             seed=seed, progress=update,
         )  # fmt: skip
     if json_out is not None:
-        from oapcal.io.jsonfile import write_json
+        from oapcal.io.results import save_selection
 
-        write_json(json_out, sel.to_dict())
+        save_selection(sel, json_out)
     if json_out != "-":
         print_selection(sel, top, source=pairs.source)
     if sel.n_valid == 0:
@@ -194,9 +194,9 @@ def robustness_command(
             normalization=normalization, wrong_minimum_ratio=wrong_minimum_ratio, progress=update,
         )  # fmt: skip
     if json_out is not None:
-        from oapcal.io.jsonfile import write_json
+        from oapcal.io.results import save_robustness
 
-        write_json(json_out, result.to_dict())
+        save_robustness(result, json_out)
     if json_out != "-":
         print_robustness(result, source=pairs.source)
     return 0
