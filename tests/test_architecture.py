@@ -12,7 +12,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "oapcal"
 #: Layers, lowest first.  Keys are top-level modules or packages of oapcal.
 LAYERS = [
     {"errors", "extras", "records"},
-    {"model"},
+    {"model", "_kernels"},
     {"stats", "normalize", "synthetic", "uncertainty"},
     {"fit", "_batchfit"},
     {"select", "calibrate"},
@@ -113,3 +113,20 @@ def test_the_core_imports_no_plotting_or_dask(module):
         text = path.read_text(encoding="utf-8")
         for heavy in ("matplotlib", "dask", "rich", "click"):
             assert f"import {heavy}" not in text and f"from {heavy}" not in text, (module, heavy)
+
+
+def test_no_library_module_sets_the_matplotlib_backend():
+    """``matplotlib.use`` changes a notebook's backend: figures are built with ``Figure`` and
+    ``FigureCanvasAgg`` instead."""
+    offenders = [
+        str(p.relative_to(SRC))
+        for p in SRC.rglob("*.py")
+        if "matplotlib.use(" in p.read_text(encoding="utf-8") and not p.is_relative_to(SRC / "cli")
+    ]
+    assert offenders == [] or set(offenders) <= KNOWN_BACKEND_SETTERS, offenders
+    assert KNOWN_BACKEND_SETTERS <= set(offenders), "remove fixed modules from KNOWN_BACKEND_SETTERS"
+
+
+#: Library modules that still call ``matplotlib.use("Agg")`` (their figures are to move to
+#: ``report`` and use ``Figure`` + ``FigureCanvasAgg``).
+KNOWN_BACKEND_SETTERS = {"optics/plot.py", "imaging/detect_plot.py"}

@@ -13,12 +13,14 @@ CMAP = "viridis"
 
 
 def _figure(width: float, height: float):
-    import matplotlib
-
-    matplotlib.use("Agg")
+    """A figure with its own Agg canvas: no pyplot state, and the caller's (e.g. a
+    notebook's) Matplotlib backend is left as it is."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    return Figure(figsize=(width, height), dpi=110, layout="constrained")
+    fig = Figure(figsize=(width, height), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
 
 
 def _image_axes(ax, um_per_px: float | None, shape=None) -> None:
