@@ -111,3 +111,34 @@ def test_simulate_relay_reports_progress_up_to_the_total():
     totals = {t for _, t in calls}
     assert len(totals) == 1 and calls[-1][0] == calls[-1][1]
     assert all(a[0] <= b[0] for a, b in zip(calls, calls[1:]))
+
+
+def test_relay_misalignment_options(run_cli):
+    code, stdout, err = run_cli("simulate", "relay", "--grid", "9", "--rings", "2", "--json")
+    assert code == 0, err
+    aligned = json.loads(stdout)
+    args = ("--grid", "9", "--rings", "2", "--m2-tilt-x", "0.05", "--camera-defocus", "0.2",
+            "--focal-length-2", "60", "--json")  # fmt: skip
+    code, stdout, err = run_cli("simulate", "relay", *args)
+    assert code == 0, err
+    data = json.loads(stdout)
+    moved = {k: v for k, v in data["relay"]["misalignment"].items() if v}
+    assert moved == {"m2_tilt_x": 0.05, "camera_defocus": 0.2}
+    assert data["relay"]["focal_length_2_mm"] == 60.0
+    # The camera moved 0.2 mm along the light shrinks the image: the exit pupil (the stop at
+    # OAP 1 imaged by OAP 2, Newton's x x' = f^2) lies f2^2 / (d1 - f2) = 4.5 mm before the
+    # focus, so the chief rays converge and the image shrinks by 0.2 / 4.5 = 4.4 %.
+    assert data["magnification"] == pytest.approx(60.0 / 50.8 * (1 - 0.2 * (860 - 60) / 60.0**2), rel=1e-3)
+    assert data["distortion"]["max_um"] != pytest.approx(aligned["distortion"]["max_um"], rel=1e-3)
+    assert data["paper"] is None and aligned["paper"] is None  # 9 x 9 is not the paper's grid
+    # m2 tipped by t moves the field centre's image by about 2 t f2 along y.
+    assert abs(data["paraxial_offset_mm"][1]) == pytest.approx(2 * np.radians(0.05) * 60.0, rel=0.02)
+    code, stdout, err = run_cli("simulate", "relay", "--grid", "5", "--rings", "2", "--object-tilt-y", "1")
+    assert code == 0, err
+    assert "Misaligned: object_tilt_y +1 deg" in stdout
+
+
+def test_relay_misalignment_errors_are_one_line(run_cli, tmp_path):
+    code, _, err = run_cli("simulate", "relay", "--m1-focal-length", "-60", "--out", tmp_path / "g.csv")
+    assert code == 2 and err.count("\n") == 1 and "leaves no mirror" in err
+    assert list(tmp_path.iterdir()) == []

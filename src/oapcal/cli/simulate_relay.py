@@ -6,6 +6,50 @@ import click
 
 from oapcal.cli._common import check_output, console, parse_size, print_json, progress_bar
 
+#: Misalignment options: name -> unit (mirrors ``oapcal.optics.misalign.PARAMETERS``, without
+#: ``d1``, which ``--d1`` sets; kept here so that ``--help`` imports nothing heavy).
+MISALIGNMENT_UNITS = {
+    **{f"m{i}_{k}": u for i in (1, 2) for k, u in (("tilt_x", "deg"), ("tilt_y", "deg"), ("decentre_x", "mm"),
+                                                    ("decentre_y", "mm"), ("clock", "deg"),
+                                                    ("focal_length", "mm"))},
+    "stop_decentre_x": "mm", "stop_decentre_y": "mm", "camera_tilt_x": "deg", "camera_tilt_y": "deg",
+    "camera_defocus": "mm", "object_tilt_x": "deg", "object_tilt_y": "deg",
+}  # fmt: skip
+_MISALIGNMENT_HELP = {
+    "tilt_x": "tip about its tangent-plane x axis (perpendicular to the fold plane)",
+    "tilt_y": "tilt about its tangent-plane y axis (in the fold plane)",
+    "decentre_x": "decentre along its tangent-plane x axis",
+    "decentre_y": "decentre along its tangent-plane y axis",
+    "clock": "clocking about its normal",
+    "focal_length": "focal-length change (centre fixed)",
+    "stop_decentre_x": "aperture stop moved along its x axis",
+    "stop_decentre_y": "aperture stop moved along its y axis",
+    "camera_tilt_x": "camera (image plane) tilted about its x axis",
+    "camera_tilt_y": "camera (image plane) tilted about its y axis",
+    "camera_defocus": "camera moved along its normal, + away from the mirror",
+    "object_tilt_x": "object (target) plane tilted about its x axis",
+    "object_tilt_y": "object (target) plane tilted about its y axis",
+}
+
+
+def misalignment_options(func):
+    """``--m1-tilt-x DEG`` ... ``--object-tilt-y DEG`` (``docs/optics.md``, Misalignment),
+    given to the command as one dict ``misalignment`` of the non-zero values."""
+    import functools
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        values = {name: kwargs.pop(name) for name in MISALIGNMENT_UNITS}
+        return func(*args, misalignment={k: v for k, v in values.items() if v}, **kwargs)
+
+    for name, unit in reversed(MISALIGNMENT_UNITS.items()):
+        mirror = name[:2] in ("m1", "m2")
+        what = _MISALIGNMENT_HELP[name[3:] if mirror else name]
+        text = f"OAP {name[1]} {what}, {unit}." if mirror else f"{what.capitalize()}, {unit}."
+        flag = "--" + name.replace("_", "-")
+        wrapper = click.option(flag, name, type=float, default=0.0, metavar=unit.upper(), help=text)(wrapper)
+    return wrapper
+
 
 @click.command("relay")
 @click.option(
@@ -89,9 +133,14 @@ from oapcal.cli._common import check_output, console, parse_size, print_json, pr
     "--spots", type=click.Path(dir_okay=False), default=None, help="Spot diagrams of both orientations (PNG)."
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+@click.option(
+    "--focal-length-2", "focal_length_2", type=float, default=None,
+    help="Reflected focal length of the second mirror, mm (default: --focal-length).",
+)  # fmt: skip
+@misalignment_options
 def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,
                   image_size, beam_diameter, wavelength, spot_fields, rings, out, plot, spots,
-                  as_json):  # fmt: skip
+                  as_json, focal_length_2=None, misalignment=None):  # fmt: skip
     """Trace the OAP relay: grid distortion (paraxial vs real chief rays), spots, limits."""
     from oapcal.errors import GeometrySpecError
 
@@ -120,7 +169,7 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
             int(setup), d1_mm=d1, orientation=orientation, stop_distance_mm=stop_distance,
             focal_length_mm=focal_length, n=n, field_mm=field_mm, pixel_size_um=pixel_size,
             beam_diameter_mm=beam_diameter, wavelength_nm=wavelength, spot_fields=points, rings=rings,
-            progress=update,
+            progress=update, focal_length_2_mm=focal_length_2, misalignment=misalignment,
         )  # fmt: skip
         if out is not None:
             update(0, 1, "writing the grid CSV")
@@ -163,6 +212,15 @@ def print_summary(s: dict) -> None:
         f"{g['n']}x{g['n']} grid over {g['field_mm']:g} mm, {g['pixel_size_um']:g} um pixels; "
         f"paraxial magnification {s['magnification']:.6f}"
     )
+    if r.get("focal_length_2_mm", r["focal_length_mm"]) != r["focal_length_mm"]:
+        out.print(f"second mirror f = {r['focal_length_2_mm']:g} mm")
+    moved = {k: v for k, v in (r.get("misalignment") or {}).items() if v}
+    if moved:
+        from oapcal.optics.misalign import PARAMETERS
+
+        out.print("Misaligned: " + ", ".join(f"{k} {v:+g} {PARAMETERS[k][0]}" for k, v in moved.items()))
+        off = s["paraxial_offset_mm"]
+        out.print(f"field centre imaged at ({off[0] * 1e3:+.2f}, {off[1] * 1e3:+.2f}) um on the sensor")
     if g["n_vignetted"]:
         out.print(f"[yellow]{g['n_vignetted']} chief rays fall outside a mirror's diameter[/yellow]")
     paper = s["paper"] or {}

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import GeometrySpecError
-from oapcal.optics.relay import Relay, apply_matrix, chief_rays, oap_relay, paraxial_matrix
+from oapcal.optics.relay import Relay, apply_matrix, chief_rays, oap_relay, paraxial_map
 
 #: The cubic Hermite basis: ``[a0, a1, a2, a3] = HERMITE @ [p(0), p(1), p'(0), p'(1)]`` for
 #: ``p(s) = a0 + a1 s + a2 s^2 + a3 s^3``.
@@ -123,6 +123,9 @@ class DistortionField:
     vignetted_nodes: object = None
     #: The splines as :class:`BicubicPatches` (fast evaluation of both components).
     _patches: object = None
+    #: Image-plane mm where the field centre is imaged (0 for an aligned relay; see
+    #: :func:`oapcal.optics.relay.paraxial_map`); paraxial px include it.
+    offset_mm: object = None
 
     @property
     def centre(self) -> np.ndarray:
@@ -134,12 +137,20 @@ class DistortionField:
         """Object-plane um ``(..., 2)`` -> paraxial camera px ``(..., 2)`` (the linear map,
         with the relay's magnification and image orientation)."""
         xy = apply_matrix(self.matrix, np.asarray(xy_obj_um, float)) / self.pixel_size_um
-        return xy + self.centre
+        return xy + self._origin_px
 
     def object_um_from_paraxial(self, xy_u_px) -> np.ndarray:
         """The inverse of :meth:`paraxial_from_object_um`."""
         inv = np.linalg.inv(self.matrix)
-        return apply_matrix(inv, (np.asarray(xy_u_px, float) - self.centre) * self.pixel_size_um)
+        return apply_matrix(inv, (np.asarray(xy_u_px, float) - self._origin_px) * self.pixel_size_um)
+
+    @property
+    def _origin_px(self) -> np.ndarray:
+        """Paraxial px of the field centre: the image centre, plus the offset of a
+        misaligned relay."""
+        if self.offset_mm is None:
+            return self.centre
+        return self.centre + np.asarray(self.offset_mm) * (1e3 / self.pixel_size_um)
 
     def _inside(self, x, y):
         return (
@@ -244,6 +255,8 @@ def relay_distortion(
     pixel_size_um: float = 4.8,
     image_size: tuple[int, int] = (640, 480),
     grid: int = 97,
+    focal_length_2_mm: float | None = None,
+    misalignment=None,
 ) -> DistortionField:
     """The traced distortion field of a relay (:func:`oapcal.optics.relay.oap_relay`)
     seen by a camera of ``image_size`` (w, h) px of ``pixel_size_um``.
@@ -253,7 +266,10 @@ def relay_distortion(
     found on the image border, so that :meth:`DistortionField.inverse` covers every real
     pixel of the image.  The mirrors are treated as unbounded surfaces here: at large
     fields chief rays may fall outside the real mirrors (vignetting), see
-    ``DistortionField.vignetted_nodes``.
+    ``DistortionField.vignetted_nodes``.  ``focal_length_2_mm`` and ``misalignment`` are as
+    in :func:`~oapcal.optics.relay.oap_relay`; a misaligned relay's paraxial px are
+    centred on the real image of the field centre (``DistortionField.offset_mm``), so the
+    displacement is the distortion alone, without the image's shift on the sensor.
     """
     from scipy.interpolate import RectBivariateSpline
     from scipy.spatial import cKDTree
@@ -267,10 +283,12 @@ def relay_distortion(
         raise GeometrySpecError(f"the distortion grid needs at least 8 nodes a side, got {grid}")
     relay = oap_relay(
         setup, d1_mm=d1_mm, orientation=orientation, stop_distance_mm=stop_distance_mm,
-        focal_length_mm=focal_length_mm,
+        focal_length_mm=focal_length_mm, focal_length_2_mm=focal_length_2_mm, misalignment=misalignment,
     )  # fmt: skip
-    matrix = paraxial_matrix(relay)
-    probe = DistortionField(relay, float(pixel_size_um), (w, h), matrix, np.zeros(1), np.zeros(1), None, None)
+    matrix, offset = paraxial_map(relay)
+    offset = None if relay.misalignment.is_zero else offset
+    probe = DistortionField(relay, float(pixel_size_um), (w, h), matrix, np.zeros(1), np.zeros(1), None, None,
+                            offset_mm=offset)  # fmt: skip
     # The largest displacement on the image border sets the margin.
     t = np.linspace(0.0, 1.0, 65)
     lo, hi = np.array([-0.5, -0.5]), np.array([w - 0.5, h - 0.5])
@@ -304,5 +322,5 @@ def relay_distortion(
     vignetted = ~chief_rays(relay, probe.object_um_from_paraxial(nodes) * 1e-3).clear
     return DistortionField(
         relay, float(pixel_size_um), (w, h), matrix, xs, ys, spline_x, spline_y,
-        cKDTree(real[good]), nodes[good], vignetted, BicubicPatches(xs, ys, (spline_x, spline_y)),
+        cKDTree(real[good]), nodes[good], vignetted, BicubicPatches(xs, ys, (spline_x, spline_y)), offset,
     )  # fmt: skip

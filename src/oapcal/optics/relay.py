@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import GeometrySpecError
+from oapcal.optics.misalign import Misalignment, rotations
 from oapcal.optics.surfaces import Paraboloid, Plane, Vec, axpy_c, dot_c, reflect, reflect_c, sub_c, unit_c
 from oapcal.optics.trace import TraceResult, trace_c
 
@@ -58,6 +59,9 @@ class Relay:
     ``m1``, ``m2`` the two mirrors; ``object_plane`` (origin ``F1``), ``stop`` (a plane
     across the collimated path, normal ``+z``, the chief rays pass through its
     ``point``) and ``image_plane`` (origin ``F2``) carry local ``ex, ey`` axes.
+    ``focal_length_mm`` is the first mirror's design focal length, ``focal_length_2_mm``
+    the second's (``None``: the same), ``d1_mm`` the design's collimated path;
+    ``misalignment`` the deviations applied (:class:`~oapcal.optics.misalign.Misalignment`).
     """
 
     focal_length_mm: float
@@ -72,10 +76,28 @@ class Relay:
     image_plane: Plane
     #: Transverse axes of ``m1`` used to parametrize its surface when aiming rays.
     m1_axes: tuple = field(repr=False, default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)))
+    focal_length_2_mm: float | None = None
+    misalignment: Misalignment = field(default_factory=Misalignment)
 
     @property
     def mirrors(self) -> tuple[Paraboloid, Paraboloid]:
         return (self.m1, self.m2)
+
+    @property
+    def focal_lengths_mm(self) -> tuple[float, float]:
+        """The design focal lengths ``(f1, f2)`` of the two mirrors."""
+        f2 = self.focal_length_mm if self.focal_length_2_mm is None else self.focal_length_2_mm
+        return (self.focal_length_mm, f2)
+
+    def with_misalignment(self, misalignment: Misalignment | None = None, **values) -> Relay:
+        """The same design with ``misalignment`` (or these named values) applied instead."""
+        if misalignment is None:
+            misalignment = Misalignment.from_dict(values)
+        return oap_relay(
+            None, d1_mm=self.d1_mm, orientation=self.orientation, stop_distance_mm=self.stop_distance_mm,
+            focal_length_mm=self.focal_length_mm, diameter_mm=self.diameter_mm,
+            focal_length_2_mm=self.focal_length_2_mm, misalignment=misalignment,
+        )  # fmt: skip
 
 
 def _check_positive(value, name: str) -> float:
@@ -83,6 +105,62 @@ def _check_positive(value, name: str) -> float:
     if not (np.isfinite(value) and value > 0):
         raise GeometrySpecError(f"{name} must be a positive number of mm, got {value:g}")
     return value
+
+
+def _oap(centre, to_focus, axis, f: float, radius: float) -> Paraboloid:
+    """A 90-degree OAP of reflected focal length ``f`` centred at ``centre``: its focus at
+    ``centre + f to_focus``, its parent axis (vertex to focus) along ``axis``."""
+    c, u, a = (np.asarray(v, dtype=float) for v in (centre, to_focus, axis))
+    return Paraboloid(vertex=c + f * u - (0.5 * f) * a, axis=a, focal_length=0.5 * f,
+                      aperture_centre=c, aperture_radius=radius)  # fmt: skip
+
+
+def _moved(mirror: Paraboloid, rot: np.ndarray, shift: np.ndarray) -> Paraboloid:
+    """``mirror`` rotated by ``rot`` about its aperture centre, then shifted by ``shift``."""
+    c = np.asarray(mirror.aperture_centre)
+    vertex = c + shift + rot @ (np.asarray(mirror.vertex) - c)
+    return Paraboloid(vertex=vertex, axis=rot @ np.asarray(mirror.axis), focal_length=mirror.focal_length,
+                      aperture_centre=c + shift, aperture_radius=mirror.aperture_radius)  # fmt: skip
+
+
+def mirror_frame(mirror: Paraboloid) -> np.ndarray:
+    """The rows ``(a, b, n)`` of a mirror's frame at its centre (``docs/optics.md``): ``n``
+    the unit normal (towards the reflecting side), ``a = +x``, ``b = n x a``."""
+    n = mirror.normal(np.asarray(mirror.aperture_centre))
+    a = np.array([1.0, 0.0, 0.0])
+    return np.array([a, np.cross(n, a), n])
+
+
+def _misaligned_mirror(mirror: Paraboloid, to_focus, f: float, values: dict[str, float]):
+    """Apply one mirror's misalignment; returns ``(mirror, rotation, shift)``."""
+    a, b, n = mirror_frame(mirror)
+    if values["focal_length"]:
+        f_new = f + values["focal_length"]
+        if not f_new > 0:
+            change = values["focal_length"]
+            raise GeometrySpecError(f"a focal-length change of {change:g} mm leaves no mirror")
+        mirror = _oap(mirror.aperture_centre, to_focus, mirror.axis, f_new, mirror.aperture_radius)
+    rot = rotations((n, values["clock"]), (a, values["tilt_x"]), (b, values["tilt_y"]))
+    shift = values["decentre_x"] * a + values["decentre_y"] * b
+    if any(values[k] for k in ("clock", "tilt_x", "tilt_y", "decentre_x", "decentre_y")):
+        mirror = _moved(mirror, rot, shift)
+    return mirror, rot, shift
+
+
+def _moved_plane(plane: Plane, rot: np.ndarray, point) -> Plane:
+    """``plane`` with its axes rotated by ``rot`` and its origin at ``point``."""
+    return Plane(point=point, normal=rot @ np.asarray(plane.normal), ex=rot @ np.asarray(plane.ex),
+                 ey=rot @ np.asarray(plane.ey))  # fmt: skip
+
+
+def _tilted_plane(plane: Plane, tilt_x: float, tilt_y: float, shift_normal: float = 0.0) -> Plane:
+    """``plane`` moved along its normal, then rotated about its own x, then y axis
+    through its (moved) point."""
+    if not (tilt_x or tilt_y or shift_normal):
+        return plane
+    ex, ey, nz = (np.asarray(v) for v in (plane.ex, plane.ey, plane.normal))
+    rot = rotations((ex, tilt_x), (ey, tilt_y))
+    return Plane(point=np.asarray(plane.point) + shift_normal * nz, normal=rot @ nz, ex=rot @ ex, ey=rot @ ey)
 
 
 def oap_relay(
@@ -93,6 +171,8 @@ def oap_relay(
     stop_distance_mm: float | None = None,
     focal_length_mm: float = DEFAULT_FOCAL_LENGTH_MM,
     diameter_mm: float = DEFAULT_DIAMETER_MM,
+    focal_length_2_mm: float | None = None,
+    misalignment: Misalignment | dict | None = None,
 ) -> Relay:
     """Build the relay of the paper's setup ``1`` (d1 = 860 mm) or ``2`` (660 mm), or of
     any collimated path length ``d1_mm`` (which overrides ``setup``).
@@ -102,7 +182,11 @@ def oap_relay(
     across the collimated path at that distance from the first mirror's centre (``None``
     or 0: at the first mirror, so chief rays pass through its centre).  ``focal_length_mm``
     is the reflected focal length ``f`` of both mirrors (parent focal length ``f / 2``,
-    off-axis distance ``f``), ``diameter_mm`` their diameter.
+    off-axis distance ``f``), or of the first one when ``focal_length_2_mm`` gives the
+    second's (the camera then sits at the second mirror's focus; magnification
+    ``f2 / f1``); ``diameter_mm`` their diameter.  ``misalignment`` (a
+    :class:`~oapcal.optics.misalign.Misalignment` or a dict of its values) moves the parts
+    away from this design (``docs/optics.md``, Misalignment).
     """
     if d1_mm is None:
         if setup not in SETUP_D1_MM:
@@ -112,25 +196,29 @@ def oap_relay(
         d1_mm = SETUP_D1_MM[setup]
     d1 = _check_positive(d1_mm, "d1 (the collimated path length)")
     f = _check_positive(focal_length_mm, "the focal length")
+    f2 = f if focal_length_2_mm is None else _check_positive(focal_length_2_mm, "the second focal length")
     diameter = _check_positive(diameter_mm, "the mirror diameter")
     key = str(orientation).strip().upper()
     if key not in ORIENTATIONS:
         raise GeometrySpecError(f"unknown orientation {orientation!r}: use U (default) or Z")
+    if misalignment is None:
+        mis = Misalignment()
+    elif isinstance(misalignment, Misalignment):
+        mis = misalignment
+    else:
+        mis = Misalignment.from_dict(misalignment)
+    d1_real = d1 + mis.d1
+    if not d1_real > 0:
+        raise GeometrySpecError(f"a d1 change of {mis.d1:g} mm leaves no collimated path (d1 = {d1:g} mm)")
     stop = 0.0 if stop_distance_mm is None else float(stop_distance_mm)
-    if not (np.isfinite(stop) and 0.0 <= stop <= d1):
+    if not (np.isfinite(stop) and 0.0 <= stop <= d1_real):
         raise GeometrySpecError(
-            f"the stop distance {stop:g} mm is outside the collimated path: give 0 .. {d1:g} mm"
+            f"the stop distance {stop:g} mm is outside the collimated path: give 0 .. {d1_real:g} mm"
         )
-    fp = 0.5 * f
-    m1 = Paraboloid(
-        vertex=(0.0, 0.0, -fp), axis=(0.0, 0.0, 1.0), focal_length=fp,
-        aperture_centre=(0.0, f, 0.0), aperture_radius=0.5 * diameter,
-    )  # fmt: skip
-    y_vertex = 0.0 if key == "U" else 2.0 * f
-    m2 = Paraboloid(
-        vertex=(0.0, y_vertex, d1 + fp), axis=(0.0, 0.0, -1.0), focal_length=fp,
-        aperture_centre=(0.0, f, d1), aperture_radius=0.5 * diameter,
-    )  # fmt: skip
+    radius = 0.5 * diameter
+    focus_side = (0.0, -1.0, 0.0) if key == "U" else (0.0, 1.0, 0.0)
+    m1 = _oap((0.0, f, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 1.0), f, radius)
+    m2 = _oap((0.0, f, d1_real), focus_side, (0.0, 0.0, -1.0), f2, radius)
     obj = Plane(point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0), ex=(1.0, 0.0, 0.0), ey=(0.0, 0.0, 1.0))
     stop_plane = Plane(point=(0.0, f, stop), normal=(0.0, 0.0, 1.0), ex=(1.0, 0.0, 0.0), ey=(0.0, 1.0, 0.0))
     # Carry the object axes along the central ray through both reflections.
@@ -139,9 +227,23 @@ def oap_relay(
         centre = np.asarray(mirror.aperture_centre)
         axes = reflect(axes, mirror.normal(centre)[None, :])
     image = Plane(point=tuple(m2.focus), normal=axes[2], ex=axes[0], ey=axes[1])
+    m1_axes = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    if not mis.is_zero:
+        m1, rot1, shift1 = _misaligned_mirror(m1, (0.0, -1.0, 0.0), f, mis.mirror(1))
+        m2, _, _ = _misaligned_mirror(m2, focus_side, f2, mis.mirror(2))
+        m1_axes = tuple(tuple(float(v) for v in rot1 @ np.asarray(e)) for e in m1_axes)
+        if stop == 0.0:  # the first mirror's own aperture: it moves with the mirror
+            stop_plane = _moved_plane(stop_plane, rot1, np.asarray(stop_plane.point) + shift1)
+        if mis.stop_decentre_x or mis.stop_decentre_y:
+            ex, ey = np.asarray(stop_plane.ex), np.asarray(stop_plane.ey)
+            point = np.asarray(stop_plane.point) + mis.stop_decentre_x * ex + mis.stop_decentre_y * ey
+            stop_plane = _moved_plane(stop_plane, np.eye(3), point)
+        image = _tilted_plane(image, mis.camera_tilt_x, mis.camera_tilt_y, mis.camera_defocus)
+        obj = _tilted_plane(obj, mis.object_tilt_x, mis.object_tilt_y)
     return Relay(
         focal_length_mm=f, diameter_mm=diameter, d1_mm=d1, orientation=key, stop_distance_mm=stop,
-        m1=m1, m2=m2, object_plane=obj, stop=stop_plane, image_plane=image,
+        m1=m1, m2=m2, object_plane=obj, stop=stop_plane, image_plane=image, m1_axes=m1_axes,
+        focal_length_2_mm=None if focal_length_2_mm is None else f2, misalignment=mis,
     )  # fmt: skip
 
 
@@ -330,12 +432,20 @@ def paraxial_matrix(relay: Relay, step_mm: float = 1e-4) -> np.ndarray:
     centre, by central differences (error ~ step^2 x third derivative, ~1e-9 here).
 
     It maps object-plane mm to image-plane mm; paraxial image points are
-    ``xy_obj @ J.T``.
+    ``xy_obj @ J.T`` (plus :func:`paraxial_map`'s offset for a misaligned relay).
     """
+    return paraxial_map(relay, step_mm)[0]
+
+
+def paraxial_map(relay: Relay, step_mm: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    """``(J, offset)``: :func:`paraxial_matrix` and the image ``(2,)`` (image-plane mm) of
+    the field centre's chief ray, so that paraxial image points are ``offset + J xy_obj``.
+    The offset is 0 (to 1e-12 mm) for an aligned relay; a misaligned one images the field
+    centre off the sensor's centre."""
     h = float(step_mm)
-    probes = np.array([[h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])
+    probes = np.array([[h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h], [0.0, 0.0]])
     xy = chief_rays(relay, probes, full=False).xy_mm
-    return np.stack([(xy[0] - xy[1]) / (2 * h), (xy[2] - xy[3]) / (2 * h)], axis=-1)
+    return np.stack([(xy[0] - xy[1]) / (2 * h), (xy[2] - xy[3]) / (2 * h)], axis=-1), xy[4].copy()
 
 
 # ------------------------------------------------------------------- grid distortion
@@ -346,8 +456,9 @@ class GridDistortion:
     """Paraxial and real chief-ray image points of an object grid (all mm).
 
     ``xy_obj`` ``(N, 2)`` object points, row by row (y outer, x inner, both ascending);
-    ``xy_u`` paraxial image points ``xy_obj @ matrix.T``; ``xy_d`` real chief-ray image
-    points; ``clear`` ``(N,)`` chief ray not vignetted; ``matrix`` the paraxial map.
+    ``xy_u`` paraxial image points ``offset + xy_obj @ matrix.T``; ``xy_d`` real chief-ray
+    image points; ``clear`` ``(N,)`` chief ray not vignetted; ``matrix`` the paraxial map,
+    ``offset`` (2,) the image of the field centre (0 for an aligned relay).
     """
 
     relay: Relay
@@ -358,6 +469,7 @@ class GridDistortion:
     xy_d: np.ndarray
     clear: np.ndarray
     matrix: np.ndarray
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     @property
     def displacement(self) -> np.ndarray:
@@ -384,10 +496,10 @@ def grid_distortion(relay: Relay, n: int = 17, field_mm: float = 1.0, *, progres
     """Trace the chief rays of an ``n x n`` object grid over ``field_mm`` x ``field_mm``;
     ``progress(done, total)`` (rays) is called as blocks of rays finish."""
     xy_obj = object_grid(n, field_mm)
-    matrix = paraxial_matrix(relay)
+    matrix, offset = paraxial_map(relay)
     real = chief_rays(relay, xy_obj, progress=progress, full=False)
-    return GridDistortion(relay, float(field_mm), int(n), xy_obj, apply_matrix(matrix, xy_obj), real.xy_mm,
-                          real.clear, matrix)  # fmt: skip
+    return GridDistortion(relay, float(field_mm), int(n), xy_obj, apply_matrix(matrix, xy_obj) + offset,
+                          real.xy_mm, real.clear, matrix, offset)  # fmt: skip
 
 
 def apply_matrix(matrix: np.ndarray, xy: np.ndarray) -> np.ndarray:

@@ -70,17 +70,21 @@ def simulate_relay(
     spot_fields=None,
     rings: int = 8,
     progress=None,
+    focal_length_2_mm: float | None = None,
+    misalignment=None,
 ) -> RelaySimulation:
     """Trace the relay and summarize it (see the module docstring).
 
     ``spot_fields`` are the object points (mm, ``(M, 2)``) of the spot diagrams, traced
     with ``rings`` hexapolar rings of rays (default: :func:`default_spot_fields`).
     ``progress(done, total)`` is called as the work advances, counted in traced rays
-    (the radial fit counts as one ray per grid point).
+    (the radial fit counts as one ray per grid point).  ``focal_length_2_mm`` and
+    ``misalignment`` are as in :func:`~oapcal.optics.relay.oap_relay` (the spot diagrams
+    of the other orientation get the same misalignment).
     """
     relay = oap_relay(
         setup, d1_mm=d1_mm, orientation=orientation, stop_distance_mm=stop_distance_mm,
-        focal_length_mm=focal_length_mm,
+        focal_length_mm=focal_length_mm, focal_length_2_mm=focal_length_2_mm, misalignment=misalignment,
     )  # fmt: skip
     n = int(n)
     field_points = default_spot_fields(field_mm) if spot_fields is None else spot_fields
@@ -115,18 +119,19 @@ def simulate_relay(
     for key in ("U", "Z"):
         other = relay if key == relay.orientation else oap_relay(
             setup, d1_mm=relay.d1_mm, orientation=key, stop_distance_mm=relay.stop_distance_mm,
-            focal_length_mm=focal_length_mm,
+            focal_length_mm=focal_length_mm, focal_length_2_mm=focal_length_2_mm,
+            misalignment=relay.misalignment,
         )  # fmt: skip
         spots[key] = []
         for p in field_points:
             spots[key].append(spot_diagram(other, p, beam_diameter_mm, rings))
             advance(n_pupil + 1)
-    na = numerical_aperture(beam_diameter_mm, relay.focal_length_mm)
+    na = numerical_aperture(beam_diameter_mm, relay.focal_lengths_mm[1])  # image side
     na_traced = traced_numerical_aperture(relay, beam_diameter_mm, n_na)
     advance(n_na)
     paper_case = (
         relay.d1_mm == 860.0 and relay.orientation == "U" and grid.n == 17 and grid.field_mm == 1.0
-        and relay.focal_length_mm == 50.8
+        and relay.focal_length_mm == 50.8 and relay.focal_length_2_mm is None and relay.misalignment.is_zero
     )  # fmt: skip
     paper = None
     if paper_case:
@@ -140,6 +145,8 @@ def simulate_relay(
             "stop_distance_mm": relay.stop_distance_mm,
             "focal_length_mm": relay.focal_length_mm,
             "diameter_mm": relay.diameter_mm,
+            "focal_length_2_mm": relay.focal_lengths_mm[1],
+            "misalignment": relay.misalignment.to_dict(),
         },
         "grid": {
             "n": grid.n,
@@ -148,6 +155,7 @@ def simulate_relay(
             "n_vignetted": int((~grid.clear).sum()),
         },
         "paraxial_matrix": grid.matrix.round(12).tolist(),
+        "paraxial_offset_mm": grid.offset.round(12).tolist(),
         "magnification": magnification,
         "distortion": {
             "max_um": float(dist.max() * 1e3),
