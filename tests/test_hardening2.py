@@ -3,6 +3,7 @@ multi-output commands, terminal safety.  Each test is a case that once crashed, 
 wrote something wrong; every failure must be one line on stderr, exit 2 (3 for a fit that
 gives no usable model) and nothing written."""
 
+import csv
 from pathlib import Path
 
 import numpy as np
@@ -182,3 +183,130 @@ def test_json_to_a_full_stdout_is_exit_2():
         )  # fmt: skip
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr == "oapcal: error: standard output: cannot be written (No space left on device)\n"
+
+
+# -- items 9, 14, 24: absurd and NaN options are refused before any work --------------------------
+
+
+@pytest.mark.parametrize(
+    "argv,expect",
+    [
+        ("simulate image --sigma-px 1e6", "--sigma-px"),  # once a segfault in cv2.GaussianBlur
+        ("simulate image --sigma-px 1000", "--sigma-px"),  # once minutes of blurring
+        ("simulate image --sigma-px nan", "'nan' is not a finite number"),
+        ("simulate image --image-size 200x200 --sigma-px 60", "--sigma-px"),
+        ("simulate image --image-size 100000x100000", "a side over 16384 px"),
+        ("simulate image --image-size 16000x16000", "GiB of memory, over the 4 GiB limit"),
+        ("simulate image --na 1e-6 --wavelength-um 0.85", "gives an Airy disc of radius"),
+        ("simulate image --snr inf", "'inf' is not a finite number"),
+        ("simulate image --um-per-px nan", "'nan' is not a finite number"),
+        ("simulate image --seed -1", "-1 is not in the range"),
+        ("simulate relay --d1 1e9", "--d1"),
+        ("simulate relay --d1 3000", "no ray of the 20 mm beam from the field point"),
+        ("simulate relay --field 1e6", "--field"),
+        ("simulate relay --field 4", "passes both mirrors"),
+        ("simulate relay --grid 100000", "--grid"),
+        ("simulate relay --grid 2", "--grid"),  # once "4 point pairs are too few"
+        ("simulate relay --rings 100000", "--rings"),
+        ("simulate relay --focal-length nan", "not a finite number"),
+        ("simulate relay --spot-field nan,0", "--spot-field"),
+        ("simulate relay --plot {tmp}/g.xyz", "unsupported figure type .xyz"),
+        ("simulate relay --spots {tmp}/s", "unsupported figure type (no suffix)"),
+    ],
+)
+def test_absurd_simulate_options_are_refused_up_front(run_cli, tmp_path, argv, expect):
+    out = tmp_path / "out"
+    out.mkdir()
+    args = argv.format(tmp=out).split()
+    if args[1] == "image":
+        args += ["--out", str(out / "x.png"), "--truth", str(out / "t.csv")]
+    code, stdout, err = run_cli(*args)
+    assert code == 2 and expect in err and "internal error" not in err, err
+    nothing_in(out)
+
+
+# -- item 22: several outputs, all or nothing -----------------------------------------------------
+
+
+def test_simulate_image_writes_both_outputs_or_neither(run_cli, tmp_path, monkeypatch):
+    import oapcal.imaging.simulate
+
+    def fails(path, sim):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(oapcal.imaging.simulate, "write_truth", fails)
+    argv = ["simulate", "image", "--image-size", "160x120", "--groups", "4", "--out", tmp_path / "x.png"]
+    code, _, err = run_cli(*argv, "--truth", tmp_path / "t.csv")
+    one_error(code, err)
+    assert "t.csv: No space left on device" in err
+    nothing_in(tmp_path)
+    code, _, err = run_cli(*argv, "--truth", tmp_path / "nodir" / "t.csv")
+    one_error(code, err)
+    assert "nodir does not exist" in err
+    nothing_in(tmp_path)
+
+
+def test_simulate_relay_writes_all_outputs_or_none(run_cli, tmp_path, monkeypatch):
+    import oapcal.optics.plot
+
+    def fails(*args, **kwargs):
+        raise OSError(28, "No space left on device", str(args[1]))
+
+    monkeypatch.setattr(oapcal.optics.plot, "plot_spots", fails)
+    argv = ["simulate", "relay", "--grid", "5", "--out", tmp_path / "g.csv", "--plot", tmp_path / "g.png"]
+    code, _, err = run_cli(*argv, "--spots", tmp_path / "s.png")
+    one_error(code, err)
+    nothing_in(tmp_path)
+    monkeypatch.undo()
+    code, _, err = run_cli(*argv, "--spots", tmp_path / "s.png")
+    assert code == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.csv", "g.png", "s.png"]
+
+
+# -- item 23: nothing from a file reaches the terminal raw ----------------------------------------
+
+ESC = "\x1b]0;pwned\x07\x1b[2J\x9b31m"
+
+
+def test_landmark_labels_with_escape_sequences_print_as_text(run_cli, tmp_path):
+    rows = [("a", 0, 0), ("b", 10, 0), ("c", 0, 10), ("d", 10, 10), ("e", 5, 3), ("f", 2, 8)]
+    with open(tmp_path / "d.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["id", "x", "y"])
+        w.writerows([*rows, (f"label{ESC}", 7, 7)])
+    with open(tmp_path / "r.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["id", "x", "y"])
+        w.writerows([*rows, (f"other{ESC}", 7, 7)])
+    code, out, err = run_cli(
+        "landmarks", "convert", "--distorted", tmp_path / "d.csv", "--reference", tmp_path / "r.csv",
+        "--pair-by", "id", "--out", tmp_path / "p.csv",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "label\\x1b]0;pwned\\x07" in err  # the unpaired label, shown as visible text
+    for text in (out, err):
+        assert not any(c in text for c in "\x1b\x07\x9b"), repr(text)
+
+
+def test_file_names_with_escape_sequences_print_as_text(run_cli, tmp_path):
+    code, out, err = run_cli("fit", tmp_path / f"x{ESC}.csv")
+    one_error(code, err)
+    assert "x\\x1b]0;pwned" in err and not any(c in err for c in "\x1b\x07\x9b")
+
+
+def test_console_tables_sanitize_cells():
+    import io
+
+    from oapcal.cli._common import console
+
+    con = console()
+    con.file = io.StringIO()
+    from rich.table import Table
+
+    table = Table()
+    table.add_column(f"h{ESC}")
+    table.add_row(f"cell{ESC}")
+    con.print(table)
+    con.print(f"[bold]title[/bold] {ESC}\nsecond line")
+    text = con.file.getvalue()
+    assert "cell\\x1b" in text and "second line" in text and not any(c in text for c in "\x1b\x07\x9b")

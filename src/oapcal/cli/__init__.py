@@ -72,6 +72,7 @@ def cli():
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line with ``argv`` (default ``sys.argv[1:]``); return the exit code."""
+    from oapcal.cli._common import sanitize
     from oapcal.errors import OapcalError
 
     args = sys.argv[1:] if argv is None else list(argv)
@@ -79,20 +80,28 @@ def main(argv: list[str] | None = None) -> int:
         result = cli.main(args=args, prog_name="oapcal", standalone_mode=False)
     except click.exceptions.Exit as exc:
         return exc.exit_code
+    except click.UsageError as exc:
+        if type(exc).__name__ == "NoArgsIsHelpError" or exc.ctx is None:
+            exc.show()
+        else:  # one line, as every other error
+            message = sanitize(exc.format_message()).rstrip(".")
+            click.echo(f"oapcal: error: {message} (see '{exc.ctx.command_path} --help')", err=True)
+        return exc.exit_code
     except click.ClickException as exc:
+        exc.message = sanitize(exc.message)
         exc.show()
         return exc.exit_code
     except click.exceptions.Abort:
         click.echo("oapcal: aborted", err=True)
         return 130
     except OapcalError as exc:
-        click.echo(f"oapcal: error: {exc}", err=True)
+        click.echo(f"oapcal: error: {sanitize(exc)}", err=True)
         return 2
     except KeyboardInterrupt:
         click.echo("oapcal: interrupted", err=True)
         return 130
     except OSError as exc:  # the environment's: permissions, a full disk, a vanished file
-        click.echo(f"oapcal: error: {environment_message(exc)}", err=True)
+        click.echo(f"oapcal: error: {sanitize(environment_message(exc))}", err=True)
         return 2
     except MemoryError:
         click.echo(
@@ -105,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         if os.environ.get("OAPCAL_DEBUG"):
             raise
         click.echo(
-            f"oapcal: internal error: {type(exc).__name__}: {exc} "
+            f"oapcal: internal error: {type(exc).__name__}: {sanitize(exc)} "
             "(set OAPCAL_DEBUG=1 for the traceback and please report it)",
             err=True,
         )

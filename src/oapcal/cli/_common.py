@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import json
+import re
 import sys
 from dataclasses import dataclass
 
@@ -19,13 +20,36 @@ INIT_HELP = (
 )
 
 
+#: Characters that must not reach a terminal raw: C0 and C1 controls (escape sequences can
+#: set the title, move the cursor, rewrite the screen), DEL, and Unicode line separators and
+#: bidirectional overrides (which can make text read differently than it is).
+_UNSAFE = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029\u202a-\u202e\u2066-\u2069]")
+
+
+def sanitize(text) -> str:
+    r"""``text`` with every character unsafe for a terminal written as a Python escape, so a
+    landmark label or file name from a hostile file prints as visible text on one line.
+
+    >>> print(sanitize("corner\x1b]0;pwned\x07 1\n"))
+    corner\x1b]0;pwned\x07 1\n
+    """
+    return _UNSAFE.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), str(text))
+
+
+def markup_safe(text) -> str:
+    """:func:`sanitize` and escape Rich markup (``[bold]`` in a file name prints as is)."""
+    from rich.markup import escape
+
+    return escape(sanitize(text))
+
+
 class PointsUsageError(click.ClickException):
     """A one-line usage error (exit 2) about how point data were given."""
 
     exit_code = 2
 
     def show(self, file=None):
-        click.echo(f"oapcal: error: {self.format_message()}", err=True)
+        click.echo(f"oapcal: error: {sanitize(self.format_message())}", err=True)
 
 
 @dataclass(frozen=True)
@@ -169,7 +193,7 @@ def load_pairs(points, require=("x_u", "y_u", "x_d", "y_d")):
         origin=points.pixel_origin, require=tuple(require),
     )  # fmt: skip
     for line in pairs.warnings:
-        click.echo(f"oapcal: warning: {line}", err=True)
+        click.echo(f"oapcal: warning: {sanitize(line)}", err=True)
     return pairs
 
 
@@ -218,6 +242,82 @@ def check_writable(out) -> None:
     os.unlink(tmp)
 
 
+class OutputSet:
+    """Several outputs of one command written all or nothing.
+
+    ``stage(path)`` gives a hidden temporary name beside ``path`` (same suffix, so writers
+    pick the format) for a writer to write to; when the ``with`` block ends without error
+    every staged file is renamed to its destination, else all are removed and no destination
+    is touched.  ``-`` (stdout) and None pass through.
+
+    >>> import tempfile, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> try:
+    ...     with OutputSet() as outputs:
+    ...         _ = outputs.stage(d / "a.csv").write_text("a")
+    ...         raise ValueError("the second output failed")
+    ... except ValueError:
+    ...     pass
+    >>> sorted(p.name for p in d.iterdir())
+    []
+    """
+
+    def __init__(self):
+        self._staged: list[tuple[object, object]] = []
+
+    def stage(self, path):
+        import os
+        import tempfile
+        from pathlib import Path
+
+        if path is None or str(path) == "-":
+            return path
+        dest = Path(path)
+        directory = dest.parent if str(dest.parent) else Path(".")
+        fd, tmp = tempfile.mkstemp(prefix=".oapcal-", suffix=f".stage{dest.suffix}", dir=directory)
+        os.close(fd)
+        os.unlink(tmp)  # the writer creates it (some refuse an existing file)
+        self._staged.append((Path(tmp), dest))
+        return Path(tmp)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        import contextlib
+        import os
+
+        if exc_type is None:
+            for tmp, dest in self._staged:
+                os.replace(tmp, dest)
+            return False
+        for tmp, _ in self._staged:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename is not None:
+            name = os.path.basename(os.fsdecode(exc.filename))
+            for tmp, dest in self._staged:  # name the user's file, not the staged one
+                if tmp.stem in name:
+                    raise OSError(exc.errno, exc.strerror, str(dest)) from None
+        return False
+
+
+def check_plot_suffix(path, option: str = "--plot", allowed=None) -> None:
+    """Refuse, before any work, a figure file name whose suffix Matplotlib cannot write."""
+    from pathlib import Path
+
+    if path is None:
+        return
+    allowed = allowed or ("png", "pdf", "svg", "jpg", "jpeg", "tif", "tiff", "eps", "ps", "webp")
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix not in allowed:
+        raise click.BadParameter(
+            f"{str(path)!r}: unsupported figure type {('.' + suffix) if suffix else '(no suffix)'}; "
+            f"use one of {', '.join('.' + a for a in allowed)}",
+            param_hint=option,
+        )
+
+
 def print_json(obj) -> None:
     """Print one JSON object on stdout."""
     from oapcal.io.jsonfile import json_safe
@@ -236,16 +336,61 @@ def _json_default(value):
 
 
 def console():
-    """A Rich console on stdout."""
+    """A Rich console on stdout that never passes a control character through (every string
+    it renders, table cells included, goes through :func:`sanitize`, keeping line breaks)."""
     from rich.console import Console
+
+    class SafeConsole(Console):
+        def render_str(self, text, **kwargs):
+            lines = str(text).split("\n")
+            return super().render_str("\n".join(sanitize(line) for line in lines), **kwargs)
 
     # Off a terminal Rich assumes 80 columns and wraps tables; files and pipes get 120.
     width = None if sys.stdout.isatty() else 120
-    return Console(file=sys.stdout, highlight=False, width=width)
+    return SafeConsole(file=sys.stdout, highlight=False, width=width)
 
 
-def parse_size(text: str | None, option: str = "--image-size"):
-    """``"640x480"`` -> ``(640, 480)``; raises a usage error naming ``option``."""
+class Finite(click.FloatRange):
+    """A float option that must be finite (no nan, inf) and within ``[min, max]``; click's
+    own FloatRange lets NaN through (every comparison with NaN is false).
+
+    >>> Finite(0, 10, min_open=True).convert("nan", None, None)
+    Traceback (most recent call last):
+    ...
+    click.exceptions.BadParameter: 'nan' is not a finite number.
+    """
+
+    name = "finite float"
+
+    def convert(self, value, param, ctx):
+        import math
+
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return super().convert(number, param, ctx)
+
+
+def check_work(estimate_bytes: float, what: str, fix: str, limit: float | None = None) -> None:
+    """Refuse, before any work, a job whose memory estimate exceeds ``limit`` bytes (default
+    :data:`MAX_WORK_BYTES`): one line saying what it would need and which option to change."""
+    from oapcal.errors import DataError
+
+    limit = MAX_WORK_BYTES if limit is None else limit
+    if not estimate_bytes <= limit:
+        raise DataError(
+            f"{what} would need about {estimate_bytes / 2**30:.3g} GiB of memory, over the "
+            f"{limit / 2**30:.3g} GiB limit; {fix}"
+        )
+
+
+#: Largest memory estimate of one command's work (4 GiB).
+MAX_WORK_BYTES = 4 * 2**30
+
+
+def parse_size(text: str | None, option: str = "--image-size", max_side: int | None = 1_000_000):
+    """``"640x480"`` -> ``(640, 480)``; raises a usage error naming ``option`` (also for a side
+    over ``max_side`` px)."""
     if text is None:
         return None
     try:
@@ -254,6 +399,8 @@ def parse_size(text: str | None, option: str = "--image-size"):
             raise ValueError
     except ValueError:
         raise click.BadParameter(f"{text!r} is not a size like 640x480", param_hint=option) from None
+    if max_side is not None and max(w, h) > max_side:
+        raise click.BadParameter(f"{text!r}: a side over {max_side} px is not supported", param_hint=option)
     return (w, h)
 
 

@@ -86,7 +86,9 @@ class FitFailed(click.ClickException):
     exit_code = 3
 
     def show(self, file=None):
-        click.echo(f"oapcal: error: {self.format_message()}", err=True)
+        from oapcal.cli._common import sanitize
+
+        click.echo(f"oapcal: error: {sanitize(self.format_message())}", err=True)
 
 
 def _check_fit_usable(cal, source: str) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, landmark_options, load_pairs, print_json
+from oapcal.cli._common import check_output, landmark_options, load_pairs, print_json, sanitize
 
 
 @click.group("landmarks")
@@ -42,5 +42,5 @@ def convert_command(source, out, as_json):
     if as_json:
         print_json(summary)
     elif out != "-":
-        click.echo(f"wrote {len(pairs)} point pairs to {out} (from {pairs.source})")
+        click.echo(sanitize(f"wrote {len(pairs)} point pairs to {out} (from {pairs.source})"))
     return 0

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, parse_size
+from oapcal.cli._common import Finite, OutputSet, check_output, check_work, parse_size
+
+#: Largest Gaussian PSF sigma (camera px): wider blurs every bar of the target into grey.
+MAX_SIGMA_PX = 50.0
+#: Largest radius of the Airy PSF's first dark ring (camera px), for the same reason.
+MAX_AIRY_RADIUS_PX = 50.0
+#: Largest side of a simulated image (px).
+MAX_SIDE = 16384
+#: Bytes of working memory per sub-pixel (coordinates, raster samples, blur; measured peak ~ 90).
+BYTES_PER_SUBPIXEL = 100
 
 
 @click.command("image")
@@ -18,7 +27,7 @@ from oapcal.cli._common import check_output, parse_size
 @click.option(
     "--d1",
     "d1_mm",
-    type=click.FloatRange(min=0, min_open=True),
+    type=Finite(min=1, max=100_000),
     default=None,
     help="Ray-traced relay with this OAP 2 - OAP 3 distance (mm).",
 )
@@ -39,26 +48,26 @@ from oapcal.cli._common import check_output, parse_size
 )
 @click.option(
     "--sigma-px",
-    type=click.FloatRange(min=0),
+    type=Finite(min=0, max=MAX_SIGMA_PX),
     default=0.8,
     show_default=True,
     help="Gaussian PSF sigma (camera px); 0: no blur.",
 )
 @click.option(
     "--na",
-    type=click.FloatRange(min=0, max=1, min_open=True, max_open=True),
+    type=Finite(min=0, max=1, min_open=True, max_open=True),
     default=None,
     help="Airy PSF of this image-space NA (with --wavelength-um) instead of the Gaussian.",
 )
 @click.option(
     "--wavelength-um",
-    type=click.FloatRange(min=0, min_open=True),
+    type=Finite(min=0.01, max=100),
     default=None,
     help="Wavelength of the Airy PSF (um).",
 )
 @click.option(
     "--snr",
-    type=click.FloatRange(min=0, min_open=True),
+    type=Finite(min=0, max=1e6, min_open=True),
     default=50.0,
     show_default=True,
     help="Signal-to-noise ratio of the brightest level (shot + read noise).",
@@ -66,7 +75,7 @@ from oapcal.cli._common import check_output, parse_size
 @click.option("--no-noise", is_flag=True, help="No noise (the image is only quantized).")
 @click.option(
     "--read-noise-e",
-    type=click.FloatRange(min=0),
+    type=Finite(min=0, max=1e6),
     default=5.0,
     show_default=True,
     help="Read noise (electrons).",
@@ -87,7 +96,7 @@ from oapcal.cli._common import check_output, parse_size
 )
 @click.option(
     "--pixel-size-um",
-    type=click.FloatRange(min=0, min_open=True),
+    type=Finite(min=0.01, max=1000),
     default=4.8,
     show_default=True,
     help="Camera pixel size (um).",
@@ -95,7 +104,7 @@ from oapcal.cli._common import check_output, parse_size
 @click.option("--image-size", default="640x480", show_default=True, help="Camera size WxH (px).")
 @click.option(
     "--um-per-px",
-    type=click.FloatRange(min=0, min_open=True),
+    type=Finite(min=1e-6, max=1e6),
     default=None,
     help="Scale of x_u,y_u in the truth file (default: the paraxial scale).",
 )
@@ -106,7 +115,9 @@ from oapcal.cli._common import check_output, parse_size
     show_default=True,
     help="Sub-pixels per pixel side.",
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the noise.")
+@click.option(
+    "--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True, help="Seed of the noise."
+)
 @click.option(
     "--out", "out", type=click.Path(dir_okay=False), required=True, help="Output image (.png, .tif)."
 )
@@ -147,7 +158,8 @@ def simulate_image_command(
         raise OutputError(
             f"{out}: unknown image type {Path(out).suffix or '(none)'}; use .png, .tif or .tiff"
         )
-    size = parse_size(image_size)
+    size = parse_size(image_size, max_side=MAX_SIDE)
+    _check_cost(size, oversample, sigma_px, na, wavelength_um, pixel_size_um)
     group_list = parse_groups(groups)
     if relay_setup or d1_mm:
         field = _relay_field(relay_setup, d1_mm, pixel_size_um, size)
@@ -165,9 +177,10 @@ def simulate_image_command(
         snr=None if no_noise else snr, read_noise_e=read_noise_e, bits=int(bits), polarity=polarity,
         oversample=oversample, um_per_px=um_per_px, seed=seed, progress=True,
     )  # fmt: skip
-    write_image(out, sim.image)
-    if truth is not None:
-        write_truth(truth, sim)
+    with OutputSet() as outputs:  # both or neither
+        write_image(outputs.stage(out), sim.image)
+        if truth is not None:
+            write_truth(outputs.stage(truth), sim)
     click.echo(
         f"wrote {out}: {size[0]}x{size[1]} px, {bits}-bit, groups {groups}, "
         f"{int(sim.visible.sum())} of {len(sim.ids)} corners fully visible"
@@ -178,6 +191,34 @@ def simulate_image_command(
             f"target orientation {sim.orientation}"
         )
     return 0
+
+
+def _check_cost(size, oversample, sigma_px, na, wavelength_um, pixel_size_um) -> None:
+    """Refuse, before any work, a PSF too wide to mean anything or a job too big for memory."""
+    from oapcal.errors import DataError
+
+    w, h = size
+    if na is not None:
+        radius_px = 0.61 * wavelength_um / na / pixel_size_um
+        if radius_px > MAX_AIRY_RADIUS_PX:
+            raise DataError(
+                f"--na {na:g} at --wavelength-um {wavelength_um:g} gives an Airy disc of radius "
+                f"{radius_px:.3g} px, over {MAX_AIRY_RADIUS_PX:g} px (it would blur the whole target); "
+                f"give --na {0.61 * wavelength_um / (MAX_AIRY_RADIUS_PX * pixel_size_um):.2g} or more"
+            )
+        sigma_px = 0.42 * radius_px  # the Airy core's width, for the blur cost below
+    if sigma_px > min(w, h) / 4:
+        raise DataError(
+            f"--sigma-px {sigma_px:g} is over a quarter of the {w}x{h} image; it would blur it to "
+            "uniform grey. Give a smaller --sigma-px or a larger --image-size"
+        )
+    sub = float(w) * h * oversample**2
+    # the Airy kernel (sampled 4 x 4 per sub-pixel, out to 4 dark rings) and the image
+    kernel = (4 * (2 * 4 * sigma_px / 0.42 * oversample + 1)) ** 2 * 8 * 4 if na is not None else 0.0
+    check_work(
+        sub * BYTES_PER_SUBPIXEL + kernel, f"a {w}x{h} image at --oversample {oversample}",
+        "give a smaller --image-size or --oversample",
+    )  # fmt: skip
 
 
 def _relay_field(setup, d1_mm, pixel_size_um, size):

@@ -4,7 +4,21 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, parse_size, print_json, progress_bar
+from oapcal.cli._common import (
+    Finite,
+    OutputSet,
+    check_output,
+    check_plot_suffix,
+    console,
+    parse_size,
+    print_json,
+    progress_bar,
+)
+
+#: Largest grid (points per side) and number of hexapolar rings: beyond them tracing takes
+#: minutes and gigabytes and shows nothing new.
+MAX_GRID = 1001
+MAX_RINGS = 200
 
 #: Misalignment options: name -> unit (mirrors ``oapcal.optics.misalign.PARAMETERS``, without
 #: ``d1``, which ``--d1`` sets; kept here so that ``--help`` imports nothing heavy).
@@ -60,7 +74,11 @@ def misalignment_options(func):
     help="The paper's setup: 1 (d1 = 860 mm) or 2 (d1 = 660 mm).",
 )
 @click.option(
-    "--d1", "d1", type=float, default=None, help="Collimated path length in mm (overrides --setup)."
+    "--d1",
+    "d1",
+    type=Finite(max=100_000),
+    default=None,
+    help="Collimated path length in mm (overrides --setup).",
 )
 @click.option(
     "--orientation",
@@ -71,22 +89,29 @@ def misalignment_options(func):
 )
 @click.option(
     "--stop-distance",
-    type=float,
+    type=Finite(min=0, max=100_000),
     default=None,
     help="Aperture stop on the collimated path, mm after the first mirror (default: at it).",
 )
 @click.option(
     "--focal-length",
-    type=float,
+    type=Finite(min=0, max=10_000, min_open=True),
     default=50.8,
     show_default=True,
     help="Reflected focal length of both mirrors, mm.",
 )
-@click.option("--grid", "n", type=int, default=17, show_default=True, help="Grid points per side.")
+@click.option(
+    "--grid",
+    "n",
+    type=click.IntRange(max=MAX_GRID),
+    default=17,
+    show_default=True,
+    help="Grid points per side.",
+)
 @click.option(
     "--field",
     "field_mm",
-    type=float,
+    type=Finite(min=0, max=1000, min_open=True),
     default=1.0,
     show_default=True,
     help="Full width of the square object field, mm.",
@@ -98,7 +123,13 @@ def misalignment_options(func):
     show_default=True,
     help="Units of x_u,y_u,x_d,y_d in the CSV (image plane).",
 )
-@click.option("--pixel-size", type=float, default=4.8, show_default=True, help="Camera pixel size, um.")
+@click.option(
+    "--pixel-size",
+    type=Finite(max=1000),
+    default=4.8,
+    show_default=True,
+    help="Camera pixel size, um.",
+)
 @click.option(
     "--image-size",
     default=None,
@@ -106,12 +137,14 @@ def misalignment_options(func):
 )
 @click.option(
     "--beam-diameter",
-    type=float,
+    type=Finite(min=0, max=1000, min_open=True),
     default=20.0,
     show_default=True,
     help="Collimated beam (stop) diameter for spots and NA, mm.",
 )
-@click.option("--wavelength", type=float, default=850.0, show_default=True, help="Wavelength, nm.")
+@click.option(
+    "--wavelength", type=Finite(max=100_000), default=850.0, show_default=True, help="Wavelength, nm."
+)
 @click.option(
     "--spot-field",
     "spot_fields",
@@ -120,7 +153,11 @@ def misalignment_options(func):
     help="Object point (mm) of a spot diagram; repeat for more (default: centre, edges, corner).",
 )
 @click.option(
-    "--rings", type=int, default=8, show_default=True, help="Hexapolar rings of rays per spot diagram."
+    "--rings",
+    type=click.IntRange(max=MAX_RINGS),
+    default=8,
+    show_default=True,
+    help="Hexapolar rings of rays per spot diagram.",
 )
 @click.option(
     "--out",
@@ -146,6 +183,11 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
 
     size = parse_size(image_size)
     points = [_parse_point(text) for text in spot_fields] or None
+    if n < 3:
+        raise GeometrySpecError(
+            f"--grid {n}: a grid needs at least 2 points per side and the radial fit at least 3; "
+            "give --grid 3 or more"
+        )
     if rings < 1:
         raise GeometrySpecError(f"--rings must be at least 1, got {rings}")
     if size is not None and units != "px":
@@ -159,6 +201,8 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
         raise GeometrySpecError("--out, --plot and --spots must be different files")
     for path in outputs:
         check_output(path)
+    check_plot_suffix(plot, "--plot")
+    check_plot_suffix(spots, "--spots")
 
     from oapcal.optics.summary import simulate_relay, write_grid_csv
 
@@ -171,18 +215,21 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
             beam_diameter_mm=beam_diameter, wavelength_nm=wavelength, spot_fields=points, rings=rings,
             progress=update, focal_length_2_mm=focal_length_2, misalignment=misalignment,
         )  # fmt: skip
-        if out is not None:
-            update(0, 1, "writing the grid CSV")
-            write_grid_csv(sim.grid, out, units, pixel_size, size, progress=update)
-        if plot is not None:
-            from oapcal.optics.plot import plot_grid
+        with OutputSet() as outputs:  # all three or none
+            if out is not None:
+                update(0, 1, "writing the grid CSV")
+                write_grid_csv(sim.grid, outputs.stage(out), units, pixel_size, size, progress=update)
+            if plot is not None:
+                from oapcal.optics.plot import plot_grid
 
-            update(0, 1, "plotting")
-            plot_grid(sim.grid, plot, units=units, pixel_size_um=pixel_size)
-        if spots is not None:
-            from oapcal.optics.plot import plot_spots
+                update(0, 1, "plotting")
+                plot_grid(sim.grid, outputs.stage(plot), units=units, pixel_size_um=pixel_size)
+            if spots is not None:
+                from oapcal.optics.plot import plot_spots
 
-            plot_spots(sim.spots, spots, airy_radius_um=sim.summary["quality"]["rayleigh_um"])
+                plot_spots(
+                    sim.spots, outputs.stage(spots), airy_radius_um=sim.summary["quality"]["rayleigh_um"]
+                )
     if as_json:
         print_json(sim.summary)
     elif out != "-":
@@ -192,8 +239,12 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
 
 def _parse_point(text: str) -> tuple[float, float]:
     """``"0.5,-0.25"`` -> ``(0.5, -0.25)`` (a --spot-field value)."""
+    import math
+
     try:
         x, y = (float(v) for v in text.split(","))
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError
     except ValueError:
         raise click.BadParameter(
             f"{text!r} is not a point like 0.5,0.5 (mm)", param_hint="--spot-field"

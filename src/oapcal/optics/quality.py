@@ -89,6 +89,13 @@ def spot_diagram(relay: Relay, field_mm, beam_diameter_mm: float = 20.0, rings: 
     rays = trace_through_stop(relay, np.broadcast_to(field_mm, pupil.shape), pupil)
     xy_um = (rays.xy_mm - chief) * 1e3
     ok = rays.clear & np.isfinite(xy_um).all(axis=-1)
+    if not ok.any():
+        x, y = (float(v) for v in np.broadcast_to(field_mm, (2,)))
+        raise GeometrySpecError(
+            f"no ray of the {float(beam_diameter_mm):g} mm beam from the field point ({x:g}, {y:g}) mm "
+            f"passes both mirrors (d1 = {relay.d1_mm:g} mm); give a smaller field (--field, "
+            "--spot-field) or a shorter d1"
+        )
     use = xy_um[ok]
     centroid = use.mean(axis=0)
     r2 = ((use - centroid) ** 2).sum(axis=-1)
