@@ -1,11 +1,16 @@
-"""Fitting Eq. (1) to point pairs: a batched Levenberg-Marquardt solver and ``FitResult``.
+"""Fitting Eq. (1) to point pairs: the batched Levenberg-Marquardt solver, ``BatchFit``
+and ``FitResult``.
 
 The fit minimises the forward residuals ``distort(xy_u; p) - xy_d`` (in the units of the
 distorted points) over the free parameters of a model, the others held at 0.
 
-:func:`fit_batch` fits B models at once (each with its own mask, start and, optionally,
-its own points), all advancing together; :func:`fit` is one model.  Both return values,
-never raise on numerical failure: every item has a ``status`` and ``message``.
+:func:`fit_batch` is the one solver: it fits B models at once (each with its own mask,
+start and, optionally, its own points or subset of points), one model per thread in
+compiled code (``oapcal._kernels.lm_batch``); :func:`fit`, model selection,
+cross-validation and the robustness test all call it.  It returns values and never
+raises on numerical failure: every item has a ``status`` and ``message``.  A model family
+other than Eq. (1) plugs in through ``family`` (:class:`oapcal.model.ModelFamily`,
+``docs/architecture.md``).
 
 Conditioning: pixel-scale data make the normal equations badly scaled (``r^4`` terms of
 order 1e10).  The solver therefore works in coordinates divided by a factor ``f`` (the
@@ -31,17 +36,15 @@ import numpy as np
 
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.model import (
+    BROWN_CONRADY,
     INDEX,
     N_PARAMS,
     PARAM_NAMES,
-    SCALE_EXPONENTS,
-    distort,
+    ModelFamily,
     identity_params,
-    jacobian_params,
     names_from_mask,
     params_from_dict,
     parse_model,
-    scale_params,
 )
 from oapcal.stats import information_criteria
 
@@ -112,35 +115,44 @@ class FitResult:
 class BatchFit:
     """Results of :func:`fit_batch` for B models; every array has B as its first axis.
 
-    ``params (B, 13)``, ``covariance (B, 13, 13)`` (zero rows and columns for fixed
-    parameters), ``rss (B,)``, ``n_iter (B,)``, ``status (B,)`` (see
-    :data:`STATUS_MESSAGES`), ``converged (B,)``; ``n`` residuals per item and ``masks``.
+    ``params (B, P)`` in the data's units (fixed entries 0), ``covariance (B, P, P)``
+    (zero rows and columns for fixed parameters; None when not requested), ``rss (B,)``
+    the sum of squared forward residuals over each item's points, ``n (B,)`` the number of
+    residuals of each item (two per point), ``n_iter (B,)`` Jacobian evaluations,
+    ``status (B,)`` (see :data:`STATUS_MESSAGES`; positive = converged) and ``masks``.
+    ``item(i)`` is item ``i`` as a :class:`FitResult`.
     """
 
     masks: np.ndarray
     params: np.ndarray
-    covariance: np.ndarray
+    covariance: np.ndarray | None
     rss: np.ndarray
-    n: int
+    n: np.ndarray
     n_iter: np.ndarray
     status: np.ndarray
     converged: np.ndarray = field(init=False)
 
     def __post_init__(self):
         object.__setattr__(self, "converged", self.status > 0)
+        for name in ("masks", "params", "covariance", "rss", "n", "n_iter", "status", "converged"):
+            value = getattr(self, name)
+            if value is not None:
+                value.setflags(write=False)
 
     def __len__(self) -> int:
         return len(self.params)
 
     def item(self, i: int) -> FitResult:
-        """Item ``i`` as a :class:`FitResult`."""
+        """Item ``i`` as a :class:`FitResult` (needs the covariance)."""
+        if self.covariance is None:
+            raise ModelSpecError("this batch was fitted without covariance; use fit_batch(covariance=True)")
         mask = self.masks[i]
         k = int(mask.sum())
-        cov_full = self.covariance[i]
-        cov = cov_full[np.ix_(mask, mask)]
-        stderr = np.full(N_PARAMS, np.nan)
+        cov = self.covariance[i][np.ix_(mask, mask)]
+        stderr = np.full(mask.shape[0], np.nan)
         stderr[mask] = np.sqrt(np.clip(np.diag(cov), 0, None))
-        ic = information_criteria(self.rss[i], self.n, k)
+        n = int(self.n[i])
+        ic = information_criteria(self.rss[i], n, k)
         status = int(self.status[i])
         return FitResult(
             free=names_from_mask(mask),
@@ -148,7 +160,7 @@ class BatchFit:
             stderr=_readonly(stderr),
             covariance=_readonly(cov),
             rss=float(self.rss[i]),
-            n=self.n,
+            n=n,
             k=k,
             aic=ic.aic,
             aicc=ic.aicc,
@@ -209,185 +221,144 @@ def _parse_assignments(text: str) -> dict[str, float]:
     return values
 
 
+def _point_subsets(points, n_points: int, n_items: int) -> tuple[np.ndarray, np.ndarray]:
+    """Point indices ``(1 or B, nmax)`` and counts from ``points``: None (all), integer
+    indices ``(n,)``, ``(1, n)`` or ``(B, n)``, or a boolean mask ``(N,)`` or ``(B, N)``."""
+    if points is None:
+        return np.arange(n_points, dtype=np.int64)[None], np.array([n_points], dtype=np.int64)
+    points = np.asarray(points)
+    if points.dtype == bool:
+        sel = np.atleast_2d(points)
+        if sel.shape[1] != n_points or sel.shape[0] not in (1, n_items):
+            raise ModelSpecError(f"a point mask must have shape ({n_points},) or ({n_items}, {n_points})")
+        counts = sel.sum(axis=1).astype(np.int64)
+        idx = np.argsort(~sel, axis=1, kind="stable")[:, : max(int(counts.max()), 1)]
+        return np.ascontiguousarray(idx, dtype=np.int64), counts
+    idx = np.ascontiguousarray(np.atleast_2d(points), dtype=np.int64)
+    if idx.ndim != 2 or idx.shape[0] not in (1, n_items):
+        raise ModelSpecError(f"point indices must have 1 or {n_items} rows, got shape {points.shape}")
+    if idx.size and (idx.min() < 0 or idx.max() >= n_points):
+        raise ModelSpecError(f"point indices must lie in 0..{n_points - 1}")
+    return idx, np.full(idx.shape[0], idx.shape[1], dtype=np.int64)
+
+
 def fit_batch(
     xy_u: np.ndarray,
     xy_d: np.ndarray,
     masks: np.ndarray,
     p0: np.ndarray,
     *,
+    points: np.ndarray | None = None,
+    covariance: bool = True,
     max_iter: int = 200,
     ftol: float = 1e-12,
     xtol: float = 1e-12,
     gtol: float = 1e-12,
     scale: float | None = None,
+    family: ModelFamily = BROWN_CONRADY,
 ) -> BatchFit:
-    """Fit B models at once by Levenberg-Marquardt.
+    """Fit B models at once by Levenberg-Marquardt (the one solver of oapcal).
 
     Parameters
     ----------
-    xy_u, xy_d : ``(N, 2)`` or ``(B, N, 2)`` reference and observed distorted points.
-    masks : ``(B, 13)`` bool, the free parameters of each model (``m`` must be free).
-    p0 : ``(B, 13)`` starting values (fixed entries are forced to 0).
-    max_iter : cap on LM iterations (Jacobian evaluations) per item.
+    xy_u, xy_d : reference and distorted points, each ``(N, 2)`` (shared by all items) or
+        ``(B, N, 2)`` (each item's own).
+    masks : ``(B, P)`` bool, the free parameters of each model (the family's
+        ``always_free`` ones, ``m`` for Eq. (1), must be free).
+    p0 : ``(B, P)`` or ``(P,)`` starting values (fixed entries are forced to 0).
+    points : which points each item is fitted to: None (all), integer indices ``(n,)``,
+        ``(1, n)`` or ``(B, n)``, or a boolean mask ``(N,)`` or ``(B, N)``.
+    covariance : also compute ``cov = s^2 (J^T J)^-1`` at each solution, with
+        ``s^2 = RSS / (n - k)`` (pseudo-inverse of the column-scaled matrix).
+    max_iter : cap on Jacobian evaluations per item.
     ftol, xtol, gtol : MINPACK-style tolerances: relative cost reduction (actual and
         predicted), relative scaled step, and the largest cosine between the residual
         vector and a Jacobian column.
     scale : the coordinate factor ``f`` (default: the largest absolute coordinate).
+    family : the model family (default Eq. (1)).
 
-    All items advance together; an item stops when it meets a tolerance, fails, or hits
-    ``max_iter``, and its status says which.
+    Each item stops when it meets a tolerance, fails, or hits ``max_iter``, and its
+    status says which.  Items are independent: a batch gives the same results as a loop of
+    single-item calls with the same ``scale``.
     """
+    import numba
+
+    from oapcal import _kernels
+
     xy_u = np.asarray(xy_u, dtype=float)
     xy_d = np.asarray(xy_d, dtype=float)
-    masks = np.atleast_2d(np.asarray(masks, dtype=bool))
-    p0 = np.atleast_2d(np.asarray(p0, dtype=float))
-    n_models = masks.shape[0]
-    if not masks[:, INDEX["m"]].all():
-        raise ModelSpecError("the magnification m must be free in every model")
-    n_res = 2 * xy_u.shape[-2]
+    masks = np.ascontiguousarray(np.atleast_2d(np.asarray(masks, dtype=bool)))
+    n_models, n_params = masks.shape
+    if n_params != family.n_params:
+        raise ModelSpecError(f"model masks must have {family.n_params} entries, got {n_params}")
+    for name in family.always_free:
+        if not masks[:, family.param_names.index(name)].all():
+            raise ModelSpecError(f"the parameter {name!r} must be free in every model")
+    for xy in (xy_u, xy_d):
+        if xy.shape[-1:] != (2,) or xy.ndim not in (2, 3) or xy.shape[-2] != xy_u.shape[-2]:
+            raise ModelSpecError(f"points must be (N, 2) or (B, N, 2), got {xy_u.shape} and {xy_d.shape}")
+        if xy.ndim == 3 and xy.shape[0] not in (1, n_models):
+            raise ModelSpecError(f"per-item points must have {n_models} rows, got {xy.shape[0]}")
+    idx, counts = _point_subsets(points, xy_u.shape[-2], n_models)
 
-    f = float(scale) if scale else float(max(np.abs(xy_u).max(), np.abs(xy_d).max(), 1e-300))
-    u = xy_u / f
-    d = xy_d / f
-    p = np.where(masks, scale_params(np.broadcast_to(p0, masks.shape), f), 0.0)
-    fixed = ~masks
-
-    def residuals(params, active):
-        uu = u if u.ndim == 2 else u[active]
-        dd = d if d.ndim == 2 else d[active]
-        return (distort(uu, params) - dd).reshape(len(params), -1)
-
-    def normal_equations(params, active):
-        uu = u if u.ndim == 2 else u[active]
-        jac = jacobian_params(uu, params).reshape(len(params), -1, N_PARAMS)
-        jac = np.where(fixed[active][:, None, :], 0.0, jac)
-        return jac
-
-    status = np.full(n_models, 0, dtype=np.int64)
+    exps = family.scale_exponents
+    if exps is None:
+        f = 1.0
+    else:
+        f = (
+            float(scale)
+            if scale
+            else float(max(np.abs(xy_u).max(initial=0), np.abs(xy_d).max(initial=0), 1e-300))
+        )
+    u = np.ascontiguousarray((xy_u / f).reshape((-1,) + xy_u.shape[-2:]))
+    d = np.ascontiguousarray((xy_d / f).reshape((-1,) + xy_d.shape[-2:]))
+    p = np.broadcast_to(np.asarray(p0, dtype=float), masks.shape)
+    if exps is not None:
+        p = p * f**exps
+    p = np.ascontiguousarray(np.where(masks, p, 0.0))
+    status = np.zeros(n_models, dtype=np.int64)
     n_iter = np.zeros(n_models, dtype=np.int64)
-    lam = np.full(n_models, 1e-3)
-    nu = np.full(n_models, 2.0)
-    with np.errstate(all="ignore"):
-        r = residuals(p, np.arange(n_models))
-        cost = 0.5 * np.einsum("bi,bi->b", r, r)
-        status[~np.isfinite(cost)] = -1
-        status[cost == 0] = 4
-        running = status == 0
-        need_jac = np.ones(n_models, dtype=bool)
-        jtj = np.zeros((n_models, N_PARAMS, N_PARAMS))
-        grad = np.zeros((n_models, N_PARAMS))
-        eye = np.eye(N_PARAMS)
-        for _ in range(max_iter * 4):  # outer cap; each item is capped at max_iter Jacobians
-            if not running.any():
-                break
-            idx = np.flatnonzero(running & need_jac)
-            if idx.size:
-                jac = normal_equations(p[idx], idx)
-                r_i = residuals(p[idx], idx)
-                jtj[idx] = np.einsum("bni,bnj->bij", jac, jac)
-                grad[idx] = np.einsum("bni,bn->bi", jac, r_i)
-                n_iter[idx] += 1
-                need_jac[idx] = False
-                # gtol: largest cosine between residual vector and a Jacobian column.
-                colnorm = np.sqrt(np.einsum("bii->bi", jtj[idx]))
-                rnorm = np.sqrt(2.0 * cost[idx])
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    cosine = np.where(colnorm > 0, np.abs(grad[idx]) / (colnorm * rnorm[:, None]), 0.0)
-                hit = np.nanmax(cosine, axis=1) <= gtol
-                status[idx[hit]] = 1
-                running[idx[hit]] = False
-            idx = np.flatnonzero(running)
-            if not idx.size:
-                break
-            a = jtj[idx]
-            g = grad[idx]
-            fx = fixed[idx]
-            dcol = np.sqrt(np.einsum("bii->bi", a))
-            dcol = np.where(fx | ~(dcol > 0), 1.0, dcol)
-            a_s = a / (dcol[:, :, None] * dcol[:, None, :])
-            a_s = np.where(fx[:, :, None] | fx[:, None, :], 0.0, a_s) + eye * fx[:, :, None]
-            g_s = np.where(fx, 0.0, g / dcol)
-            lhs = a_s + lam[idx, None, None] * (eye * ~fx[:, :, None])
-            try:
-                step_s = -np.linalg.solve(lhs, g_s[..., None])[..., 0]
-            except np.linalg.LinAlgError:
-                step_s = -np.stack([np.linalg.lstsq(m_, v_, rcond=None)[0] for m_, v_ in zip(lhs, g_s)])
-            step_s = np.where(fx, 0.0, step_s)
-            step = step_s / dcol
-            p_new = p[idx] + step
-            r_new = residuals(p_new, idx)
-            cost_new = 0.5 * np.einsum("bi,bi->b", r_new, r_new)
-            predicted = -(
-                np.einsum("bi,bi->b", g_s, step_s) + 0.5 * np.einsum("bi,bij,bj->b", step_s, a_s, step_s)
-            )
-            actual = cost[idx] - cost_new
-            rho = np.where(predicted > 0, actual / predicted, -1.0)
-            accept = np.isfinite(cost_new) & (actual > 0) & (rho > 1e-4)
-
-            # Convergence tests on this trial step (MINPACK style).
-            rel_actual = np.where(cost[idx] > 0, np.abs(actual) / cost[idx], 0.0)
-            rel_pred = np.where(cost[idx] > 0, predicted / cost[idx], 0.0)
-            f_conv = (rel_actual <= ftol) & (rel_pred <= ftol) & (rho <= 2.0)
-            pnorm = np.linalg.norm(p[idx] * dcol, axis=1)
-            x_conv = np.linalg.norm(step_s, axis=1) <= xtol * np.maximum(pnorm, 1e-300)
-
-            acc = idx[accept]
-            p[acc] = p_new[accept]
-            cost[acc] = cost_new[accept]
-            need_jac[acc] = True
-            rho_a = rho[accept]
-            lam[acc] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho_a - 1.0) ** 3)
-            nu[acc] = 2.0
-            rej = idx[~accept]
-            lam[rej] *= nu[rej]
-            nu[rej] *= 2.0
-
-            done_f = idx[f_conv & (accept | (np.abs(actual) <= ftol * cost[idx]))]
-            status[done_f] = np.where(status[done_f] == 0, 2, status[done_f])
-            done_x = idx[x_conv]
-            status[done_x] = np.where(status[done_x] == 0, 3, status[done_x])
-            status[idx[~np.isfinite(p_new).all(axis=1) & ~accept & (lam[idx] > 1e16)]] = -1
-            status[idx[(lam[idx] > 1e32) & (status[idx] == 0)]] = -2
-            zero = idx[accept & (cost_new == 0)]
-            status[zero] = 4
-            capped = (n_iter >= max_iter) & need_jac & (status == 0)
-            running = status == 0
-            running &= ~capped
-        status[~np.isfinite(p).all(axis=1)] = -1
-        status[~np.isfinite(cost)] = -1
-
-        # Covariance at the solution: s^2 (J^T J)^-1 over the free parameters.
-        idx = np.arange(n_models)
-        jac = normal_equations(p, idx)
-        jtj = np.einsum("bni,bnj->bij", jac, jac)
-        rss_scaled = 2.0 * cost
-        dof = n_res - masks.sum(axis=1)
-        s2 = np.where(dof > 0, rss_scaled / np.maximum(dof, 1), np.nan)
-        cov = np.zeros((n_models, N_PARAMS, N_PARAMS))
-        for i in range(n_models):
-            mk = masks[i]
-            sub = jtj[i][np.ix_(mk, mk)]
-            dsub = np.sqrt(np.diag(sub))
-            dsub = np.where(dsub > 0, dsub, 1.0)
-            try:
-                inv = np.linalg.pinv(sub / np.outer(dsub, dsub)) / np.outer(dsub, dsub)
-            except np.linalg.LinAlgError:
-                inv = np.full(sub.shape, np.nan)
-            cov[i][np.ix_(mk, mk)] = inv * s2[i]
-
+    cost = np.zeros(n_models)
+    jtj = np.zeros((n_models if covariance else 1, n_params, n_params))
+    fd = 0.0 if family.analytic_jacobian else family.fd_step
+    with numba.parallel_chunksize(_kernels.CHUNK):
+        _kernels.lm_batch(family.code, u, d, idx, counts, masks, family.half, p, int(max_iter),
+                          float(ftol), float(xtol), float(gtol), fd, bool(covariance), status, n_iter, cost,
+                          jtj)  # fmt: skip
+    n_res = 2 * np.broadcast_to(counts, (n_models,)).astype(np.int64)
+    rss_scaled = 2.0 * cost
+    cov = None
+    if covariance:
+        cov = _covariance(jtj, masks, rss_scaled, n_res)
     # Back to the data's units: p = p' * f**-e, cov = D cov' D with D = f**-e.
-    back = f ** (-SCALE_EXPONENTS)
+    back = np.ones(n_params) if exps is None else f ** (-exps)
     params = np.where(masks, p * back, 0.0)
-    cov = cov * back[None, :, None] * back[None, None, :]
-    return BatchFit(
-        masks=masks,
-        params=params,
-        covariance=cov,
-        rss=rss_scaled * f * f,
-        n=n_res,
-        n_iter=n_iter,
-        status=status,
-    )
+    if cov is not None:
+        cov = cov * back[None, :, None] * back[None, None, :]
+    return BatchFit(masks=masks.copy(), params=params, covariance=cov, rss=rss_scaled * f * f, n=n_res,
+                    n_iter=n_iter, status=status)  # fmt: skip
+
+
+def _covariance(jtj: np.ndarray, masks: np.ndarray, rss: np.ndarray, n_res: np.ndarray) -> np.ndarray:
+    """``s^2 (J^T J)^-1`` over each item's free parameters (pseudo-inverse of the matrix
+    scaled to a unit diagonal); zero rows and columns for the fixed ones."""
+    n_params = masks.shape[1]
+    dof = n_res - masks.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s2 = np.where(dof > 0, rss / np.maximum(dof, 1), np.nan)
+        diag = np.sqrt(np.einsum("bii->bi", jtj))
+        dsub = np.where(masks & (diag > 0), diag, 1.0)
+        scaled = jtj / (dsub[:, :, None] * dsub[:, None, :])
+    # Fixed parameters get an identity block: the pseudo-inverse of a block-diagonal
+    # matrix is block-diagonal, so the free block is unchanged.
+    both = masks[:, :, None] & masks[:, None, :]
+    scaled = np.where(both, scaled, 0.0) + np.eye(n_params) * ~masks[:, :, None]
+    cov = np.full(scaled.shape, np.nan)
+    finite = np.isfinite(scaled).all(axis=(1, 2))
+    if finite.any():
+        cov[finite] = np.linalg.pinv(scaled[finite])
+    cov = cov / (dsub[:, :, None] * dsub[:, None, :]) * s2[:, None, None]
+    return np.where(both, cov, 0.0)
 
 
 def check_enough_points(n_points: int, k_free: int, source: str = "the point data") -> None:

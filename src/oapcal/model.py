@@ -184,66 +184,148 @@ def scale_params(params: np.ndarray, factor: float) -> np.ndarray:
     return np.asarray(params, float) * float(factor) ** SCALE_EXPONENTS
 
 
+# ---------------------------------------------------------------------- model families
+
+
+@dataclass(frozen=True)
+class ModelFamily:
+    """A family of distortion models as the solver sees it (``docs/architecture.md``).
+
+    ``code`` selects the family's point function in the compiled core
+    (:func:`oapcal._kernels.point`); ``param_names`` is the flat parameter vector;
+    ``always_free`` the parameters every model of the family fits; ``scale_exponents``
+    the exact reparametrization for coordinates divided by ``f`` (``p * f**e``; None when
+    there is none: the solver then fits in the data's units); ``moves`` says for each
+    parameter whether it moves the distorted ``"x"`` only, ``"y"`` only or ``"xy"``
+    (the solver skips the zero halves of the Jacobian); ``analytic_jacobian`` False
+    makes the solver use central differences of the point function (relative step
+    ``fd_step``).
+    """
+
+    name: str
+    code: int
+    param_names: tuple[str, ...]
+    always_free: tuple[str, ...]
+    scale_exponents: np.ndarray | None
+    moves: tuple[str, ...]
+    analytic_jacobian: bool = True
+    fd_step: float = 1e-6
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    @property
+    def half(self) -> np.ndarray:
+        """``moves`` as codes for the kernels: 0 both, 1 x only, 2 y only."""
+        return np.array([{"xy": 0, "x": 1, "y": 2}[v] for v in self.moves], dtype=np.int64)
+
+
+#: Eq. (1), the Brown-Conrady model (the family of every preset and subset above).
+BROWN_CONRADY = ModelFamily(
+    name="brown-conrady",
+    code=0,
+    param_names=PARAM_NAMES,
+    always_free=("m",),
+    scale_exponents=SCALE_EXPONENTS,
+    moves=("xy", "xy", "xy", "xy", "x", "x", "y", "y", "xy", "xy", "x", "y", "xy"),
+)
+
+
+def _kernels():
+    from oapcal import _kernels  # numba loads on first use, not on ``import oapcal``
+
+    return _kernels
+
+
+def _as_batches(xy: np.ndarray, params: np.ndarray, n_params: int):
+    """Flatten points ``(..., N, 2)`` and parameters ``(..., P)`` to ``(Bx, N, 2)`` and
+    ``(Bp, P)`` (each of ``Bx, Bp`` 1 or B) plus the broadcast leading shape."""
+    xy = np.asarray(xy, dtype=float)
+    params = np.asarray(params, dtype=float)
+    if xy.ndim < 2 or xy.shape[-1] != 2:
+        raise ModelSpecError(f"points must have shape (..., N, 2), got {xy.shape}")
+    if params.shape[-1:] != (n_params,):
+        raise ModelSpecError(f"parameters must have shape (..., {n_params}), got {params.shape}")
+    lead = np.broadcast_shapes(xy.shape[:-2], params.shape[:-1])
+    n_items = int(np.prod(lead, dtype=np.int64))
+
+    def flat(a, tail):
+        if a.shape[: a.ndim - len(tail)] == lead:
+            return np.ascontiguousarray(a.reshape((n_items,) + tail))
+        if a.size == int(np.prod(tail, dtype=np.int64)):
+            return np.ascontiguousarray(a.reshape((1,) + tail))
+        return np.ascontiguousarray(np.broadcast_to(a, lead + tail).reshape((n_items,) + tail))
+
+    return flat(xy, xy.shape[-2:]), flat(params, (n_params,)), lead, n_items
+
+
+def _evaluate(xy_u, params, need: int, family: ModelFamily, finite_difference: bool = False):
+    k = _kernels()
+    u, p, lead, n_items = _as_batches(xy_u, params, family.n_params)
+    n = u.shape[1]
+    out = np.empty((n_items, n, 2))
+    jpt = np.empty((n_items, n, 2, 2) if need >= k.POINT_JAC else (1, 1, 2, 2))
+    jpar = np.empty((n_items, n, 2, family.n_params) if need == k.PARAM_JAC else (1, 1, 2, family.n_params))
+    fd = family.fd_step if (finite_difference or not family.analytic_jacobian) else 0.0
+    k.evaluate(family.code, p, u, need, fd, out, jpt, jpar)
+    return out.reshape(lead + (n, 2)), jpt, jpar, lead + (n,)
+
+
 # ------------------------------------------------------------------------- forward map
 
 
-def _split(xy_u: np.ndarray, params: np.ndarray):
-    xy_u = np.asarray(xy_u, dtype=float)
-    p = np.asarray(params, dtype=float)[..., None, :]  # (..., 1, 13) broadcasts over N
-    k1, k2, p1, p2, s1, s2, s3, s4, xo, yo, cx, cy, m = (p[..., i] for i in range(N_PARAMS))
-    xs = xy_u[..., 0] + xo
-    ys = xy_u[..., 1] + yo
-    xb = m * xs
-    yb = m * ys
-    r2 = xb * xb + yb * yb
-    return (k1, k2, p1, p2, s1, s2, s3, s4, cx, cy, m), xs, ys, xb, yb, r2
-
-
-def distort(xy_u: np.ndarray, params: np.ndarray) -> np.ndarray:
+def distort(xy_u: np.ndarray, params: np.ndarray, *, family: ModelFamily = BROWN_CONRADY) -> np.ndarray:
     """Eq. (1): distorted points ``(..., N, 2)`` from undistorted points ``(..., N, 2)``."""
-    (k1, k2, p1, p2, s1, s2, s3, s4, cx, cy, _), _, _, xb, yb, r2 = _split(xy_u, params)
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    xd = xb * radial + 2.0 * p1 * xb * yb + p2 * (r2 + 2.0 * xb * xb) + r2 * (s1 + s2 * r2) + cx
-    yd = yb * radial + p1 * (r2 + 2.0 * yb * yb) + 2.0 * p2 * xb * yb + r2 * (s3 + s4 * r2) + cy
-    return np.stack([xd, yd], axis=-1)
+    return _evaluate(xy_u, params, 0, family)[0]
 
 
-def _inner_jacobian(k1, k2, p1, p2, s1, s2, s3, s4, xb, yb, r2):
-    """d(xb_d, yb_d) / d(xb, yb), each entry of shape (..., N)."""
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    drad = 2.0 * (k1 + 2.0 * k2 * r2)  # d radial / d xb = drad * xb
-    a = radial + drad * xb * xb + 2.0 * p1 * yb + 6.0 * p2 * xb + 2.0 * xb * (s1 + 2.0 * s2 * r2)
-    b = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + 2.0 * yb * (s1 + 2.0 * s2 * r2)
-    c = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + 2.0 * xb * (s3 + 2.0 * s4 * r2)
-    d = radial + drad * yb * yb + 6.0 * p1 * yb + 2.0 * p2 * xb + 2.0 * yb * (s3 + 2.0 * s4 * r2)
-    return a, b, c, d
-
-
-def jacobian_point(xy_u: np.ndarray, params: np.ndarray) -> np.ndarray:
+def jacobian_point(
+    xy_u: np.ndarray, params: np.ndarray, *, family: ModelFamily = BROWN_CONRADY
+) -> np.ndarray:
     """d(x_d, y_d) / d(x_u, y_u), shape ``(..., N, 2, 2)`` (row = output, column = input)."""
-    (k1, k2, p1, p2, s1, s2, s3, s4, _, _, m), _, _, xb, yb, r2 = _split(xy_u, params)
-    a, b, c, d = _inner_jacobian(k1, k2, p1, p2, s1, s2, s3, s4, xb, yb, r2)
-    jac = np.stack([np.stack([a, b], -1), np.stack([c, d], -1)], -2)
-    return jac * m[..., None, None]
+    _, jpt, _, shape = _evaluate(xy_u, params, 1, family)
+    return jpt.reshape(shape + (2, 2))
 
 
-def jacobian_params(xy_u: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """d(x_d, y_d) / d(params), shape ``(..., N, 2, 13)``, columns in :data:`PARAM_NAMES` order."""
-    (k1, k2, p1, p2, s1, s2, s3, s4, _, _, m), xs, ys, xb, yb, r2 = _split(xy_u, params)
-    a, b, c, d = _inner_jacobian(k1, k2, p1, p2, s1, s2, s3, s4, xb, yb, r2)
-    zero = np.zeros_like(r2)
-    one = np.ones_like(r2)
-    r4 = r2 * r2
-    xy2 = 2.0 * xb * yb
-    cols_x = [
-        xb * r2, xb * r4, xy2, r2 + 2.0 * xb * xb, r2, r4, zero, zero,
-        a * m, b * m, one, zero, a * xs + b * ys,
-    ]  # fmt: skip
-    cols_y = [
-        yb * r2, yb * r4, r2 + 2.0 * yb * yb, xy2, zero, zero, r2, r4,
-        c * m, d * m, zero, one, c * xs + d * ys,
-    ]  # fmt: skip
-    return np.stack([np.stack(cols_x, -1), np.stack(cols_y, -1)], -2)
+def jacobian_params(
+    xy_u: np.ndarray,
+    params: np.ndarray,
+    *,
+    family: ModelFamily = BROWN_CONRADY,
+    finite_difference: bool = False,
+) -> np.ndarray:
+    """d(x_d, y_d) / d(params), shape ``(..., N, 2, P)``, columns in :data:`PARAM_NAMES` order.
+
+    Analytic, or central differences with ``finite_difference=True`` (step
+    ``family.fd_step * max(|p_i|, 1)``; what the solver uses for a family without
+    analytic columns).
+    """
+    _, _, jpar, shape = _evaluate(xy_u, params, 2, family, finite_difference)
+    return jpar.reshape(shape + (2, family.n_params))
+
+
+def jacobian_determinant(
+    xy_u: np.ndarray, params: np.ndarray, *, family: ModelFamily = BROWN_CONRADY
+) -> np.ndarray:
+    """``det d(x_d, y_d)/d(x_u, y_u)`` at each point, ``(..., N)``; <= 0 where the map folds."""
+    jac = jacobian_point(xy_u, params, family=family)
+    return jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+
+
+def min_jacobian_determinant(
+    params: np.ndarray, xy_u: np.ndarray, *, family: ModelFamily = BROWN_CONRADY
+) -> np.ndarray:
+    """The smallest Jacobian determinant of each model ``params (B, P)`` over the points
+    ``xy_u (M, 2)``, ``(B,)``: <= 0 (or NaN) where a model folds over among the points."""
+    params = np.ascontiguousarray(np.atleast_2d(params), dtype=float)
+    out = np.empty(len(params))
+    k = _kernels()
+    import numba
+
+    with numba.parallel_chunksize(k.CHUNK):
+        k.min_det(family.code, params, np.ascontiguousarray(xy_u, dtype=float), out)
+    return out
 
 
 # ------------------------------------------------------------------------- the inverse
@@ -260,7 +342,7 @@ class InverseResult:
         and the map is locally one-to-one there.
     folded : (..., N) bool, Newton stopped where the Jacobian determinant is <= 0: the
         fitted map folds over near this point, so no trustworthy inverse exists.
-    n_iter : number of Newton iterations taken.
+    n_iter : the largest number of Newton iterations any point took.
     """
 
     xy: np.ndarray
@@ -276,6 +358,7 @@ def undistort(
     tol: float = 1e-10,
     max_iter: int = 50,
     xy_start: np.ndarray | None = None,
+    family: ModelFamily = BROWN_CONRADY,
 ) -> InverseResult:
     """Correct observed points: solve ``distort(xy_u, params) = xy_d`` for ``xy_u``.
 
@@ -286,76 +369,57 @@ def undistort(
     A point converges when ``|distort(xy_u) - xy_d| <= tol`` (Euclidean, in the units of
     the points) within ``max_iter`` iterations *and* the Jacobian determinant there is
     positive.  Where the determinant is <= 0 the map folds over: the point is reported as
-    ``folded`` and not converged.  Points that do not converge come back as NaN.
+    ``folded`` and not converged.  Points that do not converge come back as NaN.  A point
+    whose residual stops decreasing is stopped (not converged).
 
-    Shapes follow :func:`distort`: ``xy_d`` ``(..., N, 2)`` with ``params`` ``(..., 13)``.
+    Shapes follow :func:`distort`: ``xy_d`` ``(..., N, 2)`` with ``params`` ``(..., 13)``;
+    each point is solved independently (compiled, in parallel).
     """
-    xy_d = np.asarray(xy_d, dtype=float)
-    params = np.asarray(params, dtype=float)
-    shape = np.broadcast_shapes(xy_d.shape[:-2], params.shape[:-1]) + xy_d.shape[-2:]
-    xy_d = np.broadcast_to(xy_d, shape)
-    p = params[..., None, :]
+    import numba
+
+    k = _kernels()
+    d, p, lead, n_items = _as_batches(xy_d, params, family.n_params)
+    n = d.shape[1]
     if xy_start is None:
-        m = p[..., INDEX["m"]]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.stack(
-                [
-                    (xy_d[..., 0] - p[..., INDEX["c_x"]]) / m - p[..., INDEX["x_off"]],
-                    (xy_d[..., 1] - p[..., INDEX["c_y"]]) / m - p[..., INDEX["y_off"]],
-                ],
-                axis=-1,
-            )
+        start = np.empty((1, 0, 2))
     else:
-        u = np.array(np.broadcast_to(xy_start, shape), dtype=float)
-    u = np.array(u, dtype=float)
-
-    with np.errstate(all="ignore"):
-        f = distort(u, params) - xy_d
-        err = np.hypot(f[..., 0], f[..., 1])
-        done = err <= tol
-        n_iter = 0
-        for n_iter in range(1, max_iter + 1):
-            active = ~done & np.isfinite(err)
-            if not active.any():
-                n_iter -= 1
-                break
-            jac = jacobian_point(u, params)
-            det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
-            # Newton step -J^{-1} f, with the 2x2 inverse written out.
-            step = -np.stack(
-                [
-                    (jac[..., 1, 1] * f[..., 0] - jac[..., 0, 1] * f[..., 1]) / det,
-                    (-jac[..., 1, 0] * f[..., 0] + jac[..., 0, 0] * f[..., 1]) / det,
-                ],
-                axis=-1,
-            )
-            step = np.where(active[..., None], step, 0.0)
-            t = np.ones(err.shape)
-            for _ in range(11):
-                u_new = u + t[..., None] * step
-                f_new = distort(u_new, params) - xy_d
-                err_new = np.hypot(f_new[..., 0], f_new[..., 1])
-                worse = active & ~(err_new < err) & ~(err_new <= tol)
-                if not worse.any():
-                    break
-                t = np.where(worse, 0.5 * t, t)
-            accept = active & np.isfinite(err_new)
-            u = np.where(accept[..., None], u_new, u)
-            f = np.where(accept[..., None], f_new, f)
-            stalled = active & ~(err_new < err)
-            err = np.where(accept, err_new, err)
-            done = done | (err <= tol)
-            # A point whose residual cannot decrease any more has stalled: stop it.
-            err = np.where(stalled & ~done, np.inf, err)
-        jac = jacobian_point(u, params)
-        det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
-    folded = ~(det > 0) & np.isfinite(det)
-    converged = done & ~folded & np.isfinite(u).all(axis=-1)
-    xy = np.where(converged[..., None], u, np.nan)
-    return InverseResult(xy=xy, converged=converged, folded=folded, n_iter=n_iter)
+        start = np.asarray(xy_start, dtype=float)
+        start = np.ascontiguousarray(np.broadcast_to(start, lead + (n, 2)).reshape(n_items, n, 2))
+    out = np.empty((n_items, n, 2))
+    converged = np.zeros((n_items, n), dtype=np.bool_)
+    folded = np.zeros((n_items, n), dtype=np.bool_)
+    iters = np.zeros((n_items, n), dtype=np.int64)
+    with numba.parallel_chunksize(1):
+        k.invert_batch(family.code, p, d, start, xy_start is not None, float(tol), int(max_iter),
+                       out, converged, folded, iters)  # fmt: skip
+    return InverseResult(
+        xy=out.reshape(lead + (n, 2)),
+        converged=converged.reshape(lead + (n,)),
+        folded=folded.reshape(lead + (n,)),
+        n_iter=int(iters.max()) if iters.size else 0,
+    )
 
 
-def jacobian_determinant(xy_u: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """``det d(x_d, y_d)/d(x_u, y_u)`` at each point, ``(..., N)``; <= 0 where the map folds."""
-    jac = jacobian_point(xy_u, params)
-    return jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+def correction_errors(params: np.ndarray, xy_d: np.ndarray, xy_u: np.ndarray, *, tol: float = 1e-10,
+                      max_iter: int = 50, family: ModelFamily = BROWN_CONRADY):  # fmt: skip
+    """Correct all points ``xy_d (N, 2)`` through each model ``params (B, P)`` (as
+    :func:`undistort`) and compare with ``xy_u (N, 2)`` without storing the points.
+
+    Returns ``(rss, mean_dist, n_bad, n_folded)``, each ``(B,)``: the sum of squared and
+    the mean Euclidean corrected-minus-reference distances over the points whose inverse
+    converged, the number of points whose inverse failed, and how many of those fold.
+    """
+    import numba
+
+    k = _kernels()
+    params = np.ascontiguousarray(np.atleast_2d(params), dtype=float)
+    n_items = len(params)
+    rss = np.empty(n_items)
+    mean_dist = np.empty(n_items)
+    n_bad = np.zeros(n_items, dtype=np.int64)
+    n_folded = np.zeros(n_items, dtype=np.int64)
+    with numba.parallel_chunksize(k.CHUNK):
+        d = np.ascontiguousarray(xy_d, dtype=float)
+        u = np.ascontiguousarray(xy_u, dtype=float)
+        k.invert_score(family.code, params, d, u, float(tol), int(max_iter), rss, mean_dist, n_bad, n_folded)
+    return rss, mean_dist, n_bad, n_folded

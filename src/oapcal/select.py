@@ -58,15 +58,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from oapcal._batchfit import fit_many, invert_and_score, invert_many, min_jacobian_determinant
 from oapcal.errors import DataError, ModelSpecError
-from oapcal.fit import STATUS_MESSAGES, initial_params
+from oapcal.fit import STATUS_MESSAGES, fit_batch, initial_params
 from oapcal.model import (
     PARAM_NAMES,
     all_masks,
     bits_from_mask,
+    correction_errors,
+    min_jacobian_determinant,
     names_from_mask,
     parse_model,
+    undistort,
 )
 from oapcal.normalize import normalize
 from oapcal.records import finite_or_none
@@ -196,8 +198,8 @@ def score_models(xy_u, xy_d, masks, init="zero", *, max_iter: int = 200, progres
     }
     for start in range(0, n_models, chunk):
         sl = slice(start, min(start + chunk, n_models))
-        fits = fit_many(xy_u, xy_d, masks[sl], p0[sl], max_iter=max_iter)
-        rss, mean_dist, n_bad, n_folded = invert_and_score(fits.params, xy_d, xy_u)
+        fits = fit_batch(xy_u, xy_d, masks[sl], p0[sl], covariance=False, max_iter=max_iter)
+        rss, mean_dist, n_bad, n_folded = correction_errors(fits.params, xy_d, xy_u)
         all_ok = n_bad == 0
         out["rss"][sl] = np.where(all_ok, rss, np.nan)
         out["mean_error"][sl] = np.where(all_ok, mean_dist, np.nan)
@@ -341,10 +343,10 @@ def cross_validate(xy_u, xy_d, masks, *, folds: int = 5, init="zero", seed: int 
     failed = np.zeros(len(masks), dtype=np.int64)
     for held in parts:
         train = np.setdiff1d(np.arange(n_points), held)
-        fits = fit_many(xy_u, xy_d, masks, p0, idx=train[None], max_iter=max_iter)
-        xy_c, ok, _ = invert_many(fits.params, xy_d, idx=held[None])
-        ok &= fits.converged[:, None]
-        err = np.hypot(*np.moveaxis(xy_c - xy_u[held][None], -1, 0))
+        fits = fit_batch(xy_u, xy_d, masks, p0, points=train[None], covariance=False, max_iter=max_iter)
+        inv = undistort(xy_d[held], fits.params)
+        ok = inv.converged & fits.converged[:, None]
+        err = np.hypot(*np.moveaxis(inv.xy - xy_u[held][None], -1, 0))
         total += np.where(ok, err, 0.0).sum(axis=1)
         count += ok.sum(axis=1)
         failed += (~ok).sum(axis=1)
@@ -495,7 +497,7 @@ def robustness(
     ref_masks = np.repeat(masks, len(starts), axis=0)
     ref_p0 = np.concatenate([_starts(s, u, d, masks) for s in starts])
     ref_p0 = ref_p0.reshape(len(starts), len(masks), -1).transpose(1, 0, 2).reshape(len(ref_masks), -1)
-    ref = fit_many(u, d, ref_masks, ref_p0, max_iter=max_iter)
+    ref = fit_batch(u, d, ref_masks, ref_p0, covariance=False, max_iter=max_iter)
     ref_rss = np.where(ref.converged, ref.rss, np.inf).reshape(len(masks), len(starts)).min(axis=1)
     ref_rms = np.sqrt(ref_rss / n_points)
     atol = 1e-9 * float(np.ptp(d[:, 1]))
@@ -517,7 +519,8 @@ def robustness(
         sl = slice(start, min(start + chunk, trials))
         for j in range(n_models):
             n_sl = sl.stop - sl.start
-            fits = fit_many(u, d, np.repeat(masks[j][None], n_sl, 0), p0[j], idx=keep[sl], max_iter=max_iter)
+            fits = fit_batch(u, d, np.repeat(masks[j][None], n_sl, 0), p0[j], points=keep[sl],
+                             covariance=False, max_iter=max_iter)  # fmt: skip
             code = np.zeros(n_sl, dtype=np.int64)
             finite = np.isfinite(fits.params).all(axis=1) & np.isfinite(fits.rss)
             for s, name in _STATUS_REASON.items():
@@ -533,8 +536,9 @@ def robustness(
             code[(code == 0) & wrong] = 1 + REASONS.index("wrong_minimum")
             ok = code == 0
             if ok.any():
-                xy_c, conv, _ = invert_many(fits.params[ok], d, idx=held[sl][ok])
-                err = np.hypot(*np.moveaxis(xy_c - u[held[sl][ok]], -1, 0))
+                inv = undistort(d[held[sl][ok]], fits.params[ok])
+                conv = inv.converged
+                err = np.hypot(*np.moveaxis(inv.xy - u[held[sl][ok]], -1, 0))
                 n_ok = conv.sum(axis=1)
                 with np.errstate(invalid="ignore", divide="ignore"):
                     h = np.where(n_ok > 0, np.where(conv, err, 0.0).sum(axis=1) / np.maximum(n_ok, 1), np.nan)

@@ -2,7 +2,8 @@
 image; applied with ``cv2.remap``.
 
 With the paper's model the map needs no inversion: an output pixel at undistorted
-coordinates ``(x_u, y_u)`` samples the distorted image at ``distort((x_u, y_u))``.
+coordinates ``(x_u, y_u)`` samples the distorted image at ``distort((x_u, y_u))``, computed
+by the model's compiled point function over the pixel grid (``oapcal._kernels.grid_map``).
 
 The *output geometry* (:class:`OutputGeometry`) says which undistorted point each output
 pixel shows: output pixel ``(col, row)`` is the undistorted point
@@ -188,35 +189,6 @@ class CorrectionMap:
     @property
     def shape(self) -> tuple[int, int]:
         return self.map_x.shape
-
-
-def _forward_grid(params: np.ndarray, xs: np.ndarray, ys: np.ndarray, out_x, out_y) -> None:
-    """Eq. (1) on the grid ``xs (C,) x ys (R,)`` of undistorted points, into ``out_x, out_y``.
-
-    This is :func:`oapcal.model.distort` written once more for speed: on a grid ``xb``
-    depends on the column only and ``yb`` on the row only, so broadcasting ``(1, C)`` against
-    ``(R, 1)`` skips building the point grid and its temporaries (about 8x faster for
-    640x480; tested against ``distort``).
-    """
-    k1, k2, p1, p2, s1, s2, s3, s4, xo, yo, cx, cy, m = (float(v) for v in params)
-    xb = (m * (xs + xo))[None, :]
-    yb = (m * (ys + yo))[:, None]
-    r2 = xb * xb + yb * yb
-    radial = r2 * k2
-    radial += k1
-    radial *= r2
-    radial += 1.0
-    xy = xb * yb
-    mx = xb * radial
-    mx += (2.0 * p1) * xy
-    mx += r2 * (p2 + s1 + s2 * r2)
-    mx += 2.0 * p2 * xb * xb + cx
-    my = yb * radial
-    my += (2.0 * p2) * xy
-    my += r2 * (p1 + s3 + s4 * r2)
-    my += 2.0 * p1 * yb * yb + cy
-    out_x[...] = mx
-    out_y[...] = my
 
 
 def correction_map(

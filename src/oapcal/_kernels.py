@@ -1,0 +1,615 @@
+"""The compiled numerical core: one implementation of each step, used by everything.
+
+* :func:`bc_point` -- Eq. (1) at one point: the distorted point, its 2x2 point Jacobian
+  and the 13 parameter-Jacobian columns (the Brown-Conrady family).
+* :func:`point` -- the family dispatch: every kernel below calls a model through it, so a
+  new model family (``docs/architecture.md``) adds one branch here and nothing else.
+* :func:`lm_batch` -- the one Levenberg-Marquardt solver, one item per thread, each item
+  with its own free parameters, start and points; optional ``J^T J`` at the solution for
+  the covariance.
+* :func:`invert_point` -- the one Newton inverse, with the batched wrappers
+  :func:`invert_batch` (points out) and :func:`invert_score` (errors out).
+* :func:`evaluate`, :func:`grid_map`, :func:`min_det` -- the forward map and Jacobians at
+  arbitrary points, on a separable pixel grid (correction maps), and the smallest Jacobian
+  determinant (fold-over test).
+
+Everything public goes through :mod:`oapcal.model` and :mod:`oapcal.fit`; the NumPy
+reference implementation the tests check these kernels against lives in
+``tests/reference_model.py``.
+
+Why hand-written: selection fits all 4,096 subsets of Eq. (1) and the robustness test
+tens of thousands of subsamples; a NumPy solver materialising the ``(B, 2N, 13)``
+Jacobian took ~14 s for the 4,096 models on 289 points, these kernels ~0.3 s.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+# Reassociation lets the compiler vectorise the sums over points; NaN and inf keep their
+# IEEE meaning (no 'nnan'/'ninf'), which the status tests rely on.
+_FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+# Items are handed to the threads in chunks of this size rather than one equal share per
+# thread: fit times differ between models, and on a shared machine one thread may get
+# less CPU than the other, so equal shares leave one core idle.
+CHUNK = 16
+#: Points per task in the point-wise kernels (each task allocates its scratch once).
+POINT_BLOCK = 256
+
+#: What a point function computes: the point only, plus its 2x2 point Jacobian, plus the
+#: parameter-Jacobian columns.
+VALUE, POINT_JAC, PARAM_JAC = 0, 1, 2
+
+#: Family codes of :func:`point` (the Python side: :class:`oapcal.model.ModelFamily`).
+FAMILY_BC = 0
+
+
+# ---------------------------------------------------------------------- model families
+
+
+@numba.njit(fastmath=_FASTMATH, **_JIT)
+def bc_point(p, x, y, need, jp):
+    """Eq. (1) at one undistorted point ``(x, y)`` with parameters ``p (13,)``.
+
+    Returns ``(xd, yd, a, b, c, d)``: the distorted point and, when ``need >= POINT_JAC``,
+    its point Jacobian ``[[a, b], [c, d]] = d(xd, yd) / d(x, y)`` (zeros otherwise).  When
+    ``need == PARAM_JAC`` it also fills ``jp (2, 13)``: row 0 is ``d xd / d p``, row 1
+    ``d yd / d p``, columns in the order of :data:`oapcal.model.PARAM_NAMES`.
+    """
+    k1, k2, p1, p2, s1, s2, s3, s4 = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]
+    xo, yo, cx, cy, m = p[8], p[9], p[10], p[11], p[12]
+    xs = x + xo
+    ys = y + yo
+    xb = m * xs
+    yb = m * ys
+    r2 = xb * xb + yb * yb
+    radial = 1.0 + r2 * (k1 + k2 * r2)
+    xy2 = 2.0 * xb * yb
+    xd = xb * radial + p1 * xy2 + p2 * (r2 + 2.0 * xb * xb) + r2 * (s1 + s2 * r2) + cx
+    yd = yb * radial + p1 * (r2 + 2.0 * yb * yb) + p2 * xy2 + r2 * (s3 + s4 * r2) + cy
+    if need == VALUE:
+        return xd, yd, 0.0, 0.0, 0.0, 0.0
+    # d(xb_d, yb_d) / d(xb, yb)
+    drad = 2.0 * (k1 + 2.0 * k2 * r2)
+    sx = 2.0 * (s1 + 2.0 * s2 * r2)
+    sy = 2.0 * (s3 + 2.0 * s4 * r2)
+    a = radial + drad * xb * xb + 2.0 * p1 * yb + 6.0 * p2 * xb + xb * sx
+    b = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + yb * sx
+    c = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + xb * sy
+    d = radial + drad * yb * yb + 6.0 * p1 * yb + 2.0 * p2 * xb + yb * sy
+    if need == PARAM_JAC:
+        r4 = r2 * r2
+        jp[0, 0] = xb * r2
+        jp[0, 1] = xb * r4
+        jp[0, 2] = xy2
+        jp[0, 3] = r2 + 2.0 * xb * xb
+        jp[0, 4] = r2
+        jp[0, 5] = r4
+        jp[0, 6] = 0.0
+        jp[0, 7] = 0.0
+        jp[0, 8] = a * m
+        jp[0, 9] = b * m
+        jp[0, 10] = 1.0
+        jp[0, 11] = 0.0
+        jp[0, 12] = a * xs + b * ys
+        jp[1, 0] = yb * r2
+        jp[1, 1] = yb * r4
+        jp[1, 2] = r2 + 2.0 * yb * yb
+        jp[1, 3] = xy2
+        jp[1, 4] = 0.0
+        jp[1, 5] = 0.0
+        jp[1, 6] = r2
+        jp[1, 7] = r4
+        jp[1, 8] = c * m
+        jp[1, 9] = d * m
+        jp[1, 10] = 0.0
+        jp[1, 11] = 1.0
+        jp[1, 12] = c * xs + d * ys
+    return xd, yd, a * m, b * m, c * m, d * m
+
+
+@numba.njit(**_JIT)
+def bc_inverse_start(p, xd, yd):
+    """The Newton start of the Brown-Conrady inverse: the inverse of the linear part."""
+    m = p[12]
+    return (xd - p[10]) / m - p[8], (yd - p[11]) / m - p[9]
+
+
+@numba.njit(**_JIT)
+def point(family, p, x, y, need, jp):
+    """The model of ``family`` at one point (see :func:`bc_point` for the contract).
+
+    One branch per family: a new family's point function goes here.
+    """
+    if family == FAMILY_BC:
+        return bc_point(p, x, y, need, jp)
+    return np.nan, np.nan, np.nan, np.nan, np.nan, np.nan
+
+
+@numba.njit(**_JIT)
+def inverse_start(family, p, xd, yd):
+    """Where the Newton inverse of ``family`` starts for the distorted point ``(xd, yd)``."""
+    if family == FAMILY_BC:
+        return bc_inverse_start(p, xd, yd)
+    return xd, yd
+
+
+@numba.njit(**_JIT)
+def fd_param_columns(family, p, x, y, jp, step):
+    """Central-difference parameter Jacobian ``jp (2, n_params)`` of ``family`` at one point,
+    for families without analytic columns: ``h_i = step * max(|p_i|, 1)``."""
+    q = p.copy()
+    for i in range(p.shape[0]):
+        h = step * max(abs(p[i]), 1.0)
+        q[i] = p[i] + h
+        xp, yp, _, _, _, _ = point(family, q, x, y, VALUE, jp)
+        q[i] = p[i] - h
+        xm, ym, _, _, _, _ = point(family, q, x, y, VALUE, jp)
+        q[i] = p[i]
+        jp[0, i] = (xp - xm) / (2.0 * h)
+        jp[1, i] = (yp - ym) / (2.0 * h)
+
+
+# ------------------------------------------------------------------- forward evaluation
+
+
+@numba.njit(parallel=True, **_JIT)
+def evaluate(family, params, xy, need, fd_step, out, jpt, jpar):
+    """The model at every point: ``params (Bp, P)``, ``xy (Bx, N, 2)`` with ``Bp, Bx`` 1 or
+    B; ``out (B, N, 2)``; with ``need >= POINT_JAC`` ``jpt (B, N, 2, 2)``; with
+    ``need == PARAM_JAC`` ``jpar (B, N, 2, P)`` (central differences when ``fd_step > 0``).
+    Threads take blocks of ``POINT_BLOCK`` points."""
+    n_items, n = out.shape[0], out.shape[1]
+    total = n_items * n
+    for blk in numba.prange((total + POINT_BLOCK - 1) // POINT_BLOCK):
+        jp = np.empty((2, params.shape[1]))
+        for t in range(blk * POINT_BLOCK, min(total, (blk + 1) * POINT_BLOCK)):
+            b = t // n
+            j = t - b * n
+            p = params[b if params.shape[0] > 1 else 0]
+            bx = b if xy.shape[0] > 1 else 0
+            x = xy[bx, j, 0]
+            y = xy[bx, j, 1]
+            inner = need if fd_step <= 0.0 else min(need, POINT_JAC)
+            xd, yd, a, bb, c, d = point(family, p, x, y, inner, jp)
+            if need == PARAM_JAC and fd_step > 0.0:
+                fd_param_columns(family, p, x, y, jp, fd_step)
+            out[b, j, 0] = xd
+            out[b, j, 1] = yd
+            if need >= POINT_JAC:
+                jpt[b, j, 0, 0] = a
+                jpt[b, j, 0, 1] = bb
+                jpt[b, j, 1, 0] = c
+                jpt[b, j, 1, 1] = d
+            if need == PARAM_JAC:
+                for i in range(jp.shape[1]):
+                    jpar[b, j, 0, i] = jp[0, i]
+                    jpar[b, j, 1, i] = jp[1, i]
+
+
+@numba.njit(parallel=True, fastmath=_FASTMATH, **_JIT)
+def grid_map(family, p, xs, ys, out_x, out_y):
+    """The model on the grid ``xs (C,) x ys (R,)`` of undistorted points, into
+    ``out_x, out_y (R, C)`` (float32): a correction map."""
+    for r in numba.prange(ys.shape[0]):
+        jp = np.empty((2, p.shape[0]))
+        y = ys[r]
+        for col in range(xs.shape[0]):
+            xd, yd, _, _, _, _ = point(family, p, xs[col], y, VALUE, jp)
+            out_x[r, col] = xd
+            out_y[r, col] = yd
+
+
+@numba.njit(parallel=True, **_JIT)
+def min_det(family, params, xy, out):
+    """The smallest point-Jacobian determinant of each model ``params (B, P)`` over the
+    points ``xy (M, 2)``, into ``out (B,)``; NaN propagates."""
+    for b in numba.prange(params.shape[0]):
+        jp = np.empty((2, params.shape[1]))
+        lo = np.inf
+        for j in range(xy.shape[0]):
+            _, _, a, bb, c, d = point(family, params[b], xy[j, 0], xy[j, 1], POINT_JAC, jp)
+            det = a * d - bb * c
+            if not det >= lo:  # NaN propagates
+                lo = det
+        out[b] = lo
+
+
+# ---------------------------------------------------------------------- Newton inverse
+
+
+@numba.njit(**_JIT)
+def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp):
+    """Solve ``model(x, y) = (xd, yd)`` by Newton from ``(x, y)`` with step halving (up to
+    10 halvings while the residual grows); a point whose residual cannot decrease any more
+    stops.  Returns ``(x, y, converged, folded, n_iter)``: converged when the residual is
+    ``<= tol`` and the Jacobian determinant there is positive; folded when it is <= 0.
+    ``jp`` is the scratch of :func:`point`."""
+    fx, fy, a, b, c, d = point(family, p, x, y, POINT_JAC, jp)
+    fx -= xd
+    fy -= yd
+    err = np.sqrt(fx * fx + fy * fy)
+    done = err <= tol
+    n_iter = 0
+    # (a, b, c, d) is always the point Jacobian at (x, y): each trial evaluation returns
+    # it too, so an accepted step needs no second evaluation.
+    for _ in range(max_iter):
+        if done or not np.isfinite(err):
+            break
+        n_iter += 1
+        det = a * d - b * c
+        sx = -(d * fx - b * fy) / det
+        sy = -(-c * fx + a * fy) / det
+        t = 1.0
+        xn = x
+        yn = y
+        fxn = fx
+        fyn = fy
+        an, bn, cn, dn = a, b, c, d
+        err_new = err
+        for _h in range(11):
+            xn = x + t * sx
+            yn = y + t * sy
+            fxn, fyn, an, bn, cn, dn = point(family, p, xn, yn, POINT_JAC, jp)
+            fxn -= xd
+            fyn -= yd
+            err_new = np.sqrt(fxn * fxn + fyn * fyn)
+            if (err_new < err) or (err_new <= tol):
+                break
+            t *= 0.5
+        stalled = not (err_new < err)
+        if np.isfinite(err_new):
+            x = xn
+            y = yn
+            fx = fxn
+            fy = fyn
+            a, b, c, d = an, bn, cn, dn
+            err = err_new
+        done = err <= tol
+        if stalled and not done:
+            err = np.inf
+    det = a * d - b * c
+    folded = (not det > 0.0) and np.isfinite(det)
+    converged = done and (not folded) and np.isfinite(x) and np.isfinite(y)
+    return x, y, converged, folded, n_iter
+
+
+@numba.njit(parallel=True, **_JIT)
+def invert_batch(family, params, xy_d, start, use_start, tol, max_iter, out, converged, folded, iters):
+    """Invert every point: ``params (Bp, P)``, ``xy_d (Bx, N, 2)``, ``start`` like
+    ``xy_d`` (used when ``use_start``); outputs ``(B, N, 2)``, ``(B, N)`` x3."""
+    n_items, n = out.shape[0], out.shape[1]
+    total = n_items * n
+    for blk in numba.prange((total + POINT_BLOCK - 1) // POINT_BLOCK):
+        jp = np.empty((2, params.shape[1]))
+        for t in range(blk * POINT_BLOCK, min(total, (blk + 1) * POINT_BLOCK)):
+            b = t // n
+            j = t - b * n
+            p = params[b if params.shape[0] > 1 else 0]
+            bx = b if xy_d.shape[0] > 1 else 0
+            xd = xy_d[bx, j, 0]
+            yd = xy_d[bx, j, 1]
+            if use_start:
+                bs = b if start.shape[0] > 1 else 0
+                x0, y0 = start[bs, j, 0], start[bs, j, 1]
+            else:
+                x0, y0 = inverse_start(family, p, xd, yd)
+            x, y, ok, fold, it = invert_point(family, p, xd, yd, x0, y0, tol, max_iter, jp)
+            out[b, j, 0] = x if ok else np.nan
+            out[b, j, 1] = y if ok else np.nan
+            converged[b, j] = ok
+            folded[b, j] = fold
+            iters[b, j] = it
+
+
+@numba.njit(parallel=True, **_JIT)
+def invert_score(family, params, xy_d, xy_u, tol, max_iter, rss, mean_dist, n_bad, n_folded):
+    """Correct all points ``xy_d (N, 2)`` through each model ``params (B, P)`` and compare
+    with ``xy_u (N, 2)`` without storing the points: per model the sum of squared and the
+    mean Euclidean distances over the converged points, the number of points whose
+    inverse failed, and how many of those fold."""
+    for b in numba.prange(params.shape[0]):
+        p = params[b]
+        jp = np.empty((2, params.shape[1]))
+        s2 = 0.0
+        s1 = 0.0
+        bad = 0
+        fold = 0
+        for j in range(xy_d.shape[0]):
+            x0, y0 = inverse_start(family, p, xy_d[j, 0], xy_d[j, 1])
+            x, y, ok, fo, _ = invert_point(family, p, xy_d[j, 0], xy_d[j, 1], x0, y0, tol, max_iter, jp)
+            if ok:
+                dx = x - xy_u[j, 0]
+                dy = y - xy_u[j, 1]
+                s2 += dx * dx + dy * dy
+                s1 += np.sqrt(dx * dx + dy * dy)
+            else:
+                bad += 1
+            if fo:
+                fold += 1
+        rss[b] = s2
+        mean_dist[b] = s1 / max(xy_d.shape[0] - bad, 1)
+        n_bad[b] = bad
+        n_folded[b] = fold
+
+
+# -------------------------------------------------------------- Levenberg-Marquardt
+
+
+@numba.njit(fastmath=_FASTMATH, **_JIT)
+def _residuals(family, p, u, d, pts, n, res, jp):
+    """``res (2n,)`` = model - data over the points ``pts[:n]`` (x residuals first, then
+    y); returns the cost ``0.5 |res|^2``."""
+    cost = 0.0
+    for j in range(n):
+        q = pts[j]
+        xd, yd, _, _, _, _ = point(family, p, u[q, 0], u[q, 1], VALUE, jp)
+        rx = xd - d[q, 0]
+        ry = yd - d[q, 1]
+        res[j] = rx
+        res[n + j] = ry
+        cost += rx * rx + ry * ry
+    return 0.5 * cost
+
+
+@numba.njit(fastmath=_FASTMATH, **_JIT)
+def _jacobian(family, p, u, pts, n, free, k, fd_step, jac, jp):
+    """Fill ``jac (k, 2n)`` with the free parameters' columns of d(residual)/d(p)."""
+    for j in range(n):
+        q = pts[j]
+        if fd_step > 0.0:
+            fd_param_columns(family, p, u[q, 0], u[q, 1], jp, fd_step)
+        else:
+            point(family, p, u[q, 0], u[q, 1], PARAM_JAC, jp)
+        for i in range(k):
+            jac[i, j] = jp[0, free[i]]
+            jac[i, n + j] = jp[1, free[i]]
+
+
+@numba.njit(fastmath=_FASTMATH, **_JIT)
+def _normal_equations(jac, res, n, k, lo, hi, a, g):
+    """``a = J^T J`` and ``g = J^T r`` over the free columns.  Column ``i`` is zero outside
+    the residual range ``lo[i]:hi[i]`` (a parameter that moves x only or y only), so each
+    product runs over the overlap of the two ranges."""
+    for i in range(k):
+        s = 0.0
+        for c in range(lo[i], hi[i]):
+            s += jac[i, c] * res[c]
+        g[i] = s
+        for q in range(i + 1):
+            s = 0.0
+            for c in range(max(lo[i], lo[q]), min(hi[i], hi[q])):
+                s += jac[i, c] * jac[q, c]
+            a[i, q] = s
+            a[q, i] = s
+
+
+@numba.njit(**_JIT)
+def solve_spd(lhs, rhs, k, out, work):
+    """Solve ``lhs x = rhs`` (k x k, symmetric positive definite) by Cholesky.
+
+    Returns False when a pivot is not positive (the caller falls back to :func:`solve_lu`).
+    """
+    for i in range(k):
+        for j in range(i + 1):
+            s = lhs[i, j]
+            for q in range(j):
+                s -= work[i, q] * work[j, q]
+            if i == j:
+                if not s > 0.0:
+                    return False
+                work[i, i] = np.sqrt(s)
+            else:
+                work[i, j] = s / work[j, j]
+    for i in range(k):
+        s = rhs[i]
+        for q in range(i):
+            s -= work[i, q] * out[q]
+        out[i] = s / work[i, i]
+    for i in range(k - 1, -1, -1):
+        s = out[i]
+        for q in range(i + 1, k):
+            s -= work[q, i] * out[q]
+        out[i] = s / work[i, i]
+    return True
+
+
+@numba.njit(**_JIT)
+def solve_lu(lhs, rhs, k, out, work):
+    """Gaussian elimination with partial pivoting (what ``np.linalg.solve`` does), for the
+    rare steps where Cholesky meets a non-positive pivot; a zero pivot gives a NaN step."""
+    for i in range(k):
+        out[i] = rhs[i]
+        for j in range(k):
+            work[i, j] = lhs[i, j]
+    for c in range(k):
+        piv = c
+        for i in range(c + 1, k):
+            if abs(work[i, c]) > abs(work[piv, c]):
+                piv = i
+        if piv != c:
+            for j in range(k):
+                work[c, j], work[piv, j] = work[piv, j], work[c, j]
+            out[c], out[piv] = out[piv], out[c]
+        for i in range(c + 1, k):
+            f = work[i, c] / work[c, c]
+            for j in range(c, k):
+                work[i, j] -= f * work[c, j]
+            out[i] -= f * out[c]
+    for i in range(k - 1, -1, -1):
+        s = out[i]
+        for j in range(i + 1, k):
+            s -= work[i, j] * out[j]
+        out[i] = s / work[i, i]
+
+
+@numba.njit(**_JIT)
+def lm_item(family, u, d, pts, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, want_jtj, jtj_out):
+    """Levenberg-Marquardt for one item, in place on ``p``; returns (status, n_iter, cost).
+
+    MINPACK-style: Marquardt column scaling, damping ``lam`` raised by ``nu`` on a rejected
+    step and lowered by ``max(1/3, 1 - (2 rho - 1)^3)`` on an accepted one; stops on
+    ``gtol`` (status 1), ``ftol`` (2), ``xtol`` (3), zero residuals (4), the iteration cap
+    (0), non-finite values (-1) or unbounded damping (-2).  With ``want_jtj``,
+    ``jtj_out (P, P)`` receives ``J^T J`` at the final ``p`` (free rows and columns).
+    """
+    free = np.flatnonzero(mask)
+    k = free.shape[0]
+    n_params = p.shape[0]
+    n2 = 2 * n
+    jac = np.empty((k, n2))
+    res = np.empty(n2)
+    jp = np.empty((2, n_params))
+    lo = np.empty(k, dtype=np.int64)
+    hi = np.empty(k, dtype=np.int64)
+    for i in range(k):
+        h = half[free[i]]
+        lo[i] = n if h == 2 else 0
+        hi[i] = n if h == 1 else n2
+    a = np.empty((k, k))
+    g = np.empty(k)
+    lhs = np.empty((k, k))
+    a_s = np.empty((k, k))
+    g_s = np.empty(k)
+    step_s = np.empty(k)
+    work = np.zeros((k, k))
+    dcol = np.empty(k)
+    p_new = p.copy()
+
+    cost = _residuals(family, p, u, d, pts, n, res, jp)
+    status = 0
+    n_iter = 0
+    if not np.isfinite(cost):
+        status = -1
+    elif cost == 0.0:
+        status = 4
+    lam = 1e-3
+    nu = 2.0
+    need_jac = True
+    for _ in range(max_iter * 4 if status == 0 else 0):
+        if need_jac:
+            # The residuals hold the values at p: the last evaluation was at p (the start,
+            # or an accepted trial step).
+            _jacobian(family, p, u, pts, n, free, k, fd_step, jac, jp)
+            _normal_equations(jac, res, n, k, lo, hi, a, g)
+            n_iter += 1
+            need_jac = False
+            rnorm = np.sqrt(2.0 * cost)
+            cmax = 0.0
+            for i in range(k):
+                cn = np.sqrt(a[i, i])
+                if cn > 0.0:
+                    cos = abs(g[i]) / (cn * rnorm)
+                    if cos > cmax:
+                        cmax = cos
+            if cmax <= gtol:
+                status = 1
+                break
+        for i in range(k):
+            di = np.sqrt(a[i, i])
+            dcol[i] = di if di > 0.0 else 1.0
+        for i in range(k):
+            g_s[i] = g[i] / dcol[i]
+            for j in range(k):
+                a_s[i, j] = a[i, j] / (dcol[i] * dcol[j])
+                lhs[i, j] = a_s[i, j]
+            lhs[i, i] += lam
+        if not solve_spd(lhs, g_s, k, step_s, work):
+            solve_lu(lhs, g_s, k, step_s, work)
+        for i in range(k):
+            step_s[i] = -step_s[i]
+        # predicted = -(g_s . s + 0.5 s^T A_s s)
+        gs = 0.0
+        pred_quad = 0.0
+        for i in range(k):
+            gs += g_s[i] * step_s[i]
+            t = 0.0
+            for j in range(k):
+                t += a_s[i, j] * step_s[j]
+            pred_quad += step_s[i] * t
+        predicted = -(gs + 0.5 * pred_quad)
+        for i in range(n_params):
+            p_new[i] = p[i]
+        pnorm = 0.0
+        snorm = 0.0
+        finite_new = True
+        for i in range(k):
+            q = free[i]
+            p_new[q] = p[q] + step_s[i] / dcol[i]
+            pnorm += (p[q] * dcol[i]) ** 2
+            snorm += step_s[i] ** 2
+            if not np.isfinite(p_new[q]):
+                finite_new = False
+        cost_new = _residuals(family, p_new, u, d, pts, n, res, jp)
+        actual = cost - cost_new
+        rho = actual / predicted if predicted > 0.0 else -1.0
+        accept = np.isfinite(cost_new) and actual > 0.0 and rho > 1e-4
+        rel_actual = abs(actual) / cost if cost > 0.0 else 0.0
+        rel_pred = predicted / cost if cost > 0.0 else 0.0
+        f_conv = rel_actual <= ftol and rel_pred <= ftol and rho <= 2.0
+        x_conv = np.sqrt(snorm) <= xtol * max(np.sqrt(pnorm), 1e-300)
+        if accept:
+            for i in range(n_params):
+                p[i] = p_new[i]
+            cost = cost_new
+            need_jac = True
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+        else:
+            lam *= nu
+            nu *= 2.0
+        if f_conv and (accept or abs(actual) <= ftol * cost):
+            status = 2
+        if x_conv and status == 0:
+            status = 3
+        if (not finite_new) and (not accept) and lam > 1e16:
+            status = -1
+        if lam > 1e32 and status == 0:
+            status = -2
+        if accept and cost_new == 0.0:
+            status = 4
+        if status != 0:
+            break
+        if n_iter >= max_iter and need_jac:
+            break
+    for i in range(n_params):
+        if not np.isfinite(p[i]):
+            status = -1
+    if not np.isfinite(cost):
+        status = -1
+    if want_jtj:
+        # J^T J at the final p for the covariance (the residual buffer may hold a
+        # rejected trial step, so evaluate again at p).
+        _residuals(family, p, u, d, pts, n, res, jp)
+        _jacobian(family, p, u, pts, n, free, k, fd_step, jac, jp)
+        _normal_equations(jac, res, n, k, lo, hi, a, g)
+        for i in range(k):
+            for j in range(k):
+                jtj_out[free[i], free[j]] = a[i, j]
+    return status, n_iter, cost
+
+
+@numba.njit(parallel=True, **_JIT)
+def lm_batch(family, u, d, idx, counts, masks, half, p, max_iter, ftol, xtol, gtol, fd_step, want_jtj,
+             status, n_iter, cost, jtj):  # fmt: skip
+    """:func:`lm_item` for every item ``b``: points ``u (Bu, N, 2)``, ``d (Bd, N, 2)`` (each 1 or B),
+    point indices ``idx (Bi, nmax)`` with ``counts (Bi,)`` used (``Bi`` 1 or B), free
+    parameters ``masks (B, P)``, starts ``p (B, P)`` (overwritten with the solutions);
+    with ``want_jtj`` ``jtj (B, P, P)`` receives ``J^T J`` at each solution, else it may
+    be ``(1, P, P)``."""
+    n_items = masks.shape[0]
+    for b in numba.prange(n_items):
+        # (index arithmetic in int64: a prange index mixed with a literal 0 would unify to float)
+        zero = np.int64(0)
+        i = np.int64(b)
+        bi = i if idx.shape[0] > 1 else zero
+        bu = i if u.shape[0] > 1 else zero
+        bd = i if d.shape[0] > 1 else zero
+        bj = i if want_jtj else zero
+        s, it, c = lm_item(family, u[bu], d[bd], idx[bi], counts[bi], masks[i], half, p[i], max_iter,
+                           ftol, xtol, gtol, fd_step, want_jtj, jtj[bj])  # fmt: skip
+        status[i] = s
+        n_iter[i] = it
+        cost[i] = c
