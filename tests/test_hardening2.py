@@ -310,3 +310,69 @@ def test_console_tables_sanitize_cells():
     con.print(f"[bold]title[/bold] {ESC}\nsecond line")
     text = con.file.getvalue()
     assert "cell\\x1b" in text and "second line" in text and not any(c in text for c in "\x1b\x07\x9b")
+
+
+# -- item 12: negative seeds; the demo leaves nothing behind -------------------------------------
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        "select {points} --seed -1 --cv 3",
+        "robustness {points} --seed -1 --trials 5",
+        "simulate image --seed -1 --out {out}/x.png",
+        "demo --seed -1 --out-dir {out}/demo",
+    ],
+)
+def test_negative_seed_is_a_usage_error(run_cli, files, tmp_path, argv):
+    out = tmp_path / "out"
+    out.mkdir()
+    code, _, err = run_cli(*argv.format(points=files["points"], out=out).split())
+    one_error(code, err)
+    assert "--seed" in err and "-1 is not in the range" in err
+    nothing_in(out)
+
+
+def test_every_float_option_of_every_command_refuses_nan():
+    import click
+
+    from oapcal.cli import COMMANDS, cli
+    from oapcal.cli._common import NON_FINITE_OK, Finite
+
+    ctx = click.Context(cli)
+    seen = 0
+    for name in COMMANDS:
+        command = cli.get_command(ctx, name)
+        subs = (
+            [command.get_command(ctx, n) for n in command.list_commands(ctx)]
+            if hasattr(command, "list_commands")
+            else [command]
+        )
+        for sub in subs:
+            for param in sub.params:
+                if (
+                    isinstance(param.type, click.FloatRange | type(click.FLOAT))
+                    and param.name not in NON_FINITE_OK
+                ):
+                    assert isinstance(param.type, Finite), f"{name} {sub.name} --{param.name}"
+                    seen += 1
+                if param.name == "seed":
+                    assert isinstance(param.type, click.IntRange) and param.type.min == 0, f"{name} --seed"
+    assert seen > 20
+
+
+def test_demo_that_fails_midway_leaves_nothing(run_cli, tmp_path, monkeypatch):
+    import oapcal.select
+
+    def fails(*args, **kwargs):
+        raise OSError(28, "No space left on device", str(tmp_path / "demo" / "selection.json"))
+
+    monkeypatch.setattr(oapcal.select, "select_models", fails)
+    code, _, err = run_cli("demo", "--out-dir", tmp_path / "demo", "--trials", "0", "--no-report")
+    one_error(code, err)
+    nothing_in(tmp_path)
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / "mine.txt").write_text("x")
+    code, _, err = run_cli("demo", "--out-dir", tmp_path / "kept", "--trials", "0", "--no-report")
+    one_error(code, err)
+    assert [p.name for p in (tmp_path / "kept").iterdir()] == ["mine.txt"]

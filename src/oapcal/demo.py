@@ -57,8 +57,42 @@ def run_demo(
     """Run the demonstration (module docstring), writing into ``out_dir`` (created).
 
     ``trials`` is the number of robustness trials (0 skips that step); ``step`` is called
-    with each step's name as it starts (for a progress display).
+    with each step's name as it starts (for a progress display).  All or nothing: the files
+    are made in a hidden directory inside ``out_dir`` and moved into it only when every step
+    succeeded; on any error (or Ctrl-C) nothing is left, and ``out_dir`` is removed again if
+    the demo created it.
     """
+    import os
+    import shutil
+    import tempfile
+    from dataclasses import replace
+
+    from oapcal.errors import OutputError
+
+    final = Path(out_dir)
+    if final.exists() and not final.is_dir():
+        raise OutputError(f"{out_dir}: exists and is not a directory; choose another --out-dir")
+    created = not final.exists()
+    final.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".oapcal-demo-", dir=final))
+    try:
+        result = _run_steps(stage, final, seed=seed, trials=trials, report=report, step=step)
+        files = {}
+        for label, path in result.files.items():
+            os.replace(path, final / path.name)
+            files[label] = final / path.name
+        shutil.rmtree(stage)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created:
+            shutil.rmtree(final, ignore_errors=True)
+        raise
+    return replace(result, out_dir=final, files=files)
+
+
+def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoResult:
+    """The steps of :func:`run_demo`, writing into ``out``; ``final`` is where the files
+    will be (named in the calibration's ``source``)."""
     from oapcal.calibrate import calibrate
     from oapcal.imaging.detect import detect_usaf, evaluate_detection
     from oapcal.imaging.remap import correct_image, correction_map
@@ -78,8 +112,6 @@ def run_demo(
         if step is not None:
             step(name)
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
 
     # 1. the relay's grid distortion, in camera px with the field centre at the image centre
@@ -126,7 +158,7 @@ def run_demo(
     start("fit")
     cal = calibrate(
         detection.xy_u, detection.xy_d, chosen, um_per_px=PIXEL_UM, image_size=IMAGE_SIZE,
-        name="oapcal demo (setup 1)", source=str(files["detected points"]),
+        name="oapcal demo (setup 1)", source=str(final / "points.csv"),
     )  # fmt: skip
     files["calibration"] = out / "calibration.json"
     save_calibration(cal, files["calibration"])

@@ -52,8 +52,10 @@ class LazyGroup(click.Group):
 
     def get_command(self, ctx, name):
         if name in COMMANDS:
+            from oapcal.cli._common import harden  # every float option finite, seeds >= 0
+
             module, attr = COMMANDS[name].split(":")
-            return getattr(importlib.import_module(module), attr)
+            return harden(getattr(importlib.import_module(module), attr))
         return super().get_command(ctx, name)
 
 

@@ -371,6 +371,43 @@ class Finite(click.FloatRange):
         return super().convert(number, param, ctx)
 
 
+#: Float options that may be NaN or infinite on purpose (correct's fill value for pixels
+#: outside the input).
+NON_FINITE_OK = frozenset({"border"})
+#: Largest seed (NumPy takes any non-negative integer; this keeps it one 64-bit word).
+MAX_SEED = 2**63 - 1
+
+
+def harden(command):
+    """Make every float option of ``command`` (and of its subcommands) refuse NaN and
+    infinity (:class:`Finite`, keeping its range), and every ``--seed`` refuse a negative
+    number, so no command of any module can forget it.  Returns ``command``.
+
+    >>> @click.command()
+    ... @click.option("--x", type=float)
+    ... @click.option("--seed", type=int)
+    ... def c(x, seed): pass
+    >>> [type(p.type).__name__ for p in harden(c).params]
+    ['Finite', 'IntRange']
+    """
+    if getattr(command, "_oapcal_hardened", False):
+        return command
+    for param in command.params:
+        kind = param.type
+        if param.name in NON_FINITE_OK or isinstance(kind, Finite):
+            pass
+        elif isinstance(kind, click.FloatRange):
+            param.type = Finite(kind.min, kind.max, kind.min_open, kind.max_open, kind.clamp)
+        elif kind is click.FLOAT:
+            param.type = Finite()
+        elif param.name == "seed" and kind is click.INT:
+            param.type = click.IntRange(0, MAX_SEED)
+    for sub in getattr(command, "commands", {}).values():
+        harden(sub)
+    command._oapcal_hardened = True
+    return command
+
+
 def check_work(estimate_bytes: float, what: str, fix: str, limit: float | None = None) -> None:
     """Refuse, before any work, a job whose memory estimate exceeds ``limit`` bytes (default
     :data:`MAX_WORK_BYTES`): one line saying what it would need and which option to change."""

@@ -20,8 +20,10 @@ class _LazySimulate(click.Group):
     def get_command(self, ctx, name):
         if name not in SUBCOMMANDS:
             return None
+        from oapcal.cli._common import harden
+
         module, attr = SUBCOMMANDS[name].split(":")
-        return getattr(importlib.import_module(module), attr)
+        return harden(getattr(importlib.import_module(module), attr))
 
 
 @click.group("simulate", cls=_LazySimulate)
