@@ -41,6 +41,7 @@ COMMANDS: dict[str, str] = {
     "detect": "oapcal.cli.detect:detect_command",
     "select": "oapcal.cli.select:select_command",
     "robustness": "oapcal.cli.select:robustness_command",
+    "tolerance": "oapcal.cli.tolerance:tolerance_command",
 }
 
 

@@ -91,3 +91,59 @@ def plot_spots(spots: dict, path, *, airy_radius_um: float | None = None) -> Non
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120)
     plt.close(fig)
+
+
+def plot_tolerance(result: dict, path) -> None:
+    """The tolerance figure of ``oapcal tolerance`` (``result`` its JSON object): the
+    first-order rates per unit of every misalignment (log scale; zero rates omitted), and,
+    with a Monte Carlo, the distributions of the corrected-image errors over the trials."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from oapcal.optics.tolerance import RESOLUTION_PX
+
+    keys = ("field_change_mean_px", "corrected_mean_px", "recentred_mean_px")
+    rows = [r for r in result["sensitivity"] if max(r[k] for k in keys) >= RESOLUTION_PX]
+    mc = result.get("monte_carlo")
+    n_panels = 2 if mc else 1
+    fig, axes = plt.subplots(1, n_panels, figsize=(6.0 * n_panels, 0.28 * len(rows) + 2.2), squeeze=False,
+                             layout="constrained")  # fmt: skip
+    ax = axes[0, 0]
+    y = np.arange(len(rows))
+    series = (("field_change_mean_px", "distortion pattern change"),
+              ("corrected_mean_px", "corrected-image error"),
+              ("recentred_mean_px", "corrected error, recentred"))  # fmt: skip
+    for k, (key, label) in enumerate(series):
+        values = np.array([r[key] for r in rows])
+        ax.barh(
+            y + (k - 1) * 0.27, np.where(values >= RESOLUTION_PX, values, np.nan), height=0.27, label=label
+        )
+    ax.set_yticks(y, [f"{r['parameter']} (/{r['unit']})" for r in rows], fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xscale("log")
+    ax.set_xlabel(f"mean over the grid, camera px per unit (first order; rates < {RESOLUTION_PX:g} omitted)")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("Sensitivity to each misalignment", fontsize=9)
+    if mc:
+        ax = axes[0, 1]
+        for key, label in (("corrected_mean_px", "corrected, mean"), ("corrected_max_px", "corrected, max"),
+                           ("recentred_mean_px", "recentred, mean")):  # fmt: skip
+            values = np.array([s[key] for s in mc["samples"] if s[key] is not None])
+            if values.size:
+                ax.hist(values, bins=30, histtype="step", label=label)
+        if "refit_mean_px" in mc["summary"]:
+            values = np.array([s["refit_mean_px"] for s in mc["samples"] if s["refit_mean_px"] is not None])
+            if values.size:
+                ax.hist(values, bins=30, histtype="step", label="refit floor, mean")
+        ax.set_xlabel("error over the grid (camera px)")
+        ax.set_ylabel("trials")
+        ax.legend(fontsize=7)
+        ax.set_title(f"Monte Carlo, {mc['trials']} trials ({mc['distribution']})", fontsize=9)
+    a = result["aligned"]
+    fig.suptitle(f"Tolerancing: aligned distortion max {a['max_px']:.1f} px; {result['model']} calibration "
+                 f"floor mean {a['corrected_mean_px']:.2f} px", fontsize=10)  # fmt: skip
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
