@@ -376,3 +376,29 @@ def test_demo_that_fails_midway_leaves_nothing(run_cli, tmp_path, monkeypatch):
     code, _, err = run_cli("demo", "--out-dir", tmp_path / "kept", "--trials", "0", "--no-report")
     one_error(code, err)
     assert [p.name for p in (tmp_path / "kept").iterdir()] == ["mine.txt"]
+
+
+@pytest.mark.parametrize(
+    "argv,expect",
+    [
+        ("robustness {points} --trials 1000000000", "--trials"),
+        ("robustness {points} --trials 5000000 --models paper,full", "GiB of memory, over the 4 GiB limit"),
+        ("esf {img} --um-per-px nan", "'nan' is not a finite number"),
+        ("esf {img} --rois {roi}", "roi.csv: line 2, column 'x0': 'nan' is not a pixel index"),
+        ("fit {points} --um-per-px inf", "'inf' is not a finite number"),
+        ("correct {calib} {img} --out-dir {out}/c --um-per-px inf", "'inf' is not a finite number"),
+    ],
+)
+def test_absurd_options_of_other_commands_are_refused(run_cli, files, tmp_path, argv, expect):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "img.png"), np.zeros((48, 64), np.uint8))
+    (tmp_path / "roi.csv").write_text("x0,y0,x1,y1\nnan,0,10,10\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    names = {"points": files["points"], "calib": files["calib"], "img": tmp_path / "img.png",
+             "roi": tmp_path / "roi.csv", "out": out}  # fmt: skip
+    code, _, err = run_cli(*argv.format(**names).split())
+    one_error(code, err)
+    assert expect in err, err
+    nothing_in(out)

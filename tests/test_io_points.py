@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -97,3 +99,32 @@ def test_landmarks_spread_below_float_resolution_are_refused(tmp_path):
     (tmp_path / "r.csv").write_text("id,x,y\na,0,0\nb,10,0\nc,0,10\nd,10,10\n")
     with pytest.raises(DataError, match=r"d\.csv: the paired distorted landmark points spread over only"):
         read_landmark_pairs(tmp_path / "d.csv", tmp_path / "r.csv", pair_by="id")
+
+
+@pytest.mark.parametrize("device", ["/dev/zero", "/dev/urandom"])
+def test_devices_are_refused_without_reading_them_whole(device):
+    """Issue 14 item 20: the 64 MiB limit was checked with stat, which says 0 for a device."""
+    if not Path(device).exists():
+        pytest.skip(f"{device} is absent on this system")
+    with pytest.raises(InputFileError, match=f"{device}: contains binary data"):
+        read_points(device)
+
+
+def test_an_endless_text_stream_is_cut_at_the_limit(monkeypatch):
+    import io
+
+    import oapcal.io.textfile as textfile
+
+    class Endless(io.RawIOBase):
+        def readable(self):
+            return True
+
+        def readinto(self, buf):
+            buf[:] = b"a" * len(buf)
+            return len(buf)
+
+    monkeypatch.setattr(textfile, "MAX_FILE_BYTES", 3 * 2**20)
+    stdin = io.TextIOWrapper(io.BufferedReader(Endless()))
+    monkeypatch.setattr("sys.stdin", stdin)
+    with pytest.raises(InputFileError, match="-: is over 3 MiB"):
+        read_points("-")

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, load_pairs, points_options, progress_bar
+from oapcal.cli._common import check_output, check_work, console, load_pairs, points_options, progress_bar
+
+#: Most robustness trials (and the memory per trial, per point and per model: measured about
+#: 10 B per point for 252 points, so these are generous).
+MAX_TRIALS = 10_000_000
+BYTES_PER_TRIAL_POINT = 16
+BYTES_PER_TRIAL_MODEL = 512
 
 SELECT_INIT_HELP = (
     "Starting values of every fit: 'zero' (all 0, m = 1; the paper's choice for normalized "
@@ -139,7 +145,7 @@ def print_selection(sel, top: int, source: str = "") -> None:
     help="Models to test, comma-separated: presets (paper, full, radial) or '+'-joined "
     "parameter lists such as k1+s3+c_x+c_y.",
 )
-@click.option("--trials", type=click.IntRange(min=1), default=10000, show_default=True)
+@click.option("--trials", type=click.IntRange(1, MAX_TRIALS), default=10000, show_default=True)
 @click.option(
     "--fraction",
     type=click.FloatRange(0, 1, min_open=True, max_open=True),
@@ -187,6 +193,10 @@ def robustness_command(
     from oapcal.select import robustness
 
     initial_params(init, pairs.xy_u[:1], pairs.xy_d[:1], [True] * 13)
+    check_work(
+        trials * (BYTES_PER_TRIAL_POINT * len(pairs) + BYTES_PER_TRIAL_MODEL * len(specs)),
+        f"{trials} trials of {len(pairs)} points x {len(specs)} models", "give fewer --trials",
+    )  # fmt: skip
     bar, update = progress_bar(f"{trials} trials x {len(specs)} models")
     with bar:
         result = robustness(
