@@ -165,11 +165,16 @@ LAYER_SIZE_W1 = 7.0 * (F + F**2 + F**3 + F**4) + 5.0 * F**5
 class UsafLayout:
     """Where a maker's target puts what the standard leaves open, in units of ``w1``.
 
+    ``triplet_gap_w``: gap between the two triplets of an element, in its bar widths;
+    ``element_gap_w``: gap between consecutive elements of a column, in bar widths of the
+    upper one (both 2 on the compact target, so that element tops are ``7 w`` apart);
     ``extra_width_w1``: added to the layer's width between the square and the right column
-    (0: the layer is a square of side :data:`LAYER_SIZE_W1`); ``square_height_w1``: height of
-    the reference square (None: as wide as it is); ``inner_offset_w1``: top-left corner of the
-    next layer inside a layer; ``mirrored_layers``: even groups whose layer is drawn mirrored
-    left-right (odd group on the left), as some whole-target prints do.
+    (0: the layer is as wide as it is high, :attr:`size_w1`); ``square_x_w1``: left and right
+    edge of the reference square (None: it fills the gap between the columns' top elements,
+    a triplet gap from each); ``square_height_w1``: its height (None: as high as wide);
+    ``inner_offset_w1``: top-left corner of the next layer inside a layer;
+    ``mirrored_layers``: even groups whose layer is drawn mirrored left-right (odd group on
+    the left), as some whole-target prints do.
     """
 
     name: str
@@ -177,22 +182,43 @@ class UsafLayout:
     extra_width_w1: float = 0.0
     square_height_w1: float | None = None
     mirrored_layers: tuple[int, ...] = ()
+    triplet_gap_w: float = GAP_W
+    element_gap_w: float = GAP_W
+    square_x_w1: tuple[float, float] | None = None
+
+    @property
+    def size_w1(self) -> float:
+        """Height of the layer (of its left column), w1."""
+        pitch = 5.0 + self.element_gap_w
+        return pitch * (F + F**2 + F**3 + F**4) + 5.0 * F**5
 
     @property
     def width_w1(self) -> float:
-        return LAYER_SIZE_W1 + self.extra_width_w1
+        """Width of the layer (left edge of the left column to right edge of the right one), w1."""
+        return self.size_w1 + self.extra_width_w1
 
 
-#: Layouts measured on real targets (``docs/usaf.md``).  ``compact``: chrome-on-glass targets of
-#: current makers (the Fourier-ptychography and the LAB-UMK images; the same drawing as
-#: public renderings of the standard); ``whole-target``: the digitised whole target with the
-#: header "RESOLVING POWER TEST TARGET" (wider, taller square; layer 0-1 mirrored).
+#: Layouts measured on real targets (``docs/usaf.md``, :func:`oapcal.imaging.usaf_check.measure_layout`).
+#: ``compact`` (default): 2 w gaps, square layer; the Fourier-ptychography target and public
+#: renderings of the standard.  ``spaced``: 3.5 w between elements, a smaller square (the
+#: LAB-UMK target).  ``whole-target``: the digitised whole target with the header "RESOLVING
+#: POWER TEST TARGET" (wider layer, tall square, layer 0-1 mirrored left-right).
 LAYOUTS: dict[str, UsafLayout] = {
-    "compact": UsafLayout("compact", inner_offset_w1=(11.90, 9.07)),
+    "compact": UsafLayout("compact", inner_offset_w1=(11.95, 8.98)),
+    "spaced": UsafLayout(
+        "spaced",
+        inner_offset_w1=(12.99, 10.42),
+        triplet_gap_w=1.85,
+        element_gap_w=3.49,
+        extra_width_w1=-1.10,
+        square_x_w1=(14.2, 18.9),
+    ),
     "whole-target": UsafLayout(
         "whole-target",
-        inner_offset_w1=(12.9, 9.3),
-        extra_width_w1=2.1,
+        inner_offset_w1=(11.16, 9.14),
+        triplet_gap_w=1.96,
+        element_gap_w=2.04,
+        extra_width_w1=1.83,
         square_height_w1=7.4,
         mirrored_layers=(0,),
     ),
@@ -233,20 +259,21 @@ def _layer_local(lay: UsafLayout, g_even: int):
     Returns triplets ``(group, element, "H"|"V", w, x0, y0)`` (the triplet's ``5 w`` square),
     squares ``(x0, y0, x1, y1)`` and labels ``(kind, group, element, text, box)``.
     """
-    size, width = LAYER_SIZE_W1, lay.width_w1
+    size, width = lay.size_w1, lay.width_w1
+    pitch, tw = 5.0 + lay.element_gap_w, 10.0 + lay.triplet_gap_w  # element pitch, element width (w)
     trip, labels = [], []
     y = 0.0
     for e in range(2, 7):  # even group, left column: digit, H, V
         w = F ** (e - 1)
-        trip += [(g_even, e, "H", w, 0.0, y), (g_even, e, "V", w, 7.0 * w, y)]
+        trip += [(g_even, e, "H", w, 0.0, y), (g_even, e, "V", w, (5.0 + lay.triplet_gap_w) * w, y)]
         labels.append(
             ("element", g_even, e, str(e), _label_box(str(e), _DIGIT_H_EVEN, x_right=-1.55, cy=y + 2.5 * w))
         )
-        y += 7.0 * w
+        y += pitch * w
     y = 0.0
     for e in range(1, 7):  # odd group, right column: V, H, digit
         w = 0.5 * F ** (e - 1)
-        trip += [(g_even + 1, e, "V", w, width - 12.0 * w, y), (g_even + 1, e, "H", w, width - 5.0 * w, y)]
+        trip += [(g_even + 1, e, "V", w, width - tw * w, y), (g_even + 1, e, "H", w, width - 5.0 * w, y)]
         labels.append(
             (
                 "element",
@@ -256,9 +283,9 @@ def _layer_local(lay: UsafLayout, g_even: int):
                 _label_box(str(e), _DIGIT_H_ODD, x_left=width + 0.75, cy=y + 2.5 * w),
             )
         )
-        y += 7.0 * w
+        y += pitch * w
     y1 = size - 5.0  # even group, element 1: V, H, digit, bottom right
-    trip += [(g_even, 1, "V", 1.0, width - 12.0, y1), (g_even, 1, "H", 1.0, width - 5.0, y1)]
+    trip += [(g_even, 1, "V", 1.0, width - tw, y1), (g_even, 1, "H", 1.0, width - 5.0, y1)]
     labels.append(
         ("element", g_even, 1, "1", _label_box("1", _DIGIT_H_EVEN, x_left=width + 1.5, cy=size - 2.5))
     )
@@ -272,7 +299,7 @@ def _layer_local(lay: UsafLayout, g_even: int):
         )
     )
     labels.append(
-        ("group", g_even, 2, str(g_even), _label_box(str(g_even), _GROUP_H, cx=6.0 * F, bottom=-1.35))
+        ("group", g_even, 2, str(g_even), _label_box(str(g_even), _GROUP_H, cx=0.5 * tw * F, bottom=-1.35))
     )
     labels.append(
         (
@@ -280,10 +307,13 @@ def _layer_local(lay: UsafLayout, g_even: int):
             g_even + 1,
             1,
             str(g_even + 1),
-            _label_box(str(g_even + 1), _GROUP_H, cx=width - 3.0, bottom=-1.35),
+            _label_box(str(g_even + 1), _GROUP_H, cx=width - 0.25 * tw, bottom=-1.35),
         )
     )
-    sq_x0, sq_x1 = 14.0 * F, width - 7.0
+    gap = lay.triplet_gap_w  # the square is a triplet gap from its neighbours
+    sq_x0, sq_x1 = (tw + gap) * F, width - 0.5 * (tw + gap)
+    if lay.square_x_w1 is not None:
+        sq_x0, sq_x1 = lay.square_x_w1
     sq_h = lay.square_height_w1 if lay.square_height_w1 is not None else sq_x1 - sq_x0
     return trip, [(sq_x0, 0.0, sq_x1, sq_h)], labels
 
