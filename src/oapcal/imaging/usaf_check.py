@@ -19,13 +19,14 @@ layer) and reports the shifts in units of the layer's ``w1``: that is how the po
 the nested layer was measured (``docs/usaf.md``).
 
 >>> from oapcal.imaging.usaf import render_usaf, usaf_target
->>> r = render_usaf((4, 5), um_per_px=2.0, image_size=(500, 460))
+>>> r = render_usaf((4, 5), um_per_px=2.0, image_size=(500, 460))  # bars, squares, digits
 >>> t = usaf_target((4, 5))
->>> pose = similarity_from_points(t, {"G4E2H": r.corners_px[t.corner_ids.index("G4E2H0C0")] + 18,
-...                                  "G4E1H": r.corners_px[t.corner_ids.index("G4E1H0C0")] + 39})
->>> fit = fit_layout(r.image, t, pose)
->>> fit.rms_px < 0.02, fit.n_triplets
-(True, 24)
+>>> px = t.to_reference_px(t.triplet_boxes().reshape(-1, 2, 2).mean(axis=1), 2.0, (500, 460))
+>>> names = triplet_names(t)
+>>> start = {"G4E2H": px[names.index("G4E2H")] + 1.5, "G4E1H": px[names.index("G4E1H")] - 1.0}
+>>> fit = fit_layout(r.image, t, similarity_from_points(t, start))
+>>> bool(fit.rms_px < 0.05), fit.n_triplets, round(fit.um_per_px, 3)
+(True, 24, 2.0)
 """
 
 from __future__ import annotations
