@@ -16,14 +16,47 @@ from oapcal.model import distort
 
 
 def test_zero_distortion_and_blur_reproduce_the_rendered_target():
-    sim = simulate_image((4, 5), identity_field(), sigma_px=0, snr=None, bits=16, oversample=3)
-    ref = render_usaf((4, 5), um_per_px=4.8)
+    # bars and reference squares are area-sampled in both: equal to rounding
+    sim = simulate_image((4, 5), identity_field(), sigma_px=0, snr=None, bits=16, oversample=3, digits=False)
+    ref = render_usaf((4, 5), um_per_px=4.8, digits=False)
     np.testing.assert_allclose(sim.clean, ref.image, atol=1e-6)
     # 16-bit quantization: brightest level at 80 % of 65535
     np.testing.assert_allclose(sim.image / (0.8 * 65535), ref.image, atol=1e-5)
     np.testing.assert_allclose(sim.xy_d, ref.corners_px, atol=1e-9)
     np.testing.assert_allclose(sim.xy_u, ref.corners_px, atol=1e-9)
     assert sim.visible.all()
+    # the square of layer 4-5 is in both images: 4.486 w1 (G4E1) on a side
+    t = usaf_target((4, 5))
+    side = t.squares[0, 2] - t.squares[0, 0]
+    assert side == pytest.approx(4.486 * 31.25, rel=1e-3)
+    x0, y0, x1, y1 = t.boxes_px(t.squares, 4.8, (640, 480))[0]
+    # pixels whose whole square lies in the square (pixel i covers i - 1/2 .. i + 1/2)
+    inner = ref.image[
+        int(np.ceil(y0 + 0.5)) : int(np.floor(y1 - 0.5)) + 1,
+        int(np.ceil(x0 + 0.5)) : int(np.floor(x1 - 0.5)) + 1,
+    ]
+    assert inner.size > 400 and np.allclose(inner, 1.0, rtol=0, atol=1e-12)
+
+
+def test_printed_numbers_are_drawn_in_their_boxes():
+    sim = simulate_image((4, 5), identity_field(), sigma_px=0, snr=None, bits=16, oversample=3)
+    ref = render_usaf((4, 5), um_per_px=4.8)
+    bare = render_usaf((4, 5), um_per_px=4.8, digits=False)
+    t = usaf_target((4, 5))
+    ink = ref.image - bare.image  # the numbers alone
+    boxes = t.boxes_px(t.labels, 4.8, (640, 480))
+    yy, xx = np.mgrid[0:480, 0:640]
+    in_box = np.zeros((480, 640), bool)
+    for x0, y0, x1, y1 in boxes:
+        in_box |= (xx >= x0 - 1) & (xx <= x1 + 1) & (yy >= y0 - 1) & (yy <= y1 + 1)
+    assert ink[~in_box].max() < 1e-9 and ink[in_box].sum() > 0
+    # each box holds 20-60 % ink (strokes of a digit), in the simulation as in the rendering
+    sim_ink = sim.clean - bare.image
+    for x0, y0, x1, y1 in boxes:
+        sel = (xx >= x0 - 1) & (xx <= x1 + 1) & (yy >= y0 - 1) & (yy <= y1 + 1)
+        area = (x1 - x0) * (y1 - y0)
+        assert 0.15 < ink[sel].sum() / 0.95 / area < 0.6
+        assert sim_ink[sel].sum() == pytest.approx(ink[sel].sum(), rel=0.1)
 
 
 def test_setup1_like_field_has_the_papers_magnitudes():

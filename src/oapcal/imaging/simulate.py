@@ -7,8 +7,9 @@ The chain, for every camera pixel (``docs/usaf.md``):
    on the pixel grid and interpolated bilinearly, which is exact to ~1e-3 px for smooth
    fields) and from paraxial px to object um (the inverse of the affine
    ``paraxial_from_object_um``);
-2. the target's transmission there is read from an area-sampled raster of the target in
-   object space, one raster cell per sub-pixel (:func:`oapcal.imaging.usaf.render_rectangles`);
+2. the target's transmission there is read from an area-sampled raster of the whole target
+   (bars, reference squares, printed numbers, in its true layout) in object space, one
+   raster cell per sub-pixel (:func:`oapcal.imaging.usaf.target_coverage`);
 3. the sub-pixel image is blurred by the point-spread function in the camera plane: a
    Gaussian of ``sigma_px`` or the Airy pattern ``(2 J1(v) / v)^2``, ``v = 2 pi NA r / lambda``
    of an image-space numerical aperture and wavelength;
@@ -38,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.imaging.usaf import intensity, nearest_orientation, render_rectangles, usaf_target
+from oapcal.imaging.usaf import intensity, nearest_orientation, target_coverage, usaf_target
 
 #: A corner is *fully visible* when it is at least this far (px) inside the image.
 VISIBLE_MARGIN_PX = 3.0
@@ -146,6 +147,9 @@ def simulate_image(
     um_per_px: float | None = None,
     seed: int = 0,
     progress: bool = False,
+    squares: bool = True,
+    digits: bool = True,
+    layout_name=None,
 ) -> SimulatedImage:
     """Simulate a camera image of USAF ``groups`` through ``field`` (module docstring).
 
@@ -154,6 +158,9 @@ def simulate_image(
     ``sigma_px`` (0: no blur).  ``snr=None`` gives a noise-free (only quantized) image.
     ``um_per_px`` is the scale of the reference positions ``xy_u`` (default: the field's
     paraxial scale, so that ``xy_u`` is the paraxial image of each corner).
+    The whole target is drawn in the true layout ``layout_name`` (default ``"compact"``,
+    :data:`oapcal.imaging.usaf.LAYOUTS`): bars, reference squares (``squares``) and printed
+    numbers (``digits``); only bar corners are landmarks.
     """
     from oapcal.imaging.field import setup1_like_field
 
@@ -170,7 +177,7 @@ def simulate_image(
         raise DataError(f"snr {snr}: must be positive (or None for no noise)")
     if (na is None) != (wavelength_um is None):
         raise DataError("an Airy PSF needs both na and wavelength_um")
-    target = usaf_target(groups)
+    target = usaf_target(groups, layout_name)
     w, h = (int(v) for v in field.image_size)
     q = oversample
     p0, mat = _paraxial_affine(field)
@@ -192,11 +199,14 @@ def simulate_image(
         # 2. Area-sampled target raster, one cell per sub-pixel, aligned with the sub-pixels.
         step = 1.0 / (q * float(np.linalg.svd(mat, compute_uv=False).max()))
         anchor = mat_inv @ (np.array([0.5 / q - 0.5] * 2) - p0) + centre_um
-        lo = target.bbox_um[:2] - 4 * step
-        hi = target.bbox_um[2:] + 4 * step
+        extent = target.full_bbox_um if (squares or digits) else target.bbox_um
+        lo = extent[:2] - 4 * step
+        hi = extent[2:] + 4 * step
         start = anchor + np.floor((lo - anchor) / step) * step
         n = np.ceil((hi - start) / step).astype(int) + 1
-        raster = render_rectangles(target.bars, (n[1], n[0]), start=tuple(start), step=step)
+        raster = target_coverage(
+            target, (n[1], n[0]), start=tuple(start), step=step, squares=squares, digits=digits
+        )
         from scipy.ndimage import map_coordinates
 
         col = (obj[..., 0] - start[0]) / step
