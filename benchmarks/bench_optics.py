@@ -4,7 +4,11 @@ Peers, timed in the same run: a straightforward per-ray Python loop over the sam
 closed-form geometry (what a script without vectorization does); for the distortion
 field, SciPy's ``RectBivariateSpline.ev`` (FITPACK) evaluating the same splines and
 Newton inversion on it; plus the CLI as a whole process. Medians of repeats; ratios
-printed (peer time / oapcal time).
+printed (peer time / oapcal time).  Misaligned relays (every mirror degree of freedom,
+camera and object tilts) are timed against the same per-ray loop, which handles any
+mirror placement; tolerancing (``oapcal.optics.tolerance``) against the per-ray loop
+tracing the same grids.  With an older ``src`` on ``PYTHONPATH`` the rows that need
+misalignment are skipped, so the aligned rows can be compared before and after.
 
     PYTHONPATH=src .venv/bin/python benchmarks/bench_optics.py
 """
@@ -49,6 +53,13 @@ def loop_chief_rays(relay, xy_obj):
         s = relay.image_plane.intersect(hit, d)
         out.append(relay.image_plane.local(hit + s * d))
     return np.array(out)
+
+
+MISALIGNED = dict(
+    m1_tilt_x=0.03, m1_tilt_y=-0.02, m1_decentre_x=0.1, m1_decentre_y=-0.15, m1_clock=0.5,
+    m2_tilt_x=-0.04, m2_tilt_y=0.05, m2_decentre_x=0.2, m2_decentre_y=0.1, m2_clock=-0.3,
+    camera_tilt_x=0.5, camera_tilt_y=-0.7, camera_defocus=0.1, object_tilt_x=0.4, object_tilt_y=-0.3,
+)  # fmt: skip
 
 
 def fitpack_eval(field, xy):
@@ -108,18 +119,44 @@ def main():
     assert np.abs(fitpack_inverse(field, px) - field.inverse(px)).max() < 1e-6
     rows.append(("inverse, 307,200 px", median_time(lambda: field.inverse(px), 3),
                  "same Newton on FITPACK", median_time(lambda: fitpack_inverse(field, px), 3)))  # fmt: skip
-    env = dict(os.environ, PYTHONPATH="src")
+    try:
+        from oapcal.optics.tolerance import Tolerancing
+    except ImportError:  # an older oapcal: no misalignment
+        Tolerancing = None
+    if Tolerancing is not None:
+        bent = oap_relay(1, misalignment=MISALIGNED)
+        assert np.allclose(loop_chief_rays(bent, small), chief_rays(bent, small).xy_mm, atol=1e-12)
+        t_bent = median_time(lambda: grid_distortion(bent, 1001), 5)
+        t_loop_bent = median_time(lambda: loop_chief_rays(bent, sub), 1) * (1001 * 1001) / len(sub)
+        rows.append(("1001 x 1001 grid, misaligned (15 degrees of freedom)", t_bent,
+                     "per-ray loop (extrapolated from 101 x 101)", t_loop_bent))  # fmt: skip
+        bent_stop = oap_relay(1, stop_distance_mm=300.0, misalignment=MISALIGNED)
+        rows.append(("1001 x 1001 grid, misaligned, stop at 300 mm", median_time(
+            lambda: grid_distortion(bent_stop, 1001), 3), "-", float("nan")))  # fmt: skip
+        t_loop_small = median_time(lambda: loop_chief_rays(bent, small), 5)
+        rows.append(("build a misaligned relay + 17 x 17 grid", median_time(
+            lambda: grid_distortion(oap_relay(1, misalignment=MISALIGNED), 17), 21),
+            "per-ray loop, same grid", t_loop_small))  # fmt: skip
+        tol = Tolerancing(relay, n=17)
+        t_sens = median_time(lambda: tol.sensitivity(), 3)
+        rows.append(("tolerance: 20 sensitivities (40 misaligned 17 x 17 grids)", t_sens,
+                     "per-ray loop tracing the 40 grids only", 40 * t_loop_small))  # fmt: skip
+        tols = {k: 0.05 for k in ("m1_tilt_x", "m1_tilt_y", "m2_tilt_x", "m2_tilt_y")}
+        t_mc = median_time(lambda: tol.monte_carlo(tols, 500), 3)
+        rows.append(("tolerance: Monte Carlo, 500 trials, 17 x 17", t_mc,
+                     "per-ray loop tracing the 500 grids only", 500 * t_loop_small))  # fmt: skip
+    env = dict(os.environ, PYTHONPATH=os.environ.get("PYTHONPATH", "src"))
     cmd = [sys.executable, "-m", "oapcal", "simulate", "relay", "--setup", "1", "--json"]
     t_cli = median_time(lambda: subprocess.run(cmd, env=env, capture_output=True, check=True), 5)
     t_py = median_time(lambda: subprocess.run([sys.executable, "-c", "pass"], check=True), 5)
     rows.append(("`oapcal simulate relay --setup 1 --json` (whole process)", t_cli,
                  "bare `python -c pass`", t_py))  # fmt: skip
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    print(f"{'task':58s} {'oapcal':>10s}   {'peer':44s} {'peer time':>10s} {'ratio':>7s}")
+    print(f"{'task':60s} {'oapcal':>10s}   {'peer':44s} {'peer time':>10s} {'ratio':>7s}")
     for name, t, peer, tp in rows:
         ratio = f"{tp / t:7.1f}" if np.isfinite(tp) else "      -"
         tp_s = f"{tp * 1e3:8.1f}ms" if np.isfinite(tp) else "         -"
-        print(f"{name:58s} {t * 1e3:8.1f}ms   {peer:44s} {tp_s} {ratio}")
+        print(f"{name:60s} {t * 1e3:8.1f}ms   {peer:44s} {tp_s} {ratio}")
 
 
 if __name__ == "__main__":
