@@ -36,6 +36,10 @@ def convert_command(source, out, as_json):
     from oapcal.io.points import write_point_pairs
 
     check_output(out, source)
+    if out == "-" and as_json:
+        raise click.UsageError(
+            "--out - writes the CSV to stdout; --json would print there too: give --out FILE"
+        )
     pairs = load_pairs(source, require=("x_u", "y_u", "x_d", "y_d"))
     write_point_pairs(out, pairs.xy_u, pairs.xy_d, ids=pairs.ids)
     summary = {"pairs": len(pairs), "source": pairs.source, "out": out, "not_used": list(pairs.warnings)}

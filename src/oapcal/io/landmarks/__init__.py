@@ -139,14 +139,15 @@ def read_landmark_pairs(
         return _finish(pairs, check_geometry)
     if d_fmt != "via" and (distorted_image or reference_image):
         raise InputFileError(f"{distorted}: image names apply only to VIA files, not {d_fmt}")
-    dist = _read_one(distorted, d_fmt, d_text, distorted_image, opts)
+    dist = _read_one(distorted, d_fmt, d_text, distorted_image, opts, "distorted")
     if reference is None and reference_image is not None and d_fmt == "via":
         reference = distorted
     if reference is None:
         if need_reference:
+            also = ", or --reference-image NAME for a VIA file holding both" if d_fmt == "via" else ""
             raise InputFileError(
                 f"{distorted}: holds the distorted landmarks only; give the reference landmarks "
-                "too (--reference FILE, or --reference-image NAME for a VIA file holding both)"
+                f"too (--reference FILE{also})"
             )
         return _distorted_only(dist, pair_by, check_geometry)
     r_text = d_text if str(reference) == str(distorted) else read_text(reference)
@@ -161,7 +162,7 @@ def read_landmark_pairs(
             f"{distorted}: given as both the distorted and the reference landmarks; for a VIA file "
             "holding both images name them with --distorted-image and --reference-image"
         )
-    ref = _read_one(reference, r_fmt, r_text, reference_image, opts)
+    ref = _read_one(reference, r_fmt, r_text, reference_image, opts, "reference")
     if pair_by is None and not pair_by_order:
         common = sorted(set.intersection(*(set(lm.attrs) for lm in dist.landmarks + ref.landmarks)) - {""})
         hint = f" (attributes on every landmark: {', '.join(common[:6])})" if common else ""
@@ -179,9 +180,9 @@ def _check_format(fmt: str) -> str:
     return fmt
 
 
-def _read_one(path, fmt: str, text: str, image: str | None, opts: dict) -> LandmarkSet:
+def _read_one(path, fmt: str, text: str, image: str | None, opts: dict, role: str) -> LandmarkSet:
     if fmt == "via":
-        return read_via(path, image, text=text)
+        return read_via(path, image, text=text, role=role)
     if fmt == "napari":
         return read_napari(path, text=text)
     return read_table(path, text=text, **opts)

@@ -33,6 +33,19 @@ from oapcal.io.landmarks._base import (
 )
 
 _AXIS = re.compile(r"^axis-(\d+)$")
+#: Plane coordinates (BigWarp z, napari's leading axes) closer than this, relative to their
+#: size (and absolutely, near 0), are the same plane: tools write float noise such as
+#: 126.86263579832789 and 126.8626357983279 for one plane.
+PLANE_TOLERANCE = 1e-9
+
+
+def same_plane(a: float, b: float) -> bool:
+    """Whether two plane coordinates are equal up to float noise (:data:`PLANE_TOLERANCE`).
+
+    >>> same_plane(126.86263579832789, 126.8626357983279), same_plane(130.0, 130.5)
+    (True, False)
+    """
+    return math.isclose(a, b, rel_tol=PLANE_TOLERANCE, abs_tol=PLANE_TOLERANCE)
 
 
 def is_napari_header(first_line: str) -> bool:
@@ -81,7 +94,7 @@ def read_napari(path, *, text: str | None = None) -> LandmarkSet:
         here = tuple(coordinate(cells[i], name, where, header[i]) for i in leading)
         if plane is None:
             plane = here
-        elif here != plane:
+        elif not all(same_plane(a, b) for a, b in zip(here, plane)):
             raise InputFileError(
                 f"{name}: {where}: the point is in plane {here} but earlier ones are in {plane}; "
                 "export the landmarks of one 2-D plane"
@@ -136,10 +149,10 @@ def read_bigwarp(path, *, text: str | None = None) -> tuple[LandmarkSet, Landmar
                 z = points[k][2]
                 if plane_z[k] is None:
                     plane_z[k] = z
-                elif z != plane_z[k]:
+                elif not same_plane(z, plane_z[k]):
                     raise InputFileError(
-                        f"{name}: {where}: {side} z = {z:g} differs from earlier landmarks "
-                        f"(z = {plane_z[k]:g}); oapcal needs landmarks of one 2-D plane"
+                        f"{name}: {where}: {side} z = {z:.15g} differs from earlier landmarks "
+                        f"(z = {plane_z[k]:.15g}); oapcal needs landmarks of one 2-D plane"
                     )
         moving.append(Landmark(points[0][0], points[0][1], {"name": label}, where))
         fixed.append(Landmark(points[1][0], points[1][1], {"name": label}, where))

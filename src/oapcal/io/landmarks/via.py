@@ -17,7 +17,9 @@ canvas positions scaled to image pixels, so the centre of the top-left pixel is
 
 from __future__ import annotations
 
-from pathlib import PurePath
+import json
+import re
+from collections import Counter
 
 from oapcal.errors import InputFileError
 from oapcal.io.landmarks._base import (
@@ -64,11 +66,14 @@ def json_kind(data) -> str | None:
     return None
 
 
-def read_via(path, image: str | None = None, *, text: str | None = None) -> LandmarkSet:
+def read_via(
+    path, image: str | None = None, *, text: str | None = None, role: str | None = None
+) -> LandmarkSet:
     """Read the point regions of one image from a VIA 2 CSV/JSON or VIA 3 JSON file.
 
-    ``image`` picks the image by file name (or base name) when the file holds point
-    regions on several images.
+    ``image`` picks the image by file name or base name (``IMG.jpg`` matches VIA's
+    ``file://C:\\...\\IMG.jpg``) when the file holds point regions on several images;
+    ``role`` (``"distorted"`` or ``"reference"``) names the option to choose one in messages.
     """
     name = str(path)
     text = read_text(path, "VIA file") if text is None else text
@@ -92,7 +97,7 @@ def read_via(path, image: str | None = None, *, text: str | None = None) -> Land
             f"{name}: line 1: not a VIA file (a VIA 2 CSV starts with filename,file_size,...; "
             "VIA JSON starts with '{')"
         )
-    return _pick_image(images, name, image)
+    return _pick_image(images, name, image, role)
 
 
 # -- VIA 2 ------------------------------------------------------------------------------------
@@ -136,13 +141,44 @@ def _via2_csv_images(text: str, name: str) -> list[tuple[str, list]]:
                 f"{name}: {where}: {len(cells)} cells, a VIA CSV row has 7; is the file truncated?"
             )
         fname = cells[0].strip()
-        shape = load_json(cells[5], f"{name}: {where}: region_shape_attributes") if cells[5].strip() else {}
-        attrs = load_json(cells[6], f"{name}: {where}: region_attributes") if cells[6].strip() else {}
+        shape = _cell_json(cells[5], name, where, "region_shape_attributes")
+        attrs = _cell_json(cells[6], name, where, "region_attributes")
         regions = by_name.setdefault(fname, [])
         if shape == {}:  # an image without regions
             continue
         regions.append(_via2_region(shape, attrs, name, where))
     return [(fname, regions, fname) for fname, regions in by_name.items()]
+
+
+#: A JSON string, or VIA's bare ``undefined`` (its exporter writes ``{"Label":undefined}``
+#: for an attribute left unset).
+_UNDEFINED = re.compile(r'"(?:[^"\\]|\\.)*"|\bundefined\b')
+
+
+def _cell_json(cell: str, name: str, where: str, column: str):
+    """The JSON object in one VIA CSV cell (``{}`` for an empty cell).  VIA's ``undefined``
+    reads as missing (null); VIA 1.0's ``name=point;cx=...;`` cells are named as
+    unsupported; malformed JSON is one message naming the line and column."""
+    text = cell.strip()
+    if not text:
+        return {}
+    if re.match(r"^[A-Za-z_]+=", text):
+        raise InputFileError(
+            f"{name}: {where}: column {column} is {_short(text)}, VIA 1.0's 'name=...;' format, which "
+            "oapcal does not read; open the file in VIA 2 or 3 and export it as CSV or JSON"
+        )
+    text = _UNDEFINED.sub(lambda m: "null" if m.group() == "undefined" else m.group(), text)
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, RecursionError, ValueError) as exc:
+        why = f"{exc.msg} at character {exc.pos}" if isinstance(exc, json.JSONDecodeError) else "unreadable"
+        raise InputFileError(
+            f"{name}: {where}: column {column}: malformed JSON ({why}): {_short(text)}"
+        ) from None
+
+
+def _short(text: str, limit: int = 40) -> str:
+    return repr(text) if len(text) <= limit else repr(text[: limit - 3] + "...")
 
 
 def _via2_region(shape, attrs, name: str, where: str):
@@ -194,6 +230,7 @@ def _via3_images(data: dict, name: str) -> list[tuple[str, list]]:
         fname = entry.get("fname") if isinstance(entry, dict) else None
         view_name[str(vid)] = fname if isinstance(fname, str) else f"file {fids[0]}"
     images: dict[str, list] = {vid: [] for vid in view_name}
+    skipped: Counter = Counter()
     for mid, item in meta.items():
         where = f"metadata {mid!r}"
         if not isinstance(item, dict):
@@ -202,6 +239,10 @@ def _via3_images(data: dict, name: str) -> list[tuple[str, list]]:
         if not isinstance(xy, list):
             raise InputFileError(f"{name}: {where}: field 'xy' must be a list like [1, x, y]")
         if not xy:  # a file or time-segment annotation, not a region
+            if item.get("z"):
+                skipped["temporal segment"] += 1
+            else:
+                skipped["file annotation"] += 1
             continue
         if vid not in images:
             raise InputFileError(f"{name}: {where}: view {vid!r} is not in the project's 'view' list")
@@ -226,18 +267,59 @@ def _via3_images(data: dict, name: str) -> list[tuple[str, list]]:
             if text is not None:
                 attrs[anames.get(aid, aid)] = text
         images[vid].append(Landmark(x, y, attrs, where))
-    return [(view_name[vid], regions, vid) for vid, regions in images.items()]
+    result = [(view_name[vid], regions, vid) for vid, regions in images.items()]
+    return _Images(result, skipped)
 
 
 # -- choosing the image -----------------------------------------------------------------------
 
 
-def _pick_image(images, name: str, image: str | None) -> LandmarkSet:
+class _Images(list):
+    """The images of a VIA file, and counts of entries that are not regions (VIA 3's
+    temporal segments and file annotations), for the "found" part of messages."""
+
+    def __init__(self, items, skipped=None):
+        super().__init__(items)
+        self.skipped = Counter(skipped or {})
+
+
+def image_base_name(text: str) -> str:
+    r"""The file name of a VIA image reference: without ``file://`` and folders, with
+    ``/`` or ``\\`` (Windows paths written by VIA on Windows) as separator.
+
+    >>> image_base_name("file://C:\\data\\img\\IMG-0001.jpg"), image_base_name("a/b.png")
+    ('IMG-0001.jpg', 'b.png')
+    """
+    text = text.strip()
+    if text.lower().startswith("file://"):
+        text = text[len("file://") :]
+    return re.split(r"[\\/]", text)[-1]
+
+
+def _found(images) -> str:
+    """What a file holds, for a file without point regions: images and regions by shape."""
+    shapes: Counter = Counter()
+    for _, regions, _ in images:
+        for r in regions:
+            if isinstance(r, str):
+                shapes[r.split(": a ", 1)[-1].split(" region")[0].strip("'")] += 1
+    parts = [f"{len(images)} image{'s' if len(images) != 1 else ''}"]
+    counts = [f"{n} {kind} region{'s' if n != 1 else ''}" for kind, n in shapes.most_common()]
+    counts += [f"{n} {kind}{'s' if n != 1 else ''}" for kind, n in getattr(images, "skipped", {}).items()]
+    return ", ".join(parts + counts) if counts else f"{parts[0]}, no regions"
+
+
+_OPTION = {"distorted": "--distorted-image NAME", "reference": "--reference-image NAME"}
+
+
+def _pick_image(images, name: str, image: str | None, role: str | None = None) -> LandmarkSet:
     def has_points(regions):
         return any(isinstance(r, Landmark) for r in regions)
 
+    option = _OPTION.get(role, "--distorted-image / --reference-image")
     if image is not None:
-        chosen = [im for im in images if image in (im[0], im[2], PurePath(im[0]).name)]
+        wanted = image_base_name(image)
+        chosen = [im for im in images if image in (im[0], im[2]) or image_base_name(im[0]) == wanted]
         if not chosen:
             listed = ", ".join(repr(im[0]) for im in images[:5]) + (", ..." if len(images) > 5 else "")
             raise InputFileError(f"{name}: has no image {image!r}; it has {listed or 'no images'}")
@@ -246,17 +328,22 @@ def _pick_image(images, name: str, image: str | None) -> LandmarkSet:
     else:
         chosen = [im for im in images if has_points(im[1])]
         if not chosen:
-            raise InputFileError(f"{name}: has no point regions; label the landmarks with VIA's point tool")
+            raise InputFileError(
+                f"{name}: has no point regions (found {_found(images)}); label the landmarks with "
+                "VIA's point tool"
+            )
         if len(chosen) > 1:
             listed = ", ".join(repr(im[0]) for im in chosen[:5]) + (", ..." if len(chosen) > 5 else "")
             raise InputFileError(
-                f"{name}: has point regions on {len(chosen)} images ({listed}); choose one with "
-                "--distorted-image / --reference-image"
+                f"{name}: has point regions on {len(chosen)} images ({listed}); choose one with {option}"
             )
     fname, regions, _ = chosen[0]
     landmarks = tuple(r for r in regions if isinstance(r, Landmark))
     if not landmarks:
-        raise InputFileError(f"{name}: image {fname!r} has no point regions; label its landmarks as points")
+        raise InputFileError(
+            f"{name}: image {fname!r} has no point regions (found {_found([chosen[0]])[9:]}); label its "
+            "landmarks as points"
+        )
     ignored = tuple(r for r in regions if isinstance(r, str))
     source = name if len(images) == 1 else f"{name} [{fname}]"
     return LandmarkSet(source, landmarks, ignored)
