@@ -22,7 +22,8 @@ def frames():
 
 
 def _files(d):
-    return sorted(p.name for p in d.iterdir()) if d.exists() else []
+    """What a user sees in ``d`` (resume records in ``.oapcal/`` not included)."""
+    return sorted(p.name for p in d.iterdir() if p.name != ".oapcal") if d.exists() else []
 
 
 def test_batch_corrects_reports_corrupt_files_and_resumes(run_cli, tmp_path, calib, frames):

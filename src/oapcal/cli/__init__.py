@@ -11,7 +11,9 @@ Each subcommand lives in a module of this package and is imported only when it r
   user's path rather than a temporary file beside it, and running out of memory;
 * 1 an internal error (set ``OAPCAL_DEBUG=1`` to see the traceback);
 * 3 the command ran but a numerical result failed (a fit that did not converge);
-* 4 a batch (``correct``) finished but some inputs failed (each reported on stderr).
+* 4 a batch (``correct``) finished but some inputs failed (each reported on stderr);
+* 130 (Ctrl-C), 143 (SIGTERM), 129 (SIGHUP): interrupted; every output being written is
+  removed, as on Ctrl-C.
 """
 
 from __future__ import annotations
@@ -73,8 +75,52 @@ def cli():
     """
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised like Ctrl-C so that partial outputs are removed."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated(signum)
+
+
+def _catch_termination() -> dict:
+    """Turn SIGTERM and SIGHUP into :class:`Terminated` (main thread only); returns the
+    previous handlers."""
+    import signal
+    import threading
+
+    previous = {}
+    if threading.current_thread() is not threading.main_thread():
+        return previous
+    for name in ("SIGTERM", "SIGHUP"):
+        if hasattr(signal, name):
+            sig = getattr(signal, name)
+            previous[sig] = signal.signal(sig, _raise_terminated)
+    return previous
+
+
+def _terminated(exc: Terminated) -> int:
+    click.echo(f"oapcal: terminated by signal {exc.signum}; unfinished outputs removed", err=True)
+    return 128 + exc.signum
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line with ``argv`` (default ``sys.argv[1:]``); return the exit code."""
+    import signal
+
+    previous = _catch_termination()
+    try:
+        return _main(argv)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _main(argv: list[str] | None) -> int:
     from oapcal.cli._common import sanitize
     from oapcal.errors import OapcalError
 
@@ -94,12 +140,16 @@ def main(argv: list[str] | None = None) -> int:
         exc.message = sanitize(exc.message)
         exc.show()
         return exc.exit_code
-    except click.exceptions.Abort:
+    except click.exceptions.Abort as exc:
+        if isinstance(exc.__cause__, Terminated):
+            return _terminated(exc.__cause__)
         click.echo("oapcal: aborted", err=True)
         return 130
     except OapcalError as exc:
         click.echo(f"oapcal: error: {sanitize(exc)}", err=True)
         return 2
+    except Terminated as exc:
+        return _terminated(exc)
     except KeyboardInterrupt:
         click.echo("oapcal: interrupted", err=True)
         return 130

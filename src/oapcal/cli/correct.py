@@ -132,54 +132,83 @@ def correct_command(
         raise click.UsageError("give --out-dir DIR for the corrected images")
     if map_file and (extent != "input" or um_per_px or out_size):
         raise click.UsageError("--map fixes the output geometry: drop --extent, --um-per-px and --out-size")
+    if not use_dask:
+        ctx = click.get_current_context()
+        for option in ("scheduler", "chunk_frames", "dask_format"):
+            if ctx.get_parameter_source(option) != click.core.ParameterSource.DEFAULT:
+                flag = "--" + option.replace("_", "-")
+                raise click.UsageError(f"{flag} applies to --dask only: add --dask or drop {flag}")
     size = parse_size(out_size, "--out-size")
     max_pixels = max_pixels or MAX_PIXELS
     check_output(save_map, calib, map_file, *inputs)
+    plan = _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map) if inputs else None
     cal = load_calibration(calib)
     name = cal.name or Path(calib).name
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
-    cmap = _prepare_map(cal, inputs, map_file, save_map, geometry, max_pixels)
+    cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels)
     if not inputs:
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
         return 0
     if use_dask:
-        return _correct_dask(cal, inputs, out_dir, name, interp, border, workers, geometry, map_file,
+        return _correct_dask(cal, plan, out_dir, name, interp, border, workers, geometry, map_file,
                              allow_size_mismatch, max_pixels, overwrite, scheduler, chunk_frames,
-                             dask_format, quiet, as_json, calib)  # fmt: skip
+                             dask_format, quiet, as_json)  # fmt: skip
     from oapcal.imaging.stack import correct_stack
 
     report = correct_stack(
         cal, inputs, out_dir, interp=interp, border=border, workers=workers, cmap=cmap,
         allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, overwrite=overwrite,
         calibration_name=name, protect=[calib] + ([map_file] if map_file else []),
+        reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
         progress=not quiet and not as_json, **({} if cmap else geometry),
     )  # fmt: skip
     results = [r.__dict__ for r in report.results]
     return _finish(results, report.summary(), report.count("failed"), as_json)
 
 
-def _prepare_map(cal, inputs, map_file, save_map, geometry, max_pixels):
+def _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map):
+    """Expand the inputs and check every output path before any work: ``(files, failures,
+    outputs)``.  Refuses (exit 2) two inputs with one output name, an output that is an input
+    or the calibration, and an image output that is the --save-map file."""
+    from oapcal.imaging.distributed import ZARR_SUFFIX, dask_output_name
+    from oapcal.imaging.stack import expand_inputs, plan_outputs
+    from oapcal.io.images import TIFF_SUFFIXES
+
+    if use_dask:
+        files, failures, dirs = expand_inputs(inputs, suffixes=(*TIFF_SUFFIXES, ZARR_SUFFIX))
+    else:
+        files, failures, dirs = expand_inputs(inputs)
+    protect = [calib] + ([map_file] if map_file else [])
+    reserved = [(save_map, f"the map --save-map {save_map}")] if save_map else []
+    naming = (lambda p: dask_output_name(p, dask_format)) if use_dask else None
+    outputs = plan_outputs(files, out_dir, dirs, protect, output_name=naming, reserved=reserved)
+    return files, failures, outputs
+
+
+def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels):
     """The map given by --map, or built for --save-map (for the calibration's image size or
     the first input's), or None (built per input size while correcting)."""
+    from oapcal.errors import DataError
     from oapcal.imaging.remap import correction_map, load_map
     from oapcal.imaging.remap import save_map as write_map
 
     if map_file:
-        cmap = load_map(map_file)
+        cmap = load_map(map_file, max_pixels=max_pixels)
     elif save_map:
         shape = None
         if cal.image_size:
             shape = (cal.image_size[1], cal.image_size[0])
-        else:
-            from oapcal.imaging.stack import expand_inputs
+            if shape[0] * shape[1] > max_pixels:
+                raise DataError(
+                    f"the calibration's image_size {shape[1]}x{shape[0]} is {shape[0] * shape[1]} px, "
+                    f"more than --max-pixels {max_pixels}; its map would not fit in memory (raise "
+                    "--max-pixels if the camera is really this large)"
+                )
+        elif files:
             from oapcal.io.images import probe
 
-            files = expand_inputs(inputs)[0]
-            if files:
-                shape = probe(files[0], max_pixels).frame_shape[:2]
+            shape = probe(files[0], max_pixels).frame_shape[:2]
         if shape is None:
-            from oapcal.errors import DataError
-
             raise DataError(
                 "--save-map needs the input image size: refit with 'oapcal fit --image-size WxH' "
                 "or give an input image"
@@ -192,40 +221,52 @@ def _prepare_map(cal, inputs, map_file, save_map, geometry, max_pixels):
     return cmap
 
 
-def _correct_dask(cal, inputs, out_dir, name, interp, border, workers, geometry, map_file,
+def _correct_dask(cal, plan, out_dir, name, interp, border, workers, geometry, map_file,
                   allow_size_mismatch, max_pixels, overwrite, scheduler, chunk_frames, dask_format,
-                  quiet, as_json, calib):  # fmt: skip
+                  quiet, as_json):  # fmt: skip
+    import logging
+    from pathlib import Path
+
     from oapcal.errors import OapcalError
     from oapcal.extras import EXTRAS, require
 
     for module in EXTRAS["dask"]:  # before any work: a missing extra is one clear error
         require(module, "dask")
-    from oapcal.imaging.distributed import ZARR_SUFFIX, correct_stack_dask
-    from oapcal.imaging.stack import expand_inputs, plan_outputs
-    from oapcal.io.images import TIFF_SUFFIXES
+    from oapcal.imaging.distributed import correct_stack_dask, dask_scheduler
+    from oapcal.io.atomic import remove_stale_temps
 
-    files, failures, dirs = expand_inputs(inputs, suffixes=(*TIFF_SUFFIXES, ZARR_SUFFIX))
-    plan_outputs(files, out_dir, dirs, protect=[calib])
+    # Dask's event loop reports the tasks a Ctrl-C cancelled when they are garbage collected,
+    # at exit; the command reports the interruption itself, in one line.
+    for logger in ("asyncio", "distributed", "tornado"):
+        logging.getLogger(logger).setLevel(logging.CRITICAL)
+    files, failures, outputs = plan
     results = [f.__dict__ for f in failures]
     n_failed = len(failures)
     frames = 0
-    for path in files:
-        try:
-            r = correct_stack_dask(
-                cal, path, out_dir, output_format=dask_format, chunk_frames=chunk_frames, interp=interp,
-                border=border, map_path=map_file, allow_size_mismatch=allow_size_mismatch,
-                max_pixels=max_pixels, scheduler=scheduler, workers=workers, calibration_name=name,
-                overwrite=overwrite, progress=not quiet and not as_json,
-                **({} if map_file else geometry),
-            )  # fmt: skip
-        except (OapcalError, OSError) as exc:
-            n_failed += 1
-            results.append({"input": str(path), "output": None, "status": "failed", "frames": 0,
-                            "message": str(exc)})  # fmt: skip
-            continue
-        frames += r.frames
-        results.append({"input": r.input, "output": r.output, "frames": r.frames, "message": "",
-                        "status": "skipped" if r.skipped else "corrected"})  # fmt: skip
+    try:
+        with dask_scheduler(scheduler, workers) as session:
+            for path in files:
+                try:
+                    r = correct_stack_dask(
+                        cal, path, out_dir, output_format=dask_format, chunk_frames=chunk_frames,
+                        interp=interp, border=border, map_path=map_file,
+                        allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, calibration_name=name,
+                        overwrite=overwrite, progress=not quiet and not as_json, session=session,
+                        **({} if map_file else geometry),
+                    )  # fmt: skip
+                except (OapcalError, OSError) as exc:
+                    n_failed += 1
+                    results.append({"input": str(path), "output": None, "status": "failed", "frames": 0,
+                                    "message": str(exc)})  # fmt: skip
+                    continue
+                frames += r.frames
+                results.append({"input": r.input, "output": r.output, "frames": r.frames, "message": "",
+                                "status": "skipped" if r.skipped else "corrected"})  # fmt: skip
+    finally:
+        # Workers may have written into a temporary store after an interruption: now that
+        # they are gone, remove what is left.
+        if Path(out_dir).is_dir():
+            remove_stale_temps(out_dir, outputs)
     n_done = sum(r["status"] == "corrected" for r in results)
     n_skip = sum(r["status"] == "skipped" for r in results)
     summary = (

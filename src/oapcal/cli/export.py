@@ -8,6 +8,23 @@ from oapcal.cli._common import check_output, parse_size
 from oapcal.cli.correct import geometry_options
 
 
+def _check_size(size, what) -> None:
+    """Refuse an image size no camera has (the map OpenCV would build could not be stored)."""
+    from oapcal.errors import DataError
+    from oapcal.io.images import MAX_PIXELS
+
+    w, h = size
+    if w * h > MAX_PIXELS or max(w, h) > MAX_SIDE:
+        raise DataError(
+            f"{what} {w}x{h} is larger than any image oapcal corrects ({MAX_PIXELS} px, sides up to "
+            f"{MAX_SIDE} px); give the camera's size in px"
+        )
+
+
+#: The longest image side accepted (the pixel count is limited too).
+MAX_SIDE = 2**20
+
+
 @click.command("export-opencv")
 @click.argument("calib", type=click.Path(dir_okay=False))
 @click.option(
@@ -39,6 +56,7 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size):
     size = size or cal.image_size
     if not size:
         raise DataError(f"{calib}: the calibration has no image_size; give --image-size WxH")
+    _check_size(size, "--image-size" if image_size else f"{calib}: image_size")
     geometry = output_geometry(cal, (size[1], size[0]), extent=extent, um_per_px=um_per_px, out_size=fit_size)
     export = opencv_parameters(cal.params, size, geometry)
     save_opencv(export, out, cal.name or Path(calib).name)

@@ -8,7 +8,9 @@ it) or a multi-page TIFF (chunks gathered in order and appended).  It runs on a
 address, or on Dask's local ``threads`` / ``synchronous`` schedulers.
 
 Memory stays bounded however long the stack is: chunks are computed a window at a time
-(a few per worker), and nothing keeps a reference to finished chunks.  Workers build the
+(a few per worker), and nothing keeps a reference to finished chunks; a chunk never holds
+more frames than the stack.  TIFF inputs are read like :mod:`oapcal.io.images` reads them
+(every page of every series, planar colour, ImageJ hyperstacks in one page memory-mapped).  Workers build the
 correction map themselves from the parameters and the output geometry (cached per
 process), so the task graph stays small; with a map file they load it (workers must see
 the file).  Workers must also see the input and output paths (a shared file system).
@@ -17,10 +19,12 @@ the file).  Workers must also see the input and output paths (a shared file syst
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
+import logging
 import os
-import shutil
-import tempfile
+import signal
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,10 +32,23 @@ import numpy as np
 
 from oapcal.errors import InputFileError, OutputError
 from oapcal.imaging.remap import CorrectionMap, OutputGeometry, correct_image, correction_map, load_map
-from oapcal.io.images import MAX_PIXELS, TIFF_SUFFIXES, FrameWriter, check_frame, probe
+from oapcal.io.images import (
+    MAX_PIXELS,
+    TIFF_SUFFIXES,
+    FrameWriter,
+    check_frame,
+    info_slice,
+    probe,
+    read_tiff_frames,
+)
 
 ZARR_SUFFIX = ".zarr"
 LOCAL_SCHEDULERS = ("threads", "synchronous", "processes")
+#: The most chunks one stack may have (a header claiming 1e9 frames would otherwise build a
+#: task graph larger than memory); raise --chunk-frames for longer stacks.
+MAX_CHUNKS = 1_000_000
+#: Seconds to wait for a scheduler given by address to answer.
+CONNECT_TIMEOUT = 10
 
 
 @dataclass(frozen=True)
@@ -48,36 +65,15 @@ class DaskResult:
 # ------------------------------------------------------------------------ lazy input
 
 
-def _read_tiff_frames(
-    path: str, start: int, stop: int, frame_shape: tuple[int, ...], layout: tuple
-) -> np.ndarray:
-    """Frames ``start:stop`` of a TIFF stack: straight from the file when its pixel data are
-    one contiguous uncompressed block (what cameras and tifffile write), else page by page."""
-    offset, dtype = layout
-    if offset is not None:
-        frame_size = int(np.prod(frame_shape))
-        count = (stop - start) * frame_size
-        data = np.fromfile(
-            path,
-            dtype=np.dtype(dtype),
-            count=count,
-            offset=offset + start * frame_size * np.dtype(dtype).itemsize,
-        )
-        if data.size != count:
-            raise InputFileError(f"{path}: the file is truncated (frames {start}-{stop - 1} are missing)")
-        return data.reshape((stop - start, *frame_shape)).astype(
-            np.dtype(dtype).newbyteorder("="), copy=False
-        )
-    import tifffile
-
-    with tifffile.TiffFile(path) as tif:
-        pages = tif.series[0].pages
-        return np.stack([pages[i].asarray().reshape(frame_shape) for i in range(start, stop)])
+def _read_tiff_frames(info) -> np.ndarray:
+    """The frames of a TIFF that ``info`` (an :func:`oapcal.io.images.info_slice`) describes."""
+    return read_tiff_frames(info, 0, info.n_frames)
 
 
 def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_PIXELS):
     """A Dask array ``(frames, rows, cols[, ch])`` over a TIFF stack or zarr array, one
-    chunk per ``chunk_frames`` frames; nothing is read until it is computed."""
+    chunk per ``chunk_frames`` frames (at most the stack's length); nothing is read until
+    it is computed."""
     from oapcal.extras import require
 
     dask = require("dask")
@@ -96,38 +92,49 @@ def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_P
             raise InputFileError(
                 f"{path}: cannot be opened as a zarr array ({type(exc).__name__}: {exc})"
             ) from None
-        if z.ndim == 2:
-            arr = da.from_zarr(z)[None]
-        elif z.ndim in (3, 4):
-            arr = da.from_zarr(z)
-        else:
+        if z.ndim not in (2, 3, 4):
             raise InputFileError(
                 f"{path}: a zarr stack must be (frames, rows, cols[, ch]), got shape {z.shape}"
             )
-        if arr.shape[1] * arr.shape[2] > max_pixels:
+        shape = (1, *z.shape) if z.ndim == 2 else tuple(z.shape)
+        if min(shape) < 1:
+            raise InputFileError(f"{path}: the zarr array is empty (shape {z.shape})")
+        if shape[1] * shape[2] > max_pixels:
             raise InputFileError(
-                f"{path}: frames of {arr.shape[2]}x{arr.shape[1]} px exceed --max-pixels {max_pixels}"
+                f"{path}: frames of {shape[2]}x{shape[1]} px exceed --max-pixels {max_pixels}"
             )
+        _check_chunks(path, shape[0], chunk_frames)
+        if z.nchunks_initialized == 0:
+            raise InputFileError(
+                f"{path}: the zarr header claims {shape[0]} frames of {shape[2]}x{shape[1]} px but "
+                "the store holds no data; the array is empty or its header is corrupt"
+            )
+        arr = da.from_zarr(z)
+        if z.ndim == 2:
+            arr = arr[None]
         check_frame(path, np.empty((1, 1) + arr.shape[3:], arr.dtype))
-        return arr.rechunk({0: chunk_frames, 1: -1, 2: -1})
+        return arr.rechunk({0: min(chunk_frames, shape[0]), 1: -1, 2: -1})
     if path.suffix.lower() not in TIFF_SUFFIXES:
         raise InputFileError(f"{path}: --dask reads TIFF stacks and zarr arrays ({ZARR_SUFFIX} directories)")
     info = probe(path, max_pixels)
-    import tifffile
-
-    with tifffile.TiffFile(path) as tif:
-        series = tif.series[0]
-        if len(series.pages) != info.n_frames:
-            raise InputFileError(f"{path}: --dask needs one frame per TIFF page; correct it without --dask")
-        offset = series.dataoffset
-        layout = (offset, tif.byteorder + np.dtype(series.dtype).str[1:])
     check_frame(path, np.empty((1, 1) + info.frame_shape[2:], info.dtype))
+    _check_chunks(path, info.n_frames, chunk_frames)
+    chunk_frames = min(chunk_frames, info.n_frames)
     blocks = []
     for start in range(0, info.n_frames, chunk_frames):
         stop = min(info.n_frames, start + chunk_frames)
-        task = dask.delayed(_read_tiff_frames, pure=True)(str(path), start, stop, info.frame_shape, layout)
+        task = dask.delayed(_read_tiff_frames, pure=True)(info_slice(info, start, stop))
         blocks.append(da.from_delayed(task, (stop - start, *info.frame_shape), dtype=info.dtype))
     return da.concatenate(blocks, axis=0)
+
+
+def _check_chunks(path: Path, n_frames: int, chunk_frames: int) -> None:
+    n_chunks = -(-n_frames // chunk_frames)
+    if n_chunks > MAX_CHUNKS:
+        raise InputFileError(
+            f"{path}: {n_frames} frames in chunks of {chunk_frames} make {n_chunks} chunks, more than "
+            f"{MAX_CHUNKS}; give a larger --chunk-frames (if the frame count is genuine)"
+        )
 
 
 # ----------------------------------------------------------------- the work per chunk
@@ -169,31 +176,103 @@ def dask_scheduler(scheduler: str | None = None, workers: int | None = None):
     """Yield what ``dask.compute(..., scheduler=...)`` takes, and the number of chunks to
     keep in flight: a new ``LocalCluster`` (default), a ``Client`` of the scheduler at an
     address (``tcp://host:8786``), or a local scheduler name (threads, synchronous,
-    processes)."""
+    processes).  Open it once for a batch of stacks.
+
+    Dask's own log messages (tracebacks of workers stopped by Ctrl-C, a full disk) are kept
+    off the terminal; oapcal reports the problem in one line.  The local cluster's worker
+    processes ignore Ctrl-C (the main process stops them).
+    """
     if scheduler in LOCAL_SCHEDULERS:
         yield scheduler, max(2, workers or os.cpu_count() or 1)
         return
     from oapcal.extras import require
 
     require("distributed")
-    from distributed import Client, LocalCluster
+    with _quiet_distributed():
+        if scheduler is None:
+            from distributed import Client, LocalCluster
 
-    if scheduler is None:
-        n = workers or 1
-        with LocalCluster(n_workers=n, threads_per_worker=1, dashboard_address=None) as cluster:
-            with Client(cluster) as client:
+            n = workers or 1
+            with _workers_ignore_sigint():
+                cluster = LocalCluster(
+                    n_workers=n, threads_per_worker=1, dashboard_address=None, silence_logs=logging.CRITICAL
+                )
+            with cluster, Client(cluster) as client:
                 yield client, 2 * n
-        return
+            return
+        client = connect_scheduler(scheduler)
+        with client:
+            n_threads = sum(client.nthreads().values()) or 1
+            yield client, 2 * n_threads
+
+
+def connect_scheduler(address: str, timeout: float | None = None):
+    """A ``distributed.Client`` of the scheduler at ``address``; refuses (InputFileError)
+    an address that does not answer as a Dask scheduler within ``timeout`` seconds (a
+    server that accepts the connection and says nothing, or answers with other bytes)."""
+    from distributed import Client
+
+    timeout = CONNECT_TIMEOUT if timeout is None else timeout
+    box: dict = {}
+
+    def connect():
+        try:
+            box["client"] = Client(address, timeout=f"{timeout}s", set_as_default=False)
+        except BaseException as exc:  # MemoryError from a server answering with garbage, ...
+            box["error"] = exc
+
+    thread = threading.Thread(target=connect, name="oapcal-connect", daemon=True)
+    thread.start()
+    thread.join(timeout + 1)
+    hint = "check the address (tcp://HOST:PORT of a running dask scheduler) or drop --scheduler"
+    if thread.is_alive():
+        raise InputFileError(
+            f"--scheduler {address}: no answer from a Dask scheduler within {timeout:g} s; {hint}"
+        )
+    if "error" in box:
+        exc = box["error"]
+        if isinstance(exc, KeyboardInterrupt):
+            raise exc
+        what = "not a Dask scheduler" if isinstance(exc, MemoryError) else f"{type(exc).__name__}: {exc}"
+        raise InputFileError(f"--scheduler {address}: cannot connect to a Dask scheduler ({what}); {hint}")
+    return box["client"]
+
+
+@contextlib.contextmanager
+def _quiet_distributed():
+    names = ("distributed", "distributed.nanny", "distributed.worker", "distributed.scheduler", "tornado")
+    loggers = [logging.getLogger(n) for n in names]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL)
     try:
-        client = Client(scheduler, timeout="10s")
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputFileError(f"--scheduler {scheduler}: cannot connect to a Dask scheduler ({exc})") from None
-    with client:
-        n_threads = sum(client.nthreads().values()) or 1
-        yield client, 2 * n_threads
+        yield
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
+
+
+@contextlib.contextmanager
+def _workers_ignore_sigint():
+    """Start worker processes with Ctrl-C ignored (they inherit it); only from the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 # ---------------------------------------------------------------------- the pipeline
+
+
+def dask_output_name(input_path: str | Path, output_format: str = "zarr") -> str:
+    """The output name of a stack: ``STEM.zarr`` or ``STEM.tif``."""
+    input_path = Path(input_path)
+    suffix = ZARR_SUFFIX if output_format == "zarr" else ".tif"
+    return input_path.name.removesuffix(input_path.suffix) + suffix
 
 
 def correct_stack_dask(
@@ -216,27 +295,40 @@ def correct_stack_dask(
     calibration_name: str | None = None,
     overwrite: bool = False,
     progress: bool = False,
+    session: tuple | None = None,
 ) -> DaskResult:
     """Correct one TIFF or zarr stack with Dask into ``out_dir/STEM.zarr`` (or ``.tif``).
 
     The output appears atomically (written under a temporary name, then renamed); an
-    existing output is skipped unless ``overwrite``.  Output arrays are chunked like the
-    input (``chunk_frames`` frames) and carry the calibration's name and the pixel size
-    (zarr attributes ``oapcal_calibration``, ``um_per_px``; TIFF metadata).
+    existing output is skipped, unless ``overwrite``, when its resume record (see
+    :mod:`oapcal.imaging.stack`) matches the calibration, settings and input.  Output
+    arrays are chunked like the input (``chunk_frames`` frames, at most the stack) and
+    carry the calibration's name and the pixel size (zarr attributes
+    ``oapcal_calibration``, ``um_per_px``; TIFF metadata; a BigTIFF when over 4 GiB).
+    ``session`` is an open :func:`dask_scheduler` ``(scheduler, window)`` to run on
+    (default: open ``scheduler`` for this stack alone).
     """
+    from oapcal.imaging.stack import correction_digest
+    from oapcal.io.atomic import (
+        atomic_dir,
+        atomic_path,
+        file_fingerprint,
+        remove_stale_temps,
+        resume_complete,
+        write_resume_record,
+    )
+
     input_path = Path(input_path)
     if output_format not in ("zarr", "tiff"):
         raise OutputError(f"unknown output format {output_format!r}: use zarr or tiff")
-    suffix = ZARR_SUFFIX if output_format == "zarr" else ".tif"
     out_dir = Path(out_dir)
-    out_path = out_dir / (input_path.name.removesuffix(input_path.suffix) + suffix)
+    out_path = out_dir / dask_output_name(input_path, output_format)
     if out_path.resolve() == input_path.resolve():
         raise OutputError(
             f"{out_path}: the output would overwrite the input {input_path}; choose another --out-dir"
         )
     stack = lazy_stack(input_path, chunk_frames, max_pixels)
-    if out_path.exists() and not overwrite:
-        return DaskResult(str(input_path), str(out_path), 0, 0, skipped=True)
+    chunk_frames = min(chunk_frames, stack.shape[0])
     rows, cols = stack.shape[1:3]
     cal_size = getattr(calibration, "image_size", None)
     if cal_size and tuple(cal_size) != (cols, rows) and not allow_size_mismatch:
@@ -245,7 +337,7 @@ def correct_stack_dask(
             f"{cal_size[0]}x{cal_size[1]} px; give --allow-size-mismatch to correct them anyway"
         )
     if map_path is not None:
-        cmap = load_map(map_path)
+        cmap = load_map(map_path, max_pixels=max_pixels)
         if cmap.input_shape and cmap.input_shape != (rows, cols) and not allow_size_mismatch:
             raise InputFileError(
                 f"{input_path}: frames are {cols}x{rows} px but the map {map_path} was built for "
@@ -253,7 +345,9 @@ def correct_stack_dask(
             )
         source = ("file", str(Path(map_path).resolve()))
         geometry = cmap.geometry
+        digest = correction_digest(calibration, cmap, interp=interp, border=float(border))
     else:
+        cmap = None
         params = np.asarray(getattr(calibration, "params", calibration), float)
         geometry = correction_map(
             calibration, (rows, cols), extent=extent, um_per_px=um_per_px, out_size=out_size, geometry=None
@@ -267,7 +361,14 @@ def correct_stack_dask(
             geometry.scale,
             geometry.um_per_px,
         )
+        fit_size = None if out_size is None else list(out_size)
+        digest = correction_digest(calibration, None, interp=interp, border=float(border), extent=extent,
+                                   um_per_px=um_per_px, out_size=fit_size)  # fmt: skip
+    record = {"calibration": digest, "input": file_fingerprint(input_path), "frames": int(stack.shape[0])}
+    if out_path.exists() and not overwrite and resume_complete(out_path, record):
+        return DaskResult(str(input_path), str(out_path), 0, 0, skipped=True)
     out_shape = (stack.shape[0], *geometry.shape, *stack.shape[3:])
+    out_bytes = int(np.prod(out_shape, dtype=np.int64)) * stack.dtype.itemsize
     corrected = stack.map_blocks(
         _correct_block,
         source,
@@ -280,58 +381,98 @@ def correct_stack_dask(
     starts = np.concatenate([[0], np.cumsum(stack.chunks[0])[:-1]]).astype(int)
     n_chunks = len(starts)
     out_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(out_dir, [out_path])
+    if output_format == "tiff":
+        check_free_space(out_dir, out_bytes, out_path)
     bar = _bar(progress, n_chunks, out_shape[0], input_path.name)
-    with dask_scheduler(scheduler, workers) as (sched, window), bar:
-        if output_format == "zarr":
-            import zarr
+    own = contextlib.nullcontext(session) if session is not None else dask_scheduler(scheduler, workers)
+    try:
+        with own as (sched, window), bar:
+            if output_format == "zarr":
+                import zarr
 
-            tmp = tempfile.mkdtemp(prefix=f".{out_path.name}.", suffix=".tmp", dir=out_dir)
-            try:
-                z = zarr.create_array(
-                    tmp,
-                    shape=out_shape,
-                    chunks=(chunk_frames, *out_shape[1:]),
-                    dtype=stack.dtype,
-                    overwrite=True,
-                )
-                z.attrs.update(
-                    {
-                        "oapcal_calibration": name,
-                        "um_per_px": geometry.um_per_px,
-                        "axes": "TYX" + "C" * (len(out_shape) == 4),
-                    }
-                )
-                drop = list(range(1, corrected.ndim))
-                written = corrected.map_blocks(
-                    _write_zarr_block, tmp, dtype=int, chunks=((1,) * n_chunks,), drop_axis=drop
-                )
-                for j in range(0, n_chunks, window):
-                    counts = written[j : j + window].compute(scheduler=sched)
-                    bar.advance(len(counts), int(counts.sum()))
-                if out_path.exists():
-                    shutil.rmtree(out_path)
-                os.replace(tmp, out_path)
-            except BaseException:
-                shutil.rmtree(tmp, ignore_errors=True)
-                raise
-        else:
-            from oapcal.io.atomic import atomic_path
-
-            with atomic_path(out_path) as tmp, FrameWriter(tmp, "tiff", name, geometry.um_per_px) as writer:
-                for j in range(0, n_chunks, window):
-                    lo, hi = (
-                        int(starts[j]),
-                        int(
-                            starts[min(n_chunks - 1, j + window - 1)]
-                            + corrected.chunks[0][min(n_chunks - 1, j + window - 1)]
-                        ),
-                    )
-                    block = corrected[lo:hi].compute(scheduler=sched)
-                    for frame in block:
-                        writer.write(frame)
-                    bar.advance(min(window, n_chunks - j), len(block))
-                    del block
+                with atomic_dir(out_path) as tmp:
+                    try:
+                        z = zarr.create_array(
+                            str(tmp), shape=out_shape, chunks=(chunk_frames, *out_shape[1:]),
+                            dtype=stack.dtype, overwrite=True,
+                        )  # fmt: skip
+                        z.attrs.update(
+                            {
+                                "oapcal_calibration": name,
+                                "um_per_px": geometry.um_per_px,
+                                "axes": "TYX" + "C" * (len(out_shape) == 4),
+                            }
+                        )
+                        drop = list(range(1, corrected.ndim))
+                        written = corrected.map_blocks(
+                            _write_zarr_block, str(tmp), dtype=int, chunks=((1,) * n_chunks,), drop_axis=drop
+                        )
+                        total = 0
+                        for j in range(0, n_chunks, window):
+                            counts = written[j : j + window].compute(scheduler=sched)
+                            total += int(counts.sum())
+                            bar.advance(len(counts), int(counts.sum()))
+                    except BaseException:
+                        _settle(sched)
+                        raise
+                    if total != out_shape[0]:
+                        raise OutputError(f"{out_path}: {total} of {out_shape[0]} frames were written")
+            else:
+                with (
+                    atomic_path(out_path) as tmp,
+                    FrameWriter(tmp, "tiff", name, geometry.um_per_px, expected_bytes=out_bytes) as writer,
+                ):
+                    for j in range(0, n_chunks, window):
+                        last = min(n_chunks - 1, j + window - 1)
+                        lo, hi = int(starts[j]), int(starts[last] + corrected.chunks[0][last])
+                        block = corrected[lo:hi].compute(scheduler=sched)
+                        for frame in block:
+                            writer.write(frame)
+                        bar.advance(min(window, n_chunks - j), len(block))
+                        del block
+                    if writer.n != out_shape[0]:
+                        raise OutputError(f"{out_path}: {writer.n} of {out_shape[0]} frames were written")
+    except OSError as exc:
+        raise _os_error(out_path, exc) from None
+    write_resume_record(out_path, {**record})
     return DaskResult(str(input_path), str(out_path), out_shape[0], n_chunks)
+
+
+def check_free_space(directory: Path, n_bytes: int, what: Path) -> None:
+    """Refuse, before any work, an output that cannot fit on the disk."""
+    import shutil
+
+    try:
+        free = shutil.disk_usage(directory).free
+    except OSError:
+        return
+    if n_bytes > free:
+        raise OutputError(
+            f"{what}: the output needs {n_bytes / 2**30:.3g} GiB but {directory} has "
+            f"{free / 2**30:.3g} GiB free; free some space or choose another --out-dir"
+        )
+
+
+def _os_error(out_path: Path, exc: OSError) -> OutputError:
+    """A failed write (a full disk, lost permissions) as one line naming the output."""
+    reason = exc.strerror or str(exc)
+    if exc.errno == errno.ENOSPC:
+        reason = "the disk is full"
+    return OutputError(f"{out_path}: cannot be written ({reason}); nothing was written")
+
+
+def _settle(sched) -> None:
+    """After an interruption, let chunks still running on a distributed scheduler finish
+    (they write into the temporary store) before it is removed; a few seconds at most."""
+    import time
+
+    if isinstance(sched, str):
+        return
+    with contextlib.suppress(Exception):
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and any(sched.processing().values()):
+            time.sleep(0.1)
 
 
 class _NoBar:

@@ -219,15 +219,23 @@ def correction_map(
     ys = geometry.y0 + geometry.scale * np.arange(rows, dtype=float)
     out_x = np.empty((rows, cols), np.float32)
     out_y = np.empty((rows, cols), np.float32)
-    # Blocks of rows keep the float64 temporaries small (and in cache) for large frames.
-    block = max(1, 262_144 // max(cols, 1))
-    for r0 in range(0, rows, block):
-        r1 = min(rows, r0 + block)
-        _forward_grid(params, xs, ys[r0:r1], out_x[r0:r1], out_y[r0:r1])
+    # The model's compiled point function over the separable grid, rows in parallel.
+    from oapcal._kernels import grid_map
+    from oapcal.model import BROWN_CONRADY, kernel_array
+
+    grid_map(BROWN_CONRADY.code, kernel_array(params), xs, ys, out_x, out_y)
     return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
 
 
 _CV2_INTERP = {"nearest": 0, "linear": 1, "cubic": 2, "lanczos": 4}  # cv2.INTER_* values
+
+
+#: cv2.remap refuses images and maps with a side of this many pixels or more (SHRT_MAX).
+REMAP_LIMIT = 32767
+#: Output tile side used when an image or map is too large for one cv2.remap call.
+REMAP_TILE = 4096
+#: Source pixels kept around a tile's footprint: covers the widest kernel (Lanczos, 8 taps).
+_PAD = 6
 
 
 def correct_image(
@@ -236,17 +244,69 @@ def correct_image(
     """Correct one image (grey ``(rows, cols)`` or colour ``(rows, cols, ch)``) with a map
     from :func:`correction_map`; the output has the map's shape and keeps the input's dtype.
 
-    Pixels whose source falls outside the input get the value ``border``.  ``out`` (an
-    array of the output's shape and dtype) receives the result when given.
+    Pixels whose source falls outside the input get the value ``border`` (in every channel).  ``out`` (an
+    array of the output's shape and dtype) receives the result when given.  Images or maps
+    with a side of 32767 px or more (beyond ``cv2.remap``) are corrected tile by tile, with
+    the same result.
     """
     import cv2
 
     if interp not in _CV2_INTERP:
         raise DataError(f"unknown interpolation {interp!r}: use one of {', '.join(INTERPOLATIONS)}")
     map_x, map_y = maps
-    return cv2.remap(
-        image, map_x, map_y, _CV2_INTERP[interp], dst=out, borderMode=cv2.BORDER_CONSTANT, borderValue=border
-    )
+    if max(image.shape[:2]) < REMAP_LIMIT and max(map_x.shape) < REMAP_LIMIT:
+        return cv2.remap(
+            image, map_x, map_y, _CV2_INTERP[interp], dst=out, borderMode=cv2.BORDER_CONSTANT,
+            borderValue=(border,) * 4,
+        )  # fmt: skip
+    if out is None:
+        out = np.empty(map_x.shape + image.shape[2:], image.dtype)
+    for r0 in range(0, map_x.shape[0], REMAP_TILE):
+        for c0 in range(0, map_x.shape[1], REMAP_TILE):
+            tile = (slice(r0, r0 + REMAP_TILE), slice(c0, c0 + REMAP_TILE))
+            _remap_tile(image, map_x, map_y, tile, interp, border, out)
+    return out
+
+
+def _remap_tile(image, map_x, map_y, tile, interp, border, out) -> None:
+    """Correct the output pixels ``tile`` (two slices) from the part of ``image`` their map
+    values reach (plus a margin for the kernel); split the tile if that part is too large."""
+    import cv2
+
+    mx, my = map_x[tile], map_y[tile]
+    rows, cols = image.shape[:2]
+    ok = np.isfinite(mx) & np.isfinite(my)
+    if ok.any():
+        x0 = max(0, int(np.floor(mx[ok].min())) - _PAD)
+        x1 = min(cols, int(np.ceil(mx[ok].max())) + _PAD + 1)
+        y0 = max(0, int(np.floor(my[ok].min())) - _PAD)
+        y1 = min(rows, int(np.ceil(my[ok].max())) + _PAD + 1)
+    else:
+        x0 = x1 = y0 = y1 = 0
+    if x1 <= x0 or y1 <= y0:  # every source pixel is outside the image
+        out[tile] = border
+        return
+    if x1 - x0 >= REMAP_LIMIT or y1 - y0 >= REMAP_LIMIT or max(mx.shape) >= REMAP_LIMIT:
+        h, w = mx.shape
+        if h * w <= 1:
+            raise DataError("a correction map that spans more than 32767 px at one pixel cannot be applied")
+        (rs, cs) = tile
+        r0, c0 = rs.start, cs.start
+        r1, c1 = r0 + h, c0 + w
+        if h >= w:
+            halves = [(slice(r0, r0 + h // 2), cs), (slice(r0 + h // 2, r1), cs)]
+        else:
+            halves = [(rs, slice(c0, c0 + w // 2)), (rs, slice(c0 + w // 2, c1))]
+        for half in halves:
+            _remap_tile(image, map_x, map_y, half, interp, border, out)
+        return
+    crop = np.ascontiguousarray(image[y0:y1, x0:x1])
+    # Subtracting whole numbers is exact in float32 here, so the result equals one remap.
+    result = cv2.remap(
+        crop, mx - np.float32(x0), my - np.float32(y0), _CV2_INTERP[interp],
+        borderMode=cv2.BORDER_CONSTANT, borderValue=(border,) * 4,
+    )  # fmt: skip
+    out[tile] = result.reshape(out[tile].shape)
 
 
 # ------------------------------------------------------------------------ map files
@@ -283,18 +343,80 @@ def save_map(cmap: CorrectionMap, path: str | Path) -> None:
         raise InputFileError(f"{path}: a map file must end in {', '.join(MAP_SUFFIXES)}")
 
 
-def load_map(path: str | Path) -> CorrectionMap:
-    """Read a map written by :func:`save_map` (never unpickles anything)."""
+#: The default per-frame pixel limit of the images a map is for (``--max-pixels``; the same
+#: value as :data:`oapcal.io.images.MAX_PIXELS`, which this layer does not import).
+MAP_MAX_PIXELS = 2**28
+#: A map file whose arrays unpack to more than this many times their stored size (and to
+#: over 64 MiB) is refused as a decompression bomb; oapcal writes maps uncompressed.
+MAX_MAP_RATIO = 50
+
+
+def _check_map_header(path: Path, shape, dtype, stored: int, unpacked: int, max_pixels: int) -> None:
+    """Refuse a map from its header alone, before anything is decompressed."""
+    limit = MAX_GROWTH * max_pixels
+    pixels = int(np.prod(shape[-2:], dtype=np.int64)) if len(shape) >= 2 else 0
+    if pixels > limit:
+        raise InputFileError(
+            f"{path}: the map is {shape[-1]}x{shape[-2]} px, more than the {limit} px a map for the "
+            "largest image (--max-pixels) can have; the file is not a map oapcal wrote"
+        )
+    if unpacked > 64 * 2**20 and unpacked > MAX_MAP_RATIO * max(stored, 1):
+        raise InputFileError(
+            f"{path}: {stored} bytes that unpack to {unpacked} (a decompression bomb?); "
+            "write the map again with 'oapcal correct --save-map'"
+        )
+    if np.dtype(dtype).kind != "f":
+        raise InputFileError(f"{path}: a map must hold float arrays, got {np.dtype(dtype)}")
+
+
+def _npz_headers(path: Path, max_pixels: int) -> None:
+    import zipfile
+
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            if info.filename not in ("map_x.npy", "map_y.npy"):
+                if info.file_size > 2**20:
+                    raise InputFileError(f"{path}: unexpected large member {info.filename!r} in a map file")
+                continue
+            with zf.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+                else:
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+            _check_map_header(path, shape, dtype, info.compress_size, info.file_size, max_pixels)
+
+
+def _tiff_map_headers(path: Path, max_pixels: int) -> None:
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        if len(tif.pages) > 2:
+            raise InputFileError(f"{path}: a map TIFF holds two pages (x, y), this one {len(tif.pages)}")
+        for page in tif.pages:
+            stored = int(sum(page.databytecounts))
+            _check_map_header(path, page.shape, page.dtype, stored, int(page.nbytes), max_pixels)
+
+
+def load_map(path: str | Path, max_pixels: int | None = None) -> CorrectionMap:
+    """Read a map written by :func:`save_map` (never unpickles anything).
+
+    The header is checked before any data are read: a map larger than one for the largest
+    image (``max_pixels`` per input frame, default 2**28, times :data:`MAX_GROWTH`) or one
+    that decompresses to far more than it stores is refused.
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MAP_SUFFIXES:
         raise InputFileError(f"{path}: a map file must end in {', '.join(MAP_SUFFIXES)}")
     if not path.is_file():
         raise InputFileError(f"{path}: no such map file; write one with 'oapcal correct --save-map'")
+    max_pixels = max_pixels or MAP_MAX_PIXELS
     geometry_vals = None
     input_shape = None
     try:
         if suffix == ".npz":
+            _npz_headers(path, max_pixels)
             with np.load(path, allow_pickle=False) as data:
                 if "map_x" not in data or "map_y" not in data:
                     raise InputFileError(f"{path}: a map .npz needs arrays 'map_x' and 'map_y'")
@@ -304,10 +426,13 @@ def load_map(path: str | Path) -> CorrectionMap:
                 if "input_shape" in data and int(data["input_shape"][0]) > 0:
                     input_shape = tuple(int(v) for v in data["input_shape"])
         elif suffix == ".npy":
-            both = np.load(path, allow_pickle=False)
+            both = np.load(path, allow_pickle=False, mmap_mode="r")
+            _check_map_header(path, both.shape, both.dtype, both.nbytes, both.nbytes, max_pixels)
+            both = np.array(both)
         else:
             import tifffile
 
+            _tiff_map_headers(path, max_pixels)
             both = tifffile.imread(path)
     except InputFileError:
         raise

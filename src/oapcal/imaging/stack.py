@@ -5,10 +5,16 @@
 * inputs are image files, directories (their image files, not recursive) and glob patterns
   (``**`` recurses);
 * each input ``NAME`` is written as ``OUT_DIR/NAME`` in the same format (a multi-page TIFF
-  stays one multi-page TIFF), atomically: frames stream through a temporary file that is
-  renamed when the file is complete, so an existing output is always complete and a rerun
-  of an interrupted batch skips it (resume);
-* the output directory must not be, or contain, any input;
+  stays one multi-page TIFF, every page of every series corrected), atomically: frames
+  stream through a temporary file that is renamed when the file is complete and its frame
+  count checked against the input's;
+* resume: a record in ``OUT_DIR/.oapcal/`` keeps what each output was made from (digest of
+  the calibration and correction settings, input size and mtime, frame count, the output's
+  size and mtime); a rerun skips an output only when all of these match, and redoes it
+  otherwise (a zero-byte or replaced output, another calibration, a changed input);
+  temporary files left by a killed run are removed;
+* the output directory must not be, or contain, any input, and no two inputs (nor an input
+  and another output such as ``--save-map``) may map to the same output name;
 * a corrupt or unreadable input is reported in the result and skipped; the batch goes on.
 
 Frames are read, corrected and written one at a time, so a stack never sits in memory
@@ -18,6 +24,8 @@ whole.  One correction map is built per input frame size and reused.
 from __future__ import annotations
 
 import glob
+import hashlib
+import json
 import threading
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -28,8 +36,16 @@ import numpy as np
 
 from oapcal.errors import InputFileError, OapcalError, OutputError
 from oapcal.imaging.remap import CorrectionMap, correct_image, correction_map
-from oapcal.io.atomic import atomic_path, ensure_not_input, safe_output_path
-from oapcal.io.images import IMAGE_SUFFIXES, MAX_PIXELS, FrameWriter, open_frames, probe
+from oapcal.io.atomic import (
+    atomic_path,
+    ensure_not_input,
+    file_fingerprint,
+    remove_stale_temps,
+    resume_complete,
+    safe_output_path,
+    write_resume_record,
+)
+from oapcal.io.images import IMAGE_SUFFIXES, MAX_PIXELS, FrameWriter, count_frames, open_frames, probe
 
 _GLOB_CHARS = set("*?[")
 
@@ -134,11 +150,19 @@ def expand_inputs(
 
 
 def plan_outputs(
-    files: Sequence[Path], out_dir: str | Path, dirs: Sequence[Path] = (), protect=()
+    files: Sequence[Path],
+    out_dir: str | Path,
+    dirs: Sequence[Path] = (),
+    protect=(),
+    *,
+    output_name=None,
+    reserved: Sequence[tuple[str | Path, str]] = (),
 ) -> list[Path]:
-    """The output path of every input file (``out_dir / name``), after checking that the
-    output directory is not, and does not contain, an input (file or directory), that no
-    two inputs share a name, and that no output is a protected file (the calibration)."""
+    """The output path of every input file (``out_dir / output_name(path)``, by default
+    ``out_dir / name``), after checking, before any work, that the output directory is not,
+    and does not contain, an input (file or directory), that no two inputs map to the same
+    output, that no output is a protected file (the calibration) and that no output is one
+    of the ``reserved`` ``(path, what)`` outputs (``--save-map``)."""
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"{out_dir}: the output directory is an existing file; choose a directory")
@@ -149,6 +173,7 @@ def plan_outputs(
                 f"{out_dir}: the output directory is or contains the input directory {d}; "
                 "choose an output directory outside the inputs"
             )
+    taken = {Path(p).resolve(): what for p, what in reserved if p is not None}
     outputs = []
     names: dict[str, Path] = {}
     for path in files:
@@ -157,16 +182,40 @@ def plan_outputs(
                 f"{out_dir}: the output directory contains the input {path}; "
                 "choose an output directory outside the inputs"
             )
-        if path.name in names:
+        name = output_name(path) if output_name else path.name
+        if name in names:
             raise OutputError(
-                f"{path}: has the same name as the input {names[path.name]} and both would be "
-                f"written to {out_dir / path.name}; correct them into separate output directories"
+                f"{path}: the input {names[name]} would be written to the same output "
+                f"{out_dir / name}; correct them into separate output directories"
             )
-        names[path.name] = path
-        out = safe_output_path(out_dir, path.name)
+        names[name] = path
+        out = safe_output_path(out_dir, name)
+        if out.resolve() in taken:
+            raise OutputError(
+                f"{out}: the output of {path} would be the same file as {taken[out.resolve()]}; "
+                "choose another path for it"
+            )
         ensure_not_input(out, [*files, *protect])
         outputs.append(out)
     return outputs
+
+
+def correction_digest(calibration, cmap: CorrectionMap | None = None, **settings) -> str:
+    """A digest of everything that decides a corrected image: the model parameters (or the
+    map's values), the output geometry options, interpolation and border value."""
+    h = hashlib.sha256()
+    if cmap is not None:
+        h.update(np.ascontiguousarray(cmap.map_x).tobytes())
+        h.update(np.ascontiguousarray(cmap.map_y).tobytes())
+        settings["geometry"] = cmap.geometry.to_dict()
+    else:
+        params = np.asarray(getattr(calibration, "params", calibration), float)
+        settings["params"] = [float(v).hex() for v in params]
+        settings["calibration_um_per_px"] = getattr(calibration, "um_per_px", None)
+        bounds = getattr(calibration, "bounds", None)
+        settings["bounds"] = None if bounds is None else [float(v) for v in bounds]
+    h.update(json.dumps(settings, sort_keys=True, default=str).encode())
+    return h.hexdigest()
 
 
 class MapCache:
@@ -271,6 +320,7 @@ def correct_stack(
     overwrite: bool = False,
     calibration_name: str | None = None,
     protect: Sequence[str | Path] = (),
+    reserved: Sequence[tuple[str | Path, str]] = (),
     progress: bool = False,
 ) -> StackReport:
     """Correct every image and stack of ``inputs`` into ``out_dir`` (see the module doc).
@@ -279,12 +329,14 @@ def correct_stack(
     the output geometry options are those of :func:`~oapcal.imaging.remap.output_geometry`,
     or ``cmap`` is a prebuilt map.  ``workers`` files are corrected at once (threads;
     OpenCV's remap is itself multi-threaded).  ``protect`` lists further files that no
-    output may overwrite.  Raises :class:`~oapcal.errors.OutputError` before writing
+    output may overwrite, ``reserved`` further outputs ``(path, description)`` no image
+    output may coincide with.  Raises :class:`~oapcal.errors.OutputError` before writing
     anything when the output directory is not allowed; per-file problems are results.
     """
     files, failures, dirs = expand_inputs([str(p) for p in inputs])
-    outputs = plan_outputs(files, out_dir, dirs, protect)
+    outputs = plan_outputs(files, out_dir, dirs, protect, reserved=reserved)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(out_dir, outputs)
     name = calibration_name or getattr(calibration, "name", None)
     cal_size = getattr(calibration, "image_size", None)
     cache = MapCache(
@@ -296,24 +348,29 @@ def correct_stack(
         um_per_px=um_per_px,
         out_size=out_size,
     )
+    digest = correction_digest(
+        calibration, cmap, interp=interp, border=float(border), extent=extent, um_per_px=um_per_px,
+        out_size=None if out_size is None else list(out_size),
+    )  # fmt: skip
     jobs = []
     results: dict[int, FileResult] = {}
     n_frames = 0
     for i, (src, dst) in enumerate(zip(files, outputs)):
-        if dst.exists() and not overwrite:
-            results[i] = FileResult(str(src), str(dst), "skipped")
-            continue
         try:
             info = probe(src, max_pixels)
+            record = {"calibration": digest, "input": file_fingerprint(src), "frames": info.n_frames}
         except (OapcalError, OSError) as exc:
             results[i] = FileResult(str(src), str(dst), "failed", message=str(exc))
             continue
+        if dst.exists() and not overwrite and resume_complete(dst, record):
+            results[i] = FileResult(str(src), str(dst), "skipped")
+            continue
         n_frames += info.n_frames
-        jobs.append((i, src, dst))
+        jobs.append((i, src, dst, info, record))
 
     def run(job):
-        i, src, dst = job
-        results[i] = _correct_file(src, dst, cache, interp, border, max_pixels, name, bar)
+        i, src, dst, info, record = job
+        results[i] = _correct_file(src, dst, info, record, cache, interp, border, name, bar)
         bar.file()
 
     with _Progress(progress and bool(jobs), len(jobs), n_frames) as bar:
@@ -328,21 +385,29 @@ def correct_stack(
     return StackReport(ordered, geometries)
 
 
-def _correct_file(src: Path, dst: Path, cache: MapCache, interp, border, max_pixels, name, bar) -> FileResult:
+def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, name, bar) -> FileResult:
     n = 0
     try:
-        with open_frames(src, max_pixels) as (info, frames):
+        with open_frames(src, info=info) as (info, frames):
             cmap = cache.get(info.frame_shape, src)
-            with (
-                atomic_path(dst) as tmp,
-                FrameWriter(tmp, info.kind, name, cmap.geometry.um_per_px) as writer,
-            ):
-                out = None
-                for frame in frames:
-                    out = correct_image(frame, cmap, interp, border, out=out)
-                    writer.write(out.reshape(cmap.shape + frame.shape[2:]))
-                    n += 1
-                    bar.frame()
+            pixels_in = info.frame_shape[0] * info.frame_shape[1]
+            out_bytes = info.n_frames * info.frame_bytes * cmap.shape[0] * cmap.shape[1] // pixels_in
+            meta = dict(planar=info.planar, expected_bytes=out_bytes)
+            with atomic_path(dst) as tmp:
+                with FrameWriter(tmp, info.kind, name, cmap.geometry.um_per_px, **meta) as writer:
+                    out = None
+                    for frame in frames:
+                        out = correct_image(frame, cmap, interp, border, out=out)
+                        writer.write(out.reshape(cmap.shape + frame.shape[2:]))
+                        n += 1
+                        bar.frame()
+                written = count_frames(tmp)
+                if n != info.n_frames or written != info.n_frames:
+                    raise InputFileError(
+                        f"{src}: {info.n_frames} frames were expected but {n} were read and {written} "
+                        "written; the input may have changed while it was corrected; nothing was written"
+                    )
+            write_resume_record(dst, record)
     except (OapcalError, OSError) as exc:
         return FileResult(str(src), str(dst), "failed", n, str(exc))
     return FileResult(str(src), str(dst), "corrected", n)

@@ -4,17 +4,34 @@ Every file oapcal writes goes through :func:`atomic_write`: the data go to a tem
 file in the destination's directory, which is renamed over the destination only when
 writing succeeded; on any error the temporary file is removed and the destination is
 untouched.
+
+Temporary names are ``.NAME.XXXXXXXX.tmp`` (:func:`atomic_write`, directories) and
+``.STEM.XXXXXXXX.tmp.SUFFIX`` (:func:`atomic_path`); the writing process holds an
+exclusive ``flock`` on each while it lives, so :func:`remove_stale_temps` can tell the
+leftovers of a killed run (no lock) from a file another run is writing now.
+
+Resume records (:func:`write_resume_record`, :func:`resume_complete`) say what an output
+was made from, so that a rerun skips only outputs that match.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import os
+import re
+import shutil
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from oapcal.errors import OutputError
+
+try:
+    import fcntl
+except ImportError:  # not on Windows: stale temporary files are then left alone
+    fcntl = None
 
 
 def _read_umask() -> int:
@@ -57,8 +74,13 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Ite
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     try:
         with os.fdopen(fd, mode, **open_kwargs) as fh:
+            _lock(fh.fileno())
             yield fh
-        _publish(tmp, path)
+            if fcntl is not None:  # rename while still locked (not possible on Windows)
+                fh.flush()
+                _publish(tmp, path)
+        if fcntl is None:
+            _publish(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -77,7 +99,10 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     if not directory.is_dir():
         raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=directory)
-    os.close(fd)
+    if fcntl is None:  # Windows cannot rename an open file
+        os.close(fd)
+        fd = None
+    _lock(fd)
     try:
         yield Path(tmp)
         _publish(tmp, path)
@@ -85,6 +110,130 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+    finally:
+        if fd is not None:
+            os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary directory beside ``path`` (for a zarr store), renamed to ``path``
+    on success (replacing an older ``path``), removed on error."""
+    path = Path(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    tmp = tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    fd = os.open(tmp, os.O_RDONLY) if fcntl is not None else None
+    _lock(fd)
+    try:
+        yield Path(tmp)
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        if fd is not None:
+            os.close(fd)
+
+
+def _lock(fd: int | None) -> None:
+    """Hold an exclusive lock on a temporary file for as long as this process writes it."""
+    if fcntl is not None and fd is not None:
+        with contextlib.suppress(OSError):
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+_TEMP_NAME = re.compile(r"^\.(?P<base>.+)\.[A-Za-z0-9_]{8}\.tmp(?P<suffix>\..*)?$")
+
+
+def remove_stale_temps(directory: str | os.PathLike, outputs: Iterable[str | os.PathLike]) -> list[Path]:
+    """Remove the temporary files and directories a killed run left for ``outputs`` (paths
+    in ``directory``): names of this module's form, for one of those outputs, that no live
+    process holds locked.  Returns what was removed."""
+    directory = Path(directory)
+    if fcntl is None or not directory.is_dir():
+        return []
+    wanted = set()
+    for out in outputs:
+        out = Path(out)
+        wanted.add((out.name, ""))
+        wanted.add((out.stem, out.suffix))
+    removed = []
+    for entry in directory.iterdir():
+        match = _TEMP_NAME.match(entry.name)
+        if not match or (match["base"], match["suffix"] or "") not in wanted or entry.is_symlink():
+            continue
+        try:
+            fd = os.open(entry, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue  # a live writer holds it
+        try:
+            if entry.is_dir():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+            removed.append(entry)
+        finally:
+            os.close(fd)
+    return removed
+
+
+# ------------------------------------------------------------------- resume records
+
+#: Directory (inside an output directory) of the resume records.
+RESUME_DIR = ".oapcal"
+
+
+def _tree_stat(path: Path) -> dict:
+    """Size and modification time of a file, or total size and file count of a directory."""
+    if path.is_dir():
+        sizes = [p.stat().st_size for p in path.rglob("*") if p.is_file()]
+        return {"size": int(sum(sizes)), "files": len(sizes)}
+    st = path.stat()
+    return {"size": int(st.st_size), "mtime_ns": int(st.st_mtime_ns)}
+
+
+def file_fingerprint(path: str | os.PathLike) -> dict:
+    """What a rerun compares to know an input is unchanged: size and modification time."""
+    return _tree_stat(Path(path))
+
+
+def resume_record_path(output: str | os.PathLike) -> Path:
+    output = Path(output)
+    key = hashlib.sha256(os.fsencode(output.name)).hexdigest()[:32]
+    return output.parent / RESUME_DIR / f"{key}.json"
+
+
+def write_resume_record(output: str | os.PathLike, record: dict) -> None:
+    """Record what the complete ``output`` was made from (call after it was renamed into
+    place): ``record`` (calibration digest, input size and mtime, frame count, ...) and
+    the output's own size and mtime."""
+    output = Path(output)
+    path = resume_record_path(output)
+    path.parent.mkdir(exist_ok=True)
+    data = {"output": os.fsdecode(output.name), **record, "output_stat": _tree_stat(output)}
+    with atomic_write(path) as fh:
+        fh.write(json.dumps(data, sort_keys=True))
+
+
+def resume_complete(output: str | os.PathLike, record: dict) -> bool:
+    """True if ``output`` exists and was made, complete, from what ``record`` describes;
+    False for a missing, replaced, truncated or differently made output."""
+    output = Path(output)
+    try:
+        data = json.loads(resume_record_path(output).read_text(encoding="utf-8"))
+        stat = _tree_stat(output)
+    except (OSError, ValueError):
+        return False
+    if not isinstance(data, dict) or data.get("output_stat") != stat:
+        return False
+    return all(data.get(k) == json.loads(json.dumps(v)) for k, v in record.items())
 
 
 def ensure_not_input(output: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> None:

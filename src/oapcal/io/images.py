@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -34,17 +34,33 @@ LOSSLESS_SUFFIXES = (".png",) + TIFF_SUFFIXES
 DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
 #: Default per-frame pixel limit (``--max-pixels``): 2**28, e.g. 16384 x 16384.
 MAX_PIXELS = 2**28
+#: TIFF outputs with more pixel data than this are written as BigTIFF (as tifffile.imwrite
+#: decides: 4 GiB less 32 MiB for the headers).
+BIGTIFF_BYTES = 2**32 - 2**25
 
 
 @dataclass(frozen=True)
 class ImageInfo:
-    """What the header says: ``n_frames`` frames of ``frame_shape`` ``(rows, cols[, ch])``."""
+    """What the header says: ``n_frames`` frames of ``frame_shape`` ``(rows, cols[, ch])``.
+
+    For TIFF files ``planar`` is True when colour samples are stored in separate planes
+    (PlanarConfiguration 2; frames still come back as ``(rows, cols, ch)`` and are written
+    back planar) and ``segments`` says where each frame is stored (see :func:`read_tiff_frames`).
+    """
 
     path: Path
     kind: str  # "tiff" or "opencv"
     n_frames: int
     frame_shape: tuple[int, ...]
     dtype: np.dtype | None  # None until decoded for PNG/JPEG/BMP
+    planar: bool = False
+    segments: tuple = field(default=(), repr=False, compare=False)
+
+    @property
+    def frame_bytes(self) -> int:
+        """Bytes of one frame (8 per value when the dtype is not known yet)."""
+        itemsize = self.dtype.itemsize if self.dtype is not None else 8
+        return int(np.prod(self.frame_shape, dtype=np.int64)) * itemsize
 
 
 def is_image_path(path: str | Path) -> bool:
@@ -121,15 +137,123 @@ def _tiff_error(path: Path, exc: Exception) -> InputFileError:
     return InputFileError(f"{path}: cannot be read as a TIFF image ({type(exc).__name__}: {exc})")
 
 
-def _tiff_layout(path: Path, series) -> tuple[int, tuple[int, ...]]:
-    shape = tuple(int(v) for v in series.shape)
-    axes = series.axes
-    n_frame_axes = 3 if axes.endswith("S") else 2
-    if len(shape) < 2 or (axes.endswith("S") and len(shape) < 3):
-        raise InputFileError(f"{path}: TIFF series of shape {shape} is not an image")
-    frame = shape[-n_frame_axes:]
-    n_frames = int(np.prod(shape[:-n_frame_axes], dtype=np.int64)) if len(shape) > n_frame_axes else 1
-    return n_frames, frame
+def _page_frame(path: Path, page) -> tuple[tuple[int, ...], bool]:
+    """The frame shape ``(rows, cols[, ch])`` one TIFF page holds, and whether it is planar."""
+    shape = tuple(int(v) for v in page.shape)
+    if getattr(page, "imagedepth", 1) > 1:
+        raise InputFileError(
+            f"{path}: page {page.index} is a volume ({page.imagedepth} planes in one page); oapcal "
+            "corrects stacks of 2-D frames: save the volume one plane per page"
+        )
+    if page.samplesperpixel > 1 and page.planarconfig == 2 and len(shape) == 3:
+        return (shape[1], shape[2], shape[0]), True
+    if len(shape) not in (2, 3):
+        raise InputFileError(f"{path}: page {page.index} of shape {shape} is not an image")
+    return shape, False
+
+
+def _imagej_single_ifd(path: Path, tif, n_pages: int):
+    """An ImageJ hyperstack stored with one IFD (how ImageJ writes stacks over 4 GB): its
+    frames as one contiguous block, or None for any other file."""
+    if not tif.is_imagej:
+        return None
+    images = int((tif.imagej_metadata or {}).get("images", 1) or 1)
+    if images <= n_pages:
+        return None
+    series = tif.series[0]
+    page = series.pages[0]
+    frame, planar = _page_frame(path, page)
+    n_frames = int(np.prod(series.shape, dtype=np.int64)) // int(np.prod(page.shape, dtype=np.int64))
+    if series.dataoffset is None or n_frames < 1:
+        raise InputFileError(
+            f"{path}: an ImageJ hyperstack of {images} images in one page that is not stored "
+            "contiguously; save it again from ImageJ"
+        )
+    dtype = np.dtype(series.dtype)
+    return n_frames, frame, dtype, planar, (("raw", int(series.dataoffset), n_frames),)
+
+
+def _scan_tiff(path: Path, tif):
+    """Frame count, frame shape, dtype, planarity and storage segments of a TIFF, from the
+    page headers alone, in time linear in the page count (tifffile's ``series`` is quadratic
+    in the number of series).  Every page is one frame; pages of different shapes or pixel
+    types are refused."""
+    n_pages = len(tif.pages)
+    _check_ifd_chain(path, tif, n_pages)
+    if n_pages == 0:
+        raise InputFileError(
+            f"{path}: cannot be read as a TIFF image (no image found; the file may be corrupt)"
+        )
+    single = _imagej_single_ifd(path, tif, n_pages)
+    if single is not None:
+        return single
+    first = tif.pages[0]
+    frame, planar = _page_frame(path, first)
+    dtype = np.dtype(first.dtype)
+    ifds = []
+    contiguous = True
+    next_offset = None
+    for i in range(n_pages):
+        page = tif.pages[i]
+        if i:
+            shape, page_planar = _page_frame(path, page)
+            if shape != frame or np.dtype(page.dtype) != dtype or page_planar != planar:
+                raise InputFileError(
+                    f"{path}: its pages differ (page 0: {_describe(frame, dtype)}, page {i}: "
+                    f"{_describe(shape, np.dtype(page.dtype))}); oapcal corrects a TIFF as one stack "
+                    "of equal frames: save each kind of page to its own file"
+                )
+        ifds.append(int(page.offset))
+        if contiguous:
+            ok = page.is_contiguous and (next_offset is None or page.dataoffsets[0] == next_offset)
+            contiguous = bool(ok)
+            if contiguous:
+                next_offset = int(page.dataoffsets[0]) + int(page.nbytes)
+    if contiguous:
+        segments = (("raw", int(first.dataoffsets[0]), n_pages),)
+    else:
+        segments = (("pages", tuple(ifds)),)
+    return n_pages, frame, dtype, planar, segments
+
+
+def _check_ifd_chain(path: Path, tif, n_pages: int) -> None:
+    """Refuse a file whose chain of pages does not end after the last page read (tifffile
+    stops quietly at a page offset past the end: a truncated stack would lose frames)."""
+    if n_pages == 0:
+        return
+    tiff = tif.tiff
+    fh = tif.filehandle
+    offset = int(tif.pages[n_pages - 1].offset)
+    fh.seek(offset)
+    (tagno,) = struct.unpack(tiff.tagnoformat, fh.read(tiff.tagnosize))
+    fh.seek(offset + tiff.tagnosize + tagno * tiff.tagsize)
+    data = fh.read(tiff.offsetsize)
+    following = struct.unpack(tiff.offsetformat, data)[0] if len(data) == tiff.offsetsize else -1
+    if following != 0:
+        raise InputFileError(
+            f"{path}: the file is truncated or corrupt: only {n_pages} pages can be read and the "
+            "next one is missing"
+        )
+
+
+def _describe(shape, dtype) -> str:
+    dims = f"{shape[1]}x{shape[0]}" + (f"x{shape[2]}" if len(shape) == 3 else "")
+    return f"{dims} {dtype.name}"
+
+
+@contextlib.contextmanager
+def quiet_tifffile():
+    """Keep tifffile's log messages about broken files off the terminal: oapcal reports the
+    problem itself, in one line naming the file."""
+    import logging
+
+    logger = logging.getLogger("tifffile")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 def probe(path: str | Path, max_pixels: int = MAX_PIXELS) -> ImageInfo:
@@ -147,20 +271,14 @@ def probe(path: str | Path, max_pixels: int = MAX_PIXELS) -> ImageInfo:
         import tifffile
 
         try:
-            with tifffile.TiffFile(path) as tif:
-                if not tif.series:
-                    raise InputFileError(
-                        f"{path}: cannot be read as a TIFF image (no image found; the file may be corrupt)"
-                    )
-                series = tif.series[0]
-                n_frames, frame = _tiff_layout(path, series)
-                dtype = np.dtype(series.dtype)
+            with quiet_tifffile(), tifffile.TiffFile(path) as tif:
+                n_frames, frame, dtype, planar, segments = _scan_tiff(path, tif)
         except InputFileError:
             raise
         except Exception as exc:  # tifffile raises TiffFileError, ValueError, struct.error, ...
             raise _tiff_error(path, exc) from None
         _check_pixels(path, frame[1], frame[0], max_pixels)
-        return ImageInfo(path, "tiff", n_frames, frame, dtype)
+        return ImageInfo(path, "tiff", n_frames, frame, dtype, planar, segments)
     width, height = header_size(path)
     _check_pixels(path, width, height, max_pixels)
     return ImageInfo(path, "opencv", 1, (height, width), None)
@@ -181,11 +299,14 @@ def check_frame(path: Path, frame: np.ndarray) -> None:
 
 
 @contextlib.contextmanager
-def open_frames(path: str | Path, max_pixels: int = MAX_PIXELS) -> Iterator[tuple[ImageInfo, Iterator]]:
+def open_frames(
+    path: str | Path, max_pixels: int = MAX_PIXELS, info: ImageInfo | None = None
+) -> Iterator[tuple[ImageInfo, Iterator]]:
     """``with open_frames(p) as (info, frames):`` iterates the frames one at a time, so a long
-    stack never sits in memory whole.  Raises :class:`InputFileError` for unreadable files,
-    also while iterating."""
-    info = probe(path, max_pixels)
+    stack never sits in memory whole (every TIFF page in order, whatever its series;
+    contiguous uncompressed data are memory-mapped).  Raises :class:`InputFileError` for
+    unreadable files, also while iterating.  ``info`` is a :func:`probe` result to reuse."""
+    info = info or probe(path, max_pixels)
     path = info.path
     if info.kind == "opencv":
         yield info, iter([_read_opencv(path)])
@@ -202,26 +323,98 @@ def open_frames(path: str | Path, max_pixels: int = MAX_PIXELS) -> Iterator[tupl
         tif.close()
 
 
+def _stored_shape(info: ImageInfo) -> tuple[int, ...]:
+    f = info.frame_shape
+    return (f[2], f[0], f[1]) if info.planar else f
+
+
+def _as_frame(info: ImageInfo, stored: np.ndarray) -> np.ndarray:
+    frame = stored.reshape(_stored_shape(info))
+    if info.planar:
+        frame = np.moveaxis(frame, 0, -1)
+    return np.ascontiguousarray(frame, dtype=frame.dtype.newbyteorder("="))
+
+
+def _segment_frames(path: Path, tif, info: ImageInfo, segment, start: int, stop: int) -> Iterator[np.ndarray]:
+    """Frames ``start:stop`` of one storage segment."""
+    import tifffile
+
+    if segment[0] == "raw":
+        offset, n = segment[1], segment[2]
+        dtype = np.dtype(tif.byteorder + info.dtype.str[1:])
+        shape = _stored_shape(info)
+        frame_items = int(np.prod(shape, dtype=np.int64))
+        if offset + n * frame_items * dtype.itemsize > path.stat().st_size:
+            raise InputFileError(f"{path}: the file is truncated (its last frames are missing)")
+        data = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(n, *shape))
+        try:
+            for i in range(start, stop):
+                yield _as_frame(info, data[i])
+        finally:
+            del data
+        return
+    fh = tif.filehandle
+    for i in range(start, stop):
+        fh.seek(segment[1][i])
+        page = tifffile.TiffPage(tif, index=i)
+        yield _as_frame(info, page.asarray())
+
+
+def _segments_between(info: ImageInfo, start: int, stop: int):
+    """``(segment, lo, hi)`` for the frames ``start:stop`` (frame numbers within segments)."""
+    first = 0
+    for segment in info.segments:
+        n = segment[2] if segment[0] == "raw" else len(segment[1])
+        lo, hi = max(start, first), min(stop, first + n)
+        if lo < hi:
+            yield segment, lo - first, hi - first
+        first += n
+
+
 def _tiff_frames(path: Path, tif, info: ImageInfo) -> Iterator[np.ndarray]:
-    series = tif.series[0]
-    per_page = len(series.pages) == info.n_frames and all(p is not None for p in series.pages[:1])
     try:
-        if per_page:
-            for i in range(info.n_frames):
-                frame = series.pages[i].asarray()
-                if frame.shape != info.frame_shape:
-                    frame = frame.reshape(info.frame_shape)
-                check_frame(path, frame)
-                yield frame
-        else:  # frames do not map to pages (e.g. a volume in one page): read the series
-            data = series.asarray().reshape((info.n_frames, *info.frame_shape))
-            for frame in data:
+        for segment, lo, hi in _segments_between(info, 0, info.n_frames):
+            for frame in _segment_frames(path, tif, info, segment, lo, hi):
                 check_frame(path, frame)
                 yield frame
     except InputFileError:
         raise
     except Exception as exc:
         raise _tiff_error(path, exc) from None
+
+
+def info_slice(info: ImageInfo, start: int, stop: int) -> ImageInfo:
+    """``info`` for the frames ``start:stop`` alone (what one Dask task needs to read them)."""
+    segments = []
+    stored = int(np.prod(_stored_shape(info), dtype=np.int64)) * info.dtype.itemsize
+    for segment, lo, hi in _segments_between(info, start, stop):
+        if segment[0] == "raw":
+            segments.append(("raw", segment[1] + lo * stored, hi - lo))
+        else:
+            segments.append(("pages", segment[1][lo:hi]))
+    return replace(info, n_frames=stop - start, segments=tuple(segments))
+
+
+def read_tiff_frames(info: ImageInfo, start: int, stop: int) -> np.ndarray:
+    """Frames ``start:stop`` of the TIFF described by ``info`` (a :func:`probe` result) as
+    one array ``(stop - start, rows, cols[, ch])``; opens the file by itself (for Dask
+    workers)."""
+    import tifffile
+
+    path = info.path
+    try:
+        with tifffile.TiffFile(path) as tif:
+            out = np.empty((stop - start, *info.frame_shape), info.dtype.newbyteorder("="))
+            k = 0
+            for segment, lo, hi in _segments_between(info, start, stop):
+                for frame in _segment_frames(path, tif, info, segment, lo, hi):
+                    out[k] = frame
+                    k += 1
+    except InputFileError:
+        raise
+    except Exception as exc:
+        raise _tiff_error(path, exc) from None
+    return out
 
 
 def _read_opencv(path: Path) -> np.ndarray:
@@ -260,13 +453,20 @@ class FrameWriter:
     manager with an already-temporary path (:func:`oapcal.io.atomic.atomic_path`).
 
     TIFF frames are appended to one contiguous series (a multi-page stack) with the
-    metadata of :func:`tiff_metadata`; PNG/JPEG/BMP take exactly one frame.
+    metadata of :func:`tiff_metadata`, colour samples interleaved or, with ``planar``, in
+    separate planes (as the input had them); the file is a BigTIFF when ``expected_bytes``
+    (the pixel data to be written) could pass the 4 GiB limit of classic TIFF.
+    PNG/JPEG/BMP take exactly one frame.
     """
 
-    def __init__(self, path: Path, kind: str, calibration_name=None, um_per_px=None):
+    def __init__(
+        self, path: Path, kind: str, calibration_name=None, um_per_px=None, *, planar=False, expected_bytes=0
+    ):
         self.path = Path(path)
         self.kind = kind
         self.n = 0
+        self.planar = planar
+        self.bigtiff = expected_bytes > BIGTIFF_BYTES
         self._meta = tiff_metadata(calibration_name, um_per_px)
         self._tw = None
 
@@ -274,13 +474,17 @@ class FrameWriter:
         if self.kind == "tiff":
             import tifffile
 
-            self._tw = tifffile.TiffWriter(self.path)
+            self._tw = tifffile.TiffWriter(self.path, bigtiff=self.bigtiff)
         return self
 
     def write(self, frame: np.ndarray) -> None:
         if self.kind == "tiff":
-            photometric = "rgb" if frame.ndim == 3 and frame.shape[2] in (3, 4) else "minisblack"
-            extra = self._meta if self.n == 0 else {}
+            colour = frame.ndim == 3 and frame.shape[2] in (3, 4)
+            photometric = "rgb" if colour else "minisblack"
+            extra = dict(self._meta) if self.n == 0 else {}
+            if self.planar and colour:
+                frame = np.moveaxis(frame, -1, 0)
+                extra["planarconfig"] = "separate"
             self._tw.write(frame, contiguous=True, photometric=photometric, **extra)
         else:
             if self.n:
@@ -301,6 +505,17 @@ class FrameWriter:
         return False
 
 
+def count_frames(path: str | Path) -> int:
+    """Frames in a written output (pages of a TIFF; 1 for other images), from the headers."""
+    path = Path(path)
+    if path.suffix.lower() not in TIFF_SUFFIXES:
+        return 1
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        return len(tif.pages)
+
+
 def write_image(
     path: str | Path, image: np.ndarray, *, stack: bool = False, calibration_name=None, um_per_px=None
 ) -> None:
@@ -313,6 +528,10 @@ def write_image(
     if stack and kind != "tiff":
         raise InputFileError(f"{path}: only TIFF files hold a stack of frames")
     frames = image if stack else [image]
-    with atomic_path(path) as tmp, FrameWriter(tmp, kind, calibration_name, um_per_px) as writer:
+    size = int(np.asarray(image).nbytes)
+    with (
+        atomic_path(path) as tmp,
+        FrameWriter(tmp, kind, calibration_name, um_per_px, expected_bytes=size) as writer,
+    ):
         for frame in frames:
             writer.write(frame)

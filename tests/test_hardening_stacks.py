@@ -1,0 +1,575 @@
+"""Regressions for the stack, TIFF and output defects found by attacking ``oapcal correct``
+(multi-series and planar TIFFs, name collisions, resume, BigTIFF, huge frames, schedulers,
+chunk sizes, ImageJ hyperstacks, many series, killed runs, absurd headers)."""
+
+import json
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+import tracemalloc
+import zipfile
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+import zarr
+
+from imaging_helpers import known_calibration, remap_reference, write_calibration
+from oapcal.errors import InputFileError
+from oapcal.imaging import remap as remap_module
+from oapcal.imaging.remap import correct_image, load_map
+from oapcal.io import images as images_module
+from oapcal.io.images import open_frames, probe
+from oapcal.model import params_from_dict
+
+SMALL = params_from_dict({"k1": 4e-6, "p1": -1e-4, "s3": 6e-4, "x_off": -32, "y_off": -24,
+                          "c_x": 33, "c_y": 23, "m": 1.0})  # fmt: skip
+
+
+@pytest.fixture
+def calib(tmp_path):
+    return write_calibration(tmp_path / "calib.json")
+
+
+@pytest.fixture
+def small_calib(tmp_path):
+    return write_calibration(tmp_path / "small.json", params=SMALL, image_size=(64, 48))
+
+
+def _frames(n=5, shape=(48, 64), dtype=np.uint16, seed=1):
+    return np.random.default_rng(seed).integers(0, 60000, (n, *shape)).astype(dtype)
+
+
+def _imwrite(path, data):
+    """A grey stack (tifffile would store 3 or 4 frames as one RGB image)."""
+    tifffile.imwrite(path, data, photometric="minisblack")
+
+
+def _visible(d):
+    return sorted(p.name for p in d.iterdir() if p.name != ".oapcal")
+
+
+# ------------------------------------------------------------- 1: multi-series TIFF
+
+
+def _write_series_by_frame(path, frames):
+    with tifffile.TiffWriter(path) as tw:
+        for f in frames:
+            tw.write(f)  # tifffile's default: one series per call
+
+
+def test_every_series_of_a_tiff_is_corrected(run_cli, tmp_path, small_calib):
+    frames = _frames(5)
+    _write_series_by_frame(tmp_path / "s.tif", frames)
+    with tifffile.TiffFile(tmp_path / "s.tif") as tif:
+        assert len(tif.series) == 5  # the case: five series of one page
+    out = tmp_path / "out"
+    code, stdout, err = run_cli("correct", small_calib, tmp_path / "s.tif", "--out-dir", out)
+    assert code == 0, err
+    assert "1 corrected (5 frames)" in stdout
+    got = tifffile.imread(out / "s.tif")
+    assert got.shape == frames.shape
+    for f, g in zip(frames, got):
+        np.testing.assert_array_equal(g, remap_reference(f, SMALL))
+
+
+def test_every_series_with_dask(run_cli, tmp_path, small_calib):
+    frames = _frames(7)
+    _write_series_by_frame(tmp_path / "s.tif", frames)
+    code, stdout, err = run_cli("correct", small_calib, tmp_path / "s.tif", "--out-dir", tmp_path / "o",
+                                "--dask", "--scheduler", "synchronous", "--chunk-frames", "3")  # fmt: skip
+    assert code == 0, err
+    z = zarr.open_array(str(tmp_path / "o" / "s.zarr"), mode="r")
+    assert z.shape == frames.shape
+    for i in range(7):
+        np.testing.assert_array_equal(z[i], remap_reference(frames[i], SMALL))
+
+
+def test_pages_of_different_shapes_or_types_are_refused(run_cli, tmp_path, small_calib):
+    with tifffile.TiffWriter(tmp_path / "mixed.tif") as tw:
+        tw.write(np.zeros((48, 64), np.uint16))
+        tw.write(np.zeros((48, 64), np.uint8))
+    code, stdout, err = run_cli("correct", small_calib, tmp_path / "mixed.tif", "--out-dir", tmp_path / "o")
+    assert code == 4
+    assert "mixed.tif: its pages differ (page 0: 64x48 uint16, page 1: 64x48 uint8)" in err
+    assert _visible(tmp_path / "o") == []
+
+
+def test_a_truncated_page_chain_is_refused_not_shortened(tmp_path):
+    _imwrite(tmp_path / "t.tif", _frames(6))
+    data = (tmp_path / "t.tif").read_bytes()
+    (tmp_path / "t.tif").write_bytes(data[: len(data) * 2 // 3])  # tifffile then stops quietly
+    with pytest.raises(InputFileError, match="t.tif: the file is truncated or corrupt"):
+        probe(tmp_path / "t.tif")
+
+
+# ------------------------------------------------------------------ 5: planar RGB
+
+
+def test_planar_rgb_tiff_stays_one_planar_colour_image(run_cli, tmp_path, small_calib):
+    rgb = np.random.default_rng(2).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    tifffile.imwrite(tmp_path / "p.tif", np.moveaxis(rgb, -1, 0), photometric="rgb", planarconfig="separate")
+    code, stdout, err = run_cli("correct", small_calib, tmp_path / "p.tif", "--out-dir", tmp_path / "o")
+    assert code == 0, err
+    assert "1 corrected (1 frames)" in stdout
+    with tifffile.TiffFile(tmp_path / "o" / "p.tif") as tif:
+        assert len(tif.pages) == 1
+        page = tif.pages[0]
+        assert page.photometric == tifffile.PHOTOMETRIC.RGB and page.planarconfig == 2
+        got = np.moveaxis(page.asarray(), 0, -1)
+    np.testing.assert_array_equal(got, remap_reference(rgb, SMALL))
+
+
+# ------------------------------------------------------------ 2, 3: name collisions
+
+
+def test_dask_outputs_that_collide_are_refused_before_any_work(run_cli, tmp_path, small_calib):
+    for name in ("a.tif", "a.tiff"):
+        tifffile.imwrite(tmp_path / name, _frames(2))
+    out = tmp_path / "o"
+    code, _, err = run_cli("correct", small_calib, tmp_path / "a.tif", tmp_path / "a.tiff", "--out-dir", out,
+                           "--dask", "--scheduler", "synchronous")  # fmt: skip
+    assert code == 2
+    assert "a.tiff: the input" in err and "a.tif would be written to the same output" in err
+    assert "a.zarr" in err and not out.exists()
+
+
+def test_save_map_that_is_an_image_output_is_refused(run_cli, tmp_path, small_calib):
+    tifffile.imwrite(tmp_path / "f.tif", _frames(1)[0])
+    out = tmp_path / "o"
+    out.mkdir()
+    for extra in ([], ["--overwrite"]):
+        code, _, err = run_cli("correct", small_calib, tmp_path / "f.tif", "--out-dir", out,
+                               "--save-map", out / "f.tif", *extra)  # fmt: skip
+        assert code == 2, err
+        assert "would be the same file as the map --save-map" in err
+        assert _visible(out) == []
+    code, _, err = run_cli("correct", small_calib, tmp_path / "f.tif", "--out-dir", out, "--dask",
+                           "--scheduler", "synchronous", "--save-map", out / "f.zarr")  # fmt: skip
+    assert code == 2 and "--save-map" in err
+
+
+# ------------------------------------------------------------------------ 7: resume
+
+
+def test_resume_redoes_outputs_that_do_not_match(run_cli, tmp_path, calib):
+    frames = _frames(3, (480, 640))
+    _imwrite(tmp_path / "s.tif", frames)
+    cv2.imwrite(str(tmp_path / "c.png"), frames[0].astype(np.uint8))
+    out = tmp_path / "o"
+    args = ("correct", calib, tmp_path / "s.tif", tmp_path / "c.png", "--out-dir", out, "--json")
+
+    def statuses():
+        code, stdout, err = run_cli(*args)
+        assert code == 0, err
+        return [r["status"] for r in json.loads(stdout)["results"]]
+
+    assert statuses() == ["corrected", "corrected"]
+    good = tifffile.imread(out / "s.tif")
+    assert statuses() == ["skipped", "skipped"]
+    # A zero-byte output (a full disk, another program) is redone.
+    (out / "s.tif").write_bytes(b"")
+    assert statuses() == ["corrected", "skipped"]
+    np.testing.assert_array_equal(tifffile.imread(out / "s.tif"), good)
+    # An output made with another calibration is redone.
+    other = write_calibration(tmp_path / "other.json", params=SMALL)
+    code, _, err = run_cli("correct", other, tmp_path / "c.png", "--out-dir", out, "--allow-size-mismatch")
+    assert code == 0, err
+    assert statuses() == ["skipped", "corrected"]
+    # A changed input (size or mtime) is redone; so are outputs of other settings.
+    _imwrite(tmp_path / "s.tif", frames[:2])
+    assert statuses() == ["corrected", "skipped"]
+    assert tifffile.imread(out / "s.tif").shape[0] == 2
+    code, stdout, err = run_cli(*args, "--interp", "cubic")
+    assert [r["status"] for r in json.loads(stdout)["results"]] == ["corrected", "corrected"]
+
+
+def test_dask_resume_checks_the_record_too(run_cli, tmp_path, small_calib):
+    _imwrite(tmp_path / "s.tif", _frames(4))
+    args = ("correct", small_calib, tmp_path / "s.tif", "--out-dir", tmp_path / "o", "--dask",
+            "--scheduler", "synchronous", "--json")  # fmt: skip
+    for fmt, target in (("tiff", "s.tif"), ("zarr", "s.zarr")):
+        code, stdout, err = run_cli(*args, "--dask-format", fmt)
+        assert json.loads(stdout)["results"][0]["status"] == "corrected", err
+        code, stdout, err = run_cli(*args, "--dask-format", fmt)
+        assert json.loads(stdout)["results"][0]["status"] == "skipped", err
+        path = tmp_path / "o" / target
+        if path.is_dir():
+            import shutil
+
+            shutil.rmtree(path)
+            path.mkdir()  # an empty directory where the store was
+        else:
+            path.write_bytes(b"")
+        code, stdout, err = run_cli(*args, "--dask-format", fmt)
+        assert json.loads(stdout)["results"][0]["status"] == "corrected", err
+        assert json.loads(stdout)["results"][0]["frames"] == 4
+
+
+# ----------------------------------------------------------------------- 8: BigTIFF
+
+
+def test_outputs_over_the_classic_tiff_limit_are_bigtiff(run_cli, tmp_path, small_calib, monkeypatch):
+    # The threshold is lowered so that a small stack stands for one over 4 GiB.
+    monkeypatch.setattr(images_module, "BIGTIFF_BYTES", 10_000, raising=False)
+    frames = _frames(3)
+    _imwrite(tmp_path / "s.tif", frames)
+    tifffile.imwrite(tmp_path / "one.tif", frames[0, :8, :8])
+    out = tmp_path / "o"
+    code, _, err = run_cli("correct", small_calib, tmp_path / "s.tif", tmp_path / "one.tif", "--out-dir", out,
+                           "--allow-size-mismatch")  # fmt: skip
+    assert code == 0, err
+    with tifffile.TiffFile(out / "s.tif") as tif:
+        assert tif.is_bigtiff and len(tif.pages) == 3
+    with tifffile.TiffFile(out / "one.tif") as tif:
+        assert not tif.is_bigtiff  # 128 bytes stay classic
+    code, _, err = run_cli("correct", small_calib, tmp_path / "s.tif", "--out-dir", tmp_path / "d", "--dask",
+                           "--scheduler", "synchronous", "--dask-format", "tiff")  # fmt: skip
+    assert code == 0, err
+    with tifffile.TiffFile(tmp_path / "d" / "s.tif") as tif:
+        assert tif.is_bigtiff and len(tif.pages) == 3
+
+
+@pytest.mark.slow
+def test_a_real_stack_over_4_gib_is_written(tmp_path):
+    """A 4.3 GB uint8 stack (disk space needed: about 9 GB)."""
+    from oapcal.imaging.stack import correct_stack
+
+    cal = known_calibration(params=SMALL, image_size=None)
+    frames = 1100
+    with tifffile.TiffWriter(tmp_path / "big.tif", bigtiff=True) as tw:
+        for i in range(frames):
+            tw.write(np.full((2048, 2048), i % 251, np.uint8), contiguous=True)
+    report = correct_stack(cal, [tmp_path / "big.tif"], tmp_path / "o", allow_size_mismatch=True)
+    assert report.ok, report.results
+    with tifffile.TiffFile(tmp_path / "o" / "big.tif") as tif:
+        assert tif.is_bigtiff and len(tif.pages) == frames
+
+
+# --------------------------------------------------------------- 10: sides >= 32767
+
+
+def test_remap_of_images_wider_than_opencv_allows(run_cli, tmp_path):
+    rng = np.random.default_rng(4)
+    image = rng.random((12, 40000), dtype=np.float32)
+    xs, ys = np.meshgrid(np.arange(40000, dtype=np.float32), np.arange(12, dtype=np.float32))
+    got = correct_image(image, (xs + np.float32(0.25), ys))
+    expected = 0.75 * image[:, :-1] + 0.25 * image[:, 1:]
+    np.testing.assert_allclose(got[:, :-1], expected, rtol=1e-5, atol=1e-6)
+    assert (got[:, -1] == 0.75 * image[:, -1]).all() or np.allclose(got[:, -1], 0.75 * image[:, -1])
+    # Through the command line: a 40000 x 16 px image is corrected, not an internal error.
+    cal = write_calibration(tmp_path / "c.json", params=params_from_dict({"k1": 1e-12, "m": 1.0}),
+                            image_size=None)  # fmt: skip
+    cv2.imwrite(str(tmp_path / "wide.png"), (rng.random((16, 40000)) * 255).astype(np.uint8))
+    code, stdout, err = run_cli("correct", cal, tmp_path / "wide.png", "--out-dir", tmp_path / "o")
+    assert code == 0, err
+    assert cv2.imread(str(tmp_path / "o" / "wide.png"), cv2.IMREAD_UNCHANGED).shape == (16, 40000)
+
+
+@pytest.mark.parametrize("interp", ["nearest", "linear", "cubic", "lanczos"])
+def test_tiled_remap_equals_one_remap(monkeypatch, interp):
+    rng = np.random.default_rng(8)
+    image = rng.integers(0, 65535, (90, 130, 3), dtype=np.uint16)
+    cmap = remap_module.correction_map(SMALL, (90, 130), extent="full")
+    # Large offsets, points outside the image: tiles near the border and inside it.
+    cmap = (cmap.map_x * np.float32(2) - np.float32(30), cmap.map_y * np.float32(2) - np.float32(20))
+    direct = correct_image(image, cmap, interp, border=7)
+    monkeypatch.setattr(remap_module, "REMAP_LIMIT", 40)
+    monkeypatch.setattr(remap_module, "REMAP_TILE", 16, raising=False)
+    tiled = correct_image(image, cmap, interp, border=7)
+    np.testing.assert_array_equal(tiled, direct)
+
+
+# ------------------------------------------------------------------ 16: --scheduler
+
+
+def _fake_server(reply: bytes | None):
+    """A TCP server that accepts connections and says nothing (``reply`` None) or answers
+    with ``reply``; returns its address and a stop function."""
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(8)
+    srv.settimeout(0.2)
+    stop = threading.Event()
+    conns = []
+
+    def serve():
+        while not stop.is_set():
+            try:
+                conn, _ = srv.accept()
+            except OSError:
+                continue
+            conns.append(conn)
+            if reply is not None:
+                conn.sendall(reply)
+
+    threading.Thread(target=serve, daemon=True).start()
+
+    def close():
+        stop.set()
+        for c in conns:
+            c.close()
+        srv.close()
+
+    return f"tcp://127.0.0.1:{srv.getsockname()[1]}", close
+
+
+@pytest.mark.parametrize(
+    "reply", [pytest.param(None, marks=pytest.mark.slow), b"\xff" * 64], ids=["silent", "garbage"]
+)
+def test_a_scheduler_that_is_not_one_is_refused(run_cli, tmp_path, small_calib, monkeypatch, reply):
+    from oapcal.imaging import distributed
+
+    monkeypatch.setattr(distributed, "CONNECT_TIMEOUT", 1)
+    _imwrite(tmp_path / "a.tif", _frames(2))
+    _imwrite(tmp_path / "b.tif", _frames(2))
+    address, close = _fake_server(reply)
+    try:
+        start = time.monotonic()
+        code, _, err = run_cli("correct", small_calib, tmp_path / "a.tif", tmp_path / "b.tif", "--out-dir",
+                               tmp_path / "o", "--dask", "--scheduler", address)  # fmt: skip
+        elapsed = time.monotonic() - start
+    finally:
+        close()
+    assert code == 2, err
+    assert f"--scheduler {address}" in err and "MemoryError" not in err and "Traceback" not in err
+    assert err.count("oapcal: error") == 1  # connected once for the batch, not per file
+    assert elapsed < 60  # a hang would never return; this bounds nothing else
+
+
+def test_dask_options_without_dask_are_refused(run_cli, tmp_path, small_calib):
+    _imwrite(tmp_path / "a.tif", _frames(1))
+    for option in (["--scheduler", "tcp://127.0.0.1:1"], ["--chunk-frames", "4"], ["--dask-format", "tiff"]):
+        code, _, err = run_cli(
+            "correct", small_calib, tmp_path / "a.tif", "--out-dir", tmp_path / "o", *option
+        )
+        assert code == 2 and f"{option[0]} applies to --dask only" in err
+        assert not (tmp_path / "o").exists()
+
+
+# --------------------------------------------------------------- 17: --chunk-frames
+
+
+def test_chunk_frames_is_bounded_by_the_stack_length(tmp_path):
+    from oapcal.imaging.distributed import correct_stack_dask
+
+    cal = known_calibration(params=SMALL, image_size=(64, 48))
+    frames = _frames(40, dtype=np.uint8)
+    _imwrite(tmp_path / "s.tif", frames)
+    options = dict(scheduler="synchronous", output_format="zarr")
+    correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "warm", chunk_frames=4, **options)
+    tracemalloc.start()
+    result = correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "o", chunk_frames=100_000, **options)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert result.frames == 40 and result.chunks == 1
+    # 100,000 frames of 64x48 would be 307 MB; the stack is 123 kB.
+    assert peak < 20 * frames.nbytes, f"peak {peak / 1e6:.1f} MB"
+    assert zarr.open_array(str(tmp_path / "o" / "s.zarr"), mode="r").chunks[0] == 40
+
+
+# ------------------------------------------------------- 18: ImageJ hyperstack, one IFD
+
+
+def _imagej_single_ifd(path, frames):
+    tifffile.imwrite(path, frames, imagej=True)
+    data = bytearray(path.read_bytes())
+    with tifffile.TiffFile(path) as tif:
+        offset = tif.pages[0].offset
+    (n,) = struct.unpack("<H", data[offset : offset + 2])
+    data[offset + 2 + 12 * n : offset + 6 + 12 * n] = b"\0\0\0\0"  # drop every IFD after the first
+    path.write_bytes(bytes(data))
+
+
+def test_imagej_hyperstack_in_one_ifd_is_read_frame_by_frame(tmp_path, small_calib, run_cli):
+    frames = _frames(60, (48, 64))
+    _imagej_single_ifd(tmp_path / "ij.tif", frames)
+    with tifffile.TiffFile(tmp_path / "ij.tif") as tif:
+        assert len(tif.pages) == 1  # the case: all frames behind one IFD
+    tracemalloc.start()
+    with open_frames(tmp_path / "ij.tif") as (info, it):
+        assert info.n_frames == 60
+        for i, frame in enumerate(it):
+            np.testing.assert_array_equal(frame, frames[i])
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < frames.nbytes / 4, f"peak {peak / 1e6:.2f} MB for {frames.nbytes / 1e6:.2f} MB"
+    code, _, err = run_cli("correct", small_calib, tmp_path / "ij.tif", "--out-dir", tmp_path / "o", "--dask",
+                           "--scheduler", "synchronous", "--dask-format", "tiff")  # fmt: skip
+    assert code == 0, err
+    got = tifffile.imread(tmp_path / "o" / "ij.tif")
+    np.testing.assert_array_equal(got[59], remap_reference(frames[59], SMALL))
+
+
+# ------------------------------------------------------------- 19: very many series
+
+
+@pytest.mark.slow
+def test_many_series_open_in_linear_time(tmp_path):
+    """tifffile's ``series`` takes quadratic time here (20,000 series: about 40 s); timed
+    against itself at two sizes rather than a wall clock."""
+
+    def build(n):
+        path = tmp_path / f"m{n}.tif"
+        with tifffile.TiffWriter(path) as tw:
+            for _ in range(n):
+                tw.write(np.zeros((1, 1), np.uint8))
+        start = time.perf_counter()
+        info = probe(path)
+        return info, time.perf_counter() - start
+
+    small, t_small = build(4000)
+    large, t_large = build(16000)
+    assert small.n_frames == 4000 and large.n_frames == 16000
+    assert t_large < 8 * t_small  # quadratic would be 16x
+
+
+def test_many_series_are_read_without_tifffile_series(tmp_path, monkeypatch):
+    with tifffile.TiffWriter(tmp_path / "m.tif") as tw:
+        for i in range(50):
+            tw.write(np.full((2, 3), i, np.uint8))
+    # ``TiffFile.series`` is quadratic in the number of series; oapcal must not use it.
+    monkeypatch.setattr(tifffile.TiffFile, "series", property(lambda self: pytest.fail("series used")))
+    with open_frames(tmp_path / "m.tif") as (info, frames):
+        assert [int(f[0, 0]) for f in frames] == list(range(50))
+
+
+# ------------------------------------------------------------ 21: killed runs, temps
+
+
+def test_stale_temporary_files_are_removed_and_live_ones_kept(tmp_path, small_calib, run_cli):
+    import fcntl
+
+    _imwrite(tmp_path / "s.tif", _frames(2))
+    out = tmp_path / "o"
+    out.mkdir()
+    stale = out / ".s.ab12cd_9.tmp.tif"
+    stale.write_bytes(b"x" * 1000)  # left by a killed run
+    stale_dir = out / ".s.zarr.zz99yy00.tmp"
+    stale_dir.mkdir()
+    (stale_dir / "c").write_bytes(b"x")
+    live = out / ".s.qwertyui.tmp.tif"
+    live.write_bytes(b"x")
+    fd = os.open(live, os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # another run writing now
+    unrelated = out / ".notes.abcdefgh.tmp"
+    unrelated.write_text("mine")
+    try:
+        code, _, err = run_cli("correct", small_calib, tmp_path / "s.tif", "--out-dir", out)
+        assert code == 0, err
+        assert not stale.exists() and live.exists() and unrelated.exists()
+        code, _, err = run_cli("correct", small_calib, tmp_path / "s.tif", "--out-dir", out, "--dask",
+                               "--scheduler", "synchronous")  # fmt: skip
+        assert code == 0, err
+        assert not stale_dir.exists() and live.exists()
+    finally:
+        os.close(fd)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_terminated_run_leaves_no_temporary_file(tmp_path, sig):
+    calib = write_calibration(tmp_path / "c.json", params=SMALL, image_size=(64, 48))
+    _imwrite(tmp_path / "s.tif", _frames(20000, dtype=np.uint8))
+    out = tmp_path / "o"
+    proc = subprocess.Popen([sys.executable, "-m", "oapcal", "correct", str(calib), str(tmp_path / "s.tif"),
+                             "--out-dir", str(out), "--quiet", "--interp", "lanczos"],
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.monotonic() + 60
+    while not any(p.name.startswith(".s.") for p in (out.iterdir() if out.exists() else [])):
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.05)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + sig, err
+    assert "Traceback" not in err
+    assert _visible(out) == []
+
+
+@pytest.mark.slow
+def test_ctrl_c_under_the_local_cluster_is_one_line(tmp_path):
+    calib = write_calibration(tmp_path / "c.json", params=SMALL, image_size=(64, 48))
+    _imwrite(tmp_path / "s.tif", _frames(40000, dtype=np.uint8))
+    out = tmp_path / "o"
+    proc = subprocess.Popen([sys.executable, "-m", "oapcal", "correct", str(calib), str(tmp_path / "s.tif"),
+                             "--out-dir", str(out), "--dask", "--chunk-frames", "200", "--quiet",
+                             "--interp", "lanczos"],
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)  # fmt: skip
+    deadline = time.monotonic() + 120
+    while not any(p.name.startswith(".s.zarr.") for p in (out.iterdir() if out.exists() else [])):
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.05)
+    time.sleep(1)
+    os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole process group
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "distributed" not in err, err
+    assert _visible(out) == []
+
+
+# ------------------------------------------------------------ 14: absurd sizes
+
+
+def test_a_zarr_header_claiming_a_billion_frames_is_refused(run_cli, tmp_path, small_calib):
+    zarr.create_array(str(tmp_path / "huge.zarr"), shape=(10**9, 48, 64), chunks=(16, 48, 64), dtype="u2")
+    assert sum(p.stat().st_size for p in (tmp_path / "huge.zarr").rglob("*") if p.is_file()) < 2000
+    code, _, err = run_cli("correct", small_calib, tmp_path / "huge.zarr", "--out-dir", tmp_path / "o",
+                           "--dask", "--scheduler", "synchronous")  # fmt: skip
+    assert code == 4, err
+    assert "huge.zarr" in err and ("chunks, more than" in err or "holds no data" in err)
+    # With some data stored, the chunk count still bounds the graph.
+    z = zarr.open_array(str(tmp_path / "huge.zarr"), mode="r+")
+    z[:2] = 1
+    code, _, err = run_cli("correct", small_calib, tmp_path / "huge.zarr", "--out-dir", tmp_path / "o",
+                           "--dask", "--scheduler", "synchronous")  # fmt: skip
+    assert code == 4 and "--chunk-frames" in err
+
+
+def test_export_of_an_absurd_image_size_is_refused(run_cli, tmp_path):
+    calib = write_calibration(tmp_path / "c.json", params=params_from_dict({"m": 1.0}))
+    for size in ("100000000x100000000", "1000000x1000000"):
+        code, _, err = run_cli("export-opencv", calib, "--out", tmp_path / "e.json", "--image-size", size,
+                               "--extent", "full")  # fmt: skip
+        assert code == 2, err
+        assert size in err and "MemoryError" not in err
+        assert not (tmp_path / "e.json").exists()
+
+
+def test_a_calibration_asking_for_a_huge_map_is_refused(run_cli, tmp_path):
+    calib = write_calibration(tmp_path / "c.json", image_size=(200000, 200000))
+    code, _, err = run_cli("correct", calib, "--save-map", tmp_path / "m.npz")
+    assert code == 2, err
+    assert "200000x200000" in err and "--max-pixels" in err
+    assert not (tmp_path / "m.npz").exists()
+
+
+# ------------------------------------------------------------- 20: --map zip bomb
+
+
+def test_a_zip_bomb_map_is_refused_from_its_header(tmp_path):
+    path = tmp_path / "bomb.npz"
+    header = {"descr": "<f4", "fortran_order": False, "shape": (10000, 10000)}
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for name in ("map_x.npy", "map_y.npy"):
+            with zf.open(name, "w", force_zip64=True) as fh:
+                np.lib.format.write_array_header_1_0(fh, header)
+                block = bytes(2**20)
+                for _ in range(100):
+                    fh.write(block)
+    assert path.stat().st_size < 2**20
+    tracemalloc.start()
+    with pytest.raises(InputFileError, match="bomb.npz: .* unpack to .*decompression bomb"):
+        load_map(path)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 50 * 2**20
+
+
+def test_the_map_limit_follows_the_image_limit():
+    assert remap_module.MAP_MAX_PIXELS == images_module.MAX_PIXELS
