@@ -142,3 +142,13 @@ def test_relay_misalignment_errors_are_one_line(run_cli, tmp_path):
     code, _, err = run_cli("simulate", "relay", "--m1-focal-length", "-60", "--out", tmp_path / "g.csv")
     assert code == 2 and err.count("\n") == 1 and "leaves no mirror" in err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_relay_layout_figure(run_cli, tmp_path):
+    layout = tmp_path / "layout.png"
+    code, _, err = run_cli("simulate", "relay", "--grid", "5", "--rings", "2", "--d1", "150",
+                           "--m2-tilt-x", "2", "--layout", layout)  # fmt: skip
+    assert code == 0, err
+    assert layout.read_bytes()[:4] == b"\x89PNG"
+    code, _, err = run_cli("simulate", "relay", "--layout", tmp_path / "x.png", "--plot", tmp_path / "x.png")
+    assert code == 2 and "must be different files" in err

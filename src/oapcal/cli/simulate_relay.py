@@ -175,9 +175,13 @@ def misalignment_options(func):
     help="Reflected focal length of the second mirror, mm (default: --focal-length).",
 )  # fmt: skip
 @misalignment_options
+@click.option(
+    "--layout", type=click.Path(dir_okay=False), default=None,
+    help="Figure of the relay in its fold plane with the frames of the misalignment conventions.",
+)  # fmt: skip
 def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,
                   image_size, beam_diameter, wavelength, spot_fields, rings, out, plot, spots,
-                  as_json, focal_length_2=None, misalignment=None):  # fmt: skip
+                  as_json, focal_length_2=None, misalignment=None, layout=None):  # fmt: skip
     """Trace the OAP relay: grid distortion (paraxial vs real chief rays), spots, limits."""
     from oapcal.errors import GeometrySpecError
 
@@ -196,13 +200,14 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
                         (wavelength, "--wavelength")):  # fmt: skip
         if not value > 0:
             raise GeometrySpecError(f"{name} must be positive, got {value:g}")
-    outputs = [p for p in (out, plot, spots) if p not in (None, "-")]
+    outputs = [p for p in (out, plot, spots, layout) if p not in (None, "-")]
     if len(set(outputs)) < len(outputs):
-        raise GeometrySpecError("--out, --plot and --spots must be different files")
+        raise GeometrySpecError("--out, --plot, --spots and --layout must be different files")
     for path in outputs:
         check_output(path)
     check_plot_suffix(plot, "--plot")
     check_plot_suffix(spots, "--spots")
+    check_plot_suffix(layout, "--layout")
 
     from oapcal.optics.summary import simulate_relay, write_grid_csv
 
@@ -230,6 +235,10 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
                 plot_spots(
                     sim.spots, outputs.stage(spots), airy_radius_um=sim.summary["quality"]["rayleigh_um"]
                 )
+            if layout is not None:
+                from oapcal.optics.plot import plot_layout
+
+                plot_layout(sim.grid.relay, outputs.stage(layout))
     if as_json:
         print_json(sim.summary)
     elif out != "-":

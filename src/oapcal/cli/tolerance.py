@@ -5,7 +5,14 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import PointsUsageError, check_output, console, print_json, progress_bar
+from oapcal.cli._common import (
+    PointsUsageError,
+    check_output,
+    check_plot_suffix,
+    console,
+    print_json,
+    progress_bar,
+)
 
 #: Tolerance options: group (``oapcal.optics.tolerance.GROUPS``) -> (flag, unit, help).
 TOLERANCE_OPTIONS = {
@@ -156,6 +163,7 @@ def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal
             raise GeometrySpecError(f"{TOLERANCE_OPTIONS[name][0]} must be a tolerance >= 0, got {value:g}")
     if plot is not None:
         check_output(plot)
+        check_plot_suffix(plot, "--plot")
 
     from oapcal.model import parse_model
     from oapcal.optics.relay import oap_relay

@@ -147,3 +147,76 @@ def plot_tolerance(result: dict, path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120)
     plt.close(fig)
+
+
+def plot_layout(relay, path, *, title: str | None = None) -> None:
+    """The relay in its fold plane (``x = 0``; ``z`` to the right, ``y`` up, ``+x`` into the
+    page) with the frames that the misalignment conventions use (``docs/optics.md``):
+    each mirror's ``b`` and ``n`` at its centre (``a = +x``), the object and image planes'
+    in-plane ``y`` axes and normals, the stop, and the central ray.  Everything is drawn
+    from the relay as built, so the figure shows the code's own conventions."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from oapcal.optics.relay import chief_rays, mirror_frame
+
+    def zy(p):
+        p = np.asarray(p, dtype=float)
+        return p[..., 2], p[..., 1]
+
+    fig, ax = plt.subplots(figsize=(9.0, 4.8), layout="constrained")
+    f1, f2 = relay.focal_lengths_mm
+    size = 0.45 * min(f1, f2)
+    rays = chief_rays(relay, np.zeros(2))
+    path_pts = np.array([relay.object_plane.point, *rays.trace.hits, rays.trace.points])
+    ax.plot(*zy(path_pts), color="tab:red", lw=1.2, label="central chief ray")
+    for i, mirror in enumerate(relay.mirrors, start=1):
+        a, b, n = mirror_frame(mirror)
+        c = np.asarray(mirror.aperture_centre)
+        t = np.linspace(-1.0, 1.0, 41)[:, None] * 0.5 * relay.diameter_mm
+        # the mirror's trace in the fold plane: rays along its axis through points along b
+        axis = np.asarray(mirror.axis)
+        starts = c + t * b - 3.0 * size * axis
+        hits = np.array([s + mirror.intersect(s, axis) * axis for s in starts])
+        ax.plot(*zy(hits), color="k", lw=2.5)
+        for vec, name, colour in ((b, "b", "tab:blue"), (n, "n", "tab:green")):
+            ax.annotate(
+                "", xy=zy(c + size * vec), xytext=zy(c), arrowprops=dict(arrowstyle="->", color=colour)
+            )
+            ax.text(*zy(c + 1.12 * size * vec), name, color=colour, ha="center", va="center")
+        z, y = zy(c)
+        ax.text(z, y + 0.55 * relay.diameter_mm, f"OAP {i}\na = +x (into page)", fontsize=7, ha="center",
+                va="bottom")  # fmt: skip
+    for plane, name in ((relay.object_plane, "object"), (relay.image_plane, "camera")):
+        p = np.asarray(plane.point)
+        ey, nz = np.asarray(plane.ey), np.asarray(plane.normal)
+        ax.plot(*zy(np.array([p - 0.8 * size * ey, p + 0.8 * size * ey])), color="0.4", lw=3)
+        ax.annotate(
+            "", xy=zy(p + size * ey), xytext=zy(p), arrowprops=dict(arrowstyle="->", color="tab:purple")
+        )
+        ax.text(
+            *zy(p + 1.15 * size * ey), f"{name} y", color="tab:purple", ha="center", va="center", fontsize=8
+        )
+        ax.annotate(
+            "", xy=zy(p + 0.7 * size * nz), xytext=zy(p), arrowprops=dict(arrowstyle="->", color="0.3")
+        )
+        ax.text(*zy(p + 0.85 * size * nz), "normal", color="0.3", ha="center", va="center", fontsize=7)
+        ax.text(*zy(p - 0.9 * size * ey), f"{name} x: into page", fontsize=7, ha="center", va="top")
+    stop = np.asarray(relay.stop.point)
+    sy = np.asarray(relay.stop.ey)
+    ax.plot(*zy(np.array([stop - 0.5 * relay.diameter_mm * sy, stop + 0.5 * relay.diameter_mm * sy])),
+            ls="--", color="tab:orange", label="stop plane")  # fmt: skip
+    ax.set_xlabel("z (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_aspect("equal")
+    ax.set_ylim(min(-1.2 * size, f1 - f2 - 1.2 * size) - 5, f1 + 0.55 * relay.diameter_mm + 18)
+    ax.margins(x=0.06)
+    ax.legend(loc="center", fontsize=8)
+    default = (f"Relay in the fold plane x = 0 (d1 = {relay.d1_mm:g} mm, orientation {relay.orientation}); "
+               "positive angles are right-handed: about an axis into the page, clockwise here")  # fmt: skip
+    ax.set_title(title or default, fontsize=8)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
