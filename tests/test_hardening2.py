@@ -402,3 +402,63 @@ def test_absurd_options_of_other_commands_are_refused(run_cli, files, tmp_path, 
     one_error(code, err)
     assert expect in err, err
     nothing_in(out)
+
+
+# -- item 24: progress only on a terminal, even when FORCE_COLOR says otherwise --------------------
+
+
+def test_no_progress_bar_off_a_terminal_even_with_force_color(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    argv = ["simulate", "image", "--image-size", "96x64", "--groups", "4", "--out", str(tmp_path / "x.png")]
+    proc = subprocess.run(
+        [sys.executable, "-m", "oapcal", *argv], capture_output=True, text=True,
+        env={**os.environ, "FORCE_COLOR": "1"}, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0 and proc.stderr == "" and "\x1b" not in proc.stdout, proc.stdout
+
+
+def test_progress_helpers_ask_isatty(monkeypatch):
+    import io
+
+    from oapcal.cli._common import progress_bar
+
+    monkeypatch.setenv("FORCE_COLOR", "1")
+    monkeypatch.setattr("sys.stderr", io.StringIO())
+    bar, _ = progress_bar("x")
+    assert bar.disable
+
+
+def test_a_corrupt_image_gives_only_the_oapcal_line(tmp_path):
+    """OpenCV's ``[ WARN:0@...] ... PNG input buffer is incomplete`` once came beside the error."""
+    import subprocess
+    import sys
+
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "x.png"), np.random.default_rng(1).integers(0, 255, (64, 96), np.uint8))
+    (tmp_path / "trunc.png").write_bytes((tmp_path / "x.png").read_bytes()[:3000])
+    proc = subprocess.run(
+        [sys.executable, "-m", "oapcal", "esf", str(tmp_path / "trunc.png"), "--auto"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 2 and proc.stderr.startswith("oapcal: error: "), proc.stderr
+    assert proc.stderr.count("\n") == 1, proc.stderr
+
+
+def test_numpy_runtime_warnings_stay_off_the_terminal(run_cli, files, tmp_path, monkeypatch):
+    import warnings
+
+    import oapcal.io.points
+
+    real = oapcal.io.points.read_points
+
+    def noisy(*args, **kwargs):
+        warnings.warn("overflow encountered in multiply", RuntimeWarning, stacklevel=1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(oapcal.io.points, "read_points", noisy)
+    code, _, err = run_cli("fit", files["points"], "--out", tmp_path / "c.json")
+    assert code == 0 and err == "", err

@@ -111,10 +111,15 @@ def _terminated(exc: Terminated) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run the command line with ``argv`` (default ``sys.argv[1:]``); return the exit code."""
     import signal
+    import warnings
+
+    from oapcal.cli._common import quiet_third_party
 
     previous = _catch_termination()
     try:
-        return _main(argv)
+        with warnings.catch_warnings():  # the filters are restored for a caller (tests, notebooks)
+            quiet_third_party()
+            return _main(argv)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

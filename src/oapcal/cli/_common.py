@@ -5,6 +5,7 @@ Imports nothing heavy at module level (see :mod:`oapcal.cli`).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import re
@@ -441,8 +442,33 @@ def parse_size(text: str | None, option: str = "--image-size", max_side: int | N
     return (w, h)
 
 
+def quiet_third_party() -> None:
+    """Keep libraries' own chatter off the terminal, so an error is the one ``oapcal:`` line:
+    OpenCV's native log (``[ WARN:0@...]``, read before cv2 is first imported), and NumPy's
+    RuntimeWarnings (overflow, invalid value) with their source paths; oapcal checks the
+    numbers it produces instead."""
+    import os
+    import warnings
+
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
+    if "cv2" in sys.modules:
+        with contextlib.suppress(Exception):
+            sys.modules["cv2"].setLogLevel(0)
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
+
+
+def stderr_is_terminal() -> bool:
+    """Whether a progress display may be drawn: stderr is a terminal (``isatty``; Rich's own
+    test also says yes when ``FORCE_COLOR`` or ``TTY_COMPATIBLE`` is set, as in many CI
+    systems, and would then draw the bar into a log file)."""
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
 def progress_bar(description: str = ""):
-    """A Rich progress bar on stderr (drawn only on a terminal, removed when done) and its
+    """A Rich progress bar on stderr (drawn only when stderr is a terminal, removed when done) and its
     callback ``update(done, total, description=None)``, which library functions take as
     their ``progress`` argument.  Use the bar as a context manager around the work."""
     from rich.console import Console
@@ -451,7 +477,7 @@ def progress_bar(description: str = ""):
     err = Console(file=sys.stderr)
     bar = Progress(
         TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-        console=err, transient=True, disable=not err.is_terminal,
+        console=err, transient=True, disable=not stderr_is_terminal(),
     )  # fmt: skip
     task = bar.add_task(description, total=None)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, print_json
+from oapcal.cli._common import check_output, console, print_json, stderr_is_terminal
 
 
 @click.command("esf")
@@ -98,7 +98,9 @@ def _fit_with_progress(analyse_edges, img, rois, labels, um_per_px):
     from rich.progress import Progress
 
     err = Console(file=sys.stderr)
-    with Progress(console=err, transient=True, disable=not err.is_terminal) as progress:
+    # isatty, not Console.is_terminal: FORCE_COLOR (set by many CI systems) makes Rich draw
+    # the bar into a log file.
+    with Progress(console=err, transient=True, disable=not stderr_is_terminal()) as progress:
         task = progress.add_task("fitting edges", total=len(rois))
         return analyse_edges(img, rois, labels=labels, um_per_px=um_per_px,
                              progress=lambda: progress.advance(task))  # fmt: skip

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import sys
+
 import click
 
-from oapcal.cli._common import Finite, OutputSet, check_output, check_work, parse_size
+from oapcal.cli._common import Finite, OutputSet, check_output, check_work, parse_size, stderr_is_terminal
 
 #: Largest Gaussian PSF sigma (camera px): wider blurs every bar of the target into grey.
 MAX_SIGMA_PX = 50.0
@@ -175,7 +177,8 @@ def simulate_image_command(
     sim = simulate_image(
         group_list, field, sigma_px=sigma_px, na=na, wavelength_um=wavelength_um,
         snr=None if no_noise else snr, read_noise_e=read_noise_e, bits=int(bits), polarity=polarity,
-        oversample=oversample, um_per_px=um_per_px, seed=seed, progress=True,
+        oversample=oversample, um_per_px=um_per_px, seed=seed,
+        progress=stderr_is_terminal() and sys.stdout.isatty(),  # its bar draws on stdout
     )  # fmt: skip
     with OutputSet() as outputs:  # both or neither
         write_image(outputs.stage(out), sim.image)
