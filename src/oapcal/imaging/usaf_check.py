@@ -51,7 +51,9 @@ class LayoutFit:
     ``edge_normal_px`` (unit normal in the image); ``sigma_px`` the fitted blur of each
     triplet; ``polarity`` ``"bright"`` or ``"dark"`` bars; ``layer_shift_w1`` the free shift
     of each layer (even group -> (dx, dy) in its w1) when fitted with ``layer_shifts``;
-    ``rejected`` triplets whose profile fit failed (name -> reason).
+    ``rejected`` triplets whose profile fit failed (name -> reason); ``edge_bias_px`` how far
+    every edge lies outward of the map's edge (bars wider than gaps by twice that: exposure,
+    etching, blur; fitted with the map, it is no layout error).
     """
 
     coef: np.ndarray
@@ -70,11 +72,33 @@ class LayoutFit:
     polarity: str
     layer_shift_w1: dict = field(default_factory=dict)
     rejected: dict = field(default_factory=dict)
+    edge_bias_px: float = 0.0
 
     def __call__(self, xy_um) -> np.ndarray:
         """Map layout um ``(..., 2)`` to image px."""
         xy = np.asarray(xy_um, float)
         return _phi((xy - self.centre_um) / self.scale_um, self.model) @ self.coef.T
+
+    def centre_residuals_px(self) -> np.ndarray:
+        """Residual of each triplet's centre along each axis, ``(opposite edges) / 2``: what is
+        left of the edge residuals when each triplet may be a little wider or narrower
+        (print and blur), i.e. the error of the layout's *positions*."""
+        out = []
+        tri = np.array(self.edge_triplet)
+        axis = np.argmax(np.abs(self.edge_normal_px), axis=1)
+        sign = np.sign(self.edge_normal_px[np.arange(len(axis)), axis])
+        for name in dict.fromkeys(self.edge_triplet):
+            for a in (0, 1):
+                sel = (tri == name) & (axis == a)
+                plus, minus = self.residuals_px[sel & (sign > 0)], self.residuals_px[sel & (sign < 0)]
+                if len(plus) and len(minus):
+                    out.append(0.5 * (plus.mean() - minus.mean()))
+        return np.array(out)
+
+    @property
+    def centre_rms_px(self) -> float:
+        """rms of :meth:`centre_residuals_px`."""
+        return float(np.sqrt(np.mean(self.centre_residuals_px() ** 2)))
 
     @property
     def um_per_px(self) -> float:
@@ -231,7 +255,7 @@ def fit_layout(
     min_w_px: float = 3.0,
     model: str = "auto",
     layer_shifts: bool = False,
-    iterations: int = 3,
+    iterations: int = 2,
 ) -> LayoutFit:
     """Fit the layout of ``target`` to ``image`` (module docstring).
 
@@ -335,11 +359,14 @@ def fit_layout(
             on = np.array([layer_of[r[0]] == g for r in rows])
             extra[on, 2 * j] = mdir[on, 0]
             extra[on, 2 * j + 1] = mdir[on, 1]
-        a_full = np.concatenate([a_mat, extra], axis=1)
+        # one more unknown: every edge lies outward by the same bias (wider or narrower bars
+        # than gaps: exposure, etching, blur of the print), which is no layout error
+        a_full = np.concatenate([a_mat, extra, np.ones((len(rows), 1))], axis=1)
         rhs = np.sum(mdir * q, axis=1)
         sol, *_ = np.linalg.lstsq(a_full, rhs, rcond=None)
         coef = np.stack([sol[:k], sol[k : 2 * k]])
         shifts = {g: sol[2 * k + 2 * j : 2 * k + 2 * j + 2] for j, g in enumerate(free_layers)}
+        bias = float(sol[-1])
         resid = a_full @ sol - rhs
         last = (rows, resid, n_trip, p_um, q, mdir)
     rows, resid, n_trip, p_um, q, mdir = last
@@ -368,6 +395,7 @@ def fit_layout(
         polarity=polarity,
         layer_shift_w1=shift_w1,
         rejected=rejected,
+        edge_bias_px=bias,
     )
 
 
@@ -476,7 +504,7 @@ def measure_layout(image, groups, lay, pose, *, params=LAYOUT_PARAMS, rounds: in
         jy = (fit(p + [0, eps]) - fit(p - [0, eps])) / (2 * eps)
         jac = np.stack([jx, jy], axis=-1)  # (edges, 2 px, 2 um)
         phi = _phi((p - fit.centre_um) / fit.scale_um, fit.model)
-        a_map = np.concatenate([phi * m[:, :1], phi * m[:, 1:]], axis=1)
+        a_map = np.concatenate([phi * m[:, :1], phi * m[:, 1:], np.ones((len(p), 1))], axis=1)
         a_lay = np.einsum("ei,eij,ejk->ek", m, jac, d_centre[idx])
         moved = d_centre[np.unique(idx)]  # numbers that move measured triplets relative to each other
         seen = (np.ptp(moved[:, 0], axis=0) > 1e-6) | (np.ptp(moved[:, 1], axis=0) > 1e-6)
@@ -485,8 +513,47 @@ def measure_layout(image, groups, lay, pose, *, params=LAYOUT_PARAMS, rounds: in
         step = dict(zip(np.array(params)[seen], sol[a_map.shape[1] :]))
         lay = _layout_with(lay, {k: vals[k] + dv for k, dv in step.items()})
         k = phi.shape[1]  # the map solved with the layout, in the new layout's coordinates
-        fit = replace(fit, coef=np.stack([sol[:k], sol[k : 2 * k]]))
+        fit = replace(fit, coef=np.stack([sol[:k], sol[k : 2 * k]]))  # (sol[2 k]: the edge bias)
 
     target = usaf_target(groups, lay)
     fit = fit_layout(image, target, fit, **kwargs)
     return lay, fit
+
+
+#: The shared real images (``../shared/real/usaf``) with their layout, the groups in view
+#: and two hand-picked triplet centres (image px, read off the image by eye) to start from.
+REAL_IMAGES: dict[str, dict] = {
+    "fpm_brightfield.png": {
+        "layout": "compact",
+        "groups": (4, 5, 6, 7),
+        "start": {"G4E2H": (363.0, 272.0), "G4E1H": (945.5, 862.5)},
+    },
+    "labumk_negative.tif": {
+        "layout": "spaced",
+        "groups": (4, 5, 6, 7),
+        "start": {"G4E3H": (84.5, 64.3), "G4E6H": (81.0, 215.5)},
+    },
+    "whole_target.png": {
+        "layout": "whole-target",
+        "groups": (-2, -1, 0, 1),
+        "start": {"G-2E2H": (100.0, 156.0), "G-2E1H": (424.5, 460.5)},
+    },
+    "highmag_g7e1.jpg": {
+        "layout": "compact",
+        "groups": (7,),
+        "start": {"G7E1V": (235.0, 334.0), "G7E1H": (255.0, 567.0)},
+    },
+}
+
+
+def check_real_image(path, **kwargs) -> tuple[UsafTarget, LayoutFit]:
+    """:func:`fit_layout` of one of :data:`REAL_IMAGES` in its layout, from its starting points."""
+    from pathlib import Path
+
+    from oapcal.imaging.usaf import usaf_target
+    from oapcal.io.imagefile import read_image_grey
+
+    cfg = REAL_IMAGES[Path(path).name]
+    target = usaf_target(cfg["groups"], cfg["layout"])
+    image = read_image_grey(path)
+    return target, fit_layout(image, target, similarity_from_points(target, cfg["start"]), **kwargs)
