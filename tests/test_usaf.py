@@ -5,6 +5,7 @@ import pytest
 
 from oapcal.errors import DataError
 from oapcal.imaging.usaf import (
+    LAYOUTS,
     bar_width_um,
     line_pairs_per_mm,
     parse_groups,
@@ -39,21 +40,94 @@ def test_bars_are_5w_by_w_with_gaps_w():
     assert np.all((t.bar_orientation == "H") == (width > height))
 
 
+def _triplet(t, g, e, o):
+    """x0, y0, x1, y1 (um) of a triplet."""
+    sel = (t.bar_group == g) & (t.bar_element == e) & (t.bar_orientation == o)
+    b = t.bars[sel]
+    return np.array([*b[:, :2].min(axis=0), *b[:, 2:].max(axis=0)])
+
+
 def test_standard_arrangement_of_a_layer():
     t = usaf_target((4, 5))
-
-    def centre(g, e):
-        sel = (t.bar_group == g) & (t.bar_element == e)
-        return t.bars[sel].reshape(-1, 2, 2).mean(axis=(0, 1))
-
-    # Odd group 5: elements 1-6 top to bottom on the right; even group 4: element 1 at the
-    # lower right, elements 2-6 top to bottom on the left.
-    ys5 = [centre(5, e)[1] for e in range(1, 7)]
-    ys4 = [centre(4, e)[1] for e in range(2, 7)]
-    assert np.all(np.diff(ys5) > 0) and np.all(np.diff(ys4) > 0)
-    assert min(centre(5, e)[0] for e in range(1, 7)) > max(centre(4, e)[0] for e in range(2, 7))
-    assert centre(4, 1)[1] > max(ys5) and centre(4, 1)[0] > centre(4, 2)[0]
+    w = {(g, e): bar_width_um(g, e) for g in (4, 5) for e in range(1, 7)}
+    # Left column, even group 4, elements 2-6: horizontal bars, then vertical bars, 2 w apart,
+    # left-aligned; each element 2 w (of the one above) below the one above: tops 7 w apart.
+    for e in range(2, 7):
+        h, v = _triplet(t, 4, e, "H"), _triplet(t, 4, e, "V")
+        assert v[0] - h[2] == pytest.approx(2 * w[4, e])
+        assert h[1] == pytest.approx(v[1]) and h[0] == pytest.approx(_triplet(t, 4, 2, "H")[0])
+        if e < 6:
+            assert _triplet(t, 4, e + 1, "H")[1] - h[1] == pytest.approx(7 * w[4, e])
+    # Right column, odd group 5, elements 1-6, and the even group's element 1: vertical bars,
+    # then horizontal bars, 2 w apart, right-aligned.
+    right = _triplet(t, 5, 1, "H")[2]
+    for g, e in [(5, 1), (5, 2), (5, 3), (5, 4), (5, 5), (5, 6), (4, 1)]:
+        h, v = _triplet(t, g, e, "H"), _triplet(t, g, e, "V")
+        assert h[0] - v[2] == pytest.approx(2 * w[g, e]) and h[2] == pytest.approx(right)
+        if g == 5 and e < 6:
+            assert _triplet(t, 5, e + 1, "V")[1] - v[1] == pytest.approx(7 * w[5, e])
+    # Both columns start at the top; element 1 of group 4 is at the bottom right, level with
+    # the bottom of the left column; the layer is a square of side 23.96 w1.
+    top, bottom = _triplet(t, 4, 2, "H")[1], _triplet(t, 4, 6, "H")[3]
+    assert _triplet(t, 5, 1, "V")[1] == pytest.approx(top)
+    assert _triplet(t, 4, 1, "H")[3] == pytest.approx(bottom)
+    assert (bottom - top) / w[4, 1] == pytest.approx(23.96, abs=0.005)
+    assert (right - _triplet(t, 4, 2, "H")[0]) / w[4, 1] == pytest.approx(23.96, abs=0.005)
+    # The reference square: top-aligned, 2 w2 right of element 2, 2 w of G5E1 left of G5E1.
+    (sq,) = t.squares
+    assert sq[1] == pytest.approx(top)
+    assert sq[0] - _triplet(t, 4, 2, "V")[2] == pytest.approx(2 * w[4, 2])
+    assert _triplet(t, 5, 1, "V")[0] - sq[2] == pytest.approx(2 * w[5, 1])
+    assert sq[3] - sq[1] == pytest.approx(sq[2] - sq[0])
+    # Element numbers beside the elements: left of the left column, right of the right one.
+    for text, kind, g, e, box in zip(t.label_text, t.label_kind, t.label_group, t.label_element, t.labels):
+        if kind != "element":
+            continue
+        assert text == str(e)
+        h = _triplet(t, g, e, "H")
+        if g == 4 and e > 1:
+            assert box[2] < h[0]
+        else:
+            assert box[0] > h[2]
+        assert box[1] < (h[1] + h[3]) / 2 < box[3]
+    assert sorted(t.label_text[i] for i, k in enumerate(t.label_kind) if k == "group") == ["4", "4", "5"]
     assert len(t.bars) == 72 and len(set(t.corner_ids)) == 288
+
+
+@pytest.mark.parametrize("name", list(LAYOUTS))
+def test_every_layout_keeps_bars_squares_and_layers_apart(name):
+    t = usaf_target(tuple(range(-2, 10)), name)
+    b = np.concatenate([t.bars, t.squares])
+    ov_x = np.minimum(b[:, None, 2], b[None, :, 2]) - np.maximum(b[:, None, 0], b[None, :, 0])
+    ov_y = np.minimum(b[:, None, 3], b[None, :, 3]) - np.maximum(b[:, None, 1], b[None, :, 1])
+    overlap = (ov_x > 0) & (ov_y > 0)
+    np.fill_diagonal(overlap, False)
+    assert not overlap.any()
+    # each layer nests inside the one before: its bars and squares inside the other's bounding box
+    for g in range(0, 10, 2):
+        outer = usaf_target((g - 2, g - 1), name).full_bbox_um
+        inner = usaf_target((g, g + 1), name)
+        ib = np.array([*np.concatenate([inner.bars, inner.squares])[:, :2].min(0),
+                       *np.concatenate([inner.bars, inner.squares])[:, 2:].max(0)])  # fmt: skip
+        assert outer[0] < ib[0] and ib[2] < outer[2] and outer[1] < ib[1] and ib[3] < outer[3]
+
+
+def test_mirrored_layer_of_the_whole_target_print():
+    t = usaf_target((0, 1), "whole-target")
+    # layer 0-1 is drawn mirrored: the odd group's column on the left, drawn digit, H, V;
+    # the even group's elements 2-6 on the right drawn V, H, digit; its element 1 bottom left.
+    assert _triplet(t, 1, 1, "H")[2] < _triplet(t, 1, 1, "V")[0]
+    assert _triplet(t, 0, 2, "V")[2] < _triplet(t, 0, 2, "H")[0]
+    assert _triplet(t, 1, 1, "H")[0] < _triplet(t, 0, 2, "V")[0]
+    assert _triplet(t, 0, 1, "H")[0] == pytest.approx(_triplet(t, 1, 1, "H")[0])
+    assert _triplet(t, 0, 1, "H")[2] < _triplet(t, 0, 1, "V")[0]
+    # bar 0 is still the top (left) bar of a triplet
+    for g, e, o in [(1, 1, "V"), (0, 2, "H")]:
+        sel = (t.bar_group == g) & (t.bar_element == e) & (t.bar_orientation == o)
+        first = t.bars[sel & (t.bar_index == 0)][0]
+        assert first[0 if o == "V" else 1] == pytest.approx(_triplet(t, g, e, o)[0 if o == "V" else 1])
+    outer = usaf_target((-2, -1), "whole-target")
+    assert _triplet(outer, -2, 2, "H")[2] < _triplet(outer, -2, 2, "V")[0]  # not mirrored
 
 
 def test_no_bars_overlap_and_next_layer_nests_inside():
