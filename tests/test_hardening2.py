@@ -462,3 +462,23 @@ def test_numpy_runtime_warnings_stay_off_the_terminal(run_cli, files, tmp_path, 
     monkeypatch.setattr(oapcal.io.points, "read_points", noisy)
     code, _, err = run_cli("fit", files["points"], "--out", tmp_path / "c.json")
     assert code == 0 and err == "", err
+
+
+@pytest.mark.parametrize("name", ["a" * 250 + ".json", "é" * 124 + "xx.json"])
+def test_output_names_at_the_255_byte_limit(run_cli, files, tmp_path, name):
+    """Once refused because the temporary name beside them (14 bytes longer) was too long."""
+    assert len(name.encode()) == 255
+    code, _, err = run_cli("fit", files["points"], "--out", tmp_path / name)
+    assert code == 0, err
+    assert [p.name for p in tmp_path.iterdir()] == [name]
+    code, _, err = run_cli(
+        "simulate",
+        "image",
+        "--image-size",
+        "96x64",
+        "--groups",
+        "4",
+        "--out",
+        tmp_path / ("b" * 251 + ".png"),
+    )
+    assert code == 0, err

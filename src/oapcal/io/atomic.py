@@ -51,6 +51,27 @@ def _publish(tmp: str, path: Path) -> None:
     os.replace(tmp, path)
 
 
+#: Longest file name (bytes) of common file systems.
+NAME_MAX = 255
+
+
+def _temp_prefix(name: str, suffix: str) -> str:
+    """``.NAME.``, with NAME cut (at a character boundary) so that the temporary name, with
+    tempfile's 8 random characters and ``suffix``, stays within :data:`NAME_MAX` bytes: an
+    output name near the limit must not fail because of its temporary name.
+
+    >>> len(_temp_prefix("a" * 250, ".tmp").encode()) + 8 + len(".tmp") <= NAME_MAX
+    True
+    >>> _temp_prefix("calib.json", ".tmp")
+    '.calib.json.'
+    """
+    room = NAME_MAX - 8 - len(os.fsencode(suffix)) - 2
+    raw = os.fsencode(name)
+    if len(raw) > room:
+        name = raw[:room].decode("utf-8", "ignore")  # a cut multi-byte character is dropped
+    return f".{name}."
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Iterator:
     """Open a temporary file beside ``path`` and rename it to ``path`` on success.
@@ -71,7 +92,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Ite
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.name, ".tmp"), suffix=".tmp", dir=directory)
     try:
         with os.fdopen(fd, mode, **open_kwargs) as fh:
             _lock(fh.fileno())
@@ -98,7 +119,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=directory)
+    suffix = f".tmp{path.suffix}"
+    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.stem, suffix), suffix=suffix, dir=directory)
     if fcntl is None:  # Windows cannot rename an open file
         os.close(fd)
         fd = None
@@ -121,7 +143,7 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     on success (replacing an older ``path``), removed on error."""
     path = Path(path)
     directory = path.parent if str(path.parent) else Path(".")
-    tmp = tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    tmp = tempfile.mkdtemp(prefix=_temp_prefix(path.name, ".tmp"), suffix=".tmp", dir=directory)
     fd = os.open(tmp, os.O_RDONLY) if fcntl is not None else None
     _lock(fd)
     try:
@@ -159,6 +181,9 @@ def remove_stale_temps(directory: str | os.PathLike, outputs: Iterable[str | os.
         out = Path(out)
         wanted.add((out.name, ""))
         wanted.add((out.stem, out.suffix))
+        # the same names as cut by _temp_prefix for outputs near the file-name limit
+        wanted.add((_temp_prefix(out.name, ".tmp")[1:-1], ""))
+        wanted.add((_temp_prefix(out.stem, f".tmp{out.suffix}")[1:-1], out.suffix))
     removed = []
     for entry in directory.iterdir():
         match = _TEMP_NAME.match(entry.name)
