@@ -152,3 +152,16 @@ def test_relay_layout_figure(run_cli, tmp_path):
     assert layout.read_bytes()[:4] == b"\x89PNG"
     code, _, err = run_cli("simulate", "relay", "--layout", tmp_path / "x.png", "--plot", tmp_path / "x.png")
     assert code == 2 and "must be different files" in err
+
+
+@pytest.mark.parametrize(
+    "args,pattern",
+    [
+        (["--m2-decentre-x", "1000"], "miss a mirror surface or the image plane; give smaller misalignments"),
+        (["--camera-tilt-x", "90"], "is not in the range"),
+    ],
+)
+def test_relay_too_large_misalignments_are_user_errors(run_cli, tmp_path, args, pattern):
+    code, _, err = run_cli("simulate", "relay", "--grid", "5", "--out", tmp_path / "g.csv", *args)
+    assert code == 2 and err.count("\n") == 1 and pattern in err, err
+    assert list(tmp_path.iterdir()) == []

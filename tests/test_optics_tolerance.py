@@ -178,3 +178,14 @@ def test_tolerance_help_is_lazy():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "HEAVY []" in out and "--decentre" in out
+
+
+def test_monte_carlo_counts_relays_whose_rays_miss(tol):
+    # OAP 2 moved by up to 500 mm: the beam misses it in some trials, which are counted
+    # as lost and left out of the summary instead of poisoning it.
+    mc = tol.monte_carlo({"m2_decentre_x": 500.0}, 8, seed=2)
+    lost = [s for s in mc["samples"] if s["max_px"] is None]
+    assert mc["n_lost"] == len(lost) and 0 < len(lost) < 8
+    assert all(v is None for s in lost for k, v in s.items() if k != "misalignment")
+    kept = [s["max_px"] for s in mc["samples"] if s["max_px"] is not None]
+    assert mc["summary"]["max_px"]["max"] == pytest.approx(max(kept))

@@ -29,6 +29,8 @@ MISALIGNMENT_UNITS = {
     "stop_decentre_x": "mm", "stop_decentre_y": "mm", "camera_tilt_x": "deg", "camera_tilt_y": "deg",
     "camera_defocus": "mm", "object_tilt_x": "deg", "object_tilt_y": "deg",
 }  # fmt: skip
+#: Misalignment angles beyond this (deg) are refused: not a misalignment any more.
+MAX_ANGLE_DEG = 45.0
 _MISALIGNMENT_HELP = {
     "tilt_x": "tip about its tangent-plane x axis (perpendicular to the fold plane)",
     "tilt_y": "tilt about its tangent-plane y axis (in the fold plane)",
@@ -61,7 +63,8 @@ def misalignment_options(func):
         what = _MISALIGNMENT_HELP[name[3:] if mirror else name]
         text = f"OAP {name[1]} {what}, {unit}." if mirror else f"{what.capitalize()}, {unit}."
         flag = "--" + name.replace("_", "-")
-        wrapper = click.option(flag, name, type=float, default=0.0, metavar=unit.upper(), help=text)(wrapper)
+        kind = click.FloatRange(-MAX_ANGLE_DEG, MAX_ANGLE_DEG) if unit == "deg" else float
+        wrapper = click.option(flag, name, type=kind, default=0.0, metavar=unit.upper(), help=text)(wrapper)
     return wrapper
 
 

@@ -48,7 +48,8 @@ def _tolerance_options(func):
 
     for name, (flag, unit, text) in reversed(TOLERANCE_OPTIONS.items()):
         text = f"Monte Carlo tolerance (+/-) of the {text}, {unit}."
-        option = click.option(flag, f"tol_{name}", type=float, default=0.0, metavar=unit.upper(), help=text)
+        kind = click.FloatRange(max=45.0) if unit == "deg" else float  # >= 0 checked with a clearer message
+        option = click.option(flag, f"tol_{name}", type=kind, default=0.0, metavar=unit.upper(), help=text)
         wrapper = option(wrapper)
     return wrapper
 
@@ -302,6 +303,10 @@ def print_tolerance(s: dict) -> None:
         table.add_row(name, *("-" if stats[k] is None else f"{stats[k] * factor:.3g}" for k in keys))
     out.print(table)
     notes = []
+    if mc["n_lost"]:
+        notes.append(
+            f"{mc['n_lost']} trials whose chief rays miss a mirror (left out): tolerances too large?"
+        )
     if mc["n_failed"]:
         notes.append(f"{mc['n_failed']} trials where the aligned calibration could not correct every point")
     if mc["n_vignetted"]:

@@ -107,6 +107,15 @@ def simulate_relay(
             progress(done + d, total)
 
     grid = grid_distortion(relay, n, field_mm, progress=sub)
+    lost = int((~np.isfinite(grid.xy_d).all(axis=1)).sum())
+    if lost or not (np.isfinite(grid.matrix).all() and abs(np.linalg.det(grid.matrix)) > 1e-9):
+        what = (
+            f"the chief rays of {lost} of the {n * n} grid points"
+            if lost
+            else "the rays near the field centre"
+        )
+        fix = "smaller misalignments" if not relay.misalignment.is_zero else "a smaller field (--field)"
+        raise GeometrySpecError(f"{what} miss a mirror surface or the image plane; give {fix}")
     advance(n * n)
     px = 1e3 / float(pixel_size_um)  # px per image mm
     disp = grid.displacement

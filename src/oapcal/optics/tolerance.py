@@ -146,13 +146,19 @@ class Tolerancing:
         self.truth = base.xy_u
         self.scale0 = base.scale
         self.calibration = fit(base.xy_u, base.xy_d, model)
-        self.aligned = {k: float(v[0]) for k, v in self._metrics([base]).items() if k != "clear"}
+        metrics = self._metrics([base])
+        if metrics["lost"][0]:
+            raise GeometrySpecError(
+                "chief rays of the aligned relay's grid miss a mirror: give a smaller field"
+            )
+        self.aligned = {k: float(metrics[k][0]) for k in METRICS}
 
     # -------------------------------------------------------------- evaluation
 
     def _trace(self, relay: Relay) -> _Traced:
         grid = grid_distortion(relay, self.n, self.field_mm)
-        return _Traced(grid.xy_u * self.px + self.centre, grid.xy_d * self.px + self.centre,
+        with np.errstate(all="ignore"):  # a relay whose rays miss gives NaN, reported as lost
+            return _Traced(grid.xy_u * self.px + self.centre, grid.xy_d * self.px + self.centre,
                        grid.offset * self.px, float(np.sqrt(abs(np.linalg.det(grid.matrix)))),
                        bool(grid.clear.all()))  # fmt: skip
 
@@ -172,7 +178,8 @@ class Tolerancing:
         shift = np.stack([t.offset for t in traced])[:, None, :]
         both = undistort(np.concatenate([xy_d, xy_d - shift]), self.calibration.params).xy
         k = len(traced)
-        return _rigid_residuals(both[:k], self.truth), _similarity_residuals(both[k:], self.truth)
+        with np.errstate(all="ignore"):
+            return _rigid_residuals(both[:k], self.truth), _similarity_residuals(both[k:], self.truth)
 
     def _metrics(self, traced: list[_Traced]) -> dict[str, np.ndarray]:
         disp = np.stack([t.xy_d - t.xy_u for t in traced])
@@ -180,7 +187,8 @@ class Tolerancing:
         rigid, similar = self._corrected(traced)
         res = np.hypot(rigid[..., 0], rigid[..., 1])
         rec = np.hypot(similar[..., 0], similar[..., 1])
-        return {
+        lost = ~np.array([np.isfinite(t.xy_d).all() and np.isfinite(t.scale) for t in traced])
+        out = {
             "max_px": dist.max(-1),
             "mean_px": dist.mean(-1),
             "corrected_mean_px": res.mean(-1),
@@ -191,12 +199,16 @@ class Tolerancing:
             "scale_error_ppm": np.array([abs(t.scale / self.scale0 - 1.0) * 1e6 for t in traced]),
             "clear": np.array([t.clear for t in traced]),
         }
+        for key in METRICS:  # a relay whose chief rays miss has no metrics
+            out[key] = np.where(lost, np.nan, out[key])
+        out["lost"] = lost
+        return out
 
     def evaluate(self, misalignment: Misalignment | dict) -> dict[str, float]:
         """The :data:`METRICS` of one misaligned relay (and ``clear``: no chief ray of the
         grid is vignetted)."""
         m = self._metrics([self._trace(self.relay_for(misalignment))])
-        return {k: (bool(v[0]) if k == "clear" else float(v[0])) for k, v in m.items()}
+        return {k: (bool(v[0]) if k in ("clear", "lost") else float(v[0])) for k, v in m.items()}
 
     # -------------------------------------------------------------- sensitivity
 
@@ -286,8 +298,10 @@ class Tolerancing:
 
         Returns a JSON-ready dict: ``trials``, ``seed``, ``distribution``, ``tolerances``,
         ``percentiles``, ``summary`` (per metric: ``mean``, ``std``, ``max`` and ``p<q>``
-        for each percentile ``q``, over the trials where it is finite), ``n_failed``
-        (trials where the aligned calibration's inverse failed at some grid point),
+        for each percentile ``q``, over the trials where it is finite), ``n_lost`` (trials
+        where chief rays miss a mirror or the image plane: no metrics, left out of the
+        summary), ``n_failed`` (trials where the aligned calibration's inverse failed at
+        some grid point),
         ``n_vignetted`` (trials with a vignetted chief ray) and ``samples`` (each trial's
         misalignment values and metrics).  With ``refit`` each trial also refits the model
         to its own grid: ``refit_mean_px`` / ``refit_max_px``, the model's floor on that
@@ -313,6 +327,7 @@ class Tolerancing:
         if refit:
             metrics.update(self._refit(traced))
         clear = metrics.pop("clear")
+        lost = metrics.pop("lost")
         summary = {}
         for key, values in metrics.items():
             ok = values[np.isfinite(values)]
@@ -329,8 +344,9 @@ class Tolerancing:
             "tolerances": expand_tolerances(parameters=tolerances),
             "percentiles": pct,
             "summary": summary,
-            "n_failed": int((~np.isfinite(metrics["corrected_mean_px"])).sum()),
-            "n_vignetted": int((~clear).sum()),
+            "n_lost": int(lost.sum()),
+            "n_failed": int((~np.isfinite(metrics["corrected_mean_px"]) & ~lost).sum()),
+            "n_vignetted": int((~clear & ~lost).sum()),
             "samples": [
                 {
                     "misalignment": {k: getattr(m, k) for k in names},
@@ -346,6 +362,8 @@ class Tolerancing:
 
         mean, worst = np.full(len(traced), np.nan), np.full(len(traced), np.nan)
         for i, t in enumerate(traced):
+            if not (np.isfinite(t.xy_d).all() and np.isfinite(t.xy_u).all()):
+                continue  # a lost relay
             result = fit(t.xy_u, t.xy_d, self.model)
             if result.converged:
                 err = np.hypot(*(undistort(t.xy_d, result.params).xy - t.xy_u).T)
