@@ -79,3 +79,17 @@ def test_grid_plot_of_a_large_grid_draws_a_subgrid(tmp_path):
     grid = grid_distortion(oap_relay(1), n=35, field_mm=1.0)
     plot_grid(grid, tmp_path / "g.png", units="px", max_side=9)
     assert (tmp_path / "g.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_misaligned_field_is_centred_on_the_image_of_the_field_centre():
+    from oapcal.optics.relay import chief_rays, oap_relay
+
+    mis = {"m2_tilt_x": 0.05, "camera_tilt_y": 0.5}
+    field = relay_distortion(1, grid=49, misalignment=mis)
+    # The field centre's real image is where the paraxial map puts it (no displacement).
+    real = chief_rays(oap_relay(1, misalignment=mis), [0.0, 0.0]).xy_mm * 1e3 / 4.8 + field.centre
+    assert np.abs(field.paraxial_from_object_um([0.0, 0.0]) - real).max() < 1e-9
+    assert abs(real[1] - field.centre[1]) > 15  # 2 f tan(0.05 deg) = 89 um = 18.5 px off centre
+    px = np.random.default_rng(5).uniform([0, 0], [639, 479], (500, 2))
+    assert np.abs(field.forward(px) - field.traced(px)).max() < 0.05  # 49 nodes
+    assert np.abs(field.inverse(field.forward(px)) - px).max() < 1e-6
