@@ -482,3 +482,47 @@ def test_output_names_at_the_255_byte_limit(run_cli, files, tmp_path, name):
         tmp_path / ("b" * 251 + ".png"),
     )
     assert code == 0, err
+
+
+# -- item 24: messages that misled ---------------------------------------------------------------
+
+
+def test_report_on_a_huge_image_does_not_suggest_an_option_it_lacks(run_cli, files, tmp_path):
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", 20000, 20000, 8, 0, 0, 0, 0)
+    chunk = b"IHDR" + ihdr
+    png = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", len(ihdr)) + chunk + struct.pack(">I", zlib.crc32(chunk))
+    (tmp_path / "huge.png").write_bytes(png + b"\x00" * 64)
+    code, _, err = run_cli(
+        "report", files["calib"], "--image", tmp_path / "huge.png", "--out", tmp_path / "r.html"
+    )
+    one_error(code, err)
+    assert "huge.png: 20000x20000" in err and "--max-pixels" not in err and "crop" in err, err
+
+
+def test_semicolon_csv_gets_a_delimiter_hint(run_cli, tmp_path):
+    (tmp_path / "semi.csv").write_text("x_u;y_u;x_d;y_d\n0;0;1;1\n10;0;11;1\n0;10;1;12\n")
+    code, _, err = run_cli("fit", tmp_path / "semi.csv")
+    one_error(code, err)
+    assert "the file separates its columns with ';': save it with ','" in err
+    (tmp_path / "semi_l.csv").write_text("id;x;y\na;1;2\n")
+    code, _, err = run_cli(
+        "correct-points", files_calib(tmp_path), "--distorted", tmp_path / "semi_l.csv", "--out", "-"
+    )
+    one_error(code, err)
+    assert "separates its columns with ';'" in err
+
+
+def files_calib(tmp_path):
+    data = synthetic_pairs(n_x=5, n_y=4, seed=3)
+    save_calibration(calibrate(data.xy_u, data.xy_d), tmp_path / "c.json")
+    return tmp_path / "c.json"
+
+
+def test_missing_column_hint_does_not_name_a_required_column(run_cli, tmp_path):
+    (tmp_path / "p.csv").write_text("x_u,y_u\n1,2\n")
+    code, _, err = run_cli("fit", tmp_path / "p.csv")
+    one_error(code, err)
+    assert "missing columns 'x_d', 'y_d';" in err and "rename" not in err, err

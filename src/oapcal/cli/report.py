@@ -64,9 +64,19 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
     pairs = load_pairs(points) if points else None
     img = None
     if image:
+        from oapcal.errors import InputFileError
         from oapcal.io.imagefile import read_image_grey
 
-        img = read_image_grey(image)
+        try:
+            img = read_image_grey(image)
+        except InputFileError as exc:  # the reader's hint names correct's --max-pixels, not ours
+            text = str(exc)
+            if "--max-pixels" not in text:
+                raise
+            raise InputFileError(
+                text.split("; raise --max-pixels")[0] + "; the report takes images up to that size: "
+                "crop the image to the target or bin it"
+            ) from None
         from oapcal.io.calibration import check_model_region
 
         check_model_region(cal, (img.shape[1], img.shape[0]), source=calib)

@@ -106,12 +106,13 @@ def read_points(
     missing = [c for c in require if c not in header]
     if missing:
         hints = []
+        spare = [h for h in header if h not in PAIR_COLUMNS]  # a close match must not be needed itself
         for col in missing:
-            close = difflib.get_close_matches(col, header, n=1, cutoff=0.6)
+            close = difflib.get_close_matches(col, spare, n=1, cutoff=0.6)
             hints.append(f"{col!r}" + (f" (found {close[0]!r}: rename it)" if close else ""))
         raise InputFileError(
             f"{name}: line 1: missing column{'s' if len(missing) > 1 else ''} {', '.join(hints)}; "
-            f"the header must contain {','.join(require)}"
+            f"the header must contain {','.join(require)}{delimiter_hint(header)}"
         )
     dupes = sorted({h for h in header if header.count(h) > 1 and h in PAIR_COLUMNS + ("id",)})
     if dupes:
@@ -161,6 +162,20 @@ def read_points(
     if check_geometry:
         check_geometry_of(pairs)
     return pairs
+
+
+def delimiter_hint(header: list[str]) -> str:
+    """A hint for a header read as one column because the file separates its columns by
+    ``;`` or ``|`` (as spreadsheets set to a comma decimal separator write), else "".
+
+    >>> delimiter_hint(["x_u;y_u;x_d;y_d"])
+    "; the file separates its columns with ';': save it with ',' (or tabs)"
+    """
+    if len(header) == 1:
+        for sep in (";", "|"):
+            if sep in header[0]:
+                return f"; the file separates its columns with {sep!r}: save it with ',' (or tabs)"
+    return ""
 
 
 def check_geometry_of(pairs: PointPairs) -> None:

@@ -215,7 +215,9 @@ def _column(header: list[str], wanted: str, name: str, option: str) -> int:
         return folded.index(wanted.lower())
     close = difflib.get_close_matches(wanted, header, n=1, cutoff=0.5)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
+    from oapcal.io.points import delimiter_hint
+
     raise InputFileError(
         f"{name}: line 1: no column {wanted!r}{hint}; name the coordinate column with {option} "
-        f"(columns: {', '.join(header[:8])})"
+        f"(columns: {', '.join(header[:8])}){delimiter_hint(header)}"
     )
