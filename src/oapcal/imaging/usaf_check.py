@@ -546,14 +546,11 @@ REAL_IMAGES: dict[str, dict] = {
 }
 
 
-def check_real_image(path, **kwargs) -> tuple[UsafTarget, LayoutFit]:
-    """:func:`fit_layout` of one of :data:`REAL_IMAGES` in its layout, from its starting points."""
-    from pathlib import Path
-
+def check_real_image(image, name: str, **kwargs) -> tuple[UsafTarget, LayoutFit]:
+    """:func:`fit_layout` of ``image``, the real image ``name`` of :data:`REAL_IMAGES` (its file
+    name), in its layout, from its starting points."""
     from oapcal.imaging.usaf import usaf_target
-    from oapcal.io.imagefile import read_image_grey
 
-    cfg = REAL_IMAGES[Path(path).name]
+    cfg = REAL_IMAGES[name]
     target = usaf_target(cfg["groups"], cfg["layout"])
-    image = read_image_grey(path)
     return target, fit_layout(image, target, similarity_from_points(target, cfg["start"]), **kwargs)
