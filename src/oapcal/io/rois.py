@@ -51,13 +51,13 @@ def read_rois(path) -> tuple[list[tuple[int, int, int, int]], list[str]]:
             cell = row[col[c]].strip()
             try:
                 v = float(cell)
-                if not math.isfinite(v) or abs(v) > MAX_INDEX:
-                    raise ValueError
             except ValueError:
+                raise InputFileError(f"{name}: line {line}, column {c!r}: {cell!r} is not a number") from None
+            if not math.isfinite(v) or abs(v) > MAX_INDEX:
                 raise InputFileError(
                     f"{name}: line {line}, column {c!r}: {cell!r} is not a pixel index (a whole number "
                     f"between -{MAX_INDEX} and {MAX_INDEX})"
-                ) from None
+                )
             if v != int(v):
                 raise InputFileError(f"{name}: line {line}, column {c!r}: {cell} is not a whole pixel index")
             values.append(int(v))
