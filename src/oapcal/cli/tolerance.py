@@ -54,44 +54,26 @@ def _tolerance_options(func):
     return wrapper
 
 
+#: The relay's design options, shared with ``oapcal simulate relay`` (the same definitions).
+DESIGN_OPTIONS = ("setup", "d1", "orientation", "stop_distance", "focal_length", "focal_length_2")
+
+
+def _relay_design_options(func):
+    """``--setup --d1 --orientation --stop-distance --focal-length --focal-length-2``,
+    copies of ``oapcal simulate relay``'s options (same names, types, bounds and help)."""
+    import copy
+
+    from oapcal.cli.simulate_relay import relay_command
+
+    defined = {p.name: p for p in relay_command.params}
+    params = func.__dict__.setdefault("__click_params__", [])
+    for name in reversed(DESIGN_OPTIONS):  # click reverses the list when it builds the command
+        params.append(copy.copy(defined[name]))
+    return func
+
+
 @click.command("tolerance", cls=OneLineCommand)
-@click.option(
-    "--setup",
-    type=click.Choice(["1", "2"]),
-    default="1",
-    show_default=True,
-    help="The paper's setup: 1 (d1 = 860 mm) or 2 (d1 = 660 mm).",
-)
-@click.option(
-    "--d1", "d1", type=float, default=None, help="Collimated path length in mm (overrides --setup)."
-)
-@click.option(
-    "--orientation",
-    type=click.Choice(["U", "Z"], case_sensitive=False),
-    default="U",
-    show_default=True,
-    help="U: parent axes coincide; Z: second mirror rotated 180 degrees.",
-)
-@click.option(
-    "--stop-distance",
-    type=float,
-    default=None,
-    help="Aperture stop on the collimated path, mm after the first mirror (default: at it).",
-)
-@click.option(
-    "--focal-length",
-    type=float,
-    default=50.8,
-    show_default=True,
-    help="Reflected focal length of both mirrors, mm.",
-)
-@click.option(
-    "--focal-length-2",
-    "focal_length_2",
-    type=float,
-    default=None,
-    help="Reflected focal length of the second mirror, mm (default: --focal-length).",
-)
+@_relay_design_options
 @click.option("--grid", "n", type=int, default=17, show_default=True, help="Grid points per side.")
 @click.option(
     "--field",
