@@ -247,3 +247,13 @@ def test_the_command_line_offers_every_degree_of_freedom():
 
     # --d1 already sets the collimated path; every other parameter has its own option.
     assert MISALIGNMENT_UNITS == {k: unit for k, (unit, _) in PARAMETERS.items() if k != "d1"}
+
+
+@pytest.mark.parametrize("orientation", ["U", "Z"])
+def test_a_second_focal_length_magnifies_by_the_ratio(orientation):
+    from oapcal.optics.relay import paraxial_matrix
+
+    relay = oap_relay(1, orientation=orientation, focal_length_2_mm=60.0)
+    assert np.allclose(paraxial_matrix(relay), -(60.0 / 50.8) * np.eye(2), atol=1e-8)
+    # The camera sits at the second focus: the field centre is imaged at its origin.
+    assert np.abs(chief_rays(relay, np.zeros(2)).xy_mm).max() < 1e-12
