@@ -381,6 +381,11 @@ class UsafTarget:
         return np.array([*self.bars[:, :2].min(axis=0), *self.bars[:, 2:].max(axis=0)])
 
     @property
+    def digits(self) -> np.ndarray:
+        """Boxes ``(k, 4)`` um of all printed numbers (element and group numbers): :attr:`labels`."""
+        return self.labels
+
+    @property
     def full_bbox_um(self) -> np.ndarray:
         """``(x0, y0, x1, y1)`` of the bars, squares and labels."""
         r = np.concatenate([self.bars, self.squares, self.labels])
