@@ -3,9 +3,9 @@ import json
 import numpy as np
 import pytest
 
-from oapcal.calibrate import calibrate
+from oapcal.calibration import calibrate
 from oapcal.errors import InputFileError
-from oapcal.io.calibration import load_calibration, save_calibration
+from oapcal.io.calibration import calibration_to_dict, load_calibration, save_calibration
 
 
 @pytest.fixture
@@ -43,7 +43,7 @@ def test_round_trip_is_exact(tmp_path, cal):
     ],
 )
 def test_malformed_files_name_the_field(tmp_path, cal, mutate, pattern):
-    data = cal.to_dict()
+    data = calibration_to_dict(cal)
     mutate(data)
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(data))
@@ -86,7 +86,7 @@ _NUMBERS = [
 
 @pytest.mark.parametrize("mutate,pattern", _NUMBERS)
 def test_non_finite_and_absurd_numbers_are_refused(tmp_path, cal, mutate, pattern):
-    data = cal.to_dict()
+    data = calibration_to_dict(cal)
     mutate(data)
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(data))  # json.dumps writes NaN / Infinity as a hand edit would
@@ -95,7 +95,7 @@ def test_non_finite_and_absurd_numbers_are_refused(tmp_path, cal, mutate, patter
 
 
 def test_a_model_that_folds_inside_its_image_is_refused(tmp_path, cal):
-    data = cal.to_dict()
+    data = calibration_to_dict(cal)
     data["params"]["k1"] = -1e-5  # barrel so strong the map turns back inside 640x480
     path = tmp_path / "fold.json"
     path.write_text(json.dumps(data))
@@ -104,7 +104,7 @@ def test_a_model_that_folds_inside_its_image_is_refused(tmp_path, cal):
 
 
 def test_a_model_is_checked_on_the_image_it_is_applied_to(tmp_path, cal):
-    data = cal.to_dict()
+    data = calibration_to_dict(cal)
     data["image_size"] = None
     data["params"]["k1"] = -2e-8  # fine over the points (bounds), folds far outside them
     path = tmp_path / "c.json"
@@ -129,7 +129,7 @@ def test_a_model_is_checked_on_the_image_it_is_applied_to(tmp_path, cal):
 def test_commands_refuse_bad_calibrations(run_cli, tmp_path, cal, mutate, argv):
     import cv2
 
-    data = cal.to_dict()
+    data = calibration_to_dict(cal)
     mutate(data)
     (tmp_path / "c.json").write_text(json.dumps(data))
     cv2.imwrite(str(tmp_path / "img.png"), np.full((480, 640), 128, np.uint8))

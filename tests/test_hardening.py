@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from landmark_writers import bigwarp_csv, labelled, napari_csv, via2_csv, via2_json, via3_json
-from oapcal.calibrate import calibrate
+from oapcal.calibration import calibrate
 from oapcal.errors import OapcalError
 from oapcal.io.calibration import load_calibration, save_calibration
 from oapcal.io.landmarks import read_landmark_pairs, read_landmarks

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from oapcal.calibrate import calibrate
+from oapcal.calibration import calibrate
 from oapcal.io.calibration import save_calibration
 from oapcal.io.points import write_point_pairs
 from oapcal.synthetic import synthetic_pairs
@@ -50,16 +50,16 @@ def test_fit_on_degenerate_points_is_exit_2(run_cli, files, tmp_path, scale, shi
 
 
 def test_fit_with_non_finite_result_is_exit_3_and_writes_nothing(run_cli, files, tmp_path, monkeypatch):
-    import oapcal.calibrate
+    import oapcal.calibration as calibration_module
 
-    real = oapcal.calibrate.calibrate
+    real = calibration_module.calibrate
 
     def broken(*args, **kwargs):
         cal = real(*args, **kwargs)
         cal.params[0] = np.inf
         return cal
 
-    monkeypatch.setattr(oapcal.calibrate, "calibrate", broken)
+    monkeypatch.setattr(calibration_module, "calibrate", broken)
     code, stdout, err = run_cli("fit", files["points"], "--out", tmp_path / "c.json", "--json")
     one_error(code, err, 3)
     assert "non-finite parameters" in err and "nothing written" in err and stdout == ""

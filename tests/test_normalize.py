@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from oapcal.calibrate import calibrate
+from oapcal.calibration import calibrate
 from oapcal.errors import DataError
 from oapcal.normalize import normalize, normalize_experiment, normalize_grid
 

@@ -59,6 +59,22 @@ def test_each_name_resolves_and_is_documented(name):
     assert name in dir(oapcal)
 
 
+def test_functions_are_not_shadowed_by_submodules():
+    """``oapcal.calibrate`` stays the function after every submodule has been imported (a
+    submodule of the same name would replace it on import)."""
+    import pkgutil
+
+    for info in pkgutil.walk_packages(oapcal.__path__, "oapcal."):
+        if info.name.split(".")[1] not in {"cli", "__main__"}:
+            __import__(info.name)
+    shadowed = [n for n in PUBLIC - {"__version__"} if inspect.ismodule(getattr(oapcal, n))]
+    assert shadowed == [] or set(shadowed) <= KNOWN_SHADOWED, shadowed
+
+
+#: Public names that a submodule of the same name still replaces once it is imported.
+KNOWN_SHADOWED = {"fit"}
+
+
 def test_unknown_name_is_an_attribute_error():
     with pytest.raises(AttributeError, match="no attribute 'nonexistent'"):
         oapcal.nonexistent  # noqa: B018

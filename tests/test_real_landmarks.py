@@ -194,7 +194,7 @@ def test_napari_file_alone_gets_no_via_hint(run_cli, tmp_path):
 
 
 def test_correct_points_hint_names_only_the_distorted_image(run_cli, tmp_path):
-    from oapcal.calibrate import calibrate
+    from oapcal.calibration import calibrate
     from oapcal.io.calibration import save_calibration
     from oapcal.synthetic import synthetic_pairs
 

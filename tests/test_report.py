@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from oapcal.calibrate import calibrate
+from oapcal.calibration import calibrate
 from oapcal.imaging.bars import bar_target, demo_layout
 from oapcal.io.calibration import save_calibration
 from oapcal.io.points import write_point_pairs

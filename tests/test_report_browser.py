@@ -78,7 +78,7 @@ def test_probe_catches_errors_and_broken_images(tmp_path):
 
 @pytest.fixture(scope="module")
 def demo_like_report(tmp_path_factory):
-    from oapcal.calibrate import calibrate
+    from oapcal.calibration import calibrate
     from oapcal.imaging.bars import bar_target, demo_layout
     from oapcal.report import build_report, write_report
     from oapcal.synthetic import EXAMPLE_TRUTH, synthetic_pairs

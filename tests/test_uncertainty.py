@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from oapcal.calibrate import calibrate
+from oapcal.calibration import calibrate
 from oapcal.fit import fit_batch, initial_params
 from oapcal.model import distort, parse_model, undistort
 from oapcal.synthetic import EXAMPLE_TRUTH, synthetic_pairs

@@ -32,7 +32,7 @@ _API: dict[str, str] = {
     # fitting, calibration, model choice
     "fit": "oapcal.fit:fit",
     "FitResult": "oapcal.fit:FitResult",
-    "calibrate": "oapcal.calibrate:calibrate",
+    "calibrate": "oapcal.calibration:calibrate",
     "correction_residuals": "oapcal.stats:correction_residuals",
     "select_models": "oapcal.select:select_models",
     "Selection": "oapcal.select:Selection",
@@ -40,7 +40,7 @@ _API: dict[str, str] = {
     "robustness": "oapcal.select:robustness",
     "Robustness": "oapcal.select:Robustness",
     # the calibration record and point files
-    "Calibration": "oapcal.io.calibration:Calibration",
+    "Calibration": "oapcal.calibration:Calibration",
     "load_calibration": "oapcal.io.calibration:load_calibration",
     "save_calibration": "oapcal.io.calibration:save_calibration",
     "PointPairs": "oapcal.io.points:PointPairs",

@@ -93,7 +93,7 @@ def run_demo(
 def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoResult:
     """The steps of :func:`run_demo`, writing into ``out``; ``final`` is where the files
     will be (named in the calibration's ``source``)."""
-    from oapcal.calibrate import calibrate
+    from oapcal.calibration import calibrate
     from oapcal.imaging.detect import detect_usaf, evaluate_detection
     from oapcal.imaging.remap import correct_image, correction_map
     from oapcal.imaging.simulate import simulate_image, write_truth

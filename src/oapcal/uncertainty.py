@@ -18,7 +18,7 @@ Outside the convex hull of the calibration's reference points the model extrapol
 those pixels are flagged (``outside_hull``), whatever their sigma says.
 
 >>> from oapcal.synthetic import synthetic_pairs
->>> from oapcal.calibrate import calibrate
+>>> from oapcal.calibration import calibrate
 >>> data = synthetic_pairs(seed=0)
 >>> cal = calibrate(data.xy_u, data.xy_d, "paper", image_size=(640, 480))
 >>> umap = uncertainty_map(cal, step=40)

@@ -52,7 +52,7 @@ from oapcal.cli._common import (
 def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json):
     """Fit a distortion model to point pairs: a CSV with x_u,y_u,x_d,y_d (POINTS), or
     landmark files --distorted FILE --reference FILE (VIA, napari, BigWarp, CSV)."""
-    from oapcal.calibrate import calibrate
+    from oapcal.calibration import calibrate
     from oapcal.io.calibration import save_calibration
     from oapcal.model import parse_model
 

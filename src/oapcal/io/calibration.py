@@ -1,5 +1,7 @@
 """The calibration file: versioned JSON, validated on load, never a pickle.
 
+The record itself is :class:`oapcal.calibration.Calibration` (re-exported here).
+
 Layout (``docs/file-formats.md`` has an annotated example)::
 
     {"format": "oapcal-calibration", "version": 1, "oapcal_version": ..., "created_utc": ...,
@@ -24,20 +26,29 @@ bounds and on the ``image_size`` frame (:func:`check_model_region`).
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
-from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-from oapcal import __version__
+from oapcal.calibration import CHECK_GRID, Calibration, check_model_region
 from oapcal.errors import InputFileError
 from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
 from oapcal.io.textfile import read_json
-from oapcal.model import INDEX, N_PARAMS, PARAM_NAMES, parse_model
+from oapcal.model import INDEX, N_PARAMS, PARAM_NAMES
+
+__all__ = [
+    "CHECK_GRID",
+    "Calibration",
+    "calibration_from_dict",
+    "calibration_to_dict",
+    "check_model_region",
+    "load_calibration",
+    "save_calibration",
+    "validate",
+]
 
 FORMAT = "oapcal-calibration"
 VERSION = 1
@@ -50,114 +61,82 @@ M_RANGE = (1e-12, 1e12)
 UM_PER_PX_RANGE = (1e-6, 1e6)
 #: Largest side of ``image_size`` (px).
 MAX_IMAGE_SIDE = 1_000_000
-#: Points per side of the grid on which :func:`check_model_region` evaluates the model.
-CHECK_GRID = 65
 
 
 def _schema() -> dict:
     return json.loads(resources.files("oapcal.io").joinpath("calibration.schema.json").read_text())
 
 
-@dataclass(frozen=True)
-class Calibration:
-    """A fitted distortion model and what is known about it.
+def calibration_to_dict(calibration: Calibration) -> dict:
+    """The JSON object of a calibration file."""
+    return json_safe(
+        {
+            "format": FORMAT,
+            "version": VERSION,
+            "oapcal_version": calibration.oapcal_version,
+            "created_utc": calibration.created_utc,
+            "name": calibration.name,
+            "source": calibration.source,
+            "free": list(calibration.free),
+            "params": calibration.params_dict,
+            "stderr": {n: float(calibration.stderr[INDEX[n]]) for n in calibration.free},
+            "covariance": np.asarray(calibration.covariance, float).tolist(),
+            "fit": calibration.fit,
+            "residuals": calibration.residuals,
+            "um_per_px": calibration.um_per_px,
+            "image_size": list(calibration.image_size) if calibration.image_size else None,
+            "bounds": list(calibration.bounds) if calibration.bounds is not None else None,
+            "hull": np.asarray(calibration.hull).tolist() if calibration.hull is not None else None,
+        }
+    )
 
-    ``params`` is the ``(13,)`` vector; ``stderr`` the ``(13,)`` standard errors (NaN for
-    fixed parameters); ``covariance`` the ``k x k`` covariance over ``free``.
-    ``fit`` and ``residuals`` are plain dicts (see the module docstring).
-    """
 
-    free: tuple[str, ...]
-    params: np.ndarray
-    stderr: np.ndarray
-    covariance: np.ndarray
-    fit: dict
-    residuals: dict
-    um_per_px: float | None = None
-    image_size: tuple[int, int] | None = None
-    bounds: tuple[float, float, float, float] | None = None
-    hull: np.ndarray | None = None
-    name: str | None = None
-    source: str | None = None
-    oapcal_version: str = __version__
-    created_utc: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
-
-    @property
-    def mask(self) -> np.ndarray:
-        return parse_model(self.free)
-
-    @property
-    def params_dict(self) -> dict[str, float]:
-        return {n: float(v) for n, v in zip(PARAM_NAMES, self.params)}
-
-    def to_dict(self) -> dict:
-        return json_safe(
-            {
-                "format": FORMAT,
-                "version": VERSION,
-                "oapcal_version": self.oapcal_version,
-                "created_utc": self.created_utc,
-                "name": self.name,
-                "source": self.source,
-                "free": list(self.free),
-                "params": self.params_dict,
-                "stderr": {n: float(self.stderr[INDEX[n]]) for n in self.free},
-                "covariance": np.asarray(self.covariance, float).tolist(),
-                "fit": self.fit,
-                "residuals": self.residuals,
-                "um_per_px": self.um_per_px,
-                "image_size": list(self.image_size) if self.image_size else None,
-                "bounds": list(self.bounds) if self.bounds is not None else None,
-                "hull": np.asarray(self.hull).tolist() if self.hull is not None else None,
-            }
-        )
-
-    @classmethod
-    def from_dict(cls, data: dict, source: str = "calibration") -> Calibration:
-        validate(data, source)
-        _check_numbers(data, source)
-        free = tuple(n for n in PARAM_NAMES if n in data["free"])
-        params = np.array([float(data["params"][n]) for n in PARAM_NAMES])
-        for name in PARAM_NAMES:
-            if name not in free and params[INDEX[name]] != 0.0:
-                raise InputFileError(
-                    f"{source}: field 'params.{name}' is {params[INDEX[name]]:g} but {name} is not "
-                    "in 'free'; fixed parameters must be 0"
-                )
-        stderr = np.full(N_PARAMS, np.nan)
-        for name, value in data["stderr"].items():
-            if name not in free:
-                raise InputFileError(f"{source}: field 'stderr.{name}': {name} is not a free parameter")
-            stderr[INDEX[name]] = np.nan if value is None else float(value)
-        rows = data["covariance"]
-        k = len(free)
-        if len(rows) != k or any(len(row) != k for row in rows):
+def calibration_from_dict(data: dict, source: str = "calibration") -> Calibration:
+    """A validated :class:`Calibration` from the JSON object of a calibration file."""
+    validate(data, source)
+    _check_numbers(data, source)
+    free = tuple(n for n in PARAM_NAMES if n in data["free"])
+    params = np.array([float(data["params"][n]) for n in PARAM_NAMES])
+    for name in PARAM_NAMES:
+        if name not in free and params[INDEX[name]] != 0.0:
             raise InputFileError(
-                f"{source}: field 'covariance' must be {k} x {k} (one row and column per free "
-                "parameter, in 'free' order)"
+                f"{source}: field 'params.{name}' is {params[INDEX[name]]:g} but {name} is not "
+                "in 'free'; fixed parameters must be 0"
             )
-        cov = np.array([[np.nan if v is None else float(v) for v in row] for row in rows], float)
-        cov = cov.reshape(k, k)
-        size = data.get("image_size")
-        hull = data.get("hull")
-        cal = cls(
-            free=free,
-            params=params,
-            stderr=stderr,
-            covariance=cov,
-            fit=dict(data["fit"]),
-            residuals=dict(data["residuals"]),
-            um_per_px=data.get("um_per_px"),
-            image_size=tuple(size) if size else None,
-            bounds=tuple(data["bounds"]) if data.get("bounds") else None,
-            hull=np.array(hull, float) if hull else None,
-            name=data.get("name"),
-            source=data.get("source"),
-            oapcal_version=data.get("oapcal_version", "unknown"),
-            created_utc=data.get("created_utc", "unknown"),
+    stderr = np.full(N_PARAMS, np.nan)
+    for name, value in data["stderr"].items():
+        if name not in free:
+            raise InputFileError(f"{source}: field 'stderr.{name}': {name} is not a free parameter")
+        stderr[INDEX[name]] = np.nan if value is None else float(value)
+    rows = data["covariance"]
+    k = len(free)
+    if len(rows) != k or any(len(row) != k for row in rows):
+        raise InputFileError(
+            f"{source}: field 'covariance' must be {k} x {k} (one row and column per free "
+            "parameter, in 'free' order)"
         )
-        check_model_region(cal, source=source)
-        return cal
+    cov = np.array([[np.nan if v is None else float(v) for v in row] for row in rows], float)
+    cov = cov.reshape(k, k)
+    size = data.get("image_size")
+    hull = data.get("hull")
+    cal = Calibration(
+        free=free,
+        params=params,
+        stderr=stderr,
+        covariance=cov,
+        fit=dict(data["fit"]),
+        residuals=dict(data["residuals"]),
+        um_per_px=data.get("um_per_px"),
+        image_size=tuple(size) if size else None,
+        bounds=tuple(data["bounds"]) if data.get("bounds") else None,
+        hull=np.array(hull, float) if hull else None,
+        name=data.get("name"),
+        source=data.get("source"),
+        oapcal_version=data.get("oapcal_version", "unknown"),
+        created_utc=data.get("created_utc", "unknown"),
+    )
+    check_model_region(cal, source=source)
+    return cal
 
 
 def validate(data, source: str = "calibration") -> None:
@@ -251,51 +230,9 @@ def _check_numbers(data: dict, source: str) -> None:
         )
 
 
-def check_model_region(calibration, size: tuple[int, int] | None = None, *, source: str = "calibration"):
-    """Refuse a model that is not finite or folds over (Jacobian determinant <= 0) where it is
-    applied: over the reference points' ``bounds``, the calibration's ``image_size`` frame,
-    and the frame of ``size = (width, height)`` px if given (the image it is applied to).
-
-    The model is evaluated on a :data:`CHECK_GRID` x :data:`CHECK_GRID` grid over each region.
-    Raises :class:`InputFileError` naming the first bad point.
-
-    >>> from oapcal.model import params_from_dict
-    >>> check_model_region(params_from_dict({"k1": 1e-7}), (640, 480))
-    >>> try:
-    ...     check_model_region(params_from_dict({"k1": -1e-5}), (640, 480), source="c.json")
-    ... except InputFileError as e:
-    ...     print(str(e)[:60])
-    c.json: the model folds over at (x, y) = (189.703, 0) inside
-    """
-    from oapcal.model import distort, jacobian_determinant
-
-    params = np.asarray(getattr(calibration, "params", calibration), float)
-    regions = []
-    bounds = getattr(calibration, "bounds", None)
-    if bounds is not None:
-        regions.append((tuple(float(b) for b in bounds), "reference points' bounds"))
-    for frame in (getattr(calibration, "image_size", None), size):
-        if frame is not None:
-            w, h = int(frame[0]), int(frame[1])
-            regions.append(((0.0, 0.0, float(max(w - 1, 1)), float(max(h - 1, 1))), f"{w}x{h} px image"))
-    with np.errstate(all="ignore"):
-        for (x0, y0, x1, y1), what in regions:
-            gx, gy = np.meshgrid(np.linspace(x0, x1, CHECK_GRID), np.linspace(y0, y1, CHECK_GRID))
-            xy = np.stack([gx.ravel(), gy.ravel()], -1)
-            det = jacobian_determinant(xy, params)
-            bad = ~(np.isfinite(distort(xy, params)).all(-1) & np.isfinite(det) & (det > 0))
-            if bad.any():
-                x, y = xy[np.argmax(bad)]
-                how = "folds over" if np.isfinite(det[np.argmax(bad)]) else "is not finite"
-                raise InputFileError(
-                    f"{source}: the model {how} at (x, y) = ({x:.6g}, {y:.6g}) inside the {what}; "
-                    "it cannot correct there (refit with more points or a smaller model)"
-                )
-
-
 def save_calibration(calibration: Calibration, path: str | Path) -> None:
     """Write a calibration file atomically (``-`` writes to stdout)."""
-    text = json.dumps(calibration.to_dict(), indent=2) + "\n"
+    text = json.dumps(calibration_to_dict(calibration), indent=2) + "\n"
     if str(path) == "-":
         import sys
 
@@ -314,7 +251,7 @@ def load_calibration(path: str | Path, image_size: tuple[int, int] | None = None
     data = read_json(
         path, "calibration file", missing="no such calibration file; run 'oapcal fit' to make one"
     )
-    cal = Calibration.from_dict(data, source=name)
+    cal = calibration_from_dict(data, source=name)
     if image_size is not None:
         check_model_region(cal, image_size, source=name)
     return cal

@@ -1,0 +1,166 @@
+"""The calibration record, and :func:`calibrate`, which makes it from point pairs:
+normalize, fit, score the correction as in the paper's Table 1, record the calibrated
+region.  ``imaging`` and ``report`` use the record; its file format lives in
+:mod:`oapcal.io.calibration`.
+
+>>> from oapcal.synthetic import synthetic_pairs
+>>> data = synthetic_pairs(seed=0)
+>>> cal = calibrate(data.xy_u, data.xy_d, model="paper")
+>>> cal.fit["converged"], cal.residuals["mean_px"] < 1.0
+(True, True)
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from oapcal import __version__
+from oapcal.errors import InputFileError
+from oapcal.model import PARAM_NAMES, parse_model
+from oapcal.normalize import normalize
+from oapcal.stats import correction_residuals
+
+#: Points per side of the grid on which :func:`check_model_region` evaluates the model.
+CHECK_GRID = 65
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A fitted distortion model and what is known about it.
+
+    ``params`` is the ``(13,)`` vector; ``stderr`` the ``(13,)`` standard errors (NaN for
+    fixed parameters); ``covariance`` the ``k x k`` covariance over ``free``.
+    ``fit`` and ``residuals`` are plain dicts (their keys: :mod:`oapcal.io.calibration`).
+    """
+
+    free: tuple[str, ...]
+    params: np.ndarray
+    stderr: np.ndarray
+    covariance: np.ndarray
+    fit: dict
+    residuals: dict
+    um_per_px: float | None = None
+    image_size: tuple[int, int] | None = None
+    bounds: tuple[float, float, float, float] | None = None
+    hull: np.ndarray | None = None
+    name: str | None = None
+    source: str | None = None
+    oapcal_version: str = __version__
+    created_utc: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
+
+    @property
+    def mask(self) -> np.ndarray:
+        return parse_model(self.free)
+
+    @property
+    def params_dict(self) -> dict[str, float]:
+        return {n: float(v) for n, v in zip(PARAM_NAMES, self.params)}
+
+
+def check_model_region(calibration, size: tuple[int, int] | None = None, *, source: str = "calibration"):
+    """Refuse a model that is not finite or folds over (Jacobian determinant <= 0) where it is
+    applied: over the reference points' ``bounds``, the calibration's ``image_size`` frame,
+    and the frame of ``size = (width, height)`` px if given (the image it is applied to).
+
+    The model is evaluated on a :data:`CHECK_GRID` x :data:`CHECK_GRID` grid over each region.
+    Raises :class:`InputFileError` naming the first bad point.
+
+    >>> from oapcal.model import params_from_dict
+    >>> check_model_region(params_from_dict({"k1": 1e-7}), (640, 480))
+    >>> try:
+    ...     check_model_region(params_from_dict({"k1": -1e-5}), (640, 480), source="c.json")
+    ... except InputFileError as e:
+    ...     print(str(e)[:60])
+    c.json: the model folds over at (x, y) = (189.703, 0) inside
+    """
+    from oapcal.model import distort, jacobian_determinant
+
+    params = np.asarray(getattr(calibration, "params", calibration), float)
+    regions = []
+    bounds = getattr(calibration, "bounds", None)
+    if bounds is not None:
+        regions.append((tuple(float(b) for b in bounds), "reference points' bounds"))
+    for frame in (getattr(calibration, "image_size", None), size):
+        if frame is not None:
+            w, h = int(frame[0]), int(frame[1])
+            regions.append(((0.0, 0.0, float(max(w - 1, 1)), float(max(h - 1, 1))), f"{w}x{h} px image"))
+    with np.errstate(all="ignore"):
+        for (x0, y0, x1, y1), what in regions:
+            gx, gy = np.meshgrid(np.linspace(x0, x1, CHECK_GRID), np.linspace(y0, y1, CHECK_GRID))
+            xy = np.stack([gx.ravel(), gy.ravel()], -1)
+            det = jacobian_determinant(xy, params)
+            bad = ~(np.isfinite(distort(xy, params)).all(-1) & np.isfinite(det) & (det > 0))
+            if bad.any():
+                x, y = xy[np.argmax(bad)]
+                how = "folds over" if np.isfinite(det[np.argmax(bad)]) else "is not finite"
+                raise InputFileError(
+                    f"{source}: the model {how} at (x, y) = ({x:.6g}, {y:.6g}) inside the {what}; "
+                    "it cannot correct there (refit with more points or a smaller model)"
+                )
+
+
+def calibrate(
+    xy_u,
+    xy_d,
+    model="paper",
+    *,
+    init="auto",
+    normalization: str = "none",
+    um_per_px: float | None = None,
+    image_size: tuple[int, int] | None = None,
+    name: str | None = None,
+    source: str | None = None,
+    **fit_options,
+) -> Calibration:
+    """Fit ``model`` to reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``.
+
+    ``um_per_px`` is the object-space size of one unit of the reference points *as given*;
+    with ``normalization="experiment"`` it is converted through the normalization scale.
+    The residual statistics are those of :func:`oapcal.stats.correction_residuals`.
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    from oapcal.fit import fit
+
+    norm = normalize(normalization, xy_u, xy_d)
+    result = fit(norm.xy_u, norm.xy_d, model, init=init, **fit_options)
+    scale = None if um_per_px is None else float(um_per_px) / norm.scale_u
+    residuals = correction_residuals(result.params, norm.xy_u, norm.xy_d, scale)
+    try:
+        hull = norm.xy_u[ConvexHull(norm.xy_u).vertices]
+    except QhullError:
+        hull = None
+    lo = norm.xy_u.min(axis=0)
+    hi = norm.xy_u.max(axis=0)
+    init_name = init if isinstance(init, str) else "user"
+    return Calibration(
+        free=result.free,
+        params=np.array(result.params),
+        stderr=np.array(result.stderr),
+        covariance=np.array(result.covariance),
+        fit={
+            "n_points": len(norm.xy_u),
+            "n_residuals": result.n,
+            "k": result.k,
+            "rss": result.rss,
+            "aic": result.aic,
+            "aicc": result.aicc,
+            "bic": result.bic,
+            "converged": result.converged,
+            "status": result.status,
+            "message": result.message,
+            "n_iter": result.n_iter,
+            "init": init_name,
+            "normalize": normalization,
+        },
+        residuals=residuals.to_dict(),
+        um_per_px=scale,
+        image_size=tuple(int(v) for v in image_size) if image_size else None,
+        bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])),
+        hull=hull,
+        name=name,
+        source=source,
+    )
