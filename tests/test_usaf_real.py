@@ -119,4 +119,8 @@ def test_fit_recovers_a_known_affine_pose_on_a_blurred_noisy_rendering():
     corners = t.corners_um[::7]
     expected = t.to_reference_px(corners, 2.5, (420, 380)) @ a.T + m[:, 2]
     np.testing.assert_allclose(fit(corners), expected, atol=0.1)
+    by_id = fit.corners_px(t)
+    assert len(by_id) == 288
+    true_all = t.to_reference_px(t.corners_um, 2.5, (420, 380)) @ a.T + m[:, 2]
+    np.testing.assert_allclose(by_id["G5E6V2C2"], true_all[t.corner_ids.index("G5E6V2C2")], atol=0.1)
     assert fit.um_per_px == pytest.approx(2.5 / np.sqrt(np.linalg.det(a)), rel=1e-3)

@@ -100,6 +100,18 @@ class LayoutFit:
         """rms of :meth:`centre_residuals_px`."""
         return float(np.sqrt(np.mean(self.centre_residuals_px() ** 2)))
 
+    def corners_px(self, target: UsafTarget) -> dict[str, np.ndarray]:
+        """The bar corners of the triplets this fit measured, through the fitted map: id ->
+        image px (a reference independent of the detector, as good as :attr:`rms_px`)."""
+        measured = set(self.edge_triplet)
+        names = np.array(
+            [f"G{g}E{e}{o}" for g, e, o in zip(target.bar_group, target.bar_element, target.bar_orientation)]
+        )
+        keep = np.repeat(np.isin(names, list(measured)), 4)
+        xy = self(target.corners_um[keep])
+        ids = [i for i, k in zip(target.corner_ids, keep) if k]
+        return dict(zip(ids, xy))
+
     @property
     def um_per_px(self) -> float:
         """Mean scale of the map at its centre (um per image px)."""
