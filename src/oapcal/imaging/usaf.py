@@ -11,7 +11,8 @@ Numbers of the standard (MIL-STD-150A, the 1951 USAF resolving power test target
   larger one scaled by 1/4 and nested inside it.
 
 The layout of a layer, in units of ``w1`` (bar width of the even group's element 1), as
-drawn by the standard's target and measured on real targets (``docs/usaf.md``):
+measured on real targets (``docs/usaf.md``); the numbers are those of the default
+``"compact"`` layout:
 
 * the even group's elements 2-6 form the *left column*, left-aligned, drawn "digit,
   horizontal bars, vertical bars" from left to right, the two triplets ``2 w`` apart;
@@ -24,13 +25,14 @@ drawn by the standard's target and measured on real targets (``docs/usaf.md``):
 * the reference square fills the gap between the left column's element 2 (``2 w2`` from
   it) and the right column's element 1 (``2 w`` of that element from it), top-aligned;
 * the next layer (scaled 1/4) sits below the square, between the columns, at
-  ``(11.90, 9.07) w1`` (its top-left corner; measured, see ``docs/usaf.md``);
+  ``(11.95, 8.98) w1`` (its top-left corner; measured, see ``docs/usaf.md``);
 * group numbers stand above the columns, element numbers beside each element (the
   boxes :attr:`UsafTarget.labels` are approximate: they are for masking, not landmarks).
 
-Makers differ in the size of the square, in the gap between the columns and in the
-position and mirroring of the nested layers; :data:`LAYOUTS` holds the layouts measured on
-real targets (``"compact"`` is the default).
+Makers differ in the gaps between triplets and between elements (3.5 w on one target),
+in the width of the layer, the size of the square and the position and mirroring of the
+nested layers; :data:`LAYOUTS` holds the layouts measured on real targets (``"compact"``
+is the default).
 
 Coordinates: object space in um, x to the right and y *down* (as in the image), origin at
 the centre of the nested spiral of layers.  Every bar corner has an id such as
