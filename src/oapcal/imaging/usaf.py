@@ -201,8 +201,8 @@ class UsafLayout:
 
 
 #: Layouts measured on real targets (``docs/usaf.md``, :func:`oapcal.imaging.usaf_check.measure_layout`).
-#: ``compact`` (default): 2 w gaps, square layer; the Fourier-ptychography target and public
-#: renderings of the standard.  ``spaced``: 3.5 w between elements, a smaller square (the
+#: ``compact`` (default): 2 w gaps, square layer; the Fourier-ptychography target (and the
+#: high-magnification one, as far as it shows).  ``spaced``: 3.5 w between elements, a smaller square (the
 #: LAB-UMK target).  ``whole-target``: the digitised whole target with the header "RESOLVING
 #: POWER TEST TARGET" (wider layer, tall square, layer 0-1 mirrored left-right).
 LAYOUTS: dict[str, UsafLayout] = {
