@@ -19,6 +19,28 @@ TABLE = {(4, 1): 16.00, (4, 3): 20.16, (4, 6): 28.51, (5, 1): 32.00, (5, 4): 45.
          (0, 1): 1.00, (2, 2): 4.49, (7, 6): 228.07}  # fmt: skip
 
 
+# The whole published lookup table (lp/mm, rows: element 1-6, columns: group -2 to 9), as
+# printed, e.g. in the "1951 USAF resolution test chart" article's table.
+PUBLISHED = """
+0.250 0.500 1.00 2.00 4.00 8.00 16.00 32.0 64.0 128.0 256.0 512.0
+0.281 0.561 1.12 2.24 4.49 8.98 17.96 35.9 71.8 143.7 287.4 574.7
+0.315 0.630 1.26 2.52 5.04 10.08 20.16 40.3 80.6 161.3 322.5 645.1
+0.354 0.707 1.41 2.83 5.66 11.31 22.63 45.3 90.5 181.0 362.0 724.1
+0.397 0.794 1.59 3.17 6.35 12.70 25.40 50.8 101.6 203.2 406.4 812.7
+0.445 0.891 1.78 3.56 7.13 14.25 28.51 57.0 114.0 228.1 456.1 912.3
+"""
+
+
+def test_every_entry_of_the_published_table():
+    rows = [line.split() for line in PUBLISHED.strip().splitlines()]
+    assert len(rows) == 6 and all(len(r) == 12 for r in rows)
+    for e, row in enumerate(rows, start=1):
+        for g, text in zip(range(-2, 10), row):
+            decimals = len(text.split(".")[1])
+            # equal to the printed value to half a unit of its last digit
+            assert abs(line_pairs_per_mm(g, e) - float(text)) <= 0.5 * 10.0**-decimals + 1e-12, (g, e)
+
+
 @pytest.mark.parametrize("ge,lp", TABLE.items())
 def test_resolution_matches_the_published_table(ge, lp):
     assert line_pairs_per_mm(*ge) == pytest.approx(lp, abs=0.006)
