@@ -25,10 +25,10 @@ ORIENTATION_CHOICES = (
 @click.option("--groups", default="4-5", show_default=True, help="USAF groups in the image, e.g. 4-5.")
 @click.option(
     "--um-per-px",
-    type=click.FloatRange(min=0, min_open=True),
-    required=True,
-    help="Scale of the reference points x_u,y_u (object um per px); "
-    "about the camera's object-space pixel size.",
+    type=click.FloatRange(min=1e-4, max=1e4),
+    default=None,
+    help="The camera's object-space pixel size (um per px), to within 30 % (6 % decides the element "
+    "when one element alone is in view); also the scale of x_u,y_u.  Leave it out to find the scale.",
 )
 @click.option(
     "--out",
@@ -65,9 +65,21 @@ ORIENTATION_CHOICES = (
     help="The target's orientation in the image (turned about the image centre; "
     "docs/detection.md); auto: find it.",
 )
+@click.option(
+    "--mirror",
+    type=click.Choice(["auto", "yes", "no"]),
+    default="auto",
+    show_default=True,
+    help="Whether the image is mirrored (auto: find it; a single element in view cannot tell).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
-def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stderr_px, orientation, as_json):
-    """Detect the bar corners of a USAF-1951 target and match them to the reference target."""
+def detect_command(
+    image, target, groups, um_per_px, out, truth, plot, max_stderr_px, orientation, mirror, as_json
+):
+    """Detect the bar corners of a USAF-1951 target and match them to the reference target.
+
+    Exit 0 with the points written, or exit 3 with the reason (and, with --plot, a picture
+    of what was found) when the target is not found or its identity is not certain."""
     from oapcal.imaging.detect import detect_usaf, evaluate_detection
     from oapcal.imaging.usaf import parse_groups
     from oapcal.io.imagefile import read_image_grey
@@ -76,6 +88,7 @@ def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stder
     check_output(out, image, truth)
     check_output(plot, image, truth, out)
     group_list = parse_groups(groups)
+    _check_size(image)
     img = read_image_grey(image)
     score = _read_truth(truth) if truth else None
     if score is not None:
@@ -89,27 +102,34 @@ def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stder
                 f"{truth}: has no row with id {missing[0]!r}; is it the truth of this image and these groups?"
             )
     det = detect_usaf(
-        img, group_list, um_per_px, orientation=orientation, max_stderr_px=max_stderr_px,
+        img, group_list, um_per_px, orientation=orientation, mirror=mirror, max_stderr_px=max_stderr_px,
         progress=not as_json,
     )  # fmt: skip
     summary = det.summary()
     if score is not None:
         summary["truth"] = evaluate_detection(det, *score)
     if det.status != 0:
+        if plot:
+            from oapcal.imaging.detect_plot import plot_detection
+
+            plot_detection(img, det, plot, groups=groups)
         click.echo(f"oapcal: detection failed: {det.message}", err=True)
         if score is not None and not as_json:
             _print_summary(summary)
         if as_json:
             print_json(summary)
         return 3
-    write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)
+    # All outputs or none: the picture is drawn to a temporary file first, then the points
+    # are written, then the picture is moved into place.
     if plot:
-        from oapcal.imaging.detect_plot import plot_image
+        from oapcal.imaging.detect_plot import plot_detection
+        from oapcal.io.atomic import atomic_path
 
-        plot_image(
-            img, plot, title=f"{len(det.ids)} corners detected (groups {groups})",
-            points={"detected": det.xy_d}, crop=_crop(det.xy_d, img.shape),
-        )  # fmt: skip
+        with atomic_path(plot) as tmp_plot:
+            plot_detection(img, det, tmp_plot, groups=groups)
+            write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)
+    else:
+        write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)
     if as_json:
         print_json(summary)
     elif out != "-":
@@ -117,14 +137,27 @@ def detect_command(image, target, groups, um_per_px, out, truth, plot, max_stder
     return 0
 
 
-def _crop(xy, shape, pad=25.0):
-    import numpy as np
+def _check_size(path):
+    """Refuse an image larger than detection handles, with a message for this command."""
+    from oapcal.errors import InputFileError
+    from oapcal.imaging.detect.core import MAX_IMAGE_PIXELS
+    from oapcal.io.images import probe
 
-    if len(xy) == 0:
-        return None
-    lo = np.maximum(xy.min(axis=0) - pad, -0.5)
-    hi = np.minimum(xy.max(axis=0) + pad, [shape[1] - 0.5, shape[0] - 0.5])
-    return np.array([lo[0], lo[1], hi[0], hi[1]])
+    try:
+        info = probe(path)
+    except InputFileError as exc:
+        if "max-pixels" in str(exc):
+            raise InputFileError(
+                f"{path}: too large for detection (at most {MAX_IMAGE_PIXELS} px); "
+                f"crop it to the target or bin it"
+            ) from None
+        raise
+    rows, cols = info.frame_shape[:2]
+    if rows * cols > MAX_IMAGE_PIXELS:
+        raise InputFileError(
+            f"{path}: {cols} x {rows} px is too large for detection (at most {MAX_IMAGE_PIXELS} px); "
+            f"crop it to the target or bin it"
+        )
 
 
 def _read_truth(path):
@@ -150,10 +183,24 @@ def _print_summary(s: dict) -> None:
     m = s["orientation_matrix"]
     scores = list(s["orientation_scores"].items())
     runner_up = f", next {scores[1][0]} {scores[1][1]:.3f}" if len(scores) > 1 else ""
-    out.print(
-        f"target orientation {s['orientation']} (x_u,y_u = centre + [[{m[0][0]}, {m[0][1]}], "
-        f"[{m[1][0]}, {m[1][1]}]] (reference - centre); correlation {scores[0][1]:.3f}{runner_up})"
-    )
+    if not s["found"] and not s.get("truth"):
+        return
+    pose = s.get("pose", {}).get("best")
+    if pose:
+        out.print(
+            f"target found: {pose['um_per_px']:.4g} um/px, turned {pose['rotation_deg']:.1f} degrees"
+            f"{', mirrored' if pose['mirrored'] else ''}; {pose['matched_triplets']} bar triplets matched"
+        )
+    if scores:
+        out.print(
+            f"target orientation {s['orientation']} (x_u,y_u = centre + [[{m[0][0]}, {m[0][1]}], "
+            f"[{m[1][0]}, {m[1][1]}]] (reference - centre); correlation {scores[0][1]:.3f}{runner_up})"
+        )
+    else:
+        out.print(
+            f"target orientation {s['orientation']} (x_u,y_u = centre + [[{m[0][0]}, {m[0][1]}], "
+            f"[{m[1][0]}, {m[1][1]}]] (reference - centre)), x_u,y_u at {s['um_per_px']:.4g} um/px"
+        )
     out.print(
         f"found {s['found']} of {s['expected']} corners expected fully inside the image "
         f"(coverage {100 * s['coverage']:.1f} %); {s['polarity']} bars, "

@@ -48,3 +48,73 @@ def plot_image(
     with atomic_path(path) as tmp:
         fig.savefig(tmp)
     plt.close(fig)
+
+
+def plot_detection(image: np.ndarray, det, path: str | Path, *, groups: str = "") -> None:
+    """Save a picture of a detection, successful or not: the image, the bar triplets found
+    (circles), the best pose's prediction of the named groups' triplets (boxes; dashed for
+    a rival pose the detection could not rule out), the detected corners, and the outcome
+    (or the reason for the refusal) as the title."""
+    import textwrap
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from oapcal.io.atomic import atomic_path
+
+    h, w = image.shape[:2]
+    fig, ax = plt.subplots(figsize=(7.2, 6.0), dpi=100)
+    ax.imshow(image, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5), interpolation="nearest")
+    dbg = getattr(det, "debug", {}) or {}
+    trips = dbg.get("image_triplets")
+    if trips is not None and len(trips):
+        for (x, y), wd in zip(trips.centre, trips.width):
+            ax.add_patch(plt.Circle((x, y), max(2.5 * wd, 3.0), fill=False, color="tab:cyan", lw=0.7))
+        ax.plot([], [], "o", mfc="none", color="tab:cyan", label=f"bar triplets found ({len(trips)})")
+    ref = dbg.get("ref")
+    for key, style, label in (("pose", "-", "best pose"), ("runner_up", "--", "rival pose")):
+        pose = dbg.get(key)
+        if pose is None or ref is None or (key == "runner_up" and det.status == 0):
+            continue
+        for j in range(len(ref.width)):
+            wpx = ref.width[j] * pose.s
+            if wpx < 1.5:
+                continue
+            half = 2.5 * ref.width[j]
+            c = ref.centre[j]
+            box = np.array(
+                [
+                    c + [-half, -half],
+                    c + [half, -half],
+                    c + [half, half],
+                    c + [-half, half],
+                    c + [-half, -half],
+                ]
+            )
+            xy = pose.apply(box)
+            if (xy[:, 0].max() < 0) or (xy[:, 0].min() > w) or (xy[:, 1].max() < 0) or (xy[:, 1].min() > h):
+                continue
+            colour = "tab:orange" if key == "pose" else "tab:purple"
+            ax.plot(xy[:, 0], xy[:, 1], style, color=colour, lw=0.6)
+        mirrored = ", mirrored" if pose.mirrored else ""
+        ax.plot([], [], style, color="tab:orange" if key == "pose" else "tab:purple",
+                label=f"{label}: {1 / pose.s:.4g} um/px, {pose.angle_deg:.1f} deg{mirrored}")  # fmt: skip
+    if len(det.ids):
+        ax.plot(det.xy_d[:, 0], det.xy_d[:, 1], "+", color="tab:red", ms=4, mew=0.8, ls="none",
+                label=f"corners kept ({len(det.ids)})")  # fmt: skip
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    ax.legend(loc="lower left", fontsize=7, framealpha=0.8)
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    if det.status == 0:
+        title = f"{len(det.ids)} corners detected (groups {groups}), {det.um_per_px:.4g} um/px"
+    else:
+        title = "refused: " + det.message
+    ax.set_title("\n".join(textwrap.wrap(title, 90)), fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)

@@ -1,0 +1,735 @@
+"""Automatic detection of USAF-1951 bar corners in a distorted, blurred camera image.
+
+The detector never looks for corners one by one and then guesses which is which;
+instead it registers the whole known target to the image, so every detected corner is
+matched by construction, and then refines and checks each bar triplet locally
+(``docs/detection.md``):
+
+1. **Find the target and its orientation.** Normalised cross-correlation
+   (``cv2.matchTemplate``) of the blurred image with the rendered target at scales 0.7-1.4,
+   in each of the 8 orientations of :data:`oapcal.imaging.usaf.ORIENTATIONS` (quarter
+   turns, with and without a mirror flip), gives the orientation, a similarity transform
+   and the polarity (bright or dark bars).  An orientation whose runner-up scores at least
+   :data:`ORIENTATION_RATIO` of it is ambiguous: the detection fails.  From here on the
+   reference target is the one turned into this orientation about the image centre, so
+   the output ``x_u, y_u`` share the camera's axes.
+2. **Register the target densely, coarse to fine.** A polynomial warp ``u = W(x)`` from
+   camera px ``x`` to reference px ``u`` is fitted by Gauss-Newton to every pixel around
+   the target, the model image being ``a + b * R(W(x))`` with ``R`` the area-sampled target
+   blurred by a Gaussian.  Blur and polynomial degree go 6 px / affine, 3 px / quadratic,
+   1.5 px / cubic, then the image's own blur (fitted) / degree 4.  Using whole images
+   rather than points lets 40 px of distortion be found without knowing it in advance.
+3. **Refine each triplet.** Around each three-bar triplet, a local affine correction
+   ``u = W(x) + d0 + D (x - x_t)`` with its own ``a, b`` and blur is fitted to the pixels;
+   the triplet's 12 corners are the camera points that this local warp sends to the
+   reference corners (Newton).
+4. **Drop what is not certain.** A triplet's corners are dropped, and counted, when the
+   local fit did not converge, the fitted contrast disagrees with the target's, the
+   refined corners moved by more than half a bar width from the registration (so they
+   could belong to a neighbouring bar), a copy of the fit shifted by one bar period fits
+   almost as well (``ambiguous``), a corner's standard error exceeds ``max_stderr_px``,
+   or a corner is not fully inside the image.
+5. **Check the global alignment.** A smooth model (``full``, Eq. 1) is fitted to all
+   matched pairs; pairs off it by more than a robust limit are dropped
+   (``inconsistent``), and the whole detection is refused when a quarter of them are,
+   when the fit fails, or when fewer than :data:`MIN_KEPT_FRACTION` of the expected
+   corners survive (:func:`check_consistency`).
+
+Coordinates follow ``docs/conventions.md``; reference px are the target at ``um_per_px``
+with its bounding-box centre at the image centre (``oapcal.imaging.usaf``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from oapcal.errors import DataError
+from oapcal.imaging.detect.checks import check_consistency
+from oapcal.imaging.detect.registration import (
+    MAX_FIT_PIXELS,
+    _camera_sigma,
+    _exponents,
+    _find_target,
+    _gauss_newton,
+    _initial_inverse,
+    _initial_warp,
+    _invert,
+    _Reference,
+    _region,
+    _Warp,
+)
+from oapcal.imaging.detect.triplet import _refine_triplet
+from oapcal.imaging.usaf import (
+    ORIENTATIONS,
+    nearest_orientation,
+    orientation_matrix,
+    parse_groups,
+    usaf_target,
+)
+
+#: (Gaussian blur of both images in px, polynomial degree) of the registration levels;
+#: the last level (blur None) uses the image as it is and fits the blur.
+LEVELS = ((6.0, 1), (3.0, 2), (1.5, 3), (None, 4))
+#: Reason keys of dropped triplets, in the order they are checked.
+DROP_REASONS = ("not_converged", "contrast", "moved", "ambiguous", "uncertain", "outside", "inconsistent")
+#: The orientation is ambiguous when the second-best orientation's correlation reaches
+#: this fraction of the best (measured on relay images: about 0.6).
+ORIENTATION_RATIO = 0.9
+#: The registration is refused when fewer than this fraction of the corners it expects
+#: inside the image pass the local checks (a wrong orientation keeps none).
+MIN_KEPT_FRACTION = 0.25
+#: Half an element step of the target, ``2 ** (1 / 12)`` (6 %).
+HALF_ELEMENT = 2.0 ** (1.0 / 12.0)
+#: Groups of the whole target (the pose search matches image triplets against all of them).
+ALL_GROUPS = tuple(range(-2, 10))
+#: Largest image detection accepts (pixels).
+MAX_IMAGE_PIXELS = 2**24
+#: Corners of bars narrower than this (camera px) are not expected to be found.
+RESOLVED_BAR_PX = 2.0
+#: With ``um_per_px`` given and fewer bar triplets than this found, the correlation search
+#: at that scale places the target instead (heavily blurred or noisy images).
+FALLBACK_MAX_TRIPLETS = 3
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Detected and matched corners of one image.
+
+    ``ids``, ``xy_u`` (reference px), ``xy_d`` (detected camera px) and ``stderr_px``
+    (1-sigma position uncertainty from the local fit) of every kept corner;
+    ``n_expected`` reference corners that the registration puts fully inside the image;
+    ``dropped`` the number of those dropped, by reason (:data:`DROP_REASONS`);
+    ``status`` 0 when the target was found (else the message says why); ``polarity``,
+    ``sigma_px`` (fitted blur of the image, camera px) and ``ncc`` (correlation of the
+    registered model with the image; median over the triplets) describe the registration;
+    ``um_per_px`` the scale of ``xy_u`` (given, or found by the pose search), ``pose`` the
+    pose search's result (scale, rotation, mirror, scores of the best and rival poses).
+    """
+
+    ids: tuple[str, ...]
+    xy_u: np.ndarray
+    xy_d: np.ndarray
+    stderr_px: np.ndarray
+    n_expected: int
+    dropped: dict = field(default_factory=dict)
+    status: int = 0
+    message: str = "ok"
+    polarity: str = "bright"
+    sigma_px: float = float("nan")
+    ncc: float = float("nan")
+    orientation: str = "none"
+    orientation_scores: dict = field(default_factory=dict)
+    consistency: dict = field(default_factory=dict)
+    predicted: dict = field(default_factory=dict, repr=False)
+    um_per_px: float = float("nan")
+    pose: dict = field(default_factory=dict)
+    triplets_found: int = 0
+    work: dict = field(default_factory=dict)
+    debug: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def coverage(self) -> float:
+        """Kept corners / corners expected fully inside the image."""
+        return len(self.ids) / self.n_expected if self.n_expected else 0.0
+
+    def summary(self) -> dict:
+        return {
+            "status": self.status,
+            "message": self.message,
+            "found": len(self.ids),
+            "expected": self.n_expected,
+            "coverage": self.coverage,
+            "dropped": dict(self.dropped),
+            "polarity": self.polarity,
+            "sigma_px": self.sigma_px,
+            "ncc": self.ncc,
+            "orientation": self.orientation,
+            "orientation_matrix": orientation_matrix(self.orientation).tolist(),
+            "orientation_scores": dict(self.orientation_scores),
+            "consistency": dict(self.consistency),
+            "reason": self.message,
+            "um_per_px": self.um_per_px,
+            "pose": dict(self.pose),
+            "triplets_found": self.triplets_found,
+            "work": dict(self.work),
+        }
+
+
+# ---------------------------------------------------------------------------- detection
+
+
+def _to_float_image(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = img[..., :3].mean(axis=-1)
+    if img.ndim != 2:
+        raise DataError(f"image has shape {img.shape}: expected a 2-D grey or colour image")
+    img = img.astype(np.float64)
+    lo, hi = np.percentile(img, [0.5, 99.9])
+    if not hi > lo:
+        raise DataError("the image is uniform: there is no target to detect")
+    return (img - lo) / (hi - lo)
+
+
+def detect_usaf(
+    image: np.ndarray,
+    groups=(4, 5),
+    um_per_px: float | None = None,
+    *,
+    orientation: str = "auto",
+    mirror: str = "auto",
+    sigma_hint_px: float = 1.0,
+    max_stderr_px: float = 0.3,
+    ambiguity_ratio: float = 1.5,
+    orientation_ratio: float = ORIENTATION_RATIO,
+    consistency_model: str | None = "auto",
+    progress: bool = False,
+) -> Detection:
+    """Find, match and refine the bar corners of USAF ``groups`` in ``image`` (module docstring).
+
+    ``um_per_px`` (optional) is the object-space size of a camera pixel, to within 30 %;
+    the pose search then only considers scales in that range, and a value within 6 % (half
+    an element step) identifies the element when the view alone cannot (one element in
+    view).  Without it the scale is found and reported (``Detection.um_per_px``).  The
+    reference points ``xy_u`` are the target at ``um_per_px`` (given or found), turned into
+    the nearest of the 8 orientations (:data:`oapcal.imaging.usaf.ORIENTATIONS`) about the
+    image centre (:meth:`~oapcal.imaging.usaf.UsafTarget.reference_px`), so a model fitted
+    to the pairs has ``m`` close to +1.  ``orientation`` forces that orientation (the pose
+    search keeps only rotations within 45 degrees of it); ``mirror`` ``"yes"``/``"no"``
+    forces a mirrored / unmirrored image (``"auto"``: find it).
+
+    ``consistency_model`` is the model (``"full"``, ``"paper"``, ...) fitted to the matched
+    pairs to check the global alignment (:func:`check_consistency`); ``"auto"`` uses
+    ``full`` from 40 corners, ``paper`` from 16, and skips the check below; ``None`` skips it.
+
+    Returns a :class:`Detection`; a target that cannot be found, an ambiguous pose or an
+    inconsistent alignment is a ``status != 0`` result with the reason, not an exception.
+    """
+    from threadpoolctl import threadpool_limits
+
+    if um_per_px is not None and not (np.isfinite(um_per_px) and um_per_px > 0):
+        raise DataError(f"um_per_px {um_per_px}: must be a positive number")
+    if orientation != "auto":
+        orientation_matrix(orientation)  # raises for an unknown name
+    if mirror not in ("auto", "yes", "no"):
+        raise DataError(f"mirror {mirror!r}: use auto, yes or no")
+    groups = parse_groups(groups)
+    img = _to_float_image(image)
+    h, w = img.shape
+    if h * w > MAX_IMAGE_PIXELS:
+        raise DataError(
+            f"the image has {w} x {h} px; detection handles at most {MAX_IMAGE_PIXELS} px "
+            f"(e.g. 4096 x 4096): crop it to the target or bin it"
+        )
+    # Detection does many small dense solves; a multithreaded BLAS only adds contention on
+    # them (measured on 2 cores: 1.2-1.9 s with one BLAS thread, 12-14 s at random with two).
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stderr_px,
+                       ambiguity_ratio, orientation_ratio, consistency_model, progress)  # fmt: skip
+
+
+def work_estimate(shape: tuple[int, int]) -> dict:
+    """Memory (MB) that detection needs at most for an image of ``shape`` (rows, cols):
+    a few float copies of the image, the bounded reference raster with its blurred
+    copies, and the bounded pixel fit (Jacobian of at most 34 columns)."""
+    from oapcal.imaging.detect.registration import MAX_FIT_PIXELS, MAX_RASTER_CELLS, RASTER_CACHE
+
+    h, w = shape
+    image = 12 * h * w * 8
+    raster = MAX_RASTER_CELLS * 4 * (1 + 3 * RASTER_CACHE + 2)
+    fit = MAX_FIT_PIXELS * (34 + 12) * 8
+    return {
+        "pixels": int(h * w),
+        "memory_bound_mb": round((image + min(raster, 48 * h * w * 4) + fit) / 2**20),
+    }
+
+
+def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stderr_px, ambiguity_ratio,
+            orientation_ratio, consistency_model, progress) -> Detection:  # fmt: skip
+    from oapcal.imaging.detect.bars import find_triplets
+    from oapcal.imaging.detect.pose import search_pose
+
+    h, w = img.shape
+    target = usaf_target(groups)
+    work = work_estimate((h, w))
+    empty = Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1, "",
+                      um_per_px=float(um_per_px) if um_per_px else float("nan"), work=work)  # fmt: skip
+    n_trip = len(target.triplets())
+    with _Progress(progress, 3 + n_trip) as bar:
+        bar.stage("finding bar triplets")
+        trips = find_triplets(img)
+        bar.advance()
+        bar.stage("pose search")
+        # every layout is tried; the one whose best pose scores highest is kept
+        tried = []
+        for layout in _layouts():
+            ref = _reference_triplets(layout)
+            listed = np.isin(ref.group, groups)
+            res = search_pose(
+                trips, ref, (h, w), um_per_px=um_per_px, listed=listed,
+                orientation=None if orientation == "auto" else orientation,
+                mirror=None if mirror == "auto" else mirror == "yes",
+            )  # fmt: skip
+            score = res.pose.score if res.pose is not None else -np.inf
+            tried.append((score, res.status == 0, layout, ref, res))
+        tried.sort(key=lambda r: (-r[0], not r[1]))
+        _, _, layout, ref, pres = tried[0]
+        target = usaf_target(groups, layout_name=layout)
+        bar.advance()
+        debug = {"image_triplets": trips, "ref": ref, "pose": pres.pose, "runner_up": pres.runner_up}
+        pose_info = dict(_pose_summary(pres, um_per_px), layout=layout)
+        empty = _replace(empty, pose=pose_info, debug=debug, triplets_found=len(trips))
+        if pres.status != 0 and um_per_px is None:
+            return _replace(empty, message=pres.message)
+        det_p = None
+        init = None
+        if pres.status == 0:
+            bar.stage("refining triplets")
+            det_p, init = _detect_from_pose(img, target, pres.pose, trips, ref, um_per_px, orientation,
+                                            sigma_hint_px, max_stderr_px, ambiguity_ratio, consistency_model,
+                                            _replace(empty), bar, layout)  # fmt: skip
+        # The dense registration of the whole target: from the pose when there is one,
+        # else (um_per_px given, the triplets did not place the target) from a correlation
+        # search at that scale.
+        bar.stage("dense registration")
+        u_dense = float(um_per_px) if um_per_px else det_p.um_per_px
+        det_d = _detect_dense(
+            img, target if init is not None else usaf_target(groups), u_dense,
+            orientation if init is None else init["orientation"], sigma_hint_px, max_stderr_px,
+            ambiguity_ratio, orientation_ratio, consistency_model, bar, init=init,
+        )  # fmt: skip
+        det_d = _replace(det_d, pose=pose_info, debug=debug, triplets_found=len(trips), work=work)
+        if det_p is None:
+            pose_info = dict(pose_info, method="correlation")
+            return _replace(det_d, pose=pose_info)
+        det = _combine([det_p, det_d])
+        if (
+            um_per_px is not None
+            and "disagree" not in det.message
+            and (det.status != 0 or det.coverage < 0.95)
+        ):
+            # the pose from few triplets may be poor (a blurred, noisy or strongly
+            # distorted image): the correlation search at the given scale, as without a pose
+            bar.stage("correlation search")
+            # (the layout of a weak pose is not trusted either: the default one)
+            det_c = _detect_dense(
+                img, usaf_target(groups), float(um_per_px), orientation, sigma_hint_px, max_stderr_px,
+                ambiguity_ratio, orientation_ratio, consistency_model, bar,
+            )  # fmt: skip
+            det_c = _replace(det_c, pose=dict(pose_info, method="correlation"), debug=debug,
+                             triplets_found=len(trips), work=work)  # fmt: skip
+            det = _combine([det_p, det_d, det_c])
+    return det
+
+
+def _combine(dets: list) -> Detection:
+    """The detection with the most corners, when all successful ones agree: a corner id
+    found by two must be at the same place (within a quarter of its bar width) in both,
+    else the detection is refused (one of them would give wrong ids)."""
+    ok = [d for d in dets if d.status == 0]
+    if not ok:
+        reason = "; ".join(dict.fromkeys(d.message for d in dets))
+        return _replace(dets[0], message=reason)
+    tw = _full_target()
+    width = {i: tw.bar_width[k // 4] for k, i in enumerate(tw.corner_ids)}
+    for n, d1 in enumerate(ok):
+        for d2 in ok[n + 1 :]:
+            common = sorted(set(d1.ids) & set(d2.ids))
+            if not common:
+                continue
+            i1 = {k: n for n, k in enumerate(d1.ids)}
+            i2 = {k: n for n, k in enumerate(d2.ids)}
+            a = d1.xy_d[[i1[k] for k in common]]
+            b = d2.xy_d[[i2[k] for k in common]]
+            lim = 0.25 * np.array([width[k] for k in common]) / d1.um_per_px
+            bad = np.hypot(*(a - b).T) > lim
+            if bad.any():
+                example = common[int(np.argmax(bad))]
+                msg = (
+                    f"two registrations disagree on {int(bad.sum())} of {len(common)} corners "
+                    f"(e.g. {example}); nothing was kept"
+                )
+                return _replace(d1, status=1, message=msg, ids=(), xy_u=np.zeros((0, 2)),
+                                xy_d=np.zeros((0, 2)), stderr_px=np.zeros(0))  # fmt: skip
+    best = max(ok, key=lambda d: len(d.ids))
+    if best is dets[0]:
+        return _replace(best, pose=dict(best.pose, method="triplets"))
+    if best.pose.get("method") != "correlation":
+        return _replace(best, pose=dict(best.pose, method="dense"))
+    return best
+
+
+def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sigma_hint_px, max_stderr_px,
+                      ambiguity_ratio, consistency_model, empty, bar, layout=None):  # fmt: skip
+    """Corners from the pose: a warp through the matched triplet centres, then each triplet
+    refined.  Returns the detection and the start for the dense registration."""
+    h, w = img.shape
+    with contextlib.nullcontext():
+        u_ref = float(um_per_px) if um_per_px else 1.0 / pose.s
+        orient = nearest_orientation(pose.lin) if orientation == "auto" else orientation
+        polarity = float(np.sign(np.median(trips.polarity[[i for i, _ in pose.matches]])))
+        empty = _replace(empty, um_per_px=u_ref, orientation=orient,
+                         polarity="bright" if polarity > 0 else "dark")  # fmt: skip
+        corners_u = target.reference_px(u_ref, (w, h), orient)
+        # Every bar of the whole target that is resolvable and near the image goes into the
+        # model of the pixels (so a neighbouring group is not mistaken for background).
+        full = _full_target(layout)
+        # the part of the target (um) that the image shows, with a margin
+        corners_px = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
+        view_um = (corners_px - pose.t) @ np.linalg.inv(pose.matrix()).T
+        pad_um = 0.1 * float(np.ptp(view_um, axis=0).max())
+        near_um = (*(view_um.min(axis=0) - pad_um), *(view_um.max(axis=0) + pad_um))
+        rects, masks = _model_boxes(target, full, u_ref, (w, h), orient, near_um)
+        # bars too narrow to be resolved are left in the model (as grey) only when near
+        # Initial warp camera -> reference px from the matched triplet centres.
+        ii = np.array([i for i, _ in pose.matches])
+        jj = np.array([j for _, j in pose.matches])
+        x_img = trips.centre[ii]
+        u_img = target.to_reference_px(ref.centre[jj], u_ref, (w, h), orient)
+        warp = _warp_from_points(x_img, u_img, pose, target, u_ref, orient, (w, h))
+        x0 = _initial_inverse(warp, corners_u)
+        pred = _invert(warp, warp.jacobian, corners_u, x0)
+        m = 3.0
+        inside = np.isfinite(pred).all(axis=1) & (pred[:, 0] >= m) & (pred[:, 0] <= w - 1 - m)
+        inside &= (pred[:, 1] >= m) & (pred[:, 1] <= h - 1 - m)
+        # only corners of bars that are resolved count as expected
+        inside &= target.corner_width_um * pose.s >= RESOLVED_BAR_PX
+        n_expected = int(inside.sum())
+        scale_ref = pose.s * u_ref  # reference px per camera px
+        sigma = float(np.hypot(sigma_hint_px, np.sqrt(1 / 12))) * scale_ref
+        swap_axes = orientation_matrix(orient)[0, 0] == 0
+        bar.stage("refining triplets")
+        keep_idx, keep_xy, keep_se, nccs, sigmas = [], [], [], [], []
+        dropped = dict.fromkeys(DROP_REASONS, 0)
+        for bars in target.triplets():
+            idx = np.concatenate([4 * bars + c for c in range(4)])
+            idx.sort()
+            n_in = int(inside[idx].sum())
+            if n_in == 0:
+                bar.advance()
+                continue
+            reason, xy, se, info = _refine_triplet(
+                img, warp, rects, target, bars, idx, corners_u, pred, None, polarity, sigma, u_ref,
+                max_stderr_px=max_stderr_px, ambiguity_ratio=ambiguity_ratio, swap_axes=swap_axes,
+                masks=masks,
+            )  # fmt: skip
+            bar.advance()
+            if reason is not None:
+                dropped[reason] += n_in
+                continue
+            nccs.append(info["ncc"])
+            sigmas.append(info["sigma"])
+            ok = (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
+            dropped["outside"] += int((inside[idx] & ~ok).sum())
+            for k, i in enumerate(idx):
+                if ok[k] and inside[i]:
+                    keep_idx.append(i)
+                    keep_xy.append(xy[k])
+                    keep_se.append(se[k])
+        bar.stage("consistency check")
+        order = np.argsort(keep_idx)
+        keep_idx = np.asarray(keep_idx, int)[order]
+        keep_xy = np.asarray(keep_xy, float).reshape(-1, 2)[order]
+        keep_se = np.asarray(keep_se, float)[order]
+        width_px = target.corner_width_um[keep_idx] / u_ref
+        check = check_consistency(corners_u[keep_idx], keep_xy, width_px, consistency_model)
+        bar.advance()
+    sigma_ref = float(np.median(sigmas)) if sigmas else float("nan")
+    common = dict(
+        n_expected=n_expected,
+        sigma_px=float(np.sqrt(max((sigma_ref / scale_ref) ** 2 - 1 / 12, 0.0))) if sigmas else float("nan"),
+        ncc=float(np.median(nccs)) if nccs else float("nan"),
+        consistency=check.summary(),
+        predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
+    )
+    init = {"orientation": orient, "warp": warp, "rects": rects, "masks": masks, "polarity": polarity}
+    return _finish(empty, target, corners_u, keep_idx, keep_xy, keep_se, dropped, check, common), init
+
+
+def _finish(empty, target, corners_u, keep_idx, keep_xy, keep_se, dropped, check, common) -> Detection:
+    """The consistency verdict and the kept-fraction limit; the final :class:`Detection`."""
+    n_expected = common["n_expected"]
+    if check.status != 0:
+        dropped["inconsistent"] = len(keep_idx)
+        return _replace(
+            empty, dropped={k: v for k, v in dropped.items() if v}, message=check.message, **common
+        )
+    keep = check.consistent
+    dropped["inconsistent"] = int((~keep).sum())
+    keep_idx = keep_idx[keep]
+    if n_expected == 0 or len(keep_idx) < MIN_KEPT_FRACTION * n_expected:
+        msg = (
+            f"the registration is unreliable: only {len(keep_idx)} of {n_expected} expected corners "
+            f"passed the checks; nothing was kept"
+        )
+        return _replace(empty, dropped={k: v for k, v in dropped.items() if v}, message=msg, **common)
+    return _replace(
+        empty,
+        ids=tuple(target.corner_ids[i] for i in keep_idx),
+        xy_u=corners_u[keep_idx],
+        xy_d=keep_xy[keep],
+        stderr_px=keep_se[keep],
+        dropped={k: v for k, v in dropped.items() if v},
+        status=0,
+        message="ok",
+        **common,
+    )
+
+
+def _model_boxes(target, source, u_ref, size, orient, near_um=None):
+    """Bars and reference squares of ``source`` (a target, um) as reference-px rectangles of
+    the model image, and its printed numbers (grown by a little) as boxes to leave out of
+    every fit; ``near_um`` (x0, y0, x1, y1) keeps only those near the view."""
+
+    def px(boxes):
+        boxes = np.asarray(boxes, float).reshape(-1, 4)
+        if near_um is not None:
+            x0, y0, x1, y1 = near_um
+            k = (boxes[:, 2] >= x0) & (boxes[:, 0] <= x1) & (boxes[:, 3] >= y0) & (boxes[:, 1] <= y1)
+            boxes = boxes[k]
+        a = target.to_reference_px(boxes[:, :2], u_ref, size, orient)
+        b = target.to_reference_px(boxes[:, 2:], u_ref, size, orient)
+        return np.concatenate([np.minimum(a, b), np.maximum(a, b)], axis=1)
+
+    rects = np.concatenate([px(source.bars), px(getattr(source, "squares", np.zeros((0, 4))))])
+    masks = px(getattr(source, "labels", np.zeros((0, 4))))
+    if len(masks):
+        grow = 0.15 * (masks[:, 2:] - masks[:, :2]).max(axis=1, keepdims=True) + 1.0
+        masks = np.concatenate([masks[:, :2] - grow, masks[:, 2:] + grow], axis=1)
+    return rects, masks
+
+
+def _replace(det: Detection, **changes) -> Detection:
+    from dataclasses import replace
+
+    return replace(det, **changes)
+
+
+def _pose_summary(pres, um_per_px) -> dict:
+    out = {"method": "triplets", "status": pres.status, "message": pres.message}
+    if pres.pose is not None:
+        out["best"] = pres.pose.summary()
+    if pres.runner_up is not None:
+        out["runner_up"] = pres.runner_up.summary()
+    out["slip_scores"] = {k: float(v) for k, v in pres.slip_scores.items()}
+    out["image_triplets"] = pres.n_image_triplets
+    return out
+
+
+def _warp_from_points(x_img, u_img, pose, target, u_ref, orient, size) -> _Warp:
+    """Polynomial warp camera -> reference px through the matched triplet centres: affine
+    from the pose itself when fewer than 6 triplets match, quadratic from 6, cubic from 20."""
+    w, h = size
+    n = len(x_img)
+    degree = 3 if n >= 20 else 2 if n >= 6 else 1
+    centre = x_img.mean(axis=0) if n >= 6 else np.array([(w - 1) / 2, (h - 1) / 2])
+    scale = float(max(np.ptp(x_img, axis=0).max() / 2, 8.0)) if n >= 6 else float(max(w, h)) / 2
+    if degree == 1:
+        # points of the pose's own affine map around the image
+        grid = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1], [(w - 1) / 2, (h - 1) / 2]], float)
+        um = (grid - pose.t) @ np.linalg.inv(pose.matrix()).T
+        x_img, u_img = grid, target.to_reference_px(um, u_ref, (w, h), orient)
+    warp = _Warp(centre, scale, np.zeros((len(_exponents(degree)), 2)), degree)
+    coef, *_ = np.linalg.lstsq(warp.basis(x_img), u_img, rcond=None)
+    return _Warp(centre, scale, coef, degree)
+
+
+@functools.lru_cache(maxsize=4)
+def _full_target(layout: str | None = None):
+    return usaf_target(ALL_GROUPS, layout_name=layout)
+
+
+@functools.lru_cache(maxsize=4)
+def _reference_triplets(layout: str | None = None):
+    from oapcal.imaging.detect.pose import RefTriplets
+
+    return RefTriplets.from_target(_full_target(layout))
+
+
+def _layouts() -> list:
+    """The target layouts to try (``oapcal.imaging.usaf.LAYOUTS``: makers draw the layers'
+    spacing slightly differently)."""
+    from oapcal.imaging import usaf
+
+    return list(getattr(usaf, "LAYOUTS", {None: None}))
+
+
+def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr_px, ambiguity_ratio,
+                  orientation_ratio, consistency_model, bar, init=None) -> Detection:  # fmt: skip
+    """The dense registration at a given scale (module docstring, docs/detection.md), from
+    ``init`` (the pose's orientation, warp, bars and polarity) or from the correlation
+    search.  Refused when the registered scale differs from ``um_per_px`` by more than
+    half an element step (a one-element slip would differ by 12 %)."""
+    h, w = img.shape
+    ref_centre = (np.asarray((w, h), float) - 1) / 2
+    empty = Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1, "", um_per_px=um_per_px)
+    # bound: the rendered target must be comparable with the image
+    extent = np.ptp(target.bars.reshape(-1, 2), axis=0) / um_per_px
+    if extent.max() > 4 * max(w, h) or extent.min() < 8:
+        msg = (
+            f"the target was not found: at {um_per_px:g} um/px groups {target.groups[0]}-{target.groups[-1]} "
+            f"would be {extent[0]:.0f} x {extent[1]:.0f} px in a {w} x {h} px image; check --um-per-px"
+        )
+        return _replace(empty, message=msg)
+    if init is not None:
+        return _dense_levels(
+            img, target, um_per_px, init["orientation"], {}, init["rects"], init["warp"], init["polarity"],
+            sigma_hint_px, max_stderr_px, ambiguity_ratio, consistency_model, bar, empty, init["masks"],
+        )  # fmt: skip
+    candidates = list(ORIENTATIONS) if orientation == "auto" else [orientation]
+    scores = {}
+    for name in candidates:
+        found = _find_target(img, target.rectangles_px(um_per_px, (w, h), name), ref_centre)
+        scores[name] = (found[2], found) if found is not None else (-1.0, None)
+    ranked = sorted(scores, key=lambda k: -scores[k][0])
+    best = ranked[0]
+    score_table = {k: round(float(scores[k][0]), 4) for k in ranked}
+    found = scores[best][1]
+    empty = _replace(empty, orientation=best, orientation_scores=score_table)
+    if found is None or found[2] < 0.2:
+        return _replace(empty, message="the target was not found (no bar triplets, no correlation with the "
+                        "rendered groups); check --groups and --um-per-px")  # fmt: skip
+    if len(ranked) > 1 and scores[ranked[1]][0] >= orientation_ratio * scores[best][0]:
+        msg = (
+            f"the target's orientation is ambiguous: {best} scores {scores[best][0]:.3f} and "
+            f"{ranked[1]} {scores[ranked[1]][0]:.3f}; give the orientation (--orientation)"
+        )
+        return _replace(empty, message=msg)
+    rects = target.rectangles_px(um_per_px, (w, h), best)
+    s, shift, score, sign = found  # camera = s u + shift
+    warp = _initial_warp(s, shift, ref_centre, rects, w, h)
+    model_rects, masks = _model_boxes(target, target, um_per_px, (w, h), best)
+    return _dense_levels(img, target, um_per_px, best, score_table, model_rects, warp, sign, sigma_hint_px,
+                         max_stderr_px, ambiguity_ratio, consistency_model, bar, empty, masks)  # fmt: skip
+
+
+def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, sigma_hint_px, max_stderr_px,
+                  ambiguity_ratio, consistency_model, bar, empty, masks=None) -> Detection:  # fmt: skip
+    import cv2
+
+    h, w = img.shape
+    empty = _replace(empty, orientation=best, orientation_scores=score_table, um_per_px=um_per_px)
+    corners_u = target.reference_px(um_per_px, (w, h), best)
+    swap_axes = orientation_matrix(best)[0, 0] == 0  # a quarter turn: H bars run vertically
+    own = target.rectangles_px(um_per_px, (w, h), best)
+    ref = _Reference(rects, window=(own[:, :2].min(axis=0) - 60, own[:, 2:].max(axis=0) + 60), masks=masks)
+    ref.lo = np.maximum(ref.lo, own[:, :2].min(axis=0) - 20)
+    ref.hi = np.minimum(ref.hi, own[:, 2:].max(axis=0) + 20)
+    sigma = float(np.hypot(sigma_hint_px, np.sqrt(1 / 12)))
+    a, b = (0.05, 0.9) if sign > 0 else (0.95, -0.9)
+    empty = _replace(empty, polarity="bright" if sign > 0 else "dark")
+    for blur, degree in LEVELS:
+        warp = warp.with_degree(degree)
+        values_img = img if blur is None else cv2.GaussianBlur(img, (0, 0), blur)
+        xs = _region(warp, ref, w, h, max_pixels=MAX_FIT_PIXELS)
+        if len(xs) < 50:
+            return _replace(empty, message="the registered target falls outside the image")
+        model_sigma = sigma if blur is None else float(np.hypot(blur, sigma))
+        res = _gauss_newton(
+            values_img[xs[:, 1].astype(int), xs[:, 0].astype(int)], np.zeros((len(xs), 2)), warp.basis(xs),
+            ref, warp.coef, a, b, model_sigma, fit_sigma=blur is None, sigma_max=max(8.0, 2 * model_sigma),
+        )  # fmt: skip
+        warp = _Warp(warp.centre, warp.scale, res.coef, degree)
+        a, b = res.a, res.b
+        if res.ncc < 0.3:
+            msg = f"registration failed (model-image correlation {res.ncc:.2f} at blur {blur} px)"
+            return _replace(empty, message=msg, ncc=res.ncc)
+        if blur is None:
+            sigma = res.sigma
+    global_ncc = res.ncc
+    if global_ncc < 0.5:
+        msg = f"registration failed (model-image correlation {global_ncc:.2f} < 0.5)"
+        return _replace(empty, message=msg, ncc=global_ncc)
+    # the one-element slip: a registration onto the neighbouring element has a scale 12 %
+    # off the given one (the scale of the similarity that fits the registered corners best)
+    x0 = _initial_inverse(warp, corners_u)
+    pred = _invert(warp, warp.jacobian, corners_u, x0)
+    fin = np.isfinite(pred).all(axis=1)
+    pu = corners_u[fin] - corners_u[fin].mean(axis=0)
+    pc = pred[fin] - pred[fin].mean(axis=0)
+    scale = float(np.sqrt((pu**2).sum() / max((pc**2).sum(), 1e-12))) if fin.sum() > 2 else 1.0
+    if abs(np.log(scale)) > np.log(HALF_ELEMENT):
+        msg = (
+            f"the registered target's scale differs from {um_per_px:g} um/px by "
+            f"{100 * (1 / scale - 1):+.1f} % "
+            f"(more than half an element step, 6 %): possibly every id one element off; nothing was kept"
+        )
+        return _replace(empty, message=msg, ncc=global_ncc)
+    x0 = _initial_inverse(warp, corners_u)
+    pred = _invert(warp, warp.jacobian, corners_u, x0)
+    m = 3.0
+    inside = np.isfinite(pred).all(axis=1) & (pred[:, 0] >= m) & (pred[:, 0] <= w - 1 - m)
+    inside &= (pred[:, 1] >= m) & (pred[:, 1] <= h - 1 - m)
+    n_expected = int(inside.sum())
+    keep_idx, keep_xy, keep_se = [], [], []
+    dropped = dict.fromkeys(DROP_REASONS, 0)
+    for bars in target.triplets():
+        idx = np.concatenate([4 * bars + c for c in range(4)])
+        idx.sort()
+        n_in = int(inside[idx].sum())
+        if n_in == 0:
+            bar.advance()
+            continue
+        reason, xy, se, _ = _refine_triplet(
+            img, warp, rects, target, bars, idx, corners_u, pred, a, b, sigma, um_per_px,
+            max_stderr_px=max_stderr_px, ambiguity_ratio=ambiguity_ratio, swap_axes=swap_axes, masks=masks,
+        )  # fmt: skip
+        bar.advance()
+        if reason is not None:
+            dropped[reason] += n_in
+            continue
+        ok = (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
+        dropped["outside"] += int((inside[idx] & ~ok).sum())
+        for k, i in enumerate(idx):
+            if ok[k] and inside[i]:
+                keep_idx.append(i)
+                keep_xy.append(xy[k])
+                keep_se.append(se[k])
+    order = np.argsort(keep_idx)
+    keep_idx = np.asarray(keep_idx, int)[order]
+    keep_xy = np.asarray(keep_xy, float).reshape(-1, 2)[order]
+    keep_se = np.asarray(keep_se, float)[order]
+    width_px = target.corner_width_um[keep_idx] / um_per_px
+    check = check_consistency(corners_u[keep_idx], keep_xy, width_px, consistency_model)
+    common = dict(
+        n_expected=n_expected,
+        sigma_px=_camera_sigma(warp, sigma),
+        ncc=global_ncc,
+        consistency=check.summary(),
+        predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
+    )
+    return _finish(empty, target, corners_u, keep_idx, keep_xy, keep_se, dropped, check, common)
+
+
+class _Progress:
+    """A progress bar (rich, on stderr) with a stage name; silent when not enabled."""
+
+    def __init__(self, enabled: bool, total: int):
+        self.enabled, self.total = enabled, total
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import Progress
+
+            self._p = Progress(transient=True, console=Console(stderr=True))
+            self._p.__enter__()
+            self._t = self._p.add_task("detecting corners", total=self.total)
+        return self
+
+    def stage(self, text: str):
+        if self.enabled:
+            self._p.update(self._t, description=text)
+
+    def advance(self):
+        if self.enabled:
+            self._p.update(self._t, advance=1)
+
+    def __exit__(self, *exc):
+        if self.enabled:
+            self._p.__exit__(*exc)
+        return False

@@ -1,0 +1,473 @@
+"""Pose search: which triplet of the target is which triplet of the image.
+
+A pose is a similarity with an optional mirror, ``camera = s L um + t`` (``L`` a rotation,
+times ``diag(1, -1)`` when mirrored; ``s`` px per um), from object um to camera px.  Every
+pair (image triplet, reference triplet) and each of the 4 ways to lay one onto the other
+(two directions along the bars, with and without a mirror) gives a hypothesis: the scale
+from the bar widths, the rotation from the bars' direction, the shift from the centres.
+Each hypothesis predicts where every triplet of the whole target is and how wide its bars
+are; it scores the number of image triplets found there (same width, same direction), less
+a penalty for resolvable triplets it predicts inside the image that are not there.  The
+best hypotheses are refined (similarity refitted to their matches, matched again).
+
+The answer is only accepted when it is clearly better than every *different* pose, in
+particular the ones this target is prone to (``docs/detection.md``): the one-element slip
+(scale ``2 ** (1 / 6)`` and one element along the column) and the two-group slip (scale 4,
+the nested layer).  Otherwise the search refuses with the scores of both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from oapcal.imaging.detect.bars import Triplets
+
+#: Penalty per resolvable reference triplet predicted inside the image but not found.
+MISSING_PENALTY = 0.3
+#: Predicted triplets with bars narrower than this (px) are neither expected nor penalised.
+MIN_EXPECTED_BAR_PX = 2.2
+#: Missing triplets are penalised only from this predicted bar width (px).
+MIN_PENALISED_BAR_PX = 4.0
+#: Bar widths found / predicted within this factor match (local scale changes of a
+#: strongly distorted image reach 20-30 %).
+WIDTH_TOL = 1.4
+#: A different pose scoring more than this fraction of the best makes the answer ambiguous.
+AMBIGUITY_RATIO = 0.85
+#: ... or within this many triplets of it.
+AMBIGUITY_MARGIN = 2.0
+#: With ``um_per_px`` given, hypotheses within this factor of its scale are searched.
+SCALE_PRIOR_RANGE = 1.3
+#: Half of one element step: ``um_per_px`` nearer than this to one hypothesis' scale than
+#: to any other identifies the element when the view alone cannot.
+HALF_ELEMENT = 2.0 ** (1.0 / 12.0)
+
+
+@dataclass(frozen=True)
+class RefTriplets:
+    """The target's triplets: centre (um), bar width (um), long-axis direction (0 for H
+    bars along x, pi/2 for V), group, element, orientation letter and the bar indices."""
+
+    centre: np.ndarray
+    width: np.ndarray
+    angle: np.ndarray
+    group: np.ndarray
+    element: np.ndarray
+    orient: np.ndarray
+    bars: list
+
+    @classmethod
+    def from_target(cls, target) -> RefTriplets:
+        trip = target.triplets()
+        rect = target.bars
+        centre = np.array(
+            [[(rect[b, 0] + rect[b, 2]).mean() / 2, (rect[b, 1] + rect[b, 3]).mean() / 2] for b in trip]
+        )
+        return cls(
+            centre=centre.reshape(-1, 2),
+            width=np.array([target.bar_width[b[0]] for b in trip], float),
+            angle=np.array([0.0 if target.bar_orientation[b[0]] == "H" else np.pi / 2 for b in trip]),
+            group=np.array([target.bar_group[b[0]] for b in trip], int),
+            element=np.array([target.bar_element[b[0]] for b in trip], int),
+            orient=np.array([target.bar_orientation[b[0]] for b in trip]),
+            bars=list(trip),
+        )
+
+    def key(self, j: int) -> str:
+        return f"G{self.group[j]}E{self.element[j]}{self.orient[j]}"
+
+
+@dataclass
+class Pose:
+    """``camera = s * L @ um + t``; ``matches`` (image triplet, reference triplet) pairs."""
+
+    s: float
+    lin: np.ndarray  # L (2, 2), orthogonal
+    t: np.ndarray
+    score: float = 0.0
+    matches: list = field(default_factory=list)
+    n_missing: int = 0
+
+    @property
+    def mirrored(self) -> bool:
+        return bool(np.linalg.det(self.lin) < 0)
+
+    @property
+    def angle_deg(self) -> float:
+        return float(np.degrees(np.arctan2(self.lin[1, 0], self.lin[0, 0])))
+
+    def apply(self, um: np.ndarray) -> np.ndarray:
+        return self.s * np.asarray(um, float) @ self.lin.T + self.t
+
+    def matrix(self) -> np.ndarray:
+        """The 2x2 linear part ``s L`` (px per um)."""
+        return self.s * self.lin
+
+    def summary(self, um_per_px_given: float | None = None) -> dict:
+        return {
+            "um_per_px": 1.0 / self.s,
+            "rotation_deg": self.angle_deg,
+            "mirrored": self.mirrored,
+            "shift_px": [float(v) for v in self.t],
+            "score": float(self.score),
+            "matched_triplets": len(self.matches),
+            "missing_triplets": int(self.n_missing),
+        }
+
+
+def _rot(phi: np.ndarray) -> np.ndarray:
+    c, s = np.cos(phi), np.sin(phi)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def _angle_diff(a, b):
+    """Difference of two undirected angles (mod pi), in [0, pi/2]."""
+    return np.abs((np.asarray(a) - np.asarray(b) + np.pi / 2) % np.pi - np.pi / 2)
+
+
+def _score(
+    pose_s, pose_lin, pose_t, ref: RefTriplets, img: Triplets, tree, shape, *, anchor=None, loose=1.0,
+    listed=None, pred=None, width_tol=1.25,
+):  # fmt: skip
+    """Score hypotheses given as arrays ``s`` (H,), ``lin`` (H, 2, 2), ``t`` (H, 2).
+
+    ``pred`` (H, n, 2) replaces the similarity's predicted centres (a smoother map fitted
+    to the matches); ``anchor`` (H, 2) widens the position tolerance with the distance
+    from it (a single triplet predicts its neighbours better than far triplets).
+    Returns ``score`` (H,), ``n_missing`` (H,) and the matched image index per
+    (hypothesis, reference triplet) (-1: none)."""
+    h, w = shape
+    amat = pose_lin * pose_s[:, None, None]  # px per um, (H, 2, 2); may be non-orthogonal
+    if pred is None:
+        pred = np.einsum("hij,nj->hni", amat, ref.centre) + pose_t[:, None, :]
+    along = np.stack([np.cos(ref.angle), np.sin(ref.angle)], -1)
+    normal = np.stack([-np.sin(ref.angle), np.cos(ref.angle)], -1)
+    dirs = np.einsum("hij,nj->hni", amat, along)
+    # bar width in px: the period across the bars, i.e. the map's scale along the normal
+    # (an anisotropic image has other widths for H and V triplets)
+    nrm = np.einsum("hij,nj->hni", amat, normal)
+    cross = np.abs(dirs[..., 0] * nrm[..., 1] - dirs[..., 1] * nrm[..., 0])
+    wpred = ref.width[None, :] * cross / np.maximum(np.hypot(dirs[..., 0], dirs[..., 1]), 1e-12)
+    apred = np.arctan2(dirs[..., 1], dirs[..., 0]) % np.pi
+    half = 3.6 * wpred  # half the diagonal of a 5w x 5w triplet, and a little
+    inside = (pred[..., 0] > half) & (pred[..., 0] < w - 1 - half)
+    inside &= (pred[..., 1] > half) & (pred[..., 1] < h - 1 - half)
+    expected = inside & (wpred >= MIN_EXPECTED_BAR_PX)
+    dist, k = tree.query(pred.reshape(-1, 2), k=1, distance_upper_bound=float(max(h, w)))
+    dist = dist.reshape(pred.shape[:2])
+    k = k.reshape(pred.shape[:2])
+    valid = k < len(img)
+    kk = np.where(valid, k, 0)
+    tol = 0.6 * wpred
+    if anchor is not None:
+        tol = tol + loose * 0.05 * np.hypot(*(pred - anchor[:, None, :]).transpose(2, 0, 1))
+    ok = (
+        valid
+        & (dist < tol)
+        & (np.abs(np.log(img.width[kk] / wpred)) < np.log(width_tol))
+        & (_angle_diff(img.angle[kk], apred) < np.deg2rad(12))
+        & (wpred >= 0.7 * MIN_EXPECTED_BAR_PX)
+    )
+    match = np.where(ok, kk, -1)
+    weight = np.ones(len(ref.width)) if listed is None else np.where(listed, 1.0, 0.25)
+    score = np.empty(len(pose_s))
+    # only the named groups are penalised when missing: an image (or a simulation) may show
+    # those alone
+    pen = (expected & ~ok) & (wpred >= MIN_PENALISED_BAR_PX)
+    missing = (pen if listed is None else pen & listed[None, :]).sum(axis=1)
+    for hh in range(len(pose_s)):
+        m = match[hh]
+        sel = m >= 0
+        # each image triplet counts once (two reference triplets cannot both be it)
+        _, first = np.unique(m[sel], return_index=True)
+        score[hh] = weight[np.flatnonzero(sel)[first]].sum()
+    score -= MISSING_PENALTY * missing
+    return score, missing, match
+
+
+def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np.ndarray | None:
+    """Centres of all reference triplets predicted by the similarity plus a smooth
+    correction fitted to the matched pairs (affine from 6 matches, quadratic from 12), so
+    that a distorted image (tens of px) is followed; None when too few matches."""
+    n = len(pairs)
+    if n < 6:
+        return None
+    ii = np.array([p[0] for p in pairs])
+    jj = np.array([p[1] for p in pairs])
+    base = pose.apply(ref.centre)
+    x = base[jj]
+    resid = img.centre[ii] - x
+    c = x.mean(axis=0)
+    sc = max(float(np.ptp(x, axis=0).max()) / 2, 1.0)
+
+    def design(p):
+        z = (p - c) / sc
+        cols = [np.ones(len(z)), z[:, 0], z[:, 1]]
+        if n >= 12:
+            cols += [z[:, 0] ** 2, z[:, 0] * z[:, 1], z[:, 1] ** 2]
+        return np.column_stack(cols)
+
+    coef, *_ = np.linalg.lstsq(design(x), resid, rcond=None)
+    # only near the matched triplets is the correction trusted (it is a polynomial)
+    corr = design(base) @ coef
+    far = np.hypot(*((base - c) / sc).T) > 1.6
+    corr[far] = 0.0
+    return base + corr
+
+
+def _refine(pose: Pose, ref, img, tree, shape, listed, n_iter=5) -> Pose:
+    """Match, refit the similarity (and a smooth correction of it) to the matches, repeat.
+    The position tolerance grows with the distance from the matched triplets' centroid
+    (distortion), less at every round."""
+    pairs_prev = None
+    pred = None
+    anchor = img.centre.mean(axis=0)
+    for it in range(n_iter + 1):
+        loose = 0.8 * 0.6**it
+        sc, miss, match = _score(
+            np.array([pose.s]), pose.lin[None], pose.t[None], ref, img, tree, shape, listed=listed,
+            pred=None if pred is None else pred[None], anchor=anchor[None], loose=loose, width_tol=WIDTH_TOL,
+        )  # fmt: skip
+        pairs = [(int(i), j) for j, i in enumerate(match[0]) if i >= 0]
+        new = Pose(pose.s, pose.lin, pose.t, float(sc[0]), pairs, int(miss[0]))
+        if len(pairs) < 2 or it == n_iter:
+            return new
+        pairs_prev = pairs
+        ii = np.array([p[0] for p in pairs])
+        jj = np.array([p[1] for p in pairs])
+        anchor = img.centre[ii].mean(axis=0)
+        s, lin, t = _fit_similarity(ref.centre[jj], img.centre[ii], pose.mirrored)
+        if not (np.isfinite(s) and s > 0):
+            return new
+        if len(pairs) >= 4:
+            s, lin, t = _fit_affine(ref.centre[jj], img.centre[ii], s, lin, t, pose.mirrored)
+        pose = Pose(s, lin, t, new.score, pairs, new.n_missing)
+        pred = _smooth_prediction(pose, ref, img, pairs)
+    del pairs_prev
+    return new
+
+
+def _fit_similarity(src: np.ndarray, dst: np.ndarray, mirrored: bool):
+    """Least-squares ``dst = s L src + t`` with ``L`` a rotation (times a mirror)."""
+    m = np.diag([1.0, -1.0]) if mirrored else np.eye(2)
+    a = src @ m.T
+    ma, md = a.mean(0), dst.mean(0)
+    a0, d0 = a - ma, dst - md
+    cov = d0.T @ a0
+    u, sv, vt = np.linalg.svd(cov)
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    s = float(np.trace(r.T @ cov) / max((a0**2).sum(), 1e-12))
+    lin = r @ m
+    t = md - s * ma @ r.T
+    return s, lin, t
+
+
+def _fit_affine(src, dst, s, lin, t, mirrored):
+    """Least-squares affine ``dst = A src + t`` written as ``s * lin`` with
+    ``s = sqrt|det A|``; the similarity ``(s, lin, t)`` is kept when the affine is
+    degenerate, flips the mirror or is far from a similarity (over 35 % anisotropy)."""
+    design = np.column_stack([src, np.ones(len(src))])
+    coef, _, rank, _ = np.linalg.lstsq(design, dst, rcond=None)
+    if rank < 3:
+        return s, lin, t
+    a = coef[:2].T
+    det = float(np.linalg.det(a))
+    sv = np.linalg.svd(a, compute_uv=False)
+    if det == 0 or (det < 0) != mirrored or sv[0] / sv[1] > 1.35:
+        return s, lin, t
+    sa = float(np.sqrt(abs(det)))
+    return sa, a / sa, coef[2]
+
+
+def _same_pose(a: Pose, b: Pose) -> bool:
+    """Two poses are the same: same mirror, about the same rotation, and the same reference
+    triplets for the image triplets they share (a mirrored or half-turned pose can match
+    the same triplets but gives other corner ids)."""
+    if a.mirrored != b.mirrored:
+        return False
+    if abs((a.angle_deg - b.angle_deg + 180.0) % 360.0 - 180.0) > 45.0:
+        return False
+    da = dict(a.matches)
+    shared = [(i, j) for i, j in b.matches if i in da]
+    if not shared:
+        return abs(np.log(a.s / b.s)) < 0.04 and a.mirrored == b.mirrored
+    same = sum(da[i] == j for i, j in shared)
+    return same >= 0.5 * len(shared)
+
+
+@dataclass
+class PoseResult:
+    pose: Pose | None
+    runner_up: Pose | None
+    status: int
+    message: str
+    slip_scores: dict
+    n_image_triplets: int
+    candidates: list = field(default_factory=list)
+    kind: str = "ok"  # "ok", "not_found" or "ambiguous"
+
+
+def search_pose(
+    img: Triplets,
+    ref: RefTriplets,
+    shape: tuple[int, int],
+    *,
+    um_per_px: float | None = None,
+    listed=None,
+    max_image_triplets: int = 120,
+    top: int = 40,
+    orientation: str | None = None,
+    mirror: bool | None = None,
+) -> PoseResult:
+    """Find the pose (module docstring).  ``listed`` marks the reference triplets of the
+    groups the user named (weighted 1; others 0.25).  ``orientation`` (a key of
+    :data:`~oapcal.imaging.usaf.ORIENTATIONS`) keeps only the poses nearest to it;
+    ``mirror`` True/False only mirrored / unmirrored poses."""
+    from oapcal.imaging.usaf import ORIENTATIONS
+
+    names = list(ORIENTATIONS)
+    mats = np.array([ORIENTATIONS[k] for k in names], float)
+    from scipy.spatial import cKDTree
+
+    n_img = len(img)
+    if n_img == 0:
+        msg = "no bar triplet (three parallel bars side by side) was found in the image"
+        return PoseResult(None, None, 1, msg, {}, 0, kind="not_found")
+    order = np.argsort(-img.width)[:max_image_triplets]
+    tree = cKDTree(img.centre)
+    hyps_s, hyps_lin, hyps_t, hyps_anchor = [], [], [], []
+    for i in order:
+        for mir in (1.0, -1.0):
+            if mirror is not None and (mir < 0) != mirror:
+                continue
+            m = np.diag([1.0, mir])
+            for k in (0.0, np.pi):
+                phi = img.angle[i] - ref.angle + k
+                lin = _rot(phi) @ m
+                s = img.width[i] / ref.width
+                t = img.centre[i] - s[:, None] * np.einsum("hij,hj->hi", lin, ref.centre)
+                keep = np.ones(len(s), bool)
+                if um_per_px is not None:
+                    keep = np.abs(np.log(s * um_per_px)) < np.log(SCALE_PRIOR_RANGE)
+                if orientation is not None:
+                    d = ((lin[:, None] - mats[None]) ** 2).sum(axis=(2, 3))
+                    keep &= np.array(names)[np.argmin(d, axis=1)] == orientation
+                if keep.any():
+                    hyps_s.append(s[keep])
+                    hyps_lin.append(lin[keep])
+                    hyps_t.append(t[keep])
+                    hyps_anchor.append(np.repeat(img.centre[i][None], keep.sum(), 0))
+    if not hyps_s:
+        msg = _no_scale_message(img, um_per_px) if um_per_px is not None else "no pose fits the options given"
+        return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found")
+    s = np.concatenate(hyps_s)
+    lin = np.concatenate(hyps_lin)
+    t = np.concatenate(hyps_t)
+    anchor = np.concatenate(hyps_anchor)
+    scores = np.empty(len(s))
+    for lo in range(0, len(s), 2000):
+        sl = slice(lo, lo + 2000)
+        scores[sl] = _score(
+            s[sl],
+            lin[sl],
+            t[sl],
+            ref,
+            img,
+            tree,
+            shape,
+            anchor=anchor[sl],
+            listed=listed,
+            width_tol=WIDTH_TOL,
+        )[0]
+    best_idx = np.argsort(-scores)[: top * 4]
+    refined: list[Pose] = []
+    for h in best_idx:
+        p = _refine(Pose(float(s[h]), lin[h], t[h]), ref, img, tree, shape, listed)
+        if any(_same_pose(p, q) and q.score >= p.score for q in refined):
+            continue
+        refined = [q for q in refined if not (_same_pose(p, q) and q.score < p.score)]
+        refined.append(p)
+        if len(refined) >= top:
+            break
+    refined.sort(key=lambda p: -p.score)
+    best = refined[0]
+    if um_per_px is not None:
+        # among the poses about as good as the best, the one at the given scale (to within
+        # half an element step) wins: it names the element when the view alone cannot
+        margin = max(AMBIGUITY_MARGIN, (1.0 - AMBIGUITY_RATIO) * best.score)
+        near = [
+            p
+            for p in refined
+            if p.score > best.score - margin and abs(np.log(p.s * um_per_px)) < np.log(HALF_ELEMENT)
+        ]
+        if near:
+            best = max(near, key=lambda p: p.score)
+    slips = _slip_scores(best, ref, img, tree, shape, listed)
+    runner = next((p for p in refined[1:] if not _same_pose(best, p)), None)
+    rivals = [("another pose", runner)] + [(f"the pose slipped by {k}", p) for k, p in slips.items()]
+    if best.score < 1.9 or len(best.matches) < 2:
+        msg = (f"the target was not found: the best pose explains only {len(best.matches)} of the "
+               f"{n_img} bar triplets found (score {best.score:.1f})")  # fmt: skip
+        return PoseResult(best, runner, 1, msg, {k: v.score for k, v in slips.items()}, n_img, refined,
+                          "not_found")  # fmt: skip
+    slip_scores = {k: v.score for k, v in slips.items()}
+    for name, rival in rivals:
+        if rival is None or _same_pose(best, rival):
+            continue
+        close = best.score - rival.score < max(AMBIGUITY_MARGIN, (1.0 - AMBIGUITY_RATIO) * best.score)
+        if close and um_per_px is not None:
+            # the given scale may decide between the two when it is within half an element
+            # step of one and not of the other
+            near_best = abs(np.log(best.s * um_per_px)) < np.log(HALF_ELEMENT)
+            near_rival = abs(np.log(rival.s * um_per_px)) < np.log(HALF_ELEMENT)
+            if near_best and not near_rival:
+                continue
+        if close:
+            msg = (
+                f"the target's identity is ambiguous: the best pose (scale {1 / best.s:.4g} um/px, "
+                f"{len(best.matches)} triplets) scores {best.score:.1f} and {name} "
+                f"(scale {1 / rival.s:.4g} um/px, {len(rival.matches)} triplets) {rival.score:.1f}; "
+                f"give --um-per-px (to within 6 %) or list "
+                f"every group in view in --groups"
+            )
+            return PoseResult(best, rival, 1, msg, slip_scores, n_img, refined, "ambiguous")
+    return PoseResult(best, runner, 0, "ok", slip_scores, n_img, refined)
+
+
+def _element_index(g, e):
+    return 6 * np.asarray(g) + np.asarray(e) - 1
+
+
+def _slip_scores(best: Pose, ref, img, tree, shape, listed) -> dict:
+    """The best pose re-fitted with every matched reference triplet replaced by the same
+    triplet (H or V) one element (``+1``/``-1``) or one layer (``+2g``/``-2g``) along."""
+    index = {
+        (int(_element_index(ref.group[j], ref.element[j])), ref.orient[j]): j for j in range(len(ref.width))
+    }
+    out = {}
+    for name, step in (("+1 element", 1), ("-1 element", -1), ("+2 groups", 12), ("-2 groups", -12)):
+        src, dst = [], []
+        for i, j in best.matches:
+            k = index.get((int(_element_index(ref.group[j], ref.element[j])) + step, ref.orient[j]))
+            if k is not None:
+                src.append(ref.centre[k])
+                dst.append(img.centre[i])
+        if len(src) < 2:
+            continue
+        s, lin, t = _fit_similarity(np.array(src), np.array(dst), best.mirrored)
+        if not (np.isfinite(s) and s > 0):
+            continue
+        out[name] = _refine(Pose(s, lin, t), ref, img, tree, shape, listed)
+    return out
+
+
+def _no_scale_message(img: Triplets, um_per_px) -> str:
+    w = np.sort(img.width)[::-1]
+    return (
+        f"no triplet of the target fits the bar triplets found at --um-per-px {um_per_px:g} "
+        f"(the widest bars found are {w[0]:.1f} px); check --um-per-px or leave it out to find the scale"
+    )
