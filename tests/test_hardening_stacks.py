@@ -573,3 +573,57 @@ def test_a_zip_bomb_map_is_refused_from_its_header(tmp_path):
 
 def test_the_map_limit_follows_the_image_limit():
     assert remap_module.MAP_MAX_PIXELS == images_module.MAX_PIXELS
+
+
+# ------------------------------------------------------- 20: report --image, large images
+
+
+def test_target_checks_are_bounded_on_an_image_of_noise(monkeypatch):
+    """An 8000 x 6000 image of noise has ~10^5 components and took over 240 s in
+    ``report --image``: only the largest components are checked, each over its own box."""
+    from oapcal.imaging import checks
+
+    image = np.random.default_rng(3).random((400, 400))
+    image = cv2.GaussianBlur(image, (0, 0), 1.5)
+    calls = []
+    original = checks._crossings
+
+    def counting(image, labels, k, *args):
+        calls.append(k)
+        return original(image, labels, k, *args)
+
+    monkeypatch.setattr(checks, "_crossings", counting)
+    monkeypatch.setattr(checks, "MAX_COMPONENTS", 40, raising=False)
+    from oapcal.imaging.esf import find_components
+
+    comp = find_components(image)
+    assert len(comp.boxes) > 100  # the case: many more components than are checked
+    checks.check_target(image, components=comp)
+    assert 0 < len(set(calls)) <= 40
+    largest = set((np.argsort(-comp.areas)[:40] + 1).tolist())
+    assert set(calls) <= largest
+
+
+# ------------------------------------------------------------ 15: a full disk under Dask
+
+
+def _limit_file_size():
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))  # writes beyond fail: EFBIG
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fmt", ["zarr", "tiff"])
+def test_a_full_disk_under_the_local_cluster_is_one_line(tmp_path, fmt):
+    calib = write_calibration(tmp_path / "c.json", params=SMALL, image_size=(64, 48))
+    _imwrite(tmp_path / "s.tif", _frames(2000, dtype=np.uint8))
+    out = tmp_path / "o"
+    args = [sys.executable, "-m", "oapcal", "correct", str(calib), str(tmp_path / "s.tif"), "--out-dir",
+            str(out), "--dask", "--chunk-frames", "200", "--quiet", "--dask-format", fmt]  # fmt: skip
+    proc = subprocess.run(args, capture_output=True, text=True, preexec_fn=_limit_file_size, timeout=300)
+    err = proc.stderr
+    assert proc.returncode == 4, err
+    assert "Traceback" not in err and "distributed" not in err, err
+    assert err.count("\n") == 1 and "cannot be written" in err and ".tmp" not in err, err
+    assert _visible(out) == []

@@ -122,7 +122,11 @@ class TargetCheck:
         }
 
 
-def _crossings(image, labels, k, background, bright, side, a0, a1):
+#: Components checked at most by :func:`check_target` (the largest ones).
+MAX_COMPONENTS = 2000
+
+
+def _crossings(image, labels, k, background, bright, side, a0, a1, b0=0, b1=None):
     """Sub-pixel edge positions of component ``k`` on ``side`` for lines ``a0..a1``.
 
     The level of each line is half-way between the background plateau and the line's own
@@ -131,15 +135,17 @@ def _crossings(image, labels, k, background, bright, side, a0, a1):
 
     For a left/right side the lines are rows and the positions x; for top/bottom they are
     columns and the positions y.  Returns ``(lines, positions)`` of the lines where the
-    crossing exists.
+    crossing exists.  ``b0..b1`` is the component's extent along the lines (its box): only
+    that part of each line is searched, so the work grows with the component, not the image.
     """
     vertical = side in ("left", "right")
     img = image if vertical else image.T
     lab = labels if vertical else labels.T
     sign = 1.0 if bright else -1.0
     lines, positions = [], []
+    b1 = img.shape[1] - 1 if b1 is None else b1
     for line in range(a0, a1 + 1):
-        cols = np.flatnonzero(lab[line] == k)
+        cols = np.flatnonzero(lab[line, b0 : b1 + 1] == k) + b0
         if cols.size == 0:
             continue
         if side in ("left", "top"):
@@ -181,12 +187,18 @@ def check_target(
 
     Corners are left out (a fifth of each side, at least 2 px), as are sides on the image
     border and components touching it (for the aspect ratio).  With a boolean ``valid``
-    mask ``(rows, cols)``, components within 2 px of an invalid pixel are left out.
+    mask ``(rows, cols)``, components within 2 px of an invalid pixel are left out.  Only
+    the :data:`MAX_COMPONENTS` largest components are checked (an image of noise has
+    hundreds of thousands).
     """
     image = np.asarray(image, float)
     comp = find_components(image, min_area) if components is None else components
     edges, shapes = [], []
-    for index, (bx0, by0, bx1, by1) in enumerate(comp.boxes):
+    order = np.arange(len(comp.boxes))
+    if len(order) > MAX_COMPONENTS:
+        order = np.sort(np.argsort(-np.asarray(comp.areas), kind="stable")[:MAX_COMPONENTS])
+    for index in order:
+        bx0, by0, bx1, by1 = comp.boxes[index]
         k = index + 1
         if valid is not None:
             window = valid[max(by0 - 2, 0) : by1 + 3, max(bx0 - 2, 0) : bx1 + 3]
@@ -199,8 +211,9 @@ def check_target(
             vertical = side in ("left", "right")
             a0, a1 = (by0, by1) if vertical else (bx0, bx1)
             trim = max(2, (a1 - a0 + 1) // 5)
+            b0, b1 = (bx0, bx1) if vertical else (by0, by1)
             lines, pos = _crossings(
-                image, comp.labels, k, comp.background, comp.bright, side, a0 + trim, a1 - trim
+                image, comp.labels, k, comp.background, comp.bright, side, a0 + trim, a1 - trim, b0, b1
             )
             if len(lines) >= 3:  # enough for a median width
                 extents[side] = (lines, pos)

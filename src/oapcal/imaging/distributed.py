@@ -457,8 +457,8 @@ def check_free_space(directory: Path, n_bytes: int, what: Path) -> None:
 def _os_error(out_path: Path, exc: OSError) -> OutputError:
     """A failed write (a full disk, lost permissions) as one line naming the output."""
     reason = exc.strerror or str(exc)
-    if exc.errno == errno.ENOSPC:
-        reason = "the disk is full"
+    if exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+        reason = f"{reason}: the disk is full or the file too large"
     return OutputError(f"{out_path}: cannot be written ({reason}); nothing was written")
 
 

@@ -408,9 +408,23 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
                         "written; the input may have changed while it was corrected; nothing was written"
                     )
             write_resume_record(dst, record)
-    except (OapcalError, OSError) as exc:
+    except OapcalError as exc:
         return FileResult(str(src), str(dst), "failed", n, str(exc))
+    except OSError as exc:
+        return FileResult(str(src), str(dst), "failed", n, _os_message(src, dst, exc))
     return FileResult(str(src), str(dst), "corrected", n)
+
+
+def _os_message(src: Path, dst: Path, exc: OSError) -> str:
+    """One line for a failed read or write, naming the user's file (not a temporary one)."""
+    import errno
+
+    reason = exc.strerror or str(exc)
+    if exc.filename is not None and Path(exc.filename) == Path(src):
+        return f"{src}: cannot be read ({reason})"
+    if exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+        reason = f"{reason}: the disk is full or the file too large"
+    return f"{dst}: cannot be written ({reason}); nothing was written"
 
 
 def correct_frames(
