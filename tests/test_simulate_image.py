@@ -165,3 +165,30 @@ def test_bad_simulation_arguments(kwargs):
         simulate_image(
             (5,), identity_field(image_size=(64, 48)), oversample=kwargs.pop("oversample", 1), **kwargs
         )
+
+
+def test_cli_layout_and_bars_only(run_cli, tmp_path):
+    from oapcal.cli.simulate_image import simulate_image_command
+    from oapcal.imaging.usaf import LAYOUTS
+    from oapcal.io.points import read_points
+
+    choice = next(p for p in simulate_image_command.params if p.name == "layout")
+    assert list(choice.type.choices) == list(LAYOUTS)
+    code, out, err = run_cli("simulate", "image", "--field", "none", "--groups", "4-5", "--layout", "spaced",
+                             "--no-noise", "--sigma-px", "0", "--oversample", "2",
+                             "--out", tmp_path / "s.png", "--truth", tmp_path / "s.csv")  # fmt: skip
+    assert code == 0, err
+    pairs = read_points(tmp_path / "s.csv")
+    t = usaf_target((4, 5), "spaced")
+    i = pairs.ids.index("G4E6V2C2")
+    expected = t.to_reference_px(t.corners_um[t.corner_ids.index("G4E6V2C2")], 4.8, (640, 480))
+    np.testing.assert_allclose(pairs.xy_u[i], expected, atol=1e-9)
+    code, out, err = run_cli("simulate", "image", "--field", "none", "--groups", "4-5", "--bars-only",
+                             "--no-noise", "--sigma-px", "0", "--oversample", "2",
+                             "--out", tmp_path / "b.png")  # fmt: skip
+    assert code == 0, err
+    import cv2
+
+    bars = cv2.imread(str(tmp_path / "b.png"), cv2.IMREAD_UNCHANGED) / (0.8 * 255)
+    ref = render_usaf((4, 5), um_per_px=4.8, squares=False, digits=False).image
+    np.testing.assert_allclose(bars, ref, atol=0.6 / 255 / 0.8 + 1e-9)

@@ -121,6 +121,16 @@ BYTES_PER_SUBPIXEL = 100
     "--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True, help="Seed of the noise."
 )
 @click.option(
+    "--layout",
+    type=click.Choice(["compact", "spaced", "whole-target"]),
+    default="compact",
+    show_default=True,
+    help="Layout of the target: makers differ in gaps, square and nesting (docs/usaf.md).",
+)
+@click.option(
+    "--bars-only", is_flag=True, help="Draw only the bars (no reference squares, no printed numbers)."
+)
+@click.option(
     "--out", "out", type=click.Path(dir_okay=False), required=True, help="Output image (.png, .tif)."
 )
 @click.option(
@@ -131,7 +141,8 @@ BYTES_PER_SUBPIXEL = 100
 )
 def simulate_image_command(
     groups, relay_setup, d1_mm, field_name, calibration, sigma_px, na, wavelength_um, snr, no_noise,
-    read_noise_e, bits, polarity, pixel_size_um, image_size, um_per_px, oversample, seed, out, truth,
+    read_noise_e, bits, polarity, pixel_size_um, image_size, um_per_px, oversample, seed, layout, bars_only,
+    out, truth,
 ):  # fmt: skip
     """Simulate a camera image of the USAF-1951 target through a distortion field."""
     from oapcal.errors import DataError
@@ -178,6 +189,7 @@ def simulate_image_command(
         group_list, field, sigma_px=sigma_px, na=na, wavelength_um=wavelength_um,
         snr=None if no_noise else snr, read_noise_e=read_noise_e, bits=int(bits), polarity=polarity,
         oversample=oversample, um_per_px=um_per_px, seed=seed,
+        squares=not bars_only, digits=not bars_only, layout_name=layout,
         progress=stderr_is_terminal() and sys.stdout.isatty(),  # its bar draws on stdout
     )  # fmt: skip
     with OutputSet() as outputs:  # both or neither
