@@ -526,3 +526,33 @@ def test_missing_column_hint_does_not_name_a_required_column(run_cli, tmp_path):
     code, _, err = run_cli("fit", tmp_path / "p.csv")
     one_error(code, err)
     assert "missing columns 'x_d', 'y_d';" in err and "rename" not in err, err
+
+
+# -- item 4: a model that folds inside the image it is applied to ---------------------------------
+
+
+def test_correct_and_export_refuse_a_model_folding_inside_their_image(run_cli, files, tmp_path):
+    import json
+
+    import cv2
+
+    data = json.loads(files["calib"].read_text())
+    data["image_size"] = None
+    data["params"]["k1"] = -1e-6  # fine over the points (0..640 x 0..480), folds ~580 px from the centre
+    (tmp_path / "c.json").write_text(json.dumps(data))
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((480, 640), np.uint8))
+    cv2.imwrite(str(tmp_path / "large.png"), np.zeros((1200, 1600), np.uint8))
+    code, _, err = run_cli(
+        "correct", tmp_path / "c.json", tmp_path / "small.png", "--out-dir", tmp_path / "o1"
+    )
+    assert code == 0, err
+    code, _, err = run_cli(
+        "correct", tmp_path / "c.json", tmp_path / "large.png", "--out-dir", tmp_path / "o2"
+    )
+    assert code in (2, 4) and "folds over" in err and "inside the 1600x1200 px image" in err, err
+    assert not any(p.is_file() for p in (tmp_path / "o2").rglob("*") if not p.name.startswith("."))
+    code, _, err = run_cli(
+        "export-opencv", tmp_path / "c.json", "--image-size", "1600x1200", "--out", tmp_path / "cv.yml"
+    )
+    one_error(code, err)
+    assert "folds over" in err and not (tmp_path / "cv.yml").exists()

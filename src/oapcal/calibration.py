@@ -60,12 +60,16 @@ class Calibration:
         return {n: float(v) for n, v in zip(PARAM_NAMES, self.params)}
 
 
-def check_model_region(calibration, size: tuple[int, int] | None = None, *, source: str = "calibration"):
+def check_model_region(
+    calibration, size: tuple[int, int] | None = None, *, source: str = "calibration", boxes=()
+):
     """Refuse a model that is not finite or folds over (Jacobian determinant <= 0) where it is
     applied: over the reference points' ``bounds``, the calibration's ``image_size`` frame,
     and the frame of ``size = (width, height)`` px if given (the image it is applied to).
 
-    The model is evaluated on a :data:`CHECK_GRID` x :data:`CHECK_GRID` grid over each region.
+    ``boxes`` adds regions ``((x0, y0, x1, y1), description)`` in undistorted coordinates
+    (an output region of a correction).  The model is evaluated on a :data:`CHECK_GRID` x
+    :data:`CHECK_GRID` grid over each region.
     Raises :class:`InputFileError` naming the first bad point.
 
     >>> from oapcal.model import params_from_dict
@@ -87,6 +91,7 @@ def check_model_region(calibration, size: tuple[int, int] | None = None, *, sour
         if frame is not None:
             w, h = int(frame[0]), int(frame[1])
             regions.append(((0.0, 0.0, float(max(w - 1, 1)), float(max(h - 1, 1))), f"{w}x{h} px image"))
+    regions.extend(boxes)
     with np.errstate(all="ignore"):
         for (x0, y0, x1, y1), what in regions:
             gx, gy = np.meshgrid(np.linspace(x0, x1, CHECK_GRID), np.linspace(y0, y1, CHECK_GRID))

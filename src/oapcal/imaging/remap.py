@@ -116,6 +116,11 @@ def output_geometry(
         x0, y0, x1, y1 = (float(v) for v in bounds)
     else:
         x0, y0, x1, y1 = _full_extent(params, rows, cols)
+    from oapcal.calibration import check_model_region
+
+    # the model must be finite and not fold over where the output samples it
+    what = f"{cols}x{rows} px image" if extent == "input" else f"output region of a {cols}x{rows} px image"
+    check_model_region(params, boxes=[((x0, y0, x1, y1), what)], source="the calibration")
     scale = 1.0
     if um_per_px is not None:
         if not cal_um:
