@@ -45,7 +45,7 @@ def _make_seeds(directory: Path) -> dict[str, Path]:
         "bigwarp": bigwarp_csv(directory / "bigwarp.csv", data.xy_d, data.xy_u),
     }
     write_point_pairs(seeds["points"], data.xy_u, data.xy_d, ids=ids)
-    save_calibration(calibrate(data.xy_u, data.xy_d), seeds["calib"])
+    save_calibration(calibrate(data.xy_u, data.xy_d, um_per_px=4.8, image_size=(640, 480)), seeds["calib"])
     # a camera image of the USAF target (for correct, esf, detect)
     import cv2
 
@@ -100,6 +100,8 @@ COMMANDS = {
     "esf IMAGE": ("png", "esf {bad} --auto --plot {out}/e.png"),
     "report CALIB": ("calib", "report {bad} --out {out}/r.html"),
     "report POINTS": ("points", "report {calib} --points {bad} --out {out}/r.html"),
+    "simulate image CALIB": ("calib", "simulate image --calibration {bad} --image-size 160x120 --groups 4 "
+                             "--out {out}/x.png"),
     "detect IMAGE": ("png", "detect {bad} --target usaf --groups 4-5 --um-per-px 4.8 --out {out}/p.csv"),
 }  # fmt: skip
 
