@@ -627,3 +627,19 @@ def test_a_full_disk_under_the_local_cluster_is_one_line(tmp_path, fmt):
     assert "Traceback" not in err and "distributed" not in err, err
     assert err.count("\n") == 1 and "cannot be written" in err and ".tmp" not in err, err
     assert _visible(out) == []
+
+
+def test_a_tiff_output_larger_than_the_free_space_is_refused_before_writing(run_cli, tmp_path, small_calib,
+                                                                            monkeypatch):  # fmt: skip
+    import shutil
+    from collections import namedtuple
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**6, 10**6 - 1000, 1000))
+    _imwrite(tmp_path / "s.tif", _frames(3))  # 18 kB of output, 1 kB free
+    for extra in ([], ["--dask", "--scheduler", "synchronous", "--dask-format", "tiff"]):
+        out = tmp_path / "o"
+        code, _, err = run_cli("correct", small_calib, tmp_path / "s.tif", "--out-dir", out, *extra)
+        assert code == 4, err
+        assert "s.tif: the output needs" in err and "GiB free" in err
+        assert _visible(tmp_path / "o") == []

@@ -312,6 +312,7 @@ def correct_stack_dask(
     from oapcal.io.atomic import (
         atomic_dir,
         atomic_path,
+        check_free_space,
         file_fingerprint,
         remove_stale_temps,
         resume_complete,
@@ -437,21 +438,6 @@ def correct_stack_dask(
         raise _os_error(out_path, exc) from None
     write_resume_record(out_path, {**record})
     return DaskResult(str(input_path), str(out_path), out_shape[0], n_chunks)
-
-
-def check_free_space(directory: Path, n_bytes: int, what: Path) -> None:
-    """Refuse, before any work, an output that cannot fit on the disk."""
-    import shutil
-
-    try:
-        free = shutil.disk_usage(directory).free
-    except OSError:
-        return
-    if n_bytes > free:
-        raise OutputError(
-            f"{what}: the output needs {n_bytes / 2**30:.3g} GiB but {directory} has "
-            f"{free / 2**30:.3g} GiB free; free some space or choose another --out-dir"
-        )
 
 
 def _os_error(out_path: Path, exc: OSError) -> OutputError:

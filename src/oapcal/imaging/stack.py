@@ -38,6 +38,7 @@ from oapcal.errors import InputFileError, OapcalError, OutputError
 from oapcal.imaging.remap import CorrectionMap, correct_image, correction_map
 from oapcal.io.atomic import (
     atomic_path,
+    check_free_space,
     ensure_not_input,
     file_fingerprint,
     remove_stale_temps,
@@ -393,6 +394,8 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
             pixels_in = info.frame_shape[0] * info.frame_shape[1]
             out_bytes = info.n_frames * info.frame_bytes * cmap.shape[0] * cmap.shape[1] // pixels_in
             meta = dict(planar=info.planar, expected_bytes=out_bytes)
+            if info.kind == "tiff":  # uncompressed: the size is known; PNG etc. compress
+                check_free_space(dst.parent, out_bytes, dst)
             with atomic_path(dst) as tmp:
                 with FrameWriter(tmp, info.kind, name, cmap.geometry.um_per_px, **meta) as writer:
                     out = None

@@ -261,6 +261,19 @@ def resume_complete(output: str | os.PathLike, record: dict) -> bool:
     return all(data.get(k) == json.loads(json.dumps(v)) for k, v in record.items())
 
 
+def check_free_space(directory: str | os.PathLike, n_bytes: int, what: str | os.PathLike) -> None:
+    """Refuse, before any work, an output of ``n_bytes`` that cannot fit on the disk."""
+    try:
+        free = shutil.disk_usage(directory).free
+    except OSError:
+        return
+    if n_bytes > free:
+        raise OutputError(
+            f"{what}: the output needs {n_bytes / 2**30:.3g} GiB but {directory} has "
+            f"{free / 2**30:.3g} GiB free; free some space or choose another --out-dir"
+        )
+
+
 def ensure_not_input(output: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> None:
     """Raise :class:`OutputError` if ``output`` is the same file as one of ``inputs``."""
     out = Path(output)
