@@ -36,8 +36,6 @@ KNOWN_VIOLATIONS = {
     ("imaging.stack", "io.images"),
     ("imaging.distributed", "io.images"),
     ("imaging.distributed", "io.atomic"),
-    ("optics.plot", "io.atomic"),
-    ("optics.summary", "io.atomic"),
 }
 
 
@@ -128,4 +126,4 @@ def test_no_library_module_sets_the_matplotlib_backend():
 
 #: Library modules that still call ``matplotlib.use("Agg")`` (their figures are to move to
 #: ``report`` and use ``Figure`` + ``FigureCanvasAgg``).
-KNOWN_BACKEND_SETTERS = {"optics/plot.py", "imaging/detect_plot.py"}
+KNOWN_BACKEND_SETTERS = {"imaging/detect_plot.py"}

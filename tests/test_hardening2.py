@@ -247,12 +247,12 @@ def test_simulate_image_writes_both_outputs_or_neither(run_cli, tmp_path, monkey
 
 
 def test_simulate_relay_writes_all_outputs_or_none(run_cli, tmp_path, monkeypatch):
-    import oapcal.optics.plot
+    import oapcal.report.optics_plots
 
     def fails(*args, **kwargs):
         raise OSError(28, "No space left on device", str(args[1]))
 
-    monkeypatch.setattr(oapcal.optics.plot, "plot_spots", fails)
+    monkeypatch.setattr(oapcal.report.optics_plots, "plot_spots", fails)
     argv = ["simulate", "relay", "--grid", "5", "--out", tmp_path / "g.csv", "--plot", tmp_path / "g.png"]
     code, _, err = run_cli(*argv, "--spots", tmp_path / "s.png")
     one_error(code, err)

@@ -165,3 +165,47 @@ def test_relay_too_large_misalignments_are_user_errors(run_cli, tmp_path, args, 
     code, _, err = run_cli("simulate", "relay", "--grid", "5", "--out", tmp_path / "g.csv", *args)
     assert code == 2 and err.count("\n") == 1 and pattern in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_relay_grid_csv_to_stdout_prints_no_table(run_cli):
+    code, stdout, err = run_cli("simulate", "relay", "--grid", "3", "--rings", "1", "--out", "-")
+    assert code == 0, err
+    lines = stdout.splitlines()
+    assert lines[0] == "x_obj,y_obj,x_u,y_u,x_d,y_d,clear" and len(lines) == 10
+    assert "Grid distortion" not in stdout
+
+
+def test_simulate_relay_returns_typed_numbers_that_the_summary_renders():
+    from oapcal.optics.relay import radial_fit
+    from oapcal.optics.summary import simulate_relay
+
+    sim = simulate_relay(2, n=5, rings=2, pixel_size_um=5.0)
+    fit, forward_mm, correction_mm = radial_fit(sim.grid)  # the same fit, called directly
+    assert sim.radial.converged == fit.converged
+    assert sim.radial.mean_residual_mm == forward_mm
+    assert sim.radial.mean_correction_residual_mm == correction_mm
+    s = sim.summary
+    assert s["radial_fit"]["mean_residual_px"] == pytest.approx(forward_mm * 1e3 / 5.0)
+    assert s["quality"]["rayleigh_um"] == sim.limits.rayleigh_um
+    assert sim.limits.sparrow_um < sim.limits.rayleigh_um  # Sparrow's criterion is the finer one
+    assert s["magnification"] == pytest.approx(1.0, abs=1e-3)  # equal mirrors: unit magnification
+    assert [len(v) for v in sim.spots.values()] == [4, 4] and sim.paper is None
+
+
+def test_relay_figures_keep_the_callers_matplotlib_backend(tmp_path):
+    """The figures are built with Figure + FigureCanvasAgg: pyplot is never loaded and a
+    notebook's backend stays as it was."""
+    code = (
+        "import sys, matplotlib; matplotlib.use('svg');"
+        "from oapcal.optics.summary import simulate_relay;"
+        "from oapcal.report import optics_plots as P;"
+        "sim = simulate_relay(1, n=5, rings=2);"
+        f"P.plot_grid(sim.grid, {str(tmp_path / 'g.png')!r});"
+        f"P.plot_spots(sim.spots, {str(tmp_path / 's.png')!r});"
+        f"P.plot_layout(sim.relay, {str(tmp_path / 'l.png')!r});"
+        "print(matplotlib.get_backend(), 'matplotlib.pyplot' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["svg", "False"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.png", "l.png", "s.png"]
+    assert all(p.read_bytes()[:4] == b"\x89PNG" for p in tmp_path.iterdir())

@@ -73,8 +73,8 @@ def test_inverse_marks_points_outside_the_traced_grid_and_non_finite_input(field
 
 
 def test_grid_plot_of_a_large_grid_draws_a_subgrid(tmp_path):
-    from oapcal.optics.plot import plot_grid
     from oapcal.optics.relay import grid_distortion, oap_relay
+    from oapcal.report.optics_plots import plot_grid
 
     grid = grid_distortion(oap_relay(1), n=35, field_mm=1.0)
     plot_grid(grid, tmp_path / "g.png", units="px", max_side=9)

@@ -98,14 +98,15 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
     from oapcal.imaging.remap import correct_image, correction_map
     from oapcal.imaging.simulate import simulate_image, write_truth
     from oapcal.io.calibration import save_calibration
+    from oapcal.io.grid import write_grid_csv
     from oapcal.io.images import write_image
     from oapcal.io.jsonfile import write_json
     from oapcal.io.points import read_points, write_point_pairs
     from oapcal.io.results import save_robustness, save_selection
     from oapcal.model import distort
     from oapcal.optics import relay_distortion
-    from oapcal.optics.plot import plot_grid
-    from oapcal.optics.summary import simulate_relay, write_grid_csv
+    from oapcal.optics.summary import simulate_relay
+    from oapcal.report.optics_plots import plot_grid
     from oapcal.select import robustness, select_models
 
     def start(name: str) -> None:

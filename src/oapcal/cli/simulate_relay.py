@@ -212,7 +212,8 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
     check_plot_suffix(spots, "--spots")
     check_plot_suffix(layout, "--layout")
 
-    from oapcal.optics.summary import simulate_relay, write_grid_csv
+    from oapcal.io.grid import write_grid_csv
+    from oapcal.optics.summary import simulate_relay
 
     bar, update = progress_bar("tracing")
     with bar:
@@ -228,18 +229,18 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
                 update(0, 1, "writing the grid CSV")
                 write_grid_csv(sim.grid, outputs.stage(out), units, pixel_size, size, progress=update)
             if plot is not None:
-                from oapcal.optics.plot import plot_grid
+                from oapcal.report.optics_plots import plot_grid
 
                 update(0, 1, "plotting")
                 plot_grid(sim.grid, outputs.stage(plot), units=units, pixel_size_um=pixel_size)
             if spots is not None:
-                from oapcal.optics.plot import plot_spots
+                from oapcal.report.optics_plots import plot_spots
 
                 plot_spots(
                     sim.spots, outputs.stage(spots), airy_radius_um=sim.summary["quality"]["rayleigh_um"]
                 )
             if layout is not None:
-                from oapcal.optics.plot import plot_layout
+                from oapcal.report.optics_plots import plot_layout
 
                 plot_layout(sim.grid.relay, outputs.stage(layout))
     if as_json:

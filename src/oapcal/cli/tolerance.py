@@ -193,7 +193,7 @@ def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal
             "monte_carlo": mc,
         }  # fmt: skip
         if plot is not None:
-            from oapcal.optics.plot import plot_tolerance
+            from oapcal.report.optics_plots import plot_tolerance
 
             update(0, 1, "plotting")
             plot_tolerance(result, plot)

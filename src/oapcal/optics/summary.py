@@ -2,6 +2,11 @@
 distortion, its statistics next to the paper's, the radial-fit residual, spot sizes and
 resolution limits.
 
+Compute, then render: :func:`simulate_relay` traces and returns a typed
+:class:`RelaySimulation`; :func:`relay_summary` (also ``RelaySimulation.summary``) turns it
+into the JSON-ready dict of ``oapcal simulate relay --json`` (``docs/cli.md``).  Files
+and figures are made elsewhere (:mod:`oapcal.io.grid`, :mod:`oapcal.report.optics_plots`).
+
 >>> sim = simulate_relay(1)
 >>> round(sim.summary["distortion"]["max_um"])  # the paper reports 193 um
 192
@@ -9,6 +14,7 @@ resolution limits.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +30,7 @@ from oapcal.optics.quality import (
     spot_diagram,
     traced_numerical_aperture,
 )
-from oapcal.optics.relay import GridDistortion, grid_distortion, oap_relay, radial_fit
+from oapcal.optics.relay import GridDistortion, Relay, grid_distortion, oap_relay, radial_fit
 
 #: The paper's figures for setup 1 (1 mm x 1 mm field, 17 x 17 points, 4.8 um pixels).
 PAPER_SETUP1 = {
@@ -38,21 +44,115 @@ PAPER_SETUP1 = {
     "sparrow_um": 2.07,
 }
 
+#: Rays traced around the stop's rim for the traced numerical aperture.
+NA_RAYS = 360
+
+#: The orientations whose spot diagrams are traced, in this order.
+SPOT_ORIENTATIONS = ("U", "Z")
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class RadialFitResidual:
+    """The second-order radial model fitted to the grid (:func:`~oapcal.optics.relay.radial_fit`):
+    whether it converged and its mean forward and correction residuals, in image-plane mm."""
+
+    converged: bool
+    mean_residual_mm: float
+    mean_correction_residual_mm: float
+
+
+@dataclass(frozen=True)
+class ResolutionLimits:
+    """Numerical aperture (paraxial and traced, image side) and the resolution limits (um)
+    of a collimated beam of ``beam_diameter_mm`` at ``wavelength_nm``."""
+
+    beam_diameter_mm: float
+    wavelength_nm: float
+    na: float
+    na_traced: float
+    sparrow_um: float
+    rayleigh_um: float
+    pixel_limit_um: float
+
 
 @dataclass(frozen=True)
 class RelaySimulation:
-    """``grid`` the traced grid, ``summary`` a JSON-ready dict (``docs/cli.md``), ``spots``
-    ``{orientation: [Spot per field point]}`` for both orientations."""
+    """What :func:`simulate_relay` computed.
+
+    ``grid`` the traced grid (its ``relay`` the relay traced); ``spots``
+    ``{orientation: [Spot per field point]}`` for both orientations, traced with ``rings``
+    hexapolar rings; ``radial`` the radial-fit residual; ``limits`` the NA and resolution
+    limits; ``pixel_size_um`` the camera pixel that px figures use.
+    """
 
     grid: GridDistortion
-    summary: dict
     spots: dict[str, list[Spot]]
+    radial: RadialFitResidual
+    limits: ResolutionLimits
+    pixel_size_um: float
+    rings: int
+
+    @property
+    def relay(self) -> Relay:
+        return self.grid.relay
+
+    @property
+    def magnification(self) -> float:
+        """The paraxial magnification ``sqrt(|det matrix|)``."""
+        return paraxial_magnification(self.grid)
+
+    @property
+    def paper(self) -> dict | None:
+        """The paper's figures when this is the paper's case (setup 1, U, aligned, 17 x 17
+        over 1 mm; the px figures only for 4.8 um pixels), else None."""
+        relay, grid = self.relay, self.grid
+        paper_case = (
+            relay.d1_mm == 860.0 and relay.orientation == "U" and grid.n == 17 and grid.field_mm == 1.0
+            and relay.focal_length_mm == 50.8 and relay.focal_length_2_mm is None
+            and relay.misalignment.is_zero
+        )  # fmt: skip
+        if not paper_case:
+            return None
+        if self.pixel_size_um != 4.8:  # the paper's px figures are for 4.8 um pixels
+            return {k: v for k, v in PAPER_SETUP1.items() if not k.endswith("_px")}
+        return dict(PAPER_SETUP1)
+
+    @property
+    def summary(self) -> dict:
+        """The JSON-ready dict of :func:`relay_summary`."""
+        return relay_summary(self)
 
 
 def default_spot_fields(field_mm: float) -> list[tuple[float, float]]:
     """The field centre, the middle of two edges and a corner of a square field (mm)."""
     half = 0.5 * float(field_mm)
     return [(0.0, 0.0), (half, 0.0), (0.0, half), (half, half)]
+
+
+def paraxial_magnification(grid: GridDistortion) -> float:
+    """``sqrt(|det M|)`` of the grid's paraxial map ``M``."""
+    return float(np.sqrt(abs(np.linalg.det(grid.matrix))))
+
+
+class _Work:
+    """Progress over the steps of :func:`simulate_relay`, counted in traced rays."""
+
+    def __init__(self, total: int, progress: Progress | None):
+        self.total = total
+        self.done = 0
+        self.progress = progress
+
+    def advance(self, k: int) -> None:
+        self.done += k
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+    def within(self, done: int, _total: int) -> None:
+        """The ``progress`` of a step: its own count added to the steps before it."""
+        if self.progress is not None:
+            self.progress(self.done + done, self.total)
 
 
 def simulate_relay(
@@ -69,7 +169,7 @@ def simulate_relay(
     wavelength_nm: float = 850.0,
     spot_fields=None,
     rings: int = 8,
-    progress=None,
+    progress: Progress | None = None,
     focal_length_2_mm: float | None = None,
     misalignment=None,
 ) -> RelaySimulation:
@@ -87,26 +187,38 @@ def simulate_relay(
         focal_length_mm=focal_length_mm, focal_length_2_mm=focal_length_2_mm, misalignment=misalignment,
     )  # fmt: skip
     n = int(n)
-    field_points = default_spot_fields(field_mm) if spot_fields is None else spot_fields
-    field_points = [tuple(float(v) for v in p) for p in np.asarray(field_points, dtype=float).reshape(-1, 2)]
-    if not np.isfinite(field_points).all():
+    field_points = _spot_fields(spot_fields, field_mm)
+    rays_per_spot = len(hexapolar_pupil(rings)) + 1
+    work = _Work(2 * n * n + len(SPOT_ORIENTATIONS) * len(field_points) * rays_per_spot + NA_RAYS, progress)
+
+    grid = trace_grid(relay, n, field_mm, progress=work.within)
+    work.advance(n * n)
+    fit_result, forward_mm, correction_mm = radial_fit(grid)
+    radial = RadialFitResidual(bool(fit_result.converged), forward_mm, correction_mm)
+    work.advance(n * n)
+    spots = trace_spots(
+        relay, field_points, beam_diameter_mm, rings, done=lambda: work.advance(rays_per_spot)
+    )
+    limits = resolution_limits(relay, beam_diameter_mm, wavelength_nm, pixel_size_um,
+                               paraxial_magnification(grid))  # fmt: skip
+    work.advance(NA_RAYS)
+    return RelaySimulation(grid, spots, radial, limits, float(pixel_size_um), int(rings))
+
+
+def _spot_fields(spot_fields, field_mm: float) -> list[tuple[float, float]]:
+    """The spot diagrams' object points as ``(x, y)`` mm tuples (default: :func:`default_spot_fields`)."""
+    points = default_spot_fields(field_mm) if spot_fields is None else spot_fields
+    points = [tuple(float(v) for v in p) for p in np.asarray(points, dtype=float).reshape(-1, 2)]
+    if not np.isfinite(points).all():
         raise GeometrySpecError("spot field points must be finite numbers of mm")
-    n_pupil = len(hexapolar_pupil(rings))
-    n_na = 360
-    total = 2 * n * n + 2 * len(field_points) * (n_pupil + 1) + n_na
-    done = 0
+    return points
 
-    def advance(k: int) -> None:
-        nonlocal done
-        done += k
-        if progress is not None:
-            progress(done, total)
 
-    def sub(d: int, _t: int) -> None:
-        if progress is not None:
-            progress(done + d, total)
-
-    grid = grid_distortion(relay, n, field_mm, progress=sub)
+def trace_grid(relay: Relay, n: int, field_mm: float, progress: Progress | None = None) -> GridDistortion:
+    """:func:`~oapcal.optics.relay.grid_distortion`, refused with
+    :class:`~oapcal.errors.GeometrySpecError` when chief rays are lost or the paraxial map
+    near the field centre is not invertible (nothing to compare the real points with)."""
+    grid = grid_distortion(relay, n, field_mm, progress=progress)
     lost = int((~np.isfinite(grid.xy_d).all(axis=1)).sum())
     if lost or not (np.isfinite(grid.matrix).all() and abs(np.linalg.det(grid.matrix)) > 1e-9):
         what = (
@@ -116,38 +228,62 @@ def simulate_relay(
         )
         fix = "smaller misalignments" if not relay.misalignment.is_zero else "a smaller field (--field)"
         raise GeometrySpecError(f"{what} miss a mirror surface or the image plane; give {fix}")
-    advance(n * n)
-    px = 1e3 / float(pixel_size_um)  # px per image mm
-    disp = grid.displacement
-    dist = grid.distortion
-    fit_result, forward_mm, correction_mm = radial_fit(grid)
-    advance(n * n)
-    magnification = float(np.sqrt(abs(np.linalg.det(grid.matrix))))
+    return grid
 
+
+def _with_orientation(relay: Relay, orientation: str) -> Relay:
+    """The same design and misalignment with the second mirror in ``orientation``."""
+    if orientation == relay.orientation:
+        return relay
+    return oap_relay(
+        None, d1_mm=relay.d1_mm, orientation=orientation, stop_distance_mm=relay.stop_distance_mm,
+        focal_length_mm=relay.focal_length_mm, diameter_mm=relay.diameter_mm,
+        focal_length_2_mm=relay.focal_length_2_mm, misalignment=relay.misalignment,
+    )  # fmt: skip
+
+
+def trace_spots(relay: Relay, field_points, beam_diameter_mm: float, rings: int,
+                done: Callable[[], None] | None = None) -> dict[str, list[Spot]]:  # fmt: skip
+    """Spot diagrams of ``relay`` in both orientations (:data:`SPOT_ORIENTATIONS`) at each
+    object point of ``field_points`` (mm); ``done()`` is called after each spot."""
     spots = {}
-    for key in ("U", "Z"):
-        other = relay if key == relay.orientation else oap_relay(
-            setup, d1_mm=relay.d1_mm, orientation=key, stop_distance_mm=relay.stop_distance_mm,
-            focal_length_mm=focal_length_mm, focal_length_2_mm=focal_length_2_mm,
-            misalignment=relay.misalignment,
-        )  # fmt: skip
+    for key in SPOT_ORIENTATIONS:
+        other = _with_orientation(relay, key)
         spots[key] = []
         for p in field_points:
             spots[key].append(spot_diagram(other, p, beam_diameter_mm, rings))
-            advance(n_pupil + 1)
-    na = numerical_aperture(beam_diameter_mm, relay.focal_lengths_mm[1])  # image side
-    na_traced = traced_numerical_aperture(relay, beam_diameter_mm, n_na)
-    advance(n_na)
-    paper_case = (
-        relay.d1_mm == 860.0 and relay.orientation == "U" and grid.n == 17 and grid.field_mm == 1.0
-        and relay.focal_length_mm == 50.8 and relay.focal_length_2_mm is None and relay.misalignment.is_zero
-    )  # fmt: skip
-    paper = None
-    if paper_case:
-        paper = dict(PAPER_SETUP1)
-        if float(pixel_size_um) != 4.8:  # the paper's px figures are for 4.8 um pixels
-            paper = {k: v for k, v in paper.items() if not k.endswith("_px")}
-    summary = {
+            if done is not None:
+                done()
+    return spots
+
+
+def resolution_limits(relay: Relay, beam_diameter_mm: float, wavelength_nm: float, pixel_size_um: float,
+                      magnification: float) -> ResolutionLimits:  # fmt: skip
+    """The image-side NA (paraxial from the beam and the second focal length, and traced
+    with :data:`NA_RAYS` rays) and the Sparrow, Rayleigh and pixel limits."""
+    na = numerical_aperture(beam_diameter_mm, relay.focal_lengths_mm[1])
+    return ResolutionLimits(
+        beam_diameter_mm=float(beam_diameter_mm),
+        wavelength_nm=float(wavelength_nm),
+        na=na,
+        na_traced=traced_numerical_aperture(relay, beam_diameter_mm, NA_RAYS),
+        sparrow_um=sparrow_limit_um(na, wavelength_nm),
+        rayleigh_um=rayleigh_limit_um(na, wavelength_nm),
+        pixel_limit_um=pixel_limit_um(pixel_size_um, magnification),
+    )
+
+
+# --------------------------------------------------------------------------- render
+
+
+def relay_summary(sim: RelaySimulation) -> dict:
+    """The JSON-ready summary of ``oapcal simulate relay --json`` (``docs/cli.md``): the
+    relay, the grid, the paraxial map, the distortion in um and px, the radial fit, the
+    resolution limits and spots, and the paper's figures when comparable."""
+    relay, grid, radial, q = sim.relay, sim.grid, sim.radial, sim.limits
+    px = 1e3 / sim.pixel_size_um  # px per image mm
+    disp, dist = grid.displacement, grid.distortion
+    return {
         "relay": {
             "d1_mm": relay.d1_mm,
             "orientation": relay.orientation,
@@ -160,12 +296,12 @@ def simulate_relay(
         "grid": {
             "n": grid.n,
             "field_mm": grid.field_mm,
-            "pixel_size_um": float(pixel_size_um),
+            "pixel_size_um": sim.pixel_size_um,
             "n_vignetted": int((~grid.clear).sum()),
         },
         "paraxial_matrix": grid.matrix.round(12).tolist(),
         "paraxial_offset_mm": grid.offset.round(12).tolist(),
-        "magnification": magnification,
+        "magnification": sim.magnification,
         "distortion": {
             "max_um": float(dist.max() * 1e3),
             "mean_um": float(dist.mean() * 1e3),
@@ -179,21 +315,21 @@ def simulate_relay(
         "radial_fit": {
             "model": "radial",
             "normalize": "grid",
-            "converged": bool(fit_result.converged),
-            "mean_residual_um": forward_mm * 1e3,
-            "mean_residual_px": forward_mm * px,
-            "mean_correction_residual_um": correction_mm * 1e3,
-            "mean_correction_residual_px": correction_mm * px,
+            "converged": radial.converged,
+            "mean_residual_um": radial.mean_residual_mm * 1e3,
+            "mean_residual_px": radial.mean_residual_mm * px,
+            "mean_correction_residual_um": radial.mean_correction_residual_mm * 1e3,
+            "mean_correction_residual_px": radial.mean_correction_residual_mm * px,
         },
         "quality": {
-            "beam_diameter_mm": float(beam_diameter_mm),
-            "wavelength_nm": float(wavelength_nm),
-            "rings": int(rings),
-            "na": na,
-            "na_traced": na_traced,
-            "sparrow_um": sparrow_limit_um(na, wavelength_nm),
-            "rayleigh_um": rayleigh_limit_um(na, wavelength_nm),
-            "pixel_limit_um": pixel_limit_um(pixel_size_um, magnification),
+            "beam_diameter_mm": q.beam_diameter_mm,
+            "wavelength_nm": q.wavelength_nm,
+            "rings": sim.rings,
+            "na": q.na,
+            "na_traced": q.na_traced,
+            "sparrow_um": q.sparrow_um,
+            "rayleigh_um": q.rayleigh_um,
+            "pixel_limit_um": q.pixel_limit_um,
             "spots": [
                 {
                     "orientation": key,
@@ -201,50 +337,9 @@ def simulate_relay(
                     "rms_um": s.rms_um,
                     "geo_um": s.geo_um,
                 }
-                for key in ("U", "Z")
-                for s in spots[key]
+                for key in SPOT_ORIENTATIONS
+                for s in sim.spots[key]
             ],  # fmt: skip
         },
-        "paper": paper,
+        "paper": sim.paper,
     }
-    return RelaySimulation(grid, summary, spots)
-
-
-def write_grid_csv(grid: GridDistortion, path, units: str = "mm", pixel_size_um: float = 4.8,
-                   image_size=None, progress=None) -> None:  # fmt: skip
-    """Write the grid CSV ``x_obj,y_obj,x_u,y_u,x_d,y_d,clear`` (``docs/cli.md``).
-
-    Object points in mm; paraxial and real image points in image-plane mm, or with
-    ``units="px"`` in px of ``pixel_size_um`` (axis at 0, 0; with ``image_size`` (w, h)
-    camera px with the axis at the image centre).  Numbers are written with Python's
-    shortest round-trip ``repr``; atomically, ``-`` writes to stdout.
-    ``progress(done, total)`` is called per block of rows.
-    """
-    import sys
-
-    from oapcal.io.atomic import atomic_write
-
-    scale = 1.0 if units == "mm" else 1e3 / float(pixel_size_um)
-    offset = np.zeros(2) if image_size is None else (np.asarray(image_size, float) - 1.0) / 2.0
-    values = np.concatenate([grid.xy_obj, grid.xy_u * scale + offset, grid.xy_d * scale + offset], axis=1)
-    clear = grid.clear
-
-    def write(fh) -> None:
-        fh.write("x_obj,y_obj,x_u,y_u,x_d,y_d,clear\n")
-        n = len(values)
-        block = 1 << 16
-        for lo in range(0, n, block):
-            hi = min(n, lo + block)
-            rows = values[lo:hi].tolist()
-            flags = clear[lo:hi].tolist()
-            fh.write(
-                "".join(",".join(map(repr, r)) + (",1\n" if ok else ",0\n") for r, ok in zip(rows, flags))
-            )
-            if progress is not None:
-                progress(hi, n)
-
-    if str(path) == "-":
-        write(sys.stdout)
-        return
-    with atomic_write(path) as fh:
-        write(fh)

@@ -12,13 +12,13 @@ import numpy as np
 CMAP = "viridis"
 
 
-def _figure(width: float, height: float):
+def _figure(width: float, height: float, dpi: float | None = 110):
     """A figure with its own Agg canvas: no pyplot state, and the caller's (e.g. a
-    notebook's) Matplotlib backend is left as it is."""
+    notebook's) Matplotlib backend is left as it is.  ``dpi=None`` is Matplotlib's default."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(width, height), dpi=110, layout="constrained")
+    fig = Figure(figsize=(width, height), dpi=dpi, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
 
@@ -233,6 +233,18 @@ def esf_figure(summary, n_examples: int = 8):
         sub.tick_params(labelsize=7)
     fig.suptitle("Edge spread functions fitted with an error function (Gaussian PSF)")
     return fig
+
+
+def save_figure(fig, path, *, dpi: float | None = None) -> None:
+    """Write a figure to ``path`` atomically (:func:`oapcal.io.atomic.atomic_path`); the
+    format follows the suffix (PNG, SVG, PDF)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from oapcal.io.atomic import atomic_path
+
+    FigureCanvasAgg(fig)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi)
 
 
 def figure_png(fig) -> bytes:

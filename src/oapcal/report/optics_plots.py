@@ -1,23 +1,27 @@
-"""Figures of a traced relay: grid distortion arrows and spot diagrams (Matplotlib, Agg)."""
+"""Figures of a traced relay: grid distortion arrows, spot diagrams, the tolerancing
+figure and the relay's layout in its fold plane.
+
+Each ``*_figure`` function returns a :class:`matplotlib.figure.Figure` with its own Agg
+canvas (no pyplot state, the caller's backend untouched); each ``plot_*`` function draws
+one and writes it as a PNG (120 dpi) atomically with :func:`oapcal.report.plots.save_figure`.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
-from oapcal.io.atomic import atomic_path
+from oapcal.report.plots import _figure, save_figure
+
+#: Resolution of the written figures (dots per inch).
+DPI = 120
 
 
-def plot_grid(grid, path, *, units: str = "mm", pixel_size_um: float = 4.8, max_side: int = 33) -> None:
+def grid_figure(grid, *, units: str = "mm", pixel_size_um: float = 4.8, max_side: int = 33):
     """Arrows from paraxial to real image points, coloured by distortion normalised by the
     field radius (the largest paraxial distance from the axis), in percent.  The image is
     drawn as a camera shows it: x to the right, y down.  Grids larger than ``max_side``
     points a side are drawn on a regular subgrid (border included) so arrows stay legible;
     the title's max and mean are over every point."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     scale = 1.0 if units == "mm" else 1e3 / pixel_size_um
     radius = np.hypot(*grid.xy_u.T).max()
     use = np.arange(len(grid.xy_u))
@@ -29,7 +33,8 @@ def plot_grid(grid, path, *, units: str = "mm", pixel_size_um: float = 4.8, max_
     u = grid.xy_u[use] * scale
     d = grid.xy_d[use] * scale
     colour = 100.0 * grid.distortion[use] / radius
-    fig, ax = plt.subplots(figsize=(6.4, 5.6), layout="constrained")
+    fig = _figure(6.4, 5.6, dpi=None)
+    ax = fig.add_subplot()
     arrows = ax.quiver(
         u[:, 0], u[:, 1], d[:, 0] - u[:, 0], d[:, 1] - u[:, 1], colour,
         angles="xy", scale_units="xy", scale=1.0, cmap="viridis", width=0.004,
@@ -54,31 +59,26 @@ def plot_grid(grid, path, *, units: str = "mm", pixel_size_um: float = 4.8, max_
         f"mean {grid.distortion.mean() * 1e3:.1f} um (arrows: paraxial -> real)",
         fontsize=9,
     )
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120)
-    plt.close(fig)
+    return fig
 
 
-def plot_spots(spots: dict, path, *, airy_radius_um: float | None = None) -> None:
+def spots_figure(spots: dict, *, airy_radius_um: float | None = None):
     """Spot diagrams: one row per orientation, one column per field point, all on the
     same scale (um, relative to the chief ray), with the Airy radius as a circle."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
 
     keys = list(spots)
     n_col = max(len(v) for v in spots.values())
     extent = max(np.abs(s.xy_um[s.clear]).max() for row in spots.values() for s in row) * 1.1 or 1.0
-    fig, axes = plt.subplots(len(keys), n_col, figsize=(2.6 * n_col, 2.7 * len(keys)), squeeze=False,
-                             layout="constrained")  # fmt: skip
+    fig = _figure(2.6 * n_col, 2.7 * len(keys), dpi=None)
+    axes = fig.subplots(len(keys), n_col, squeeze=False)
     for i, key in enumerate(keys):
         for j, spot in enumerate(spots[key]):
             ax = axes[i, j]
             xy = spot.xy_um[spot.clear]
             ax.plot(xy[:, 0], xy[:, 1], ".", markersize=2)
             if airy_radius_um:
-                ax.add_patch(plt.Circle((0, 0), airy_radius_um, fill=False, color="k", lw=0.8))
+                ax.add_patch(Circle((0, 0), airy_radius_um, fill=False, color="k", lw=0.8))
             ax.set_xlim(-extent, extent)
             ax.set_ylim(extent, -extent)
             ax.set_aspect("equal")
@@ -88,28 +88,21 @@ def plot_spots(spots: dict, path, *, airy_radius_um: float | None = None) -> Non
             ax.set_ylabel("y (um)", fontsize=8)
             ax.tick_params(labelsize=7)
     fig.suptitle("Spot diagrams (circle: Airy radius)", fontsize=10)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120)
-    plt.close(fig)
+    return fig
 
 
-def plot_tolerance(result: dict, path) -> None:
+def tolerance_figure(result: dict):
     """The tolerance figure of ``oapcal tolerance`` (``result`` its JSON object): the
     first-order rates per unit of every misalignment (log scale; zero rates omitted), and,
     with a Monte Carlo, the distributions of the corrected-image errors over the trials."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from oapcal.optics.tolerance import RESOLUTION_PX
 
     keys = ("field_change_mean_px", "corrected_mean_px", "recentred_mean_px")
     rows = [r for r in result["sensitivity"] if max(r[k] for k in keys) >= RESOLUTION_PX]
     mc = result.get("monte_carlo")
     n_panels = 2 if mc else 1
-    fig, axes = plt.subplots(1, n_panels, figsize=(6.0 * n_panels, 0.28 * len(rows) + 2.2), squeeze=False,
-                             layout="constrained")  # fmt: skip
+    fig = _figure(6.0 * n_panels, 0.28 * len(rows) + 2.2, dpi=None)
+    axes = fig.subplots(1, n_panels, squeeze=False)
     ax = axes[0, 0]
     y = np.arange(len(rows))
     series = (("field_change_mean_px", "distortion pattern change"),
@@ -144,29 +137,23 @@ def plot_tolerance(result: dict, path) -> None:
     a = result["aligned"]
     fig.suptitle(f"Tolerancing: aligned distortion max {a['max_px']:.1f} px; {result['model']} calibration "
                  f"floor mean {a['corrected_mean_px']:.2f} px", fontsize=10)  # fmt: skip
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120)
-    plt.close(fig)
+    return fig
 
 
-def plot_layout(relay, path, *, title: str | None = None) -> None:
+def layout_figure(relay, *, title: str | None = None):
     """The relay in its fold plane (``x = 0``; ``z`` to the right, ``y`` up, ``+x`` into the
     page) with the frames that the misalignment conventions use (``docs/optics.md``):
     each mirror's ``b`` and ``n`` at its centre (``a = +x``), the object and image planes'
     in-plane ``y`` axes and normals, the stop, and the central ray.  Everything is drawn
     from the relay as built, so the figure shows the code's own conventions."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from oapcal.optics.relay import chief_rays, mirror_frame
 
     def zy(p):
         p = np.asarray(p, dtype=float)
         return p[..., 2], p[..., 1]
 
-    fig, ax = plt.subplots(figsize=(9.0, 4.8), layout="constrained")
+    fig = _figure(9.0, 4.8, dpi=None)
+    ax = fig.add_subplot()
     f1, f2 = relay.focal_lengths_mm
     size = 0.45 * min(f1, f2)
     rays = chief_rays(relay, np.zeros(2))
@@ -217,6 +204,27 @@ def plot_layout(relay, path, *, title: str | None = None) -> None:
     default = (f"Relay in the fold plane x = 0 (d1 = {relay.d1_mm:g} mm, orientation {relay.orientation}); "
                "positive angles are right-handed: about an axis into the page, clockwise here")  # fmt: skip
     ax.set_title(title or default, fontsize=8)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120)
-    plt.close(fig)
+    return fig
+
+
+# ------------------------------------------------------------------- written figures
+
+
+def plot_grid(grid, path, *, units: str = "mm", pixel_size_um: float = 4.8, max_side: int = 33) -> None:
+    """Write :func:`grid_figure` to ``path`` (PNG, atomically)."""
+    save_figure(grid_figure(grid, units=units, pixel_size_um=pixel_size_um, max_side=max_side), path, dpi=DPI)
+
+
+def plot_spots(spots: dict, path, *, airy_radius_um: float | None = None) -> None:
+    """Write :func:`spots_figure` to ``path`` (PNG, atomically)."""
+    save_figure(spots_figure(spots, airy_radius_um=airy_radius_um), path, dpi=DPI)
+
+
+def plot_tolerance(result: dict, path) -> None:
+    """Write :func:`tolerance_figure` to ``path`` (PNG, atomically)."""
+    save_figure(tolerance_figure(result), path, dpi=DPI)
+
+
+def plot_layout(relay, path, *, title: str | None = None) -> None:
+    """Write :func:`layout_figure` to ``path`` (PNG, atomically)."""
+    save_figure(layout_figure(relay, title=title), path, dpi=DPI)
