@@ -1,10 +1,13 @@
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from oapcal.errors import DataError
+from oapcal.errors import DataError, ModelSpecError
 from oapcal.fit import fit, fit_batch, initial_params
 from oapcal.model import (
+    BROWN_CONRADY,
     INDEX,
     distort,
     jacobian_params,
@@ -114,3 +117,64 @@ def test_user_initial_values():
     np.testing.assert_array_equal(p, params_from_dict({"k1": 1e-6, "m": 2.0}))
     p = initial_params({"s3": 5.0}, np.zeros((3, 2)), np.zeros((3, 2)), parse_model("radial"))
     assert p[INDEX["s3"]] == 0.0  # fixed parameters start (and stay) at 0
+
+
+def test_point_subsets_by_index_and_by_mask_equal_fits_to_the_subsets(pairs):
+    mask = parse_model("paper")
+    n = len(pairs.xy_u)
+    rng = np.random.default_rng(0)
+    keep = np.sort(np.argsort(rng.random((3, n)), axis=1)[:, : n - 40], axis=1)
+    p0 = initial_params("pixel", pairs.xy_u, pairs.xy_d, mask)
+    masks = np.repeat(mask[None], 3, 0)
+    scale = float(np.abs(np.concatenate([pairs.xy_u, pairs.xy_d])).max())
+    by_index = fit_batch(pairs.xy_u, pairs.xy_d, masks, p0, points=keep)
+    selected = np.zeros((3, n), bool)
+    selected[np.arange(3)[:, None], keep] = True
+    by_mask = fit_batch(pairs.xy_u, pairs.xy_d, masks, p0, points=selected)
+    for i in range(3):
+        alone = fit_batch(pairs.xy_u[keep[i]], pairs.xy_d[keep[i]], mask[None], p0, scale=scale)
+        for batch in (by_index, by_mask):
+            np.testing.assert_allclose(batch.params[i], alone.params[0], rtol=1e-12, atol=1e-12)
+            assert batch.rss[i] == pytest.approx(alone.rss[0], rel=1e-12)
+            assert batch.n[i] == 2 * (n - 40) and batch.status[i] == alone.status[0]
+            np.testing.assert_allclose(batch.covariance[i], alone.covariance[0], rtol=1e-9, atol=1e-300)
+
+
+def test_each_item_may_have_its_own_points_and_covariance_is_optional(pairs):
+    mask = parse_model("radial")
+    shifted = pairs.xy_d + [3.0, -2.0]
+    xy_d = np.stack([pairs.xy_d, shifted])
+    p0 = initial_params("pixel", pairs.xy_u, pairs.xy_d, mask)
+    batch = fit_batch(pairs.xy_u, xy_d, np.repeat(mask[None], 2, 0), p0, covariance=False)
+    assert batch.covariance is None and batch.converged.all()
+    # the second item's data are the first's shifted by (3, -2): only c_x and c_y change
+    diff = batch.params[1] - batch.params[0]
+    np.testing.assert_allclose(diff[INDEX["c_x"]] - diff[INDEX["x_off"]] * batch.params[0][INDEX["m"]], 3.0,
+                               rtol=1e-6)  # fmt: skip
+    with pytest.raises(ModelSpecError, match="without covariance"):
+        batch.item(0)
+    with pytest.raises(ValueError):
+        batch.params[0, 0] = 1.0
+
+
+def test_finite_difference_family_fits_like_the_analytic_one(pairs):
+    # A family without analytic columns: the solver differentiates the point function.
+    numeric = dataclasses.replace(BROWN_CONRADY, analytic_jacobian=False)
+    mask = parse_model("paper")
+    p0 = initial_params("pixel", pairs.xy_u, pairs.xy_d, mask)
+    exact = fit_batch(pairs.xy_u, pairs.xy_d, mask[None], p0)
+    approx = fit_batch(pairs.xy_u, pairs.xy_d, mask[None], p0, family=numeric)
+    assert approx.converged[0]
+    assert approx.rss[0] == pytest.approx(exact.rss[0], rel=1e-9)
+    np.testing.assert_allclose(np.sqrt(np.diag(approx.covariance[0])), np.sqrt(np.diag(exact.covariance[0])),
+                               rtol=1e-4)  # fmt: skip
+
+
+def test_bad_solver_arguments_are_named_errors(pairs):
+    mask = parse_model("paper")
+    with pytest.raises(ModelSpecError, match="'m' must be free"):
+        fit_batch(pairs.xy_u, pairs.xy_d, mask & (np.arange(13) != INDEX["m"]), np.zeros(13))
+    with pytest.raises(ModelSpecError, match="point indices must lie"):
+        fit_batch(pairs.xy_u, pairs.xy_d, mask, np.zeros(13), points=np.array([[0, 1, 10_000]]))
+    with pytest.raises(ModelSpecError, match="point mask must have shape"):
+        fit_batch(pairs.xy_u, pairs.xy_d, mask, np.zeros(13), points=np.ones(5, bool))

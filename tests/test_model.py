@@ -158,3 +158,23 @@ def test_masks_bits_pack_unpack(rng):
     full = unpack(free, mask)
     np.testing.assert_array_equal(full[mask], p[mask])
     assert (full[~mask] == 0).all()
+
+
+def test_finite_difference_parameter_jacobian_matches_the_analytic_one(rng):
+    xy = rng.uniform(-1, 1, (40, 2))
+    p = random_params(rng)
+    np.testing.assert_allclose(
+        jacobian_params(xy, p, finite_difference=True), jacobian_params(xy, p), atol=1e-8
+    )
+
+
+def test_shapes_broadcast_and_bad_shapes_are_named_errors(rng):
+    xy = rng.uniform(-1, 1, (3, 4, 2))
+    p = random_params(rng)
+    assert distort(xy, p).shape == (3, 4, 2) and jacobian_point(xy, p).shape == (3, 4, 2, 2)
+    assert undistort(distort(xy, p), p).xy.shape == (3, 4, 2)
+    assert distort(np.zeros((0, 2)), p).shape == (0, 2)
+    with pytest.raises(ModelSpecError, match=r"shape \(\.\.\., 13\)"):
+        distort(xy, p[:12])
+    with pytest.raises(ModelSpecError, match=r"shape \(\.\.\., N, 2\)"):
+        distort(np.zeros(3), p)

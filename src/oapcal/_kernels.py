@@ -49,14 +49,17 @@ FAMILY_BC = 0
 # ---------------------------------------------------------------------- model families
 
 
-@numba.njit(fastmath=_FASTMATH, **_JIT)
-def bc_point(p, x, y, need, jp):
+@numba.njit(inline="always", fastmath=_FASTMATH, **_JIT)
+def bc_point(p, x, y, need, jp, j, want):
     """Eq. (1) at one undistorted point ``(x, y)`` with parameters ``p (13,)``.
 
     Returns ``(xd, yd, a, b, c, d)``: the distorted point and, when ``need >= POINT_JAC``,
     its point Jacobian ``[[a, b], [c, d]] = d(xd, yd) / d(x, y)`` (zeros otherwise).  When
-    ``need == PARAM_JAC`` it also fills ``jp (2, 13)``: row 0 is ``d xd / d p``, row 1
-    ``d yd / d p``, columns in the order of :data:`oapcal.model.PARAM_NAMES`.
+    ``need == PARAM_JAC`` it also fills ``jp[:, i, j]`` for the parameters ``i``:
+    ``jp[0, i, j] = d xd / d p_i`` and ``jp[1, i, j] = d yd / d p_i``, ``i`` in the order of
+    :data:`oapcal.model.PARAM_NAMES` (``jp (2, 13, M)`` holds the columns of many points).
+    ``want[i]`` says which columns the caller uses; a family may skip the others (this
+    one writes all 13: cheaper than a test per column).
     """
     k1, k2, p1, p2, s1, s2, s3, s4 = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]
     xo, yo, cx, cy, m = p[8], p[9], p[10], p[11], p[12]
@@ -80,55 +83,56 @@ def bc_point(p, x, y, need, jp):
     c = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + xb * sy
     d = radial + drad * yb * yb + 6.0 * p1 * yb + 2.0 * p2 * xb + yb * sy
     if need == PARAM_JAC:
+        # Every column (cheaper than testing ``want`` per column for this family).
         r4 = r2 * r2
-        jp[0, 0] = xb * r2
-        jp[0, 1] = xb * r4
-        jp[0, 2] = xy2
-        jp[0, 3] = r2 + 2.0 * xb * xb
-        jp[0, 4] = r2
-        jp[0, 5] = r4
-        jp[0, 6] = 0.0
-        jp[0, 7] = 0.0
-        jp[0, 8] = a * m
-        jp[0, 9] = b * m
-        jp[0, 10] = 1.0
-        jp[0, 11] = 0.0
-        jp[0, 12] = a * xs + b * ys
-        jp[1, 0] = yb * r2
-        jp[1, 1] = yb * r4
-        jp[1, 2] = r2 + 2.0 * yb * yb
-        jp[1, 3] = xy2
-        jp[1, 4] = 0.0
-        jp[1, 5] = 0.0
-        jp[1, 6] = r2
-        jp[1, 7] = r4
-        jp[1, 8] = c * m
-        jp[1, 9] = d * m
-        jp[1, 10] = 0.0
-        jp[1, 11] = 1.0
-        jp[1, 12] = c * xs + d * ys
+        jp[0, 0, j] = xb * r2
+        jp[1, 0, j] = yb * r2
+        jp[0, 1, j] = xb * r4
+        jp[1, 1, j] = yb * r4
+        jp[0, 2, j] = xy2
+        jp[1, 2, j] = r2 + 2.0 * yb * yb
+        jp[0, 3, j] = r2 + 2.0 * xb * xb
+        jp[1, 3, j] = xy2
+        jp[0, 4, j] = r2
+        jp[1, 4, j] = 0.0
+        jp[0, 5, j] = r4
+        jp[1, 5, j] = 0.0
+        jp[0, 6, j] = 0.0
+        jp[1, 6, j] = r2
+        jp[0, 7, j] = 0.0
+        jp[1, 7, j] = r4
+        jp[0, 8, j] = a * m
+        jp[1, 8, j] = c * m
+        jp[0, 9, j] = b * m
+        jp[1, 9, j] = d * m
+        jp[0, 10, j] = 1.0
+        jp[1, 10, j] = 0.0
+        jp[0, 11, j] = 0.0
+        jp[1, 11, j] = 1.0
+        jp[0, 12, j] = a * xs + b * ys
+        jp[1, 12, j] = c * xs + d * ys
     return xd, yd, a * m, b * m, c * m, d * m
 
 
-@numba.njit(**_JIT)
+@numba.njit(inline="always", **_JIT)
 def bc_inverse_start(p, xd, yd):
     """The Newton start of the Brown-Conrady inverse: the inverse of the linear part."""
     m = p[12]
     return (xd - p[10]) / m - p[8], (yd - p[11]) / m - p[9]
 
 
-@numba.njit(**_JIT)
-def point(family, p, x, y, need, jp):
+@numba.njit(inline="always", **_JIT)
+def point(family, p, x, y, need, jp, j, want):
     """The model of ``family`` at one point (see :func:`bc_point` for the contract).
 
     One branch per family: a new family's point function goes here.
     """
     if family == FAMILY_BC:
-        return bc_point(p, x, y, need, jp)
+        return bc_point(p, x, y, need, jp, j, want)
     return np.nan, np.nan, np.nan, np.nan, np.nan, np.nan
 
 
-@numba.njit(**_JIT)
+@numba.njit(inline="always", **_JIT)
 def inverse_start(family, p, xd, yd):
     """Where the Newton inverse of ``family`` starts for the distorted point ``(xd, yd)``."""
     if family == FAMILY_BC:
@@ -137,19 +141,22 @@ def inverse_start(family, p, xd, yd):
 
 
 @numba.njit(**_JIT)
-def fd_param_columns(family, p, x, y, jp, step):
-    """Central-difference parameter Jacobian ``jp (2, n_params)`` of ``family`` at one point,
-    for families without analytic columns: ``h_i = step * max(|p_i|, 1)``."""
+def fd_param_columns(family, p, x, y, jp, j, want, step):
+    """Central-difference parameter Jacobian ``jp[:, i, j]`` (parameters ``i`` flagged in
+    ``want``) of ``family`` at one point, for families without analytic columns:
+    ``h_i = step * max(|p_i|, 1)``."""
     q = p.copy()
     for i in range(p.shape[0]):
+        if not want[i]:
+            continue
         h = step * max(abs(p[i]), 1.0)
         q[i] = p[i] + h
-        xp, yp, _, _, _, _ = point(family, q, x, y, VALUE, jp)
+        xp, yp, _, _, _, _ = point(family, q, x, y, VALUE, jp, j, want)
         q[i] = p[i] - h
-        xm, ym, _, _, _, _ = point(family, q, x, y, VALUE, jp)
+        xm, ym, _, _, _, _ = point(family, q, x, y, VALUE, jp, j, want)
         q[i] = p[i]
-        jp[0, i] = (xp - xm) / (2.0 * h)
-        jp[1, i] = (yp - ym) / (2.0 * h)
+        jp[0, i, j] = (xp - xm) / (2.0 * h)
+        jp[1, i, j] = (yp - ym) / (2.0 * h)
 
 
 # ------------------------------------------------------------------- forward evaluation
@@ -159,12 +166,14 @@ def fd_param_columns(family, p, x, y, jp, step):
 def evaluate(family, params, xy, need, fd_step, out, jpt, jpar):
     """The model at every point: ``params (Bp, P)``, ``xy (Bx, N, 2)`` with ``Bp, Bx`` 1 or
     B; ``out (B, N, 2)``; with ``need >= POINT_JAC`` ``jpt (B, N, 2, 2)``; with
-    ``need == PARAM_JAC`` ``jpar (B, N, 2, P)`` (central differences when ``fd_step > 0``).
+    ``need == PARAM_JAC`` ``jpar (B, N, 2, P)`` (central differences with relative step
+    ``fd_step`` unless it is None).
     Threads take blocks of ``POINT_BLOCK`` points."""
     n_items, n = out.shape[0], out.shape[1]
     total = n_items * n
     for blk in numba.prange((total + POINT_BLOCK - 1) // POINT_BLOCK):
-        jp = np.empty((2, params.shape[1]))
+        jp = np.empty((2, params.shape[1], 1))
+        want = np.ones(params.shape[1], dtype=np.bool_)
         for t in range(blk * POINT_BLOCK, min(total, (blk + 1) * POINT_BLOCK)):
             b = t // n
             j = t - b * n
@@ -172,10 +181,12 @@ def evaluate(family, params, xy, need, fd_step, out, jpt, jpar):
             bx = b if xy.shape[0] > 1 else 0
             x = xy[bx, j, 0]
             y = xy[bx, j, 1]
-            inner = need if fd_step <= 0.0 else min(need, POINT_JAC)
-            xd, yd, a, bb, c, d = point(family, p, x, y, inner, jp)
-            if need == PARAM_JAC and fd_step > 0.0:
-                fd_param_columns(family, p, x, y, jp, fd_step)
+            if fd_step is None:  # pruned at compile time
+                xd, yd, a, bb, c, d = point(family, p, x, y, need, jp, 0, want)
+            else:
+                xd, yd, a, bb, c, d = point(family, p, x, y, min(need, POINT_JAC), jp, 0, want)
+                if need == PARAM_JAC:
+                    fd_param_columns(family, p, x, y, jp, 0, want, fd_step)
             out[b, j, 0] = xd
             out[b, j, 1] = yd
             if need >= POINT_JAC:
@@ -185,8 +196,8 @@ def evaluate(family, params, xy, need, fd_step, out, jpt, jpar):
                 jpt[b, j, 1, 1] = d
             if need == PARAM_JAC:
                 for i in range(jp.shape[1]):
-                    jpar[b, j, 0, i] = jp[0, i]
-                    jpar[b, j, 1, i] = jp[1, i]
+                    jpar[b, j, 0, i] = jp[0, i, 0]
+                    jpar[b, j, 1, i] = jp[1, i, 0]
 
 
 @numba.njit(parallel=True, fastmath=_FASTMATH, **_JIT)
@@ -194,40 +205,46 @@ def grid_map(family, p, xs, ys, out_x, out_y):
     """The model on the grid ``xs (C,) x ys (R,)`` of undistorted points, into
     ``out_x, out_y (R, C)`` (float32): a correction map."""
     for r in numba.prange(ys.shape[0]):
-        jp = np.empty((2, p.shape[0]))
+        jp = np.empty((2, p.shape[0], 1))
+        want = np.zeros(p.shape[0], dtype=np.bool_)
         y = ys[r]
         for col in range(xs.shape[0]):
-            xd, yd, _, _, _, _ = point(family, p, xs[col], y, VALUE, jp)
+            xd, yd, _, _, _, _ = point(family, p, xs[col], y, VALUE, jp, 0, want)
             out_x[r, col] = xd
             out_y[r, col] = yd
 
 
-@numba.njit(parallel=True, **_JIT)
+@numba.njit(parallel=True, fastmath=_FASTMATH, **_JIT)
 def min_det(family, params, xy, out):
     """The smallest point-Jacobian determinant of each model ``params (B, P)`` over the
-    points ``xy (M, 2)``, into ``out (B,)``; NaN propagates."""
+    points ``xy (2, M)`` (rows x, y), into ``out (B,)``; NaN when any determinant is NaN."""
     for b in numba.prange(params.shape[0]):
-        jp = np.empty((2, params.shape[1]))
+        jp = np.empty((2, params.shape[1], 1))
+        want = np.zeros(params.shape[1], dtype=np.bool_)
+        p = params[b]
+        xs = xy[0]
+        ys = xy[1]
         lo = np.inf
-        for j in range(xy.shape[0]):
-            _, _, a, bb, c, d = point(family, params[b], xy[j, 0], xy[j, 1], POINT_JAC, jp)
+        bad = 0
+        for j in range(xs.shape[0]):
+            _, _, a, bb, c, d = point(family, p, xs[j], ys[j], POINT_JAC, jp, 0, want)
             det = a * d - bb * c
-            if not det >= lo:  # NaN propagates
-                lo = det
-        out[b] = lo
+            lo = det if det < lo else lo
+            bad += det != det
+        out[b] = np.nan if bad else lo
 
 
 # ---------------------------------------------------------------------- Newton inverse
 
 
 @numba.njit(**_JIT)
-def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp):
+def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp, want):
     """Solve ``model(x, y) = (xd, yd)`` by Newton from ``(x, y)`` with step halving (up to
     10 halvings while the residual grows); a point whose residual cannot decrease any more
     stops.  Returns ``(x, y, converged, folded, n_iter)``: converged when the residual is
     ``<= tol`` and the Jacobian determinant there is positive; folded when it is <= 0.
-    ``jp`` is the scratch of :func:`point`."""
-    fx, fy, a, b, c, d = point(family, p, x, y, POINT_JAC, jp)
+    ``jp``, ``want`` are the scratch of :func:`point`."""
+    fx, fy, a, b, c, d = point(family, p, x, y, POINT_JAC, jp, 0, want)
     fx -= xd
     fy -= yd
     err = np.sqrt(fx * fx + fy * fy)
@@ -252,7 +269,7 @@ def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp):
         for _h in range(11):
             xn = x + t * sx
             yn = y + t * sy
-            fxn, fyn, an, bn, cn, dn = point(family, p, xn, yn, POINT_JAC, jp)
+            fxn, fyn, an, bn, cn, dn = point(family, p, xn, yn, POINT_JAC, jp, 0, want)
             fxn -= xd
             fyn -= yd
             err_new = np.sqrt(fxn * fxn + fyn * fyn)
@@ -277,13 +294,14 @@ def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp):
 
 
 @numba.njit(parallel=True, **_JIT)
-def invert_batch(family, params, xy_d, start, use_start, tol, max_iter, out, converged, folded, iters):
+def invert_batch(family, params, xy_d, start, tol, max_iter, out, converged, folded, iters):
     """Invert every point: ``params (Bp, P)``, ``xy_d (Bx, N, 2)``, ``start`` like
-    ``xy_d`` (used when ``use_start``); outputs ``(B, N, 2)``, ``(B, N)`` x3."""
+    ``xy_d`` or None (the family's start); outputs ``(B, N, 2)``, ``(B, N)`` x3."""
     n_items, n = out.shape[0], out.shape[1]
     total = n_items * n
     for blk in numba.prange((total + POINT_BLOCK - 1) // POINT_BLOCK):
-        jp = np.empty((2, params.shape[1]))
+        jp = np.empty((2, params.shape[1], 1))
+        want = np.zeros(params.shape[1], dtype=np.bool_)
         for t in range(blk * POINT_BLOCK, min(total, (blk + 1) * POINT_BLOCK)):
             b = t // n
             j = t - b * n
@@ -291,12 +309,12 @@ def invert_batch(family, params, xy_d, start, use_start, tol, max_iter, out, con
             bx = b if xy_d.shape[0] > 1 else 0
             xd = xy_d[bx, j, 0]
             yd = xy_d[bx, j, 1]
-            if use_start:
+            if start is None:  # pruned at compile time
+                x0, y0 = inverse_start(family, p, xd, yd)
+            else:
                 bs = b if start.shape[0] > 1 else 0
                 x0, y0 = start[bs, j, 0], start[bs, j, 1]
-            else:
-                x0, y0 = inverse_start(family, p, xd, yd)
-            x, y, ok, fold, it = invert_point(family, p, xd, yd, x0, y0, tol, max_iter, jp)
+            x, y, ok, fold, it = invert_point(family, p, xd, yd, x0, y0, tol, max_iter, jp, want)
             out[b, j, 0] = x if ok else np.nan
             out[b, j, 1] = y if ok else np.nan
             converged[b, j] = ok
@@ -312,14 +330,15 @@ def invert_score(family, params, xy_d, xy_u, tol, max_iter, rss, mean_dist, n_ba
     inverse failed, and how many of those fold."""
     for b in numba.prange(params.shape[0]):
         p = params[b]
-        jp = np.empty((2, params.shape[1]))
+        jp = np.empty((2, params.shape[1], 1))
+        want = np.zeros(params.shape[1], dtype=np.bool_)
         s2 = 0.0
         s1 = 0.0
         bad = 0
         fold = 0
         for j in range(xy_d.shape[0]):
             x0, y0 = inverse_start(family, p, xy_d[j, 0], xy_d[j, 1])
-            x, y, ok, fo, _ = invert_point(family, p, xy_d[j, 0], xy_d[j, 1], x0, y0, tol, max_iter, jp)
+            x, y, ok, fo, _ = invert_point(family, p, xy_d[j, 0], xy_d[j, 1], x0, y0, tol, max_iter, jp, want)
             if ok:
                 dx = x - xy_u[j, 0]
                 dy = y - xy_u[j, 1]
@@ -339,49 +358,70 @@ def invert_score(family, params, xy_d, xy_u, tol, max_iter, rss, mean_dist, n_ba
 
 
 @numba.njit(fastmath=_FASTMATH, **_JIT)
-def _residuals(family, p, u, d, pts, n, res, jp):
-    """``res (2n,)`` = model - data over the points ``pts[:n]`` (x residuals first, then
-    y); returns the cost ``0.5 |res|^2``."""
+def _residuals(family, p, pts, res, jp, want):
+    """``res (2n,)`` = model - data at the item's points ``pts (4, n)`` (rows x_u, y_u,
+    x_d, y_d), x residuals first, then y; returns the cost ``0.5 |res|^2``."""
+    n = pts.shape[1]
+    # 1-d row views: the loop then vectorises
+    xu, yu, xo, yo = pts[0], pts[1], pts[2], pts[3]
+    res_x = res[:n]
+    res_y = res[n : 2 * n]
     cost = 0.0
     for j in range(n):
-        q = pts[j]
-        xd, yd, _, _, _, _ = point(family, p, u[q, 0], u[q, 1], VALUE, jp)
-        rx = xd - d[q, 0]
-        ry = yd - d[q, 1]
-        res[j] = rx
-        res[n + j] = ry
+        xd, yd, _, _, _, _ = point(family, p, xu[j], yu[j], VALUE, jp, 0, want)
+        rx = xd - xo[j]
+        ry = yd - yo[j]
+        res_x[j] = rx
+        res_y[j] = ry
         cost += rx * rx + ry * ry
     return 0.5 * cost
 
 
 @numba.njit(fastmath=_FASTMATH, **_JIT)
-def _jacobian(family, p, u, pts, n, free, k, fd_step, jac, jp):
-    """Fill ``jac (k, 2n)`` with the free parameters' columns of d(residual)/d(p)."""
-    for j in range(n):
-        q = pts[j]
-        if fd_step > 0.0:
-            fd_param_columns(family, p, u[q, 0], u[q, 1], jp, fd_step)
+def _jacobian(family, p, pts, fd_step, want, cols):
+    """Fill the rows ``i`` with ``want[i]`` of ``cols (2, P, >= n)`` with d(model)/d(p_i)
+    at the item's points ``pts (4, n)``: ``cols[0]`` the x rows, ``cols[1]`` the y rows.
+    Analytic when ``fd_step`` is None, else central differences with that relative step."""
+    for j in range(pts.shape[1]):
+        if fd_step is None:  # pruned at compile time: one specialization per kind
+            point(family, p, pts[0, j], pts[1, j], PARAM_JAC, cols, j, want)
         else:
-            point(family, p, u[q, 0], u[q, 1], PARAM_JAC, jp)
-        for i in range(k):
-            jac[i, j] = jp[0, free[i]]
-            jac[i, n + j] = jp[1, free[i]]
+            fd_param_columns(family, p, pts[0, j], pts[1, j], cols, j, want, fd_step)
 
 
 @numba.njit(fastmath=_FASTMATH, **_JIT)
-def _normal_equations(jac, res, n, k, lo, hi, a, g):
-    """``a = J^T J`` and ``g = J^T r`` over the free columns.  Column ``i`` is zero outside
-    the residual range ``lo[i]:hi[i]`` (a parameter that moves x only or y only), so each
-    product runs over the overlap of the two ranges."""
-    for i in range(k):
+def _dot(x, y):
+    """``x . y`` of two equal-length 1-d views (indices from 0, so the loop vectorises)."""
+    s = 0.0
+    for c in range(x.shape[0]):
+        s += x[c] * y[c]
+    return s
+
+
+@numba.njit(fastmath=_FASTMATH, **_JIT)
+def _normal_equations(cols, res, n, free, half, a, g):
+    """``a = J^T J`` and ``g = J^T r`` over the free parameters ``free`` (their rows of
+    ``cols``, :func:`_jacobian`).  A parameter whose ``half`` is 1 moves x only and 2 y
+    only: its other row is zero and skipped."""
+    rx = res[:n]
+    ry = res[n : 2 * n]
+    for i in range(free.shape[0]):
+        ri = free[i]
+        xi = half[free[i]] != 2
+        yi = half[free[i]] != 1
         s = 0.0
-        for c in range(lo[i], hi[i]):
-            s += jac[i, c] * res[c]
+        if xi:
+            s += _dot(cols[0, ri, :n], rx)
+        if yi:
+            s += _dot(cols[1, ri, :n], ry)
         g[i] = s
         for q in range(i + 1):
+            rq = free[q]
             s = 0.0
-            for c in range(max(lo[i], lo[q]), min(hi[i], hi[q])):
-                s += jac[i, c] * jac[q, c]
+            if xi and half[free[q]] != 2:
+                s += _dot(cols[0, ri, :n], cols[0, rq, :n])
+            if yi and half[free[q]] != 1:
+                s += _dot(cols[1, ri, :n], cols[1, rq, :n])
             a[i, q] = s
             a[q, i] = s
 
@@ -446,7 +486,8 @@ def solve_lu(lhs, rhs, k, out, work):
 
 
 @numba.njit(**_JIT)
-def lm_item(family, u, d, pts, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, want_jtj, jtj_out):
+def lm_item(family, u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, want_jtj, jtj_out,
+            scratch):  # fmt: skip
     """Levenberg-Marquardt for one item, in place on ``p``; returns (status, n_iter, cost).
 
     MINPACK-style: Marquardt column scaling, damping ``lam`` raised by ``nu`` on a rejected
@@ -454,20 +495,22 @@ def lm_item(family, u, d, pts, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
     ``gtol`` (status 1), ``ftol`` (2), ``xtol`` (3), zero residuals (4), the iteration cap
     (0), non-finite values (-1) or unbounded damping (-2).  With ``want_jtj``,
     ``jtj_out (P, P)`` receives ``J^T J`` at the final ``p`` (free rows and columns).
+    ``scratch`` is :func:`lm_scratch` (reused from item to item).
     """
+    cols, res_all, jp, pts_all = scratch
+    # The item's points, gathered once into contiguous rows (the loops over them vectorise).
+    pts = pts_all[:, :n]
+    for j in range(n):
+        q = idx[j]
+        pts[0, j] = u[q, 0]
+        pts[1, j] = u[q, 1]
+        pts[2, j] = d[q, 0]
+        pts[3, j] = d[q, 1]
     free = np.flatnonzero(mask)
     k = free.shape[0]
     n_params = p.shape[0]
     n2 = 2 * n
-    jac = np.empty((k, n2))
-    res = np.empty(n2)
-    jp = np.empty((2, n_params))
-    lo = np.empty(k, dtype=np.int64)
-    hi = np.empty(k, dtype=np.int64)
-    for i in range(k):
-        h = half[free[i]]
-        lo[i] = n if h == 2 else 0
-        hi[i] = n if h == 1 else n2
+    res = res_all[:n2]
     a = np.empty((k, k))
     g = np.empty(k)
     lhs = np.empty((k, k))
@@ -478,7 +521,7 @@ def lm_item(family, u, d, pts, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
     dcol = np.empty(k)
     p_new = p.copy()
 
-    cost = _residuals(family, p, u, d, pts, n, res, jp)
+    cost = _residuals(family, p, pts, res, jp, mask)
     status = 0
     n_iter = 0
     if not np.isfinite(cost):
@@ -492,8 +535,8 @@ def lm_item(family, u, d, pts, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
         if need_jac:
             # The residuals hold the values at p: the last evaluation was at p (the start,
             # or an accepted trial step).
-            _jacobian(family, p, u, pts, n, free, k, fd_step, jac, jp)
-            _normal_equations(jac, res, n, k, lo, hi, a, g)
+            _jacobian(family, p, pts, fd_step, mask, cols)
+            _normal_equations(cols, res, n, free, half, a, g)
             n_iter += 1
             need_jac = False
             rnorm = np.sqrt(2.0 * cost)
@@ -542,7 +585,7 @@ def lm_item(family, u, d, pts, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
             snorm += step_s[i] ** 2
             if not np.isfinite(p_new[q]):
                 finite_new = False
-        cost_new = _residuals(family, p_new, u, d, pts, n, res, jp)
+        cost_new = _residuals(family, p_new, pts, res, jp, mask)
         actual = cost - cost_new
         rho = actual / predicted if predicted > 0.0 else -1.0
         accept = np.isfinite(cost_new) and actual > 0.0 and rho > 1e-4
@@ -582,13 +625,24 @@ def lm_item(family, u, d, pts, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
     if want_jtj:
         # J^T J at the final p for the covariance (the residual buffer may hold a
         # rejected trial step, so evaluate again at p).
-        _residuals(family, p, u, d, pts, n, res, jp)
-        _jacobian(family, p, u, pts, n, free, k, fd_step, jac, jp)
-        _normal_equations(jac, res, n, k, lo, hi, a, g)
+        _residuals(family, p, pts, res, jp, mask)
+        _jacobian(family, p, pts, fd_step, mask, cols)
+        _normal_equations(cols, res, n, free, half, a, g)
         for i in range(k):
             for j in range(k):
                 jtj_out[free[i], free[j]] = a[i, j]
     return status, n_iter, cost
+
+
+@numba.njit(**_JIT)
+def lm_scratch(n_params, n_max):
+    """Work arrays of :func:`lm_item` for up to ``n_params`` parameters and ``n_max`` points."""
+    return (
+        np.empty((2, n_params, n_max)),
+        np.empty(2 * n_max),
+        np.empty((2, n_params, 1)),
+        np.empty((4, n_max)),
+    )
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -598,18 +652,17 @@ def lm_batch(family, u, d, idx, counts, masks, half, p, max_iter, ftol, xtol, gt
     point indices ``idx (Bi, nmax)`` with ``counts (Bi,)`` used (``Bi`` 1 or B), free
     parameters ``masks (B, P)``, starts ``p (B, P)`` (overwritten with the solutions);
     with ``want_jtj`` ``jtj (B, P, P)`` receives ``J^T J`` at each solution, else it may
-    be ``(1, P, P)``."""
-    n_items = masks.shape[0]
-    for b in numba.prange(n_items):
-        # (index arithmetic in int64: a prange index mixed with a literal 0 would unify to float)
-        zero = np.int64(0)
-        i = np.int64(b)
-        bi = i if idx.shape[0] > 1 else zero
-        bu = i if u.shape[0] > 1 else zero
-        bd = i if d.shape[0] > 1 else zero
-        bj = i if want_jtj else zero
-        s, it, c = lm_item(family, u[bu], d[bd], idx[bi], counts[bi], masks[i], half, p[i], max_iter,
-                           ftol, xtol, gtol, fd_step, want_jtj, jtj[bj])  # fmt: skip
-        status[i] = s
-        n_iter[i] = it
-        cost[i] = c
+    be ``(1, P, P)``.  Threads take blocks of ``CHUNK`` items and reuse their work arrays."""
+    n_items, n_params = masks.shape
+    for blk in numba.prange((n_items + CHUNK - 1) // CHUNK):
+        scratch = lm_scratch(n_params, idx.shape[1])
+        for i in range(blk * CHUNK, min(n_items, (blk + 1) * CHUNK)):
+            bi = i if idx.shape[0] > 1 else 0
+            bu = i if u.shape[0] > 1 else 0
+            bd = i if d.shape[0] > 1 else 0
+            bj = i if want_jtj else 0
+            s, it, c = lm_item(family, u[bu], d[bd], idx[bi], counts[bi], masks[i], half, p[i], max_iter,
+                               ftol, xtol, gtol, fd_step, want_jtj, jtj[bj], scratch)  # fmt: skip
+            status[i] = s
+            n_iter[i] = it
+            cost[i] = c

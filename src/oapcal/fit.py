@@ -42,6 +42,7 @@ from oapcal.model import (
     PARAM_NAMES,
     ModelFamily,
     identity_params,
+    kernel_array,
     names_from_mask,
     params_from_dict,
     parse_model,
@@ -233,8 +234,8 @@ def _point_subsets(points, n_points: int, n_items: int) -> tuple[np.ndarray, np.
             raise ModelSpecError(f"a point mask must have shape ({n_points},) or ({n_items}, {n_points})")
         counts = sel.sum(axis=1).astype(np.int64)
         idx = np.argsort(~sel, axis=1, kind="stable")[:, : max(int(counts.max()), 1)]
-        return np.ascontiguousarray(idx, dtype=np.int64), counts
-    idx = np.ascontiguousarray(np.atleast_2d(points), dtype=np.int64)
+        return kernel_array(idx, np.int64), counts
+    idx = kernel_array(np.atleast_2d(points), np.int64)
     if idx.ndim != 2 or idx.shape[0] not in (1, n_items):
         raise ModelSpecError(f"point indices must have 1 or {n_items} rows, got shape {points.shape}")
     if idx.size and (idx.min() < 0 or idx.max() >= n_points):
@@ -287,7 +288,7 @@ def fit_batch(
 
     xy_u = np.asarray(xy_u, dtype=float)
     xy_d = np.asarray(xy_d, dtype=float)
-    masks = np.ascontiguousarray(np.atleast_2d(np.asarray(masks, dtype=bool)))
+    masks = kernel_array(np.atleast_2d(np.asarray(masks, dtype=bool)), bool)
     n_models, n_params = masks.shape
     if n_params != family.n_params:
         raise ModelSpecError(f"model masks must have {family.n_params} entries, got {n_params}")
@@ -310,18 +311,18 @@ def fit_batch(
             if scale
             else float(max(np.abs(xy_u).max(initial=0), np.abs(xy_d).max(initial=0), 1e-300))
         )
-    u = np.ascontiguousarray((xy_u / f).reshape((-1,) + xy_u.shape[-2:]))
-    d = np.ascontiguousarray((xy_d / f).reshape((-1,) + xy_d.shape[-2:]))
+    u = kernel_array((xy_u / f).reshape((-1,) + xy_u.shape[-2:]))
+    d = kernel_array((xy_d / f).reshape((-1,) + xy_d.shape[-2:]))
     p = np.broadcast_to(np.asarray(p0, dtype=float), masks.shape)
     if exps is not None:
         p = p * f**exps
-    p = np.ascontiguousarray(np.where(masks, p, 0.0))
+    p = kernel_array(np.where(masks, p, 0.0))
     status = np.zeros(n_models, dtype=np.int64)
     n_iter = np.zeros(n_models, dtype=np.int64)
     cost = np.zeros(n_models)
     jtj = np.zeros((n_models if covariance else 1, n_params, n_params))
-    fd = 0.0 if family.analytic_jacobian else family.fd_step
-    with numba.parallel_chunksize(_kernels.CHUNK):
+    fd = None if family.analytic_jacobian else float(family.fd_step)
+    with numba.parallel_chunksize(1):  # blocks of CHUNK items, handed out one at a time
         _kernels.lm_batch(family.code, u, d, idx, counts, masks, family.half, p, int(max_iter),
                           float(ftol), float(xtol), float(gtol), fd, bool(covariance), status, n_iter, cost,
                           jtj)  # fmt: skip

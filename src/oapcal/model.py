@@ -238,6 +238,14 @@ def _kernels():
     return _kernels
 
 
+def kernel_array(a, dtype=float) -> np.ndarray:
+    """``a`` as a C-contiguous, writeable array of ``dtype``: the one layout the compiled
+    kernels are compiled (and cached) for, so that a read-only or strided input does not
+    trigger another compilation."""
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return a if a.flags.writeable else a.copy()
+
+
 def _as_batches(xy: np.ndarray, params: np.ndarray, n_params: int):
     """Flatten points ``(..., N, 2)`` and parameters ``(..., P)`` to ``(Bx, N, 2)`` and
     ``(Bp, P)`` (each of ``Bx, Bp`` 1 or B) plus the broadcast leading shape."""
@@ -252,10 +260,10 @@ def _as_batches(xy: np.ndarray, params: np.ndarray, n_params: int):
 
     def flat(a, tail):
         if a.shape[: a.ndim - len(tail)] == lead:
-            return np.ascontiguousarray(a.reshape((n_items,) + tail))
+            return kernel_array(a.reshape((n_items,) + tail))
         if a.size == int(np.prod(tail, dtype=np.int64)):
-            return np.ascontiguousarray(a.reshape((1,) + tail))
-        return np.ascontiguousarray(np.broadcast_to(a, lead + tail).reshape((n_items,) + tail))
+            return kernel_array(a.reshape((1,) + tail))
+        return kernel_array(np.broadcast_to(a, lead + tail).reshape((n_items,) + tail))
 
     return flat(xy, xy.shape[-2:]), flat(params, (n_params,)), lead, n_items
 
@@ -267,7 +275,7 @@ def _evaluate(xy_u, params, need: int, family: ModelFamily, finite_difference: b
     out = np.empty((n_items, n, 2))
     jpt = np.empty((n_items, n, 2, 2) if need >= k.POINT_JAC else (1, 1, 2, 2))
     jpar = np.empty((n_items, n, 2, family.n_params) if need == k.PARAM_JAC else (1, 1, 2, family.n_params))
-    fd = family.fd_step if (finite_difference or not family.analytic_jacobian) else 0.0
+    fd = float(family.fd_step) if (finite_difference or not family.analytic_jacobian) else None
     k.evaluate(family.code, p, u, need, fd, out, jpt, jpar)
     return out.reshape(lead + (n, 2)), jpt, jpar, lead + (n,)
 
@@ -317,14 +325,15 @@ def min_jacobian_determinant(
     params: np.ndarray, xy_u: np.ndarray, *, family: ModelFamily = BROWN_CONRADY
 ) -> np.ndarray:
     """The smallest Jacobian determinant of each model ``params (B, P)`` over the points
-    ``xy_u (M, 2)``, ``(B,)``: <= 0 (or NaN) where a model folds over among the points."""
-    params = np.ascontiguousarray(np.atleast_2d(params), dtype=float)
+    ``xy_u (M, 2)``, ``(B,)``: <= 0 where a model folds over among the points, NaN where a
+    determinant is not finite."""
+    params = kernel_array(np.atleast_2d(params))
     out = np.empty(len(params))
     k = _kernels()
     import numba
 
     with numba.parallel_chunksize(k.CHUNK):
-        k.min_det(family.code, params, np.ascontiguousarray(xy_u, dtype=float), out)
+        k.min_det(family.code, params, kernel_array(np.asarray(xy_u, dtype=float).reshape(-1, 2).T), out)
     return out
 
 
@@ -380,18 +389,16 @@ def undistort(
     k = _kernels()
     d, p, lead, n_items = _as_batches(xy_d, params, family.n_params)
     n = d.shape[1]
-    if xy_start is None:
-        start = np.empty((1, 0, 2))
-    else:
+    start = None
+    if xy_start is not None:
         start = np.asarray(xy_start, dtype=float)
-        start = np.ascontiguousarray(np.broadcast_to(start, lead + (n, 2)).reshape(n_items, n, 2))
+        start = kernel_array(np.broadcast_to(start, lead + (n, 2)).reshape(n_items, n, 2))
     out = np.empty((n_items, n, 2))
     converged = np.zeros((n_items, n), dtype=np.bool_)
     folded = np.zeros((n_items, n), dtype=np.bool_)
     iters = np.zeros((n_items, n), dtype=np.int64)
     with numba.parallel_chunksize(1):
-        k.invert_batch(family.code, p, d, start, xy_start is not None, float(tol), int(max_iter),
-                       out, converged, folded, iters)  # fmt: skip
+        k.invert_batch(family.code, p, d, start, float(tol), int(max_iter), out, converged, folded, iters)
     return InverseResult(
         xy=out.reshape(lead + (n, 2)),
         converged=converged.reshape(lead + (n,)),
@@ -412,14 +419,14 @@ def correction_errors(params: np.ndarray, xy_d: np.ndarray, xy_u: np.ndarray, *,
     import numba
 
     k = _kernels()
-    params = np.ascontiguousarray(np.atleast_2d(params), dtype=float)
+    params = kernel_array(np.atleast_2d(params))
     n_items = len(params)
     rss = np.empty(n_items)
     mean_dist = np.empty(n_items)
     n_bad = np.zeros(n_items, dtype=np.int64)
     n_folded = np.zeros(n_items, dtype=np.int64)
     with numba.parallel_chunksize(k.CHUNK):
-        d = np.ascontiguousarray(xy_d, dtype=float)
-        u = np.ascontiguousarray(xy_u, dtype=float)
+        d = kernel_array(xy_d)
+        u = kernel_array(xy_u)
         k.invert_score(family.code, params, d, u, float(tol), int(max_iter), rss, mean_dist, n_bad, n_folded)
     return rss, mean_dist, n_bad, n_folded
