@@ -44,7 +44,8 @@ class LayoutFit:
     """The result of :func:`fit_layout`.
 
     ``coef`` ``(2, k)`` of the map ``px = coef @ phi((um - centre) / scale)`` (``phi`` the
-    monomials ``1, u, v[, u^2, u v, v^2]``); ``rms_px`` the rms edge residual about it, over
+    monomials ``1, u, v[, u^2, u v, v^2[, u^3, u^2 v, u v^2, v^3]]``); ``rms_px`` the rms
+    edge residual about it, over
     ``n_edges`` edges of ``n_triplets`` triplets; ``residuals_px`` per edge, with
     ``edge_triplet`` (its triplet's name, e.g. ``G4E1H``), ``edge_um`` (edge midpoints,
     layout um) and ``edge_px`` (measured, image px) and
@@ -119,11 +120,17 @@ class LayoutFit:
         return float(1.0 / np.sqrt(abs(np.linalg.det(a))))
 
 
+#: Smooth maps and the triplets each needs at least.
+MODELS = {"affine": 2, "quadratic": 12, "cubic": 20}
+
+
 def _phi(u: np.ndarray, model: str) -> np.ndarray:
     x, y = u[..., 0], u[..., 1]
     cols = [np.ones_like(x), x, y]
-    if model == "quadratic":
+    if model in ("quadratic", "cubic"):
         cols += [x * x, x * y, y * y]
+    if model == "cubic":
+        cols += [x**3, x * x * y, x * y * y, y**3]
     return np.stack(cols, axis=-1)
 
 
@@ -272,7 +279,9 @@ def fit_layout(
     """Fit the layout of ``target`` to ``image`` (module docstring).
 
     ``pose``: a ``2 x 3`` affine um -> px to start from (:func:`similarity_from_points`).
-    ``model``: ``"affine"``, ``"quadratic"`` or ``"auto"`` (quadratic from 12 triplets on).
+    ``model``: ``"affine"``, ``"quadratic"``, ``"cubic"`` (e.g. a photograph through a lens
+    with radial distortion) or ``"auto"`` (quadratic); a map is used once there are enough
+    triplets for it (:data:`MODELS`), a simpler one before.
     """
     img = np.asarray(image, float)
     if img.ndim != 2:
@@ -357,7 +366,9 @@ def fit_layout(
                 f"fewer than two triplets could be measured ({why}): check the starting pose and groups"
             )
         n_trip = len({r[0] for r in rows})
-        cur_model = model if model != "auto" else ("quadratic" if n_trip >= 12 else "affine")
+        wanted = "quadratic" if model == "auto" else model
+        cur_model = max((m for m in MODELS if MODELS[m] <= max(n_trip, 2) and MODELS[m] <= MODELS[wanted]),
+                        key=MODELS.get)  # fmt: skip
         p_um = np.array([r[1] for r in rows])
         mdir = np.array([r[2] for r in rows])
         q = np.array([r[3] for r in rows])
