@@ -46,6 +46,24 @@ class Consistency:
         }
 
 
+def _poly_terms(xy: np.ndarray, degree: int, centre=None, scale=None) -> np.ndarray:
+    xy = np.asarray(xy, float)
+    c = xy.mean(axis=0) if centre is None else centre
+    sc = max(float(np.ptp(xy, axis=0).max()) / 2, 1.0) if scale is None else scale
+    z = (xy - c) / sc
+    return np.column_stack(
+        [z[:, 0] ** i * z[:, 1] ** (t - i) for t in range(degree + 1) for i in range(t + 1)]
+    )
+
+
+def _poly_fit_predict(xy_u, xy_d, keep, degree):
+    """Least-squares polynomial map ``xy_u -> xy_d`` fitted to the ``keep`` pairs, at all pairs."""
+    c = xy_u[keep].mean(axis=0)
+    sc = max(float(np.ptp(xy_u[keep], axis=0).max()) / 2, 1.0)
+    coef, *_ = np.linalg.lstsq(_poly_terms(xy_u[keep], degree, c, sc), xy_d[keep], rcond=None)
+    return _poly_terms(xy_u, degree, c, sc) @ coef
+
+
 def check_consistency(
     xy_u: np.ndarray,
     xy_d: np.ndarray,
@@ -72,7 +90,9 @@ def check_consistency(
     smooth as a real distortion; the limit is empirical, see :data:`CONSISTENCY_MAX_RMS_PX`).
 
     ``model="auto"``: ``full`` from 40 pairs, ``paper`` from 16, no check below
-    (``model`` None in the result); ``None``: no check.
+    (``model`` None in the result); ``None``: no check.  When the model's fit does not
+    converge (an image with almost no distortion leaves the distortion centre undetermined)
+    a cubic polynomial map is the smooth model (``model`` ``"cubic"`` in the result).
     """
     from oapcal.fit import fit
     from oapcal.model import distort
@@ -88,15 +108,23 @@ def check_consistency(
     # The model's pixel start assumes pairs near the identity: take out the mean shift
     # first (a target off the image centre is shifted by tens of px; residuals do not change).
     xy_u = np.asarray(xy_u, float) + np.median(np.asarray(xy_d, float) - np.asarray(xy_u, float), axis=0)
+    xy_d = np.asarray(xy_d, float)
     for _ in range(8):
         result = fit(xy_u[keep], xy_d[keep], model, init="pixel")
-        if not result.converged:
+        if result.converged:
+            r = np.hypot(*(distort(xy_u, result.params) - xy_d).T)
+        elif keep.sum() >= 2 * len(_poly_terms(xy_u[:1], 3)[0]):
+            # An image with almost no distortion leaves Eq. (1)'s centre undetermined and
+            # its fit may not converge: a cubic polynomial map (linear least squares) is
+            # the smooth model then.
+            model = "cubic"
+            r = np.hypot(*(_poly_fit_predict(xy_u, xy_d, keep, 3) - xy_d).T)
+        else:
             return Consistency(
                 ~everything, model, float("nan"), float("nan"), n, 1,
                 f"the global alignment could not be checked: the {model} model did not converge "
                 f"on the matched corners ({result.message})",
             )  # fmt: skip
-        r = np.hypot(*(distort(xy_u, result.params) - xy_d).T)
         s = 1.2 * float(np.median(r[keep]))
         limit = np.minimum(max(n_sigma * s, floor_px), 0.5 * width_px)
         new = r <= limit

@@ -295,6 +295,8 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
         # The dense registration of the whole target: from the pose when there is one,
         # else (um_per_px given, the triplets did not place the target) from a correlation
         # search at that scale.
+        if det_p is not None and det_p.status == 0 and det_p.coverage >= 0.9:
+            return _replace(det_p, pose=dict(det_p.pose, method="triplets"))
         bar.stage("dense registration")
         u_dense = float(um_per_px) if um_per_px else det_p.um_per_px
         det_d = _detect_dense(
@@ -625,7 +627,7 @@ def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, 
     for blur, degree in LEVELS:
         warp = warp.with_degree(degree)
         values_img = img if blur is None else cv2.GaussianBlur(img, (0, 0), blur)
-        xs = _region(warp, ref, w, h, max_pixels=MAX_FIT_PIXELS)
+        xs = _region(warp, ref, w, h, max_pixels=MAX_FIT_PIXELS if blur is None else MAX_FIT_PIXELS // 4)
         if len(xs) < 50:
             return _replace(empty, message="the registered target falls outside the image")
         model_sigma = sigma if blur is None else float(np.hypot(blur, sigma))

@@ -175,7 +175,18 @@ def _score(
     # only the named groups are penalised when missing: an image (or a simulation) may show
     # those alone
     pen = (expected & ~ok) & (wpred >= MIN_PENALISED_BAR_PX)
-    missing = (pen if listed is None else pen & listed[None, :]).sum(axis=1)
+    if listed is not None:
+        pen &= listed[None, :]
+    missing = pen.sum(axis=1)
+    if listed is not None:
+        # a named group is in view: when none of its triplets is matched, its resolvable
+        # triplets predicted outside the image count as missing too (this rules out the
+        # pose two groups off, whose named groups would lie outside the image)
+        out = ~inside & (wpred >= MIN_PENALISED_BAR_PX)
+        for g in np.unique(ref.group[listed]):
+            in_g = (ref.group == g)[None, :]
+            none_matched = ~(ok & in_g).any(axis=1)
+            missing = missing + none_matched * (out & in_g).sum(axis=1)
     for hh in range(len(pose_s)):
         m = match[hh]
         sel = m >= 0
@@ -408,7 +419,9 @@ def search_pose(
             best = max(near, key=lambda p: p.score)
     slips = _slip_scores(best, ref, img, tree, shape, listed)
     runner = next((p for p in refined[1:] if not _same_pose(best, p)), None)
-    rivals = [("another pose", runner)] + [(f"the pose slipped by {k}", p) for k, p in slips.items()]
+    others = [p for p in refined if p is not best and not _same_pose(best, p)]
+    rivals = [("another pose", p) for p in others]
+    rivals += [(f"the pose slipped by {k}", p) for k, p in slips.items()]
     if best.score < 1.9 or len(best.matches) < 2:
         msg = (f"the target was not found: the best pose explains only {len(best.matches)} of the "
                f"{n_img} bar triplets found (score {best.score:.1f})")  # fmt: skip

@@ -7,6 +7,10 @@ import numpy as np
 
 from oapcal.imaging.detect.registration import _gauss_newton, _invert, _Reference, _region
 
+#: Largest number of pixels one triplet's fit uses (a regular subsample beyond: a large
+#: triplet has far more pixels than its 8 parameters need).
+MAX_TRIPLET_PIXELS = 12_000
+
 
 def _refine_triplet(
     img,
@@ -43,7 +47,7 @@ def _refine_triplet(
     # trial sigma), holding every bar near it.
     pad = 3.0 * max(sigma, 1.0) + 2.0 * w_ref + 4.0
     ref = _Reference(rects, margin=pad, window=(lo - pad, hi + pad), masks=masks)
-    xs = _region(warp, ref, w, h, lo, hi)
+    xs = _region(warp, ref, w, h, lo, hi, max_pixels=MAX_TRIPLET_PIXELS)
     if len(xs) < 20:
         return "outside", None, None, None
     values = img[xs[:, 1].astype(int), xs[:, 0].astype(int)]
