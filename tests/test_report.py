@@ -160,3 +160,35 @@ def test_user_errors_exit_2_one_line_nothing_written(run_cli, tmp_path, inputs, 
     assert code == 2, err
     assert err.count("\n") == 1 and pattern in err and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_report_is_computed_then_rendered_with_progress_through_a_callback(inputs):
+    from oapcal.io.points import read_points
+    from oapcal.report import build_report, compute_report, render_report
+
+    d, cal = inputs
+    pairs = read_points(d / "points.csv")
+    calls = []
+    page, data = build_report(cal, points=(pairs.xy_u, pairs.xy_d), progress=lambda *a: calls.append(a))
+    # one call as each step starts, counted over both phases against one total
+    assert [c[0] for c in calls] == list(range(len(calls))) and {c[1] for c in calls} == {len(calls)}
+    assert [c[2] for c in calls] == ["correcting the landmarks", "uncertainty map", "residual vectors",
+                                     "distortion field", "uncertainty map"]  # fmt: skip
+    content = compute_report(cal, points=(pairs.xy_u, pairs.xy_d))
+    assert content.shape == (240, 320) and content.image is None
+    assert content.data == data and data.residuals["n_points"] == len(pairs)
+    again = render_report(content)
+    assert 'id="residual-vectors"' in again and 'id="image"' not in again
+    without_time = re.compile(r"report made [0-9: -]+UTC")
+    assert without_time.sub("", again) == without_time.sub("", page)
+
+
+def test_the_report_package_leaves_the_terminal_to_the_cli():
+    from pathlib import Path
+
+    import oapcal.report
+
+    for path in Path(oapcal.report.__file__).parent.glob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        assert "from rich" not in text and "import rich" not in text, path.name
+        assert "matplotlib.pyplot" not in text and "matplotlib.use(" not in text, path.name

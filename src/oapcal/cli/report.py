@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, load_pairs, print_json
+from oapcal.cli._common import check_output, load_pairs, print_json, progress_bar
 
 
 @click.command("report")
@@ -82,11 +82,12 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
         check_model_region(cal, (img.shape[1], img.shape[0]), source=calib)
     sel = read_selection(selection) if selection else None
     rob = read_robustness(robustness) if robustness else None
-    html_text, data = build_report(
-        cal, points=None if pairs is None else (pairs.xy_u, pairs.xy_d), image=img, image_name=image,
-        selection=sel, robustness=rob, expected_ratios=ratios, title=title,
-        show_progress=_stderr_is_terminal(),
-    )  # fmt: skip
+    bar, update = progress_bar("report")
+    with bar:
+        html_text, data = build_report(
+            cal, points=None if pairs is None else (pairs.xy_u, pairs.xy_d), image=img, image_name=image,
+            selection=sel, robustness=rob, expected_ratios=ratios, title=title, progress=update,
+        )  # fmt: skip
     write_report(out, html_text)
     if as_json:
         esf = None if data.esf is None else {k: v for k, v in data.esf.items() if k != "edges"}
@@ -102,9 +103,3 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
         )
     click.echo("")
     return 0
-
-
-def _stderr_is_terminal() -> bool:
-    import sys
-
-    return sys.stderr.isatty()

@@ -1,23 +1,27 @@
 """The calibration report: one self-contained HTML page that shows how good a correction is.
 
-:func:`build_report` gathers, for a calibration and whatever else is given:
+Compute, then render.  :func:`compute_report` gathers, for a calibration and whatever else
+is given, a :class:`ReportContent`:
 
-* the fit summary in the paper's Table-1 form (max / mean / RMS / total residual, px and
-  um) and the parameter table with standard errors;
+* the residuals in the paper's Table-1 form (max / mean / RMS / total, px and um);
 * with landmark pairs, the residual vectors after correction;
-* the distortion field of the model and the uncertainty map of the correction
-  (:mod:`oapcal.uncertainty`), with the extrapolated region flagged;
-* with an image of a bar target, the image before and after correction with the edge
-  straightness and aspect-ratio checks (:mod:`oapcal.imaging.checks`), and the edge
+* the uncertainty map of the correction (:mod:`oapcal.uncertainty`), with the
+  extrapolated region flagged;
+* with an image of a bar target, the image corrected, the edge straightness and
+  aspect-ratio checks before and after (:mod:`oapcal.imaging.checks`), and the edge
   spread functions of the corrected image (:mod:`oapcal.imaging.esf`);
-* with model-selection and robustness results, their tables.
+* model-selection and robustness results, to be tabulated.
 
-:func:`write_report` writes it atomically.  Nothing else in oapcal imports this package.
+:func:`render_report` draws the figures (the distortion field among them) and writes the
+page; :func:`build_report` does both.  :func:`write_report` writes the page atomically.
+Progress goes to an optional callback ``progress(done, total, label)``.  Nothing else in
+oapcal imports this package.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,10 +29,15 @@ import numpy as np
 
 from oapcal.report import html as H
 
+#: ``progress(done, total, label)``: ``done`` steps of ``total`` finished, ``label`` the next.
+Progress = Callable[[int, int, str], None]
+
 
 @dataclass
 class ReportData:
-    """Everything computed for a report (kept for tests and for callers who want numbers)."""
+    """The numbers of a report (``oapcal report --json``): ``residuals`` (Table 1),
+    ``uncertainty`` (the map's summary), ``checks`` (``before`` / ``after`` summaries of the
+    target checks) and ``esf`` (the edge spread functions), the last two with an image."""
 
     residuals: dict
     uncertainty: dict
@@ -36,38 +45,63 @@ class ReportData:
     esf: dict | None = None
 
 
+@dataclass(frozen=True)
+class ImageAnalysis:
+    """A bar-target image and its correction: ``image`` the distorted image, ``corrected``
+    the corrected one (NaN where an output pixel samples outside the image), ``before`` /
+    ``after`` the :class:`~oapcal.imaging.checks.TargetCheck` of each, ``esf`` the
+    :class:`~oapcal.imaging.esf.EsfSummary` of the corrected image."""
+
+    image: np.ndarray
+    corrected: np.ndarray
+    before: object
+    after: object
+    esf: object
+    expected_ratios: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class ReportContent:
+    """Everything :func:`render_report` shows, computed by :func:`compute_report`.
+
+    ``shape`` ``(rows, cols)`` the output frame; ``residuals`` the Table-1 dict, from the
+    landmarks when given (``vectors`` their :class:`~oapcal.imaging.checks.ResidualVectors`)
+    else the calibration's; ``uncertainty`` the
+    :class:`~oapcal.uncertainty.UncertaintyMap`; ``image`` the :class:`ImageAnalysis` or
+    None; ``selection`` / ``robustness`` the dicts of :mod:`oapcal.report.inputs` or None.
+    """
+
+    calibration: object
+    shape: tuple[int, int]
+    residuals: dict
+    vectors: object | None
+    uncertainty: object
+    image: ImageAnalysis | None = None
+    selection: dict | None = None
+    robustness: dict | None = None
+
+    @property
+    def data(self) -> ReportData:
+        """The numbers of the report."""
+        data = ReportData(residuals=self.residuals, uncertainty=self.uncertainty.summary())
+        if self.image is not None:
+            data.checks = {"before": self.image.before.summary(), "after": self.image.after.summary()}
+            data.esf = self.image.esf.to_dict()
+        return data
+
+
 class _Steps:
-    """A Rich progress bar on stderr over the report's steps (or nothing)."""
+    """Calls ``progress(done, total, label)`` as each step starts (nothing without one)."""
 
-    def __init__(self, total: int, show: bool):
+    def __init__(self, progress: Progress | None, total: int):
+        self.progress = progress
+        self.done = 0
         self.total = total
-        self.show = show
-        self._progress = None
-        self._task = None
 
-    def __enter__(self):
-        if self.show:
-            import sys
-
-            from rich.console import Console
-            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-            self._progress = Progress(
-                TextColumn("{task.description:<34}"), BarColumn(), TimeElapsedColumn(),
-                console=Console(file=sys.stderr), transient=True,
-            )  # fmt: skip
-            self._progress.__enter__()
-            self._task = self._progress.add_task("report", total=self.total)
-        return self
-
-    def step(self, label: str) -> None:
-        if self._progress is not None:
-            self._progress.update(self._task, description=label, advance=1)
-
-    def __exit__(self, *exc):
-        if self._progress is not None:
-            self._progress.__exit__(*exc)
-        return False
+    def __call__(self, label: str) -> None:
+        if self.progress is not None:
+            self.progress(self.done, self.total, label)
+        self.done += 1
 
 
 def _normalized_points(calibration, xy_u, xy_d):
@@ -77,6 +111,161 @@ def _normalized_points(calibration, xy_u, xy_d):
     how = (calibration.fit or {}).get("normalize", "none") or "none"
     norm = normalize(how, xy_u, xy_d)
     return norm.xy_u, norm.xy_d
+
+
+def output_shape(calibration, image: np.ndarray | None = None) -> tuple[int, int]:
+    """``(rows, cols)`` of the report's output frame: the image's, else the calibration's
+    image size, else the reference points' bounds plus the same margin, else 480 x 640."""
+    cal = calibration
+    if image is not None:
+        return tuple(image.shape[:2])
+    if cal.image_size:
+        return (int(cal.image_size[1]), int(cal.image_size[0]))
+    if cal.bounds is not None:
+        return (
+            int(np.ceil(cal.bounds[3] + cal.bounds[1])) + 1,
+            int(np.ceil(cal.bounds[2] + cal.bounds[0])) + 1,
+        )
+    return (480, 640)
+
+
+def _compute_steps(with_points: bool, with_image: bool) -> int:
+    return with_points + 1 + 3 * with_image
+
+
+def _render_steps(with_points: bool, with_image: bool) -> int:
+    return with_points + 2 + 2 * with_image
+
+
+def _within(progress: Progress | None, start: int, total: int) -> Progress | None:
+    """The progress of one phase reported as part of the whole."""
+    if progress is None:
+        return None
+    return lambda done, _total, label: progress(start + done, total, label)
+
+
+def compute_report(
+    calibration,
+    *,
+    points=None,
+    image: np.ndarray | None = None,
+    selection: dict | None = None,
+    robustness: dict | None = None,
+    expected_ratios=(5.0, 1.0),
+    progress: Progress | None = None,
+) -> ReportContent:
+    """The report's content (arguments as :func:`build_report`); draws nothing."""
+    from oapcal.imaging.checks import residual_vectors
+    from oapcal.stats import residual_stats
+    from oapcal.uncertainty import uncertainty_map
+
+    cal = calibration
+    step = _Steps(progress, _compute_steps(points is not None, image is not None))
+    shape = output_shape(cal, image)
+    vectors = None
+    if points is not None:
+        step("correcting the landmarks")
+        xy_u, xy_d = _normalized_points(cal, *points)
+        vectors = residual_vectors(cal.params, xy_u, xy_d)
+        residuals = residual_stats(vectors.xy_c, xy_u, cal.um_per_px).to_dict()
+    else:
+        residuals = dict(cal.residuals)
+    step("uncertainty map")
+    umap = uncertainty_map(cal, shape, step=max(1, max(shape) // 320))
+    analysis = None
+    if image is not None:
+        analysis = analyse_image(cal, image, shape, tuple(expected_ratios), step)
+    return ReportContent(cal, shape, residuals, vectors, umap, analysis, selection, robustness)
+
+
+def analyse_image(calibration, image: np.ndarray, shape, expected_ratios, step=None) -> ImageAnalysis:
+    """Correct a bar-target image with the calibration (cubic) and check it before and
+    after (straightness, aspect ratios) and its edge spread functions after.
+
+    Output pixels that sample outside the observed image are not data: only pixels at
+    least 2 px inside (cubic interpolation reaches 2 px) are analysed, the rest filled with
+    the background so they make no edges.  ``step(label)`` is called as each part starts.
+    """
+    from scipy.ndimage import binary_erosion
+
+    from oapcal.imaging.checks import check_target
+    from oapcal.imaging.esf import analyse_edges, find_edge_rois
+    from oapcal.imaging.remap import correct_image, correction_map
+
+    step = step or (lambda label: None)
+    step("correcting the image")
+    maps = correction_map(calibration, shape)
+    corrected = correct_image(image.astype(np.float32), maps, "cubic").astype(float)
+    inside = correct_image(np.ones(image.shape[:2], np.float32), maps, "nearest") > 0.5
+    valid = binary_erosion(inside, iterations=2)
+    analysed = np.where(valid, corrected, np.median(corrected[valid]) if valid.any() else 0.0)
+    step("straightness and aspect checks")
+    before = check_target(image, expected_ratios)
+    after = check_target(analysed, expected_ratios, valid=valid)
+    step("edge spread functions")
+    rois, labels = find_edge_rois(analysed, valid=valid)
+    esf = analyse_edges(analysed, rois, labels=labels, um_per_px=calibration.um_per_px)
+    return ImageAnalysis(
+        image, np.where(inside, corrected, np.nan), before, after, esf, tuple(expected_ratios)
+    )
+
+
+def render_report(
+    content: ReportContent,
+    *,
+    image_name: str | None = None,
+    title: str | None = None,
+    progress: Progress | None = None,
+) -> str:
+    """The report's HTML page for ``content``: its figures drawn and embedded, its tables."""
+    from oapcal.report import plots
+
+    step = _Steps(progress, _render_steps(content.vectors is not None, content.image is not None))
+    cal, shape, um = content.calibration, content.shape, content.calibration.um_per_px
+    from_points = content.vectors is not None
+    sections = [
+        H.section("Summary", _summary_html(cal, content.residuals, from_points)),
+        H.section("Fitted parameters", _params_html(cal)),
+    ]
+    if from_points:
+        step("residual vectors")
+        png = plots.figure_png(plots.residual_vectors_figure(content.vectors, um, shape))
+        caption = ("Each arrow goes from a reference point to where its observed point lands after "
+                   "correction, magnified as stated; colour is the residual length.")  # fmt: skip
+        sections.append(H.section("Residual vectors", H.png_figure(png, "residual vectors", caption)))
+    step("distortion field")
+    png = plots.figure_png(plots.distortion_field_figure(cal.params, shape, cal.hull, um))
+    caption = (
+        "Where each output pixel is sampled from in the observed image, relative to itself "
+        "(the model's distortion)."
+    )
+    sections.append(H.section("Distortion field", H.png_figure(png, "distortion field", caption)))
+    step("uncertainty map")
+    umap = content.uncertainty
+    sections.append(
+        H.section("Uncertainty of the correction", _uncertainty_html(umap, umap.summary(), plots))
+    )
+    if content.image is not None:
+        a = content.image
+        step("image before and after correction")
+        body = _checks_html(a.image, a.corrected, a.before, a.after, image_name, a.expected_ratios, um, plots)
+        sections.append(H.section("Image before and after correction", body, "image"))
+        step("edge spread functions")
+        sections.append(H.section("Edge spread functions", _esf_html(a.esf, plots), "esf"))
+    if content.selection is not None:
+        sections.append(H.section("Model selection", _selection_html(content.selection, cal)))
+    if content.robustness is not None:
+        sections.append(H.section("Robustness", _robustness_html(content.robustness)))
+    name = cal.name or (Path(cal.source).name if cal.source else "calibration")
+    page_title = title or f"oapcal calibration report: {name}"
+    now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    meta = (
+        f"Calibration created {cal.created_utc} with oapcal {cal.oapcal_version}"
+        + (f" from {cal.source}" if cal.source else "")
+        + f"; report made {now}. Coordinates: px, origin at the centre of the top-left pixel, "
+        "x = column, y = row (down)."
+    )
+    return H.document(page_title, sections, meta)
 
 
 def build_report(
@@ -89,123 +278,28 @@ def build_report(
     robustness: dict | None = None,
     expected_ratios=(5.0, 1.0),
     title: str | None = None,
-    show_progress: bool = False,
+    progress: Progress | None = None,
 ) -> tuple[str, ReportData]:
-    """The report's HTML and the numbers in it.
+    """The report's HTML and the numbers in it: :func:`compute_report`, then
+    :func:`render_report`.
 
     ``points`` is ``(xy_u, xy_d)`` (``(N, 2)`` each, as given to the fit; the calibration's
     normalization is applied again); ``image`` a grey distorted image of a bar target;
-    ``selection`` / ``robustness`` dicts from :mod:`oapcal.report.inputs`.
+    ``selection`` / ``robustness`` dicts from :mod:`oapcal.report.inputs`; ``image_name``
+    and ``title`` label the page.  ``progress(done, total, label)`` is called as each step
+    of both phases starts.
     """
-    from scipy.ndimage import binary_erosion
-
-    from oapcal.imaging.checks import check_target, residual_vectors
-    from oapcal.imaging.esf import analyse_edges, find_edge_rois
-    from oapcal.imaging.remap import correct_image, correction_map
-    from oapcal.report import plots
-    from oapcal.stats import residual_stats
-    from oapcal.uncertainty import uncertainty_map
-
-    cal = calibration
-    um = cal.um_per_px
-    n_steps = 3 + (points is not None) + 3 * (image is not None)
-    sections = []
-    with _Steps(n_steps, show_progress) as steps:
-        # ---- shape of the output frame
-        if image is not None:
-            shape = image.shape[:2]
-        elif cal.image_size:
-            shape = (int(cal.image_size[1]), int(cal.image_size[0]))
-        elif cal.bounds is not None:  # the reference points' bounds plus the same margin
-            shape = (
-                int(np.ceil(cal.bounds[3] + cal.bounds[1])) + 1,
-                int(np.ceil(cal.bounds[2] + cal.bounds[0])) + 1,
-            )
-        else:
-            shape = (480, 640)
-
-        # ---- residuals (Table 1)
-        vectors = None
-        if points is not None:
-            steps.step("correcting the landmarks")
-            xy_u, xy_d = _normalized_points(cal, *points)
-            vectors = residual_vectors(cal.params, xy_u, xy_d)
-            residuals = residual_stats(vectors.xy_c, xy_u, um).to_dict()
-        else:
-            residuals = dict(cal.residuals)
-        sections.append(H.section("Summary", _summary_html(cal, residuals, points is not None)))
-        sections.append(H.section("Fitted parameters", _params_html(cal)))
-        if vectors is not None:
-            png = plots.figure_png(plots.residual_vectors_figure(vectors, um, shape))
-            sections.append(
-                H.section(
-                    "Residual vectors",
-                    H.png_figure(
-                        png,
-                        "residual vectors",
-                        "Each arrow goes from a reference point to where "
-                        "its observed point lands after correction, magnified as stated; colour "
-                        "is the residual length.",
-                    ),  # fmt: skip
-                )
-            )
-
-        # ---- distortion field and uncertainty
-        steps.step("distortion field")
-        png = plots.distortion_field_figure(cal.params, shape, cal.hull, um)
-        field_html = H.png_figure(plots.figure_png(png), "distortion field",
-                                  "Where each output pixel is sampled from in the observed image, "
-                                  "relative to itself (the model's distortion).")  # fmt: skip
-        sections.append(H.section("Distortion field", field_html))
-        steps.step("uncertainty map")
-        step = max(1, max(shape) // 320)
-        umap = uncertainty_map(cal, shape, step=step)
-        usum = umap.summary()
-        sections.append(H.section("Uncertainty of the correction", _uncertainty_html(umap, usum, plots)))
-
-        # ---- image checks and ESF
-        data = ReportData(residuals=residuals, uncertainty=usum)
-        if image is not None:
-            steps.step("correcting the image")
-            maps = correction_map(cal, shape)
-            corrected = correct_image(image.astype(np.float32), maps, "cubic").astype(float)
-            # Output pixels that sample outside the observed image are not data: analyse only
-            # pixels at least 2 px inside (cubic interpolation reaches 2 px), fill the rest
-            # with the background so they make no edges.
-            inside = correct_image(np.ones(image.shape[:2], np.float32), maps, "nearest") > 0.5
-            valid = binary_erosion(inside, iterations=2)
-            analysed = np.where(valid, corrected, np.median(corrected[valid]) if valid.any() else 0.0)
-            steps.step("straightness and aspect checks")
-            before = check_target(image, expected_ratios)
-            after = check_target(analysed, expected_ratios, valid=valid)
-            data.checks = {"before": before.summary(), "after": after.summary()}
-            steps.step("edge spread functions")
-            rois, labels = find_edge_rois(analysed, valid=valid)
-            corrected = np.where(inside, corrected, np.nan)
-            esf = analyse_edges(analysed, rois, labels=labels, um_per_px=um)
-            data.esf = esf.to_dict()
-            sections.append(
-                H.section(
-                    "Image before and after correction",
-                    _checks_html(image, corrected, before, after, image_name, expected_ratios, um, plots),
-                    "image",
-                )
-            )
-            sections.append(H.section("Edge spread functions", _esf_html(esf, plots), "esf"))
-        if selection is not None:
-            sections.append(H.section("Model selection", _selection_html(selection, cal)))
-        if robustness is not None:
-            sections.append(H.section("Robustness", _robustness_html(robustness)))
-    name = cal.name or (Path(cal.source).name if cal.source else "calibration")
-    page_title = title or f"oapcal calibration report: {name}"
-    now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
-    meta = (
-        f"Calibration created {cal.created_utc} with oapcal {cal.oapcal_version}"
-        + (f" from {cal.source}" if cal.source else "")
-        + f"; report made {now}. Coordinates: px, origin at the centre of the top-left pixel, "
-        "x = column, y = row (down)."
+    parts = (points is not None, image is not None)
+    n_compute = _compute_steps(*parts)
+    total = n_compute + _render_steps(*parts)
+    content = compute_report(
+        calibration, points=points, image=image, selection=selection, robustness=robustness,
+        expected_ratios=expected_ratios, progress=_within(progress, 0, total),
+    )  # fmt: skip
+    page = render_report(
+        content, image_name=image_name, title=title, progress=_within(progress, n_compute, total)
     )
-    return H.document(page_title, sections, meta), data
+    return page, content.data
 
 
 def write_report(path, html_text: str) -> None:
