@@ -1,5 +1,5 @@
 """The grid CSV of ``oapcal simulate relay --out``: a traced relay's object points with
-their paraxial and real image points (``docs/cli.md``, ``docs/file-formats.md``).
+their paraxial and real image points (``docs/cli.md``, simulate relay).
 
 Columns ``x_obj,y_obj,x_u,y_u,x_d,y_d,clear``; :func:`oapcal.io.points.read_points` reads
 the file back as point pairs (``x_u,y_u`` the reference, ``x_d,y_d`` the distorted points).
