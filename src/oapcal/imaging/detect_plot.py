@@ -106,7 +106,8 @@ def plot_detection(image: np.ndarray, det, path: str | Path, *, groups: str = ""
                 label=f"corners kept ({len(det.ids)})")  # fmt: skip
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
-    ax.legend(loc="lower left", fontsize=7, framealpha=0.8)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="lower left", fontsize=7, framealpha=0.8)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     if det.status == 0:

@@ -1,0 +1,207 @@
+"""Detection on the real USAF-1951 images in ../shared/real/usaf/ (issue 11's measured goals).
+
+Run: .venv/bin/python benchmarks/real_usaf.py [--pictures docs/img]
+
+Each image is detected by the CLI (``oapcal detect IMAGE --groups ... --json``, without
+``--um-per-px``: the scale is found) in a subprocess of its own, which reports its wall time
+and its peak memory (``resource.getrusage``).  Printed per image: exit code, time, peak
+memory, corners with right ids / corners of the fully visible elements of the groups run,
+wrong ids, the found scale against the pixel size measured in SOURCES.md, and the rms of a
+quadratic map reference -> image fitted to the detected corners.
+
+Ground truth, independent of the detector: for every image a few bars were identified by
+eye from the printed element and group numbers on the target (``ANCHORS``: the id of the
+middle bar of a triplet and a point on it).  Each anchor's bar centre is measured here by
+thresholding the image around that point (midpoint of the local minimum and maximum, the
+connected blob through the point, its centroid).  An affine map from the target's geometry
+(object um, the layout the detection reports) to these centres predicts every corner: a
+detected corner has the right id when it lies within one bar width of the prediction for
+its id (a neighbouring bar's corner is two bar widths away).  Elements count as fully
+visible when all 24 predicted corners are at least 3 px inside the image and the bars are
+at least 2 px wide (narrower bars are not resolved).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "real" / "usaf"
+
+#: file -> (groups in view, pixel size measured in SOURCES.md (um/px), extra CLI options)
+IMAGES = {
+    "fpm_brightfield.png": ("3-7", 1.02, []),
+    "labumk_negative.tif": ("4-7", 3.7, []),
+    "whole_target.png": ("-2-1", 130.0, []),
+    "highmag_g7e1.jpg": ("7", 0.083, []),
+}
+
+#: file -> [(id of a triplet's middle bar, x, y)]: a point on that bar, read off the image;
+#: the ids from the numbers printed on the target next to the elements.
+ANCHORS = {
+    "fpm_brightfield.png": [
+        ("G4E2H1", 360, 272), ("G4E2V1", 552, 272), ("G5E1H1", 988, 246), ("G5E6V1", 940, 658),
+        ("G4E6H1", 332, 891), ("G4E1H1", 944, 862), ("G4E1V1", 730, 860), ("G6E2H1", 674, 496),
+    ],
+    "labumk_negative.tif": [
+        ("G4E3H1", 83, 63), ("G4E3V1", 131, 64), ("G4E6H1", 78, 214), ("G4E1H1", 284, 205),
+        ("G4E1V1", 224, 205), ("G5E3H1", 298, 61), ("G5E6V1", 283, 135),
+    ],
+    "whole_target.png": [
+        ("G-2E2H1", 100, 155), ("G-2E2V1", 196, 155), ("G-1E1H1", 445, 140), ("G-1E6V1", 422, 353),
+        ("G-2E1H1", 425, 459), ("G-2E6H1", 88, 476), ("G0E2H1", 327, 272), ("G0E1H1", 245, 349),
+    ],
+}  # fmt: skip
+
+RUNNER = """
+import resource, sys, time, json
+t = time.perf_counter()
+from oapcal.cli import main
+code = main(sys.argv[1:])
+sys.stderr.write("\\nBENCH " + json.dumps({"code": code, "time_s": time.perf_counter() - t,
+                 "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}) + "\\n")
+"""
+
+
+def read_image(path: Path) -> np.ndarray:
+    from oapcal.io.imagefile import read_image_grey
+
+    return read_image_grey(path)
+
+
+def bar_centre(img: np.ndarray, x: float, y: float, win: int = 40) -> np.ndarray:
+    """Centroid of the thresholded blob through (x, y) (midpoint of the local min and max)."""
+    import cv2
+
+    h, w = img.shape
+    x0, x1 = max(0, int(x) - win), min(w, int(x) + win + 1)
+    y0, y1 = max(0, int(y) - win), min(h, int(y) + win + 1)
+    patch = img[y0:y1, x0:x1].astype(float)
+    thr = 0.5 * (patch.min() + patch.max())
+    inside = patch[int(y) - y0, int(x) - x0] > thr
+    mask = ((patch > thr) == inside).astype(np.uint8)
+    _, labels = cv2.connectedComponents(mask, connectivity=4)
+    blob = labels == labels[int(y) - y0, int(x) - x0]
+    ys, xs = np.nonzero(blob)
+    return np.array([xs.mean() + x0, ys.mean() + y0])
+
+
+def truth_map(name: str, img: np.ndarray, groups, layout):
+    """Affine map object um -> image px through the anchors (see the module docstring)."""
+    from oapcal.imaging.usaf import parse_groups, usaf_target
+
+    anchors = ANCHORS.get(name)
+    if not anchors:
+        return None, None
+    target = usaf_target(
+        parse_groups(sorted({int(a[0][1 : a[0].index("E")]) for a in anchors})), layout_name=layout
+    )
+    rows = zip(target.bar_group, target.bar_element, target.bar_orientation, target.bar_index)
+    bar_ids = [f"G{g}E{e}{o}{b}" for g, e, o, b in rows]
+    src, dst = [], []
+    for bid, x, y in anchors:
+        k = bar_ids.index(bid)
+        src.append(0.5 * (target.bars[k, :2] + target.bars[k, 2:]))
+        dst.append(bar_centre(img, x, y))
+    src, dst = np.array(src), np.array(dst)
+    design = np.column_stack([src, np.ones(len(src))])
+    coef, *_ = np.linalg.lstsq(design, dst, rcond=None)
+    rms = float(np.sqrt(np.mean(np.sum((design @ coef - dst) ** 2, axis=1))))
+    return (lambda um: np.column_stack([um, np.ones(len(um))]) @ coef), rms
+
+
+def quadratic_rms(xy_u: np.ndarray, xy_d: np.ndarray) -> float:
+    if len(xy_u) < 12:
+        return float("nan")
+    c = xy_u.mean(axis=0)
+    z = (xy_u - c) / max(float(np.ptp(xy_u, axis=0).max()) / 2, 1.0)
+    design = np.column_stack([np.ones(len(z)), z, z**2, z[:, 0] * z[:, 1]])
+    coef, *_ = np.linalg.lstsq(design, xy_d, rcond=None)
+    return float(np.sqrt(np.mean(np.sum((design @ coef - xy_d) ** 2, axis=1))))
+
+
+def run_one(path: Path, groups: str, extra: list, workdir: Path, pictures: Path | None):
+    out = workdir / (path.stem + ".csv")
+    args = [str(path), "--groups", groups, "--out", str(out), "--json", *extra]
+    if pictures is not None:
+        args += ["--plot", str(pictures / f"real_{path.stem}.png")]
+    proc = subprocess.run([sys.executable, "-c", RUNNER, "detect", *args], capture_output=True, text=True)
+    bench = json.loads(proc.stderr.rsplit("BENCH ", 1)[1])
+    summary = json.loads(proc.stdout) if proc.stdout.strip() else {}
+    return bench, summary, out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--pictures", type=Path, default=None, help="write the --plot pictures here")
+    args = ap.parse_args()
+    if not REAL.is_dir():
+        sys.exit(f"{REAL}: not found (the real images are kept beside the repository)")
+    import tempfile
+
+    from oapcal.io.points import read_points
+
+    workdir = Path(tempfile.mkdtemp(prefix="real_usaf_"))
+    if args.pictures is not None:
+        args.pictures.mkdir(parents=True, exist_ok=True)
+    print("| image | exit | time (s) | peak memory (MB) | right ids / corners of fully visible elements | "
+          "wrong ids | scale found (um/px) | measured (SOURCES.md) | scale error | quadratic-map rms (px) | "
+          "anchor-map rms (px) | reason |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, (groups, measured, extra) in IMAGES.items():
+        path = REAL / name
+        if not path.exists():
+            print(f"| {name} | missing | | | | | | | | | | |")
+            continue
+        bench, summary, out = run_one(path, groups, extra, workdir, args.pictures)
+        scale = summary.get("um_per_px")
+        right = wrong = visible = 0
+        qrms = anchor_rms = float("nan")
+        if bench["code"] == 0:
+            from oapcal.imaging.usaf import parse_groups, usaf_target
+
+            pairs = read_points(out)
+            img = read_image(path)
+            layout = summary.get("pose", {}).get("layout")
+            fmap, anchor_rms = truth_map(name, img, groups, layout)
+            qrms = quadratic_rms(pairs.xy_u, pairs.xy_d)
+            if fmap is not None:
+                target = usaf_target(parse_groups(groups), layout_name=layout)
+                pred = fmap(target.corners_um)
+                o, ex, ey = fmap(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]))
+                px_per_um = abs(np.linalg.det(np.array([ex - o, ey - o]))) ** 0.5
+                wpx = target.corner_width_um * px_per_um
+                index = {i: k for k, i in enumerate(target.corner_ids)}
+                h, w = img.shape
+                # fully visible elements: all 24 corners 3 px inside, bars >= 2 px wide
+                elem = {}
+                for k, cid in enumerate(target.corner_ids):
+                    elem.setdefault(cid[: cid.index("H") if "H" in cid else cid.index("V")], []).append(k)
+                vis_ids = set()
+                for ks in elem.values():
+                    p = pred[ks]
+                    ok = (p[:, 0] >= 3).all() and (p[:, 0] <= w - 4).all() and (p[:, 1] >= 3).all()
+                    ok = ok and (p[:, 1] <= h - 4).all() and wpx[ks[0]] >= 2.0
+                    if ok:
+                        vis_ids.update(target.corner_ids[k] for k in ks)
+                visible = len(vis_ids)
+                for cid, xy in zip(pairs.ids, pairs.xy_d):
+                    k = index[cid]
+                    good = np.hypot(*(xy - pred[k])) <= wpx[k]
+                    right += int(good and cid in vis_ids)
+                    wrong += int(not good)
+        err = f"{100 * (scale / measured - 1):+.1f} %" if scale else ""
+        reason = "" if bench["code"] == 0 else summary.get("reason", "")
+        found = scale if scale else float("nan")
+        print(f"| {name} | {bench['code']} | {bench['time_s']:.1f} | {bench['peak_mb']:.0f} | "
+              f"{right} / {visible} | {wrong} | {found:.4g} | {measured:g} | {err} | "
+              f"{qrms:.3f} | {anchor_rms:.2f} | {reason} |", flush=True)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
