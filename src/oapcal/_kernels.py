@@ -24,6 +24,8 @@ Jacobian took ~14 s for the 4,096 models on 289 points, these kernels ~0.3 s.
 
 from __future__ import annotations
 
+import os
+
 import numba
 import numpy as np
 
@@ -162,68 +164,68 @@ def fd_param_columns(family, p, x, y, jp, j, want, step):
 # ------------------------------------------------------------------- forward evaluation
 
 
-@numba.njit(parallel=True, **_JIT)
-def evaluate(family, params, xy, need, fd_step, out, jpt, jpar):
-    """The model at every point: ``params (Bp, P)``, ``xy (Bx, N, 2)`` with ``Bp, Bx`` 1 or
-    B; ``out (B, N, 2)``; with ``need >= POINT_JAC`` ``jpt (B, N, 2, 2)``; with
-    ``need == PARAM_JAC`` ``jpar (B, N, 2, P)`` (central differences with relative step
-    ``fd_step`` unless it is None).
-    Threads take blocks of ``POINT_BLOCK`` points."""
-    n_items, n = out.shape[0], out.shape[1]
-    total = n_items * n
-    for blk in numba.prange((total + POINT_BLOCK - 1) // POINT_BLOCK):
-        jp = np.empty((2, params.shape[1], 1))
-        want = np.ones(params.shape[1], dtype=np.bool_)
-        for t in range(blk * POINT_BLOCK, min(total, (blk + 1) * POINT_BLOCK)):
-            b = t // n
-            j = t - b * n
-            p = params[b if params.shape[0] > 1 else 0]
-            bx = b if xy.shape[0] > 1 else 0
-            x = xy[bx, j, 0]
-            y = xy[bx, j, 1]
-            if fd_step is None:  # pruned at compile time
-                xd, yd, a, bb, c, d = point(family, p, x, y, need, jp, 0, want)
-            else:
-                xd, yd, a, bb, c, d = point(family, p, x, y, min(need, POINT_JAC), jp, 0, want)
-                if need == PARAM_JAC:
-                    fd_param_columns(family, p, x, y, jp, 0, want, fd_step)
-            out[b, j, 0] = xd
-            out[b, j, 1] = yd
-            if need >= POINT_JAC:
-                jpt[b, j, 0, 0] = a
-                jpt[b, j, 0, 1] = bb
-                jpt[b, j, 1, 0] = c
-                jpt[b, j, 1, 1] = d
+@numba.njit(**_JIT)
+def evaluate(start, stop, family, params, xy, need, fd_step, out, jpt, jpar):
+    """The model at the points ``start <= t < stop`` of the flattened ``(B, N)`` batch:
+    ``params (Bp, P)``, ``xy (Bx, N, 2)`` with ``Bp, Bx`` 1 or B; ``out (B, N, 2)``; with
+    ``need >= POINT_JAC`` ``jpt (B, N, 2, 2)``; with ``need == PARAM_JAC``
+    ``jpar (B, N, 2, P)`` (central differences with relative step ``fd_step`` unless it is
+    None)."""
+    n = out.shape[1]
+    jp = np.empty((2, params.shape[1], 1))
+    want = np.ones(params.shape[1], dtype=np.bool_)
+    for t in range(start, stop):
+        b = t // n
+        j = t - b * n
+        p = params[b if params.shape[0] > 1 else 0]
+        bx = b if xy.shape[0] > 1 else 0
+        x = xy[bx, j, 0]
+        y = xy[bx, j, 1]
+        if fd_step is None:  # pruned at compile time
+            xd, yd, a, bb, c, d = point(family, p, x, y, need, jp, 0, want)
+        else:
+            xd, yd, a, bb, c, d = point(family, p, x, y, min(need, POINT_JAC), jp, 0, want)
             if need == PARAM_JAC:
-                for i in range(jp.shape[1]):
-                    jpar[b, j, 0, i] = jp[0, i, 0]
-                    jpar[b, j, 1, i] = jp[1, i, 0]
+                fd_param_columns(family, p, x, y, jp, 0, want, fd_step)
+        out[b, j, 0] = xd
+        out[b, j, 1] = yd
+        if need >= POINT_JAC:
+            jpt[b, j, 0, 0] = a
+            jpt[b, j, 0, 1] = bb
+            jpt[b, j, 1, 0] = c
+            jpt[b, j, 1, 1] = d
+        if need == PARAM_JAC:
+            for i in range(jp.shape[1]):
+                jpar[b, j, 0, i] = jp[0, i, 0]
+                jpar[b, j, 1, i] = jp[1, i, 0]
 
 
-@numba.njit(parallel=True, fastmath=_FASTMATH, **_JIT)
-def grid_map(family, p, xs, ys, out_x, out_y):
-    """The model on the grid ``xs (C,) x ys (R,)`` of undistorted points, into
-    ``out_x, out_y (R, C)`` (float32): a correction map."""
-    for r in numba.prange(ys.shape[0]):
-        jp = np.empty((2, p.shape[0], 1))
-        want = np.zeros(p.shape[0], dtype=np.bool_)
+@numba.njit(fastmath=_FASTMATH, **_JIT)
+def grid_map(start, stop, family, p, xs, ys, out_x, out_y):
+    """The model on the grid ``xs (C,) x ys[start:stop]`` of undistorted points, into the
+    rows ``start:stop`` of ``out_x, out_y (R, C)`` (float32): a correction map."""
+    jp = np.empty((2, p.shape[0], 1))
+    want = np.zeros(p.shape[0], dtype=np.bool_)
+    for r in range(start, stop):
         y = ys[r]
+        row_x = out_x[r]
+        row_y = out_y[r]
         for col in range(xs.shape[0]):
             xd, yd, _, _, _, _ = point(family, p, xs[col], y, VALUE, jp, 0, want)
-            out_x[r, col] = xd
-            out_y[r, col] = yd
+            row_x[col] = xd
+            row_y[col] = yd
 
 
-@numba.njit(parallel=True, fastmath=_FASTMATH, **_JIT)
-def min_det(family, params, xy, out):
-    """The smallest point-Jacobian determinant of each model ``params (B, P)`` over the
-    points ``xy (2, M)`` (rows x, y), into ``out (B,)``; NaN when any determinant is NaN."""
-    for b in numba.prange(params.shape[0]):
-        jp = np.empty((2, params.shape[1], 1))
-        want = np.zeros(params.shape[1], dtype=np.bool_)
+@numba.njit(fastmath=_FASTMATH, **_JIT)
+def min_det(start, stop, family, params, xy, out):
+    """The smallest point-Jacobian determinant of the models ``params[start:stop]`` over the
+    points ``xy (2, M)`` (rows x, y), into ``out``; NaN when any determinant is NaN."""
+    jp = np.empty((2, params.shape[1], 1))
+    want = np.zeros(params.shape[1], dtype=np.bool_)
+    xs = xy[0]
+    ys = xy[1]
+    for b in range(start, stop):
         p = params[b]
-        xs = xy[0]
-        ys = xy[1]
         lo = np.inf
         bad = 0
         for j in range(xs.shape[0]):
@@ -293,45 +295,44 @@ def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp, want):
     return x, y, converged, folded, n_iter
 
 
-@numba.njit(parallel=True, **_JIT)
-def invert_batch(family, params, xy_d, start, tol, max_iter, out, converged, folded, iters):
-    """Invert every point: ``params (Bp, P)``, ``xy_d (Bx, N, 2)``, ``start`` like
-    ``xy_d`` or None (the family's start); outputs ``(B, N, 2)``, ``(B, N)`` x3."""
-    n_items, n = out.shape[0], out.shape[1]
-    total = n_items * n
-    for blk in numba.prange((total + POINT_BLOCK - 1) // POINT_BLOCK):
-        jp = np.empty((2, params.shape[1], 1))
-        want = np.zeros(params.shape[1], dtype=np.bool_)
-        for t in range(blk * POINT_BLOCK, min(total, (blk + 1) * POINT_BLOCK)):
-            b = t // n
-            j = t - b * n
-            p = params[b if params.shape[0] > 1 else 0]
-            bx = b if xy_d.shape[0] > 1 else 0
-            xd = xy_d[bx, j, 0]
-            yd = xy_d[bx, j, 1]
-            if start is None:  # pruned at compile time
-                x0, y0 = inverse_start(family, p, xd, yd)
-            else:
-                bs = b if start.shape[0] > 1 else 0
-                x0, y0 = start[bs, j, 0], start[bs, j, 1]
-            x, y, ok, fold, it = invert_point(family, p, xd, yd, x0, y0, tol, max_iter, jp, want)
-            out[b, j, 0] = x if ok else np.nan
-            out[b, j, 1] = y if ok else np.nan
-            converged[b, j] = ok
-            folded[b, j] = fold
-            iters[b, j] = it
+@numba.njit(**_JIT)
+def invert_batch(start, stop, family, params, xy_d, xy_start, tol, max_iter, out, converged, folded, iters):
+    """Invert the points ``start <= t < stop`` of the flattened ``(B, N)`` batch:
+    ``params (Bp, P)``, ``xy_d (Bx, N, 2)``, ``xy_start`` like ``xy_d`` or None (the family's
+    start); outputs ``(B, N, 2)`` and ``(B, N)`` x3."""
+    n = out.shape[1]
+    jp = np.empty((2, params.shape[1], 1))
+    want = np.zeros(params.shape[1], dtype=np.bool_)
+    for t in range(start, stop):
+        b = t // n
+        j = t - b * n
+        p = params[b if params.shape[0] > 1 else 0]
+        bx = b if xy_d.shape[0] > 1 else 0
+        xd = xy_d[bx, j, 0]
+        yd = xy_d[bx, j, 1]
+        if xy_start is None:  # pruned at compile time
+            x0, y0 = inverse_start(family, p, xd, yd)
+        else:
+            bs = b if xy_start.shape[0] > 1 else 0
+            x0, y0 = xy_start[bs, j, 0], xy_start[bs, j, 1]
+        x, y, ok, fold, it = invert_point(family, p, xd, yd, x0, y0, tol, max_iter, jp, want)
+        out[b, j, 0] = x if ok else np.nan
+        out[b, j, 1] = y if ok else np.nan
+        converged[b, j] = ok
+        folded[b, j] = fold
+        iters[b, j] = it
 
 
-@numba.njit(parallel=True, **_JIT)
-def invert_score(family, params, xy_d, xy_u, tol, max_iter, rss, mean_dist, n_bad, n_folded):
-    """Correct all points ``xy_d (N, 2)`` through each model ``params (B, P)`` and compare
+@numba.njit(**_JIT)
+def invert_score(start, stop, family, params, xy_d, xy_u, tol, max_iter, rss, mean_dist, n_bad, n_folded):
+    """Correct all points ``xy_d (N, 2)`` through the models ``params[start:stop]`` and compare
     with ``xy_u (N, 2)`` without storing the points: per model the sum of squared and the
     mean Euclidean distances over the converged points, the number of points whose
     inverse failed, and how many of those fold."""
-    for b in numba.prange(params.shape[0]):
+    jp = np.empty((2, params.shape[1], 1))
+    want = np.zeros(params.shape[1], dtype=np.bool_)
+    for b in range(start, stop):
         p = params[b]
-        jp = np.empty((2, params.shape[1], 1))
-        want = np.zeros(params.shape[1], dtype=np.bool_)
         s2 = 0.0
         s1 = 0.0
         bad = 0
@@ -645,24 +646,65 @@ def lm_scratch(n_params, n_max):
     )
 
 
-@numba.njit(parallel=True, **_JIT)
-def lm_batch(family, u, d, idx, counts, masks, half, p, max_iter, ftol, xtol, gtol, fd_step, want_jtj,
-             status, n_iter, cost, jtj):  # fmt: skip
-    """:func:`lm_item` for every item ``b``: points ``u (Bu, N, 2)``, ``d (Bd, N, 2)`` (each 1 or B),
-    point indices ``idx (Bi, nmax)`` with ``counts (Bi,)`` used (``Bi`` 1 or B), free
-    parameters ``masks (B, P)``, starts ``p (B, P)`` (overwritten with the solutions);
-    with ``want_jtj`` ``jtj (B, P, P)`` receives ``J^T J`` at each solution, else it may
-    be ``(1, P, P)``.  Threads take blocks of ``CHUNK`` items and reuse their work arrays."""
-    n_items, n_params = masks.shape
-    for blk in numba.prange((n_items + CHUNK - 1) // CHUNK):
-        scratch = lm_scratch(n_params, idx.shape[1])
-        for i in range(blk * CHUNK, min(n_items, (blk + 1) * CHUNK)):
-            bi = i if idx.shape[0] > 1 else 0
-            bu = i if u.shape[0] > 1 else 0
-            bd = i if d.shape[0] > 1 else 0
-            bj = i if want_jtj else 0
-            s, it, c = lm_item(family, u[bu], d[bd], idx[bi], counts[bi], masks[i], half, p[i], max_iter,
-                               ftol, xtol, gtol, fd_step, want_jtj, jtj[bj], scratch)  # fmt: skip
-            status[i] = s
-            n_iter[i] = it
-            cost[i] = c
+@numba.njit(**_JIT)
+def lm_batch(start, stop, family, u, d, idx, counts, masks, half, p, max_iter, ftol, xtol, gtol, fd_step,
+             want_jtj, status, n_iter, cost, jtj):  # fmt: skip
+    """:func:`lm_item` for the items ``start <= b < stop``: points ``u (Bu, N, 2)``,
+    ``d (Bd, N, 2)`` (each 1 or B), point indices ``idx (Bi, nmax)`` with ``counts (Bi,)``
+    used (``Bi`` 1 or B), free parameters ``masks (B, P)``, starts ``p (B, P)``
+    (overwritten with the solutions); with ``want_jtj`` ``jtj (B, P, P)`` receives
+    ``J^T J`` at each solution, else it may be ``(1, P, P)``."""
+    scratch = lm_scratch(masks.shape[1], idx.shape[1])
+    for i in range(start, stop):
+        bi = i if idx.shape[0] > 1 else 0
+        bu = i if u.shape[0] > 1 else 0
+        bd = i if d.shape[0] > 1 else 0
+        bj = i if want_jtj else 0
+        s, it, c = lm_item(family, u[bu], d[bd], idx[bi], counts[bi], masks[i], half, p[i], max_iter,
+                           ftol, xtol, gtol, fd_step, want_jtj, jtj[bj], scratch)  # fmt: skip
+        status[i] = s
+        n_iter[i] = it
+        cost[i] = c
+
+
+# ----------------------------------------------------------------------- threads
+
+_POOL: list = []
+
+
+def n_threads() -> int:
+    """Threads the kernels run on: the CPUs this process may use (``NUMBA_NUM_THREADS``
+    caps it, as it would Numba's own threading)."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(cpus, int(os.environ.get("NUMBA_NUM_THREADS", cpus))))
+
+
+def run_blocks(kernel, n: int, block: int, *args) -> None:
+    """Call ``kernel(start, stop, *args)`` over ``0 <= start < n`` in blocks of ``block``, the
+    blocks shared out to :func:`n_threads` threads (the kernels release the GIL).
+
+    Why threads and not ``numba.prange``: the same speed, and each kernel compiles in a
+    fraction of the time (no parallel-loop lowering), which is what a first call costs.
+    """
+    blocks = [(s, min(n, s + block)) for s in range(0, n, max(1, block))]
+    threads = min(n_threads(), len(blocks))
+    if threads <= 1:
+        for start, stop in blocks:
+            kernel(start, stop, *args)
+        return
+    if not _POOL or _POOL[0][0] < threads:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL[:] = [(threads, ThreadPoolExecutor(threads, thread_name_prefix="oapcal-kernel"))]
+    pool = _POOL[0][1]
+    for future in [pool.submit(kernel, start, stop, *args) for start, stop in blocks]:
+        future.result()
+
+
+def block_size(n: int, minimum: int) -> int:
+    """Blocks of at least ``minimum``, about eight per thread (load balance on a shared
+    machine without much scheduling overhead)."""
+    return max(minimum, -(-n // (8 * n_threads())))

@@ -6,7 +6,7 @@ distorted points) over the free parameters of a model, the others held at 0.
 
 :func:`fit_batch` is the one solver: it fits B models at once (each with its own mask,
 start and, optionally, its own points or subset of points), one model per thread in
-compiled code (``oapcal._kernels.lm_batch``); :func:`fit`, model selection,
+compiled code (``oapcal._kernels.lm_batch``, blocks of items on all cores); :func:`fit`, model selection,
 cross-validation and the robustness test all call it.  It returns values and never
 raises on numerical failure: every item has a ``status`` and ``message``.  A model family
 other than Eq. (1) plugs in through ``family`` (:class:`oapcal.model.ModelFamily`,
@@ -282,8 +282,6 @@ def fit_batch(
     status says which.  Items are independent: a batch gives the same results as a loop of
     single-item calls with the same ``scale``.
     """
-    import numba
-
     from oapcal import _kernels
 
     xy_u = np.asarray(xy_u, dtype=float)
@@ -322,10 +320,9 @@ def fit_batch(
     cost = np.zeros(n_models)
     jtj = np.zeros((n_models if covariance else 1, n_params, n_params))
     fd = None if family.analytic_jacobian else float(family.fd_step)
-    with numba.parallel_chunksize(1):  # blocks of CHUNK items, handed out one at a time
-        _kernels.lm_batch(family.code, u, d, idx, counts, masks, family.half, p, int(max_iter),
-                          float(ftol), float(xtol), float(gtol), fd, bool(covariance), status, n_iter, cost,
-                          jtj)  # fmt: skip
+    _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts, masks,
+                        family.half, p, int(max_iter), float(ftol), float(xtol), float(gtol), fd,
+                        bool(covariance), status, n_iter, cost, jtj)  # fmt: skip
     n_res = 2 * np.broadcast_to(counts, (n_models,)).astype(np.int64)
     rss_scaled = 2.0 * cost
     cov = None

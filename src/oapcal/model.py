@@ -276,7 +276,8 @@ def _evaluate(xy_u, params, need: int, family: ModelFamily, finite_difference: b
     jpt = np.empty((n_items, n, 2, 2) if need >= k.POINT_JAC else (1, 1, 2, 2))
     jpar = np.empty((n_items, n, 2, family.n_params) if need == k.PARAM_JAC else (1, 1, 2, family.n_params))
     fd = float(family.fd_step) if (finite_difference or not family.analytic_jacobian) else None
-    k.evaluate(family.code, p, u, need, fd, out, jpt, jpar)
+    total = n_items * n
+    k.run_blocks(k.evaluate, total, k.block_size(total, 4096), family.code, p, u, need, fd, out, jpt, jpar)
     return out.reshape(lead + (n, 2)), jpt, jpar, lead + (n,)
 
 
@@ -330,10 +331,8 @@ def min_jacobian_determinant(
     params = kernel_array(np.atleast_2d(params))
     out = np.empty(len(params))
     k = _kernels()
-    import numba
-
-    with numba.parallel_chunksize(k.CHUNK):
-        k.min_det(family.code, params, kernel_array(np.asarray(xy_u, dtype=float).reshape(-1, 2).T), out)
+    xy = kernel_array(np.asarray(xy_u, dtype=float).reshape(-1, 2).T)
+    k.run_blocks(k.min_det, len(params), k.CHUNK, family.code, params, xy, out)
     return out
 
 
@@ -384,8 +383,6 @@ def undistort(
     Shapes follow :func:`distort`: ``xy_d`` ``(..., N, 2)`` with ``params`` ``(..., 13)``;
     each point is solved independently (compiled, in parallel).
     """
-    import numba
-
     k = _kernels()
     d, p, lead, n_items = _as_batches(xy_d, params, family.n_params)
     n = d.shape[1]
@@ -397,8 +394,9 @@ def undistort(
     converged = np.zeros((n_items, n), dtype=np.bool_)
     folded = np.zeros((n_items, n), dtype=np.bool_)
     iters = np.zeros((n_items, n), dtype=np.int64)
-    with numba.parallel_chunksize(1):
-        k.invert_batch(family.code, p, d, start, float(tol), int(max_iter), out, converged, folded, iters)
+    total = n_items * n
+    k.run_blocks(k.invert_batch, total, k.block_size(total, 1024), family.code, p, d, start, float(tol),
+                 int(max_iter), out, converged, folded, iters)  # fmt: skip
     return InverseResult(
         xy=out.reshape(lead + (n, 2)),
         converged=converged.reshape(lead + (n,)),
@@ -416,8 +414,6 @@ def correction_errors(params: np.ndarray, xy_d: np.ndarray, xy_u: np.ndarray, *,
     the mean Euclidean corrected-minus-reference distances over the points whose inverse
     converged, the number of points whose inverse failed, and how many of those fold.
     """
-    import numba
-
     k = _kernels()
     params = kernel_array(np.atleast_2d(params))
     n_items = len(params)
@@ -425,8 +421,8 @@ def correction_errors(params: np.ndarray, xy_d: np.ndarray, xy_u: np.ndarray, *,
     mean_dist = np.empty(n_items)
     n_bad = np.zeros(n_items, dtype=np.int64)
     n_folded = np.zeros(n_items, dtype=np.int64)
-    with numba.parallel_chunksize(k.CHUNK):
-        d = kernel_array(xy_d)
-        u = kernel_array(xy_u)
-        k.invert_score(family.code, params, d, u, float(tol), int(max_iter), rss, mean_dist, n_bad, n_folded)
+    d = kernel_array(xy_d)
+    u = kernel_array(xy_u)
+    k.run_blocks(k.invert_score, n_items, k.CHUNK, family.code, params, d, u, float(tol), int(max_iter), rss,
+                 mean_dist, n_bad, n_folded)  # fmt: skip
     return rss, mean_dist, n_bad, n_folded

@@ -225,10 +225,11 @@ def correction_map(
     out_x = np.empty((rows, cols), np.float32)
     out_y = np.empty((rows, cols), np.float32)
     # The model's compiled point function over the separable grid, rows in parallel.
-    from oapcal._kernels import grid_map
+    from oapcal import _kernels
     from oapcal.model import BROWN_CONRADY, kernel_array
 
-    grid_map(BROWN_CONRADY.code, kernel_array(params), xs, ys, out_x, out_y)
+    _kernels.run_blocks(_kernels.grid_map, rows, _kernels.block_size(rows, 16), BROWN_CONRADY.code,
+                        kernel_array(params), xs, ys, out_x, out_y)  # fmt: skip
     return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
 
 
