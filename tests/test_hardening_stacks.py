@@ -643,3 +643,12 @@ def test_a_tiff_output_larger_than_the_free_space_is_refused_before_writing(run_
         assert code == 4, err
         assert "s.tif: the output needs" in err and "GiB free" in err
         assert _visible(tmp_path / "o") == []
+
+
+def test_a_map_too_large_for_memory_is_refused_before_it_is_built(run_cli, tmp_path):
+    identity = params_from_dict({"m": 1.0})
+    calib = write_calibration(tmp_path / "c.json", params=identity, image_size=(16384, 16384))
+    code, _, err = run_cli("correct", calib, "--save-map", tmp_path / "m.npy", "--out-size", "30000x30000")
+    assert code == 2, err
+    assert "30000x30000 px output would need 6.71 GiB" in err and "MemoryError" not in err
+    assert _visible(tmp_path) == ["c.json"]

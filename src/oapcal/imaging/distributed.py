@@ -496,4 +496,6 @@ class _RichBar(_NoBar):
 
 
 def _bar(enabled, n_chunks, n_frames, label):
-    return _RichBar(n_chunks, n_frames, label) if enabled else _NoBar()
+    import sys
+
+    return _RichBar(n_chunks, n_frames, label) if enabled and sys.stderr.isatty() else _NoBar()

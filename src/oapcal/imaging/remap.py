@@ -31,6 +31,9 @@ from oapcal.model import N_PARAMS, undistort
 
 INTERPOLATIONS = ("nearest", "linear", "cubic", "lanczos")
 EXTENTS = ("input", "full", "calibrated")
+#: The largest correction map built (two float32 arrays): 4 GiB, a 2**29 px output, twice the
+#: default largest frame (--max-pixels 2**28).
+MAX_MAP_BYTES = 4 * 2**30
 #: An output larger than this many times the input's pixel count is refused (a guard
 #: against a folded map or a tiny --um-per-px asking for a huge image).
 MAX_GROWTH = 16
@@ -220,6 +223,12 @@ def correction_map(
             calibration_or_params, shape, extent=extent, um_per_px=um_per_px, out_size=out_size
         )
     rows, cols = geometry.shape
+    if 8 * rows * cols > MAX_MAP_BYTES:
+        raise DataError(
+            f"the correction map for a {cols}x{rows} px output would need "
+            f"{8 * rows * cols / 2**30:.3g} GiB of memory, over the {MAX_MAP_BYTES / 2**30:g} GiB "
+            "limit; choose a smaller --out-size, a coarser --um-per-px or another --extent"
+        )
     xs = geometry.x0 + geometry.scale * np.arange(cols, dtype=float)
     ys = geometry.y0 + geometry.scale * np.arange(rows, dtype=float)
     out_x = np.empty((rows, cols), np.float32)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import glob
 import hashlib
 import json
+import sys
 import threading
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -271,7 +272,7 @@ class _Progress:
 
     def __init__(self, enabled: bool, n_files: int, n_frames: int):
         self.bar = None
-        if not enabled:
+        if not enabled or not sys.stderr.isatty():  # no bar drawn into logs and pipes
             return
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
