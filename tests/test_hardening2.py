@@ -556,3 +556,10 @@ def test_correct_and_export_refuse_a_model_folding_inside_their_image(run_cli, f
     )
     one_error(code, err)
     assert "folds over" in err and not (tmp_path / "cv.yml").exists()
+
+
+def test_output_names_with_escape_sequences_print_as_text(run_cli, tmp_path):
+    out = tmp_path / f"x{ESC}.png"
+    code, stdout, err = run_cli("simulate", "image", "--image-size", "96x64", "--groups", "4", "--out", out)
+    assert code == 0, err
+    assert "x\\x1b]0;pwned" in stdout and not any(c in stdout + err for c in "\x1b\x07\x9b"), repr(stdout)

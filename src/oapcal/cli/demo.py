@@ -25,7 +25,7 @@ import click
 def demo_command(out_dir, seed, trials, no_report):
     """Run the whole method on built-in data: trace the relay, select the model, simulate
     and detect a USAF target, fit, test robustness, correct the image, write a report."""
-    from oapcal.cli._common import console, progress_bar
+    from oapcal.cli._common import console, progress_bar, sanitize
     from oapcal.cli.fit import print_fit
     from oapcal.demo import STEPS, run_demo
 
@@ -76,5 +76,5 @@ def demo_command(out_dir, seed, trials, no_report):
                 f"{m.heldout_mean_error:.3f} px"
             )
     for label, path in result.files.items():
-        click.echo(f"wrote {label}: {path}")
+        click.echo(sanitize(f"wrote {label}: {path}"))
     return 0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, load_pairs, print_json, progress_bar
+from oapcal.cli._common import check_output, load_pairs, print_json, progress_bar, sanitize
 
 
 @click.command("report")
@@ -95,7 +95,9 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
                     "checks": data.checks, "esf": esf})  # fmt: skip
         return 0
     r = data.residuals
-    click.echo(f"wrote {out}: residual mean {r['mean_px']:.4g} px, max {r['max_px']:.4g} px", nl=False)
+    click.echo(
+        f"wrote {sanitize(out)}: residual mean {r['mean_px']:.4g} px, max {r['max_px']:.4g} px", nl=False
+    )
     if data.esf is not None and data.esf["sigma_mean_px"] is not None:
         click.echo(
             f"; ESF sigma mean {data.esf['sigma_mean_px']:.3g} px, max {data.esf['sigma_max_px']:.3g} px",

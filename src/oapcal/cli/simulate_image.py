@@ -6,7 +6,15 @@ import sys
 
 import click
 
-from oapcal.cli._common import Finite, OutputSet, check_output, check_work, parse_size, stderr_is_terminal
+from oapcal.cli._common import (
+    Finite,
+    OutputSet,
+    check_output,
+    check_work,
+    parse_size,
+    sanitize,
+    stderr_is_terminal,
+)
 
 #: Largest Gaussian PSF sigma (camera px): wider blurs every bar of the target into grey.
 MAX_SIGMA_PX = 50.0
@@ -197,13 +205,17 @@ def simulate_image_command(
         if truth is not None:
             write_truth(outputs.stage(truth), sim)
     click.echo(
-        f"wrote {out}: {size[0]}x{size[1]} px, {bits}-bit, groups {groups}, "
-        f"{int(sim.visible.sum())} of {len(sim.ids)} corners fully visible"
+        sanitize(
+            f"wrote {out}: {size[0]}x{size[1]} px, {bits}-bit, groups {groups}, "
+            f"{int(sim.visible.sum())} of {len(sim.ids)} corners fully visible"
+        )
     )
     if truth is not None:
         click.echo(
-            f"wrote {truth}: reference x_u,y_u at {sim.um_per_px:.6g} um/px, "
-            f"target orientation {sim.orientation}"
+            sanitize(
+                f"wrote {truth}: reference x_u,y_u at {sim.um_per_px:.6g} um/px, "
+                f"target orientation {sim.orientation}"
+            )
         )
     return 0
 
