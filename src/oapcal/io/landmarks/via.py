@@ -285,7 +285,7 @@ class _Images(list):
 
 def image_base_name(text: str) -> str:
     r"""The file name of a VIA image reference: without ``file://`` and folders, with
-    ``/`` or ``\\`` (Windows paths written by VIA on Windows) as separator.
+    ``/`` or ``\`` (Windows paths written by VIA on Windows) as separator.
 
     >>> image_base_name("file://C:\\data\\img\\IMG-0001.jpg"), image_base_name("a/b.png")
     ('IMG-0001.jpg', 'b.png')
