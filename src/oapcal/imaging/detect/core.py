@@ -82,6 +82,10 @@ ORIENTATION_RATIO = 0.9
 #: The registration is refused when fewer than this fraction of the corners it expects
 #: inside the image pass the local checks (a wrong orientation keeps none).
 MIN_KEPT_FRACTION = 0.25
+#: Images up to this size are always also registered densely (and, with ``um_per_px``
+#: given, from the correlation search), the result with the most corners kept when all
+#: agree; larger ones only when the triplet path keeps less than 90 % (the time limit).
+DENSE_MAX_PIXELS = 1_000_000
 #: Half an element step of the target, ``2 ** (1 / 12)`` (6 %).
 HALF_ELEMENT = 2.0 ** (1.0 / 12.0)
 #: Groups of the whole target (the pose search matches image triplets against all of them).
@@ -295,7 +299,9 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
         # The dense registration of the whole target: from the pose when there is one,
         # else (um_per_px given, the triplets did not place the target) from a correlation
         # search at that scale.
-        if det_p is not None and det_p.status == 0 and det_p.coverage >= 0.9:
+        small = h * w <= DENSE_MAX_PIXELS
+        if det_p is not None and det_p.status == 0 and det_p.coverage >= 0.9 and not small:
+            # a large image: the dense registration only when the triplets fell short
             return _replace(det_p, pose=dict(det_p.pose, method="triplets"))
         bar.stage("dense registration")
         u_dense = float(um_per_px) if um_per_px else det_p.um_per_px
@@ -309,11 +315,7 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
             pose_info = dict(pose_info, method="correlation")
             return _replace(det_d, pose=pose_info)
         det = _combine([det_p, det_d])
-        if (
-            um_per_px is not None
-            and "disagree" not in det.message
-            and (det.status != 0 or det.coverage < 0.95)
-        ):
+        if um_per_px is not None and "disagree" not in det.message and (small or det.status != 0):
             # the pose from few triplets may be poor (a blurred, noisy or strongly
             # distorted image): the correlation search at the given scale, as without a pose
             bar.stage("correlation search")
@@ -585,7 +587,9 @@ def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr
     candidates = list(ORIENTATIONS) if orientation == "auto" else [orientation]
     scores = {}
     for name in candidates:
-        found = _find_target(img, target.rectangles_px(um_per_px, (w, h), name), ref_centre)
+        # bars and reference squares (the squares are part of every real target)
+        templ_rects, _ = _model_boxes(target, target, um_per_px, (w, h), name)
+        found = _find_target(img, templ_rects, ref_centre)
         scores[name] = (found[2], found) if found is not None else (-1.0, None)
     ranked = sorted(scores, key=lambda k: -scores[k][0])
     best = ranked[0]
