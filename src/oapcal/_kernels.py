@@ -174,9 +174,13 @@ def evaluate(start, stop, family, params, xy, need, fd_step, out, jpt, jpar):
     n = out.shape[1]
     jp = np.empty((2, params.shape[1], 1))
     want = np.ones(params.shape[1], dtype=np.bool_)
-    for t in range(start, stop):
-        b = t // n
-        j = t - b * n
+    b = start // n
+    j = start - b * n - 1
+    for _ in range(start, stop):
+        j += 1
+        if j == n:
+            b += 1
+            j = 0
         p = params[b if params.shape[0] > 1 else 0]
         bx = b if xy.shape[0] > 1 else 0
         x = xy[bx, j, 0]
@@ -303,9 +307,13 @@ def invert_batch(start, stop, family, params, xy_d, xy_start, tol, max_iter, out
     n = out.shape[1]
     jp = np.empty((2, params.shape[1], 1))
     want = np.zeros(params.shape[1], dtype=np.bool_)
-    for t in range(start, stop):
-        b = t // n
-        j = t - b * n
+    b = start // n
+    j = start - b * n - 1
+    for _ in range(start, stop):
+        j += 1
+        if j == n:
+            b += 1
+            j = 0
         p = params[b if params.shape[0] > 1 else 0]
         bx = b if xy_d.shape[0] > 1 else 0
         xd = xy_d[bx, j, 0]
@@ -705,6 +713,7 @@ def run_blocks(kernel, n: int, block: int, *args) -> None:
 
 
 def block_size(n: int, minimum: int) -> int:
-    """Blocks of at least ``minimum``, about eight per thread (load balance on a shared
-    machine without much scheduling overhead)."""
+    """Blocks of at least ``minimum`` (work below that runs on the calling thread: waking a
+    thread costs more), else about eight per thread (load balance on a shared machine
+    without much scheduling overhead)."""
     return max(minimum, -(-n // (8 * n_threads())))

@@ -277,7 +277,7 @@ def _evaluate(xy_u, params, need: int, family: ModelFamily, finite_difference: b
     jpar = np.empty((n_items, n, 2, family.n_params) if need == k.PARAM_JAC else (1, 1, 2, family.n_params))
     fd = float(family.fd_step) if (finite_difference or not family.analytic_jacobian) else None
     total = n_items * n
-    k.run_blocks(k.evaluate, total, k.block_size(total, 4096), family.code, p, u, need, fd, out, jpt, jpar)
+    k.run_blocks(k.evaluate, total, k.block_size(total, 65536), family.code, p, u, need, fd, out, jpt, jpar)
     return out.reshape(lead + (n, 2)), jpt, jpar, lead + (n,)
 
 
@@ -395,7 +395,7 @@ def undistort(
     folded = np.zeros((n_items, n), dtype=np.bool_)
     iters = np.zeros((n_items, n), dtype=np.int64)
     total = n_items * n
-    k.run_blocks(k.invert_batch, total, k.block_size(total, 1024), family.code, p, d, start, float(tol),
+    k.run_blocks(k.invert_batch, total, k.block_size(total, 4096), family.code, p, d, start, float(tol),
                  int(max_iter), out, converged, folded, iters)  # fmt: skip
     return InverseResult(
         xy=out.reshape(lead + (n, 2)),

@@ -237,7 +237,8 @@ def correction_map(
     from oapcal import _kernels
     from oapcal.model import BROWN_CONRADY, kernel_array
 
-    _kernels.run_blocks(_kernels.grid_map, rows, _kernels.block_size(rows, 16), BROWN_CONRADY.code,
+    block = _kernels.block_size(rows, -(-(1 << 20) // max(cols, 1)))  # threads only for > 1 Mpx
+    _kernels.run_blocks(_kernels.grid_map, rows, block, BROWN_CONRADY.code,
                         kernel_array(params), xs, ys, out_x, out_y)  # fmt: skip
     return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
 

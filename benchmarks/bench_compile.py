@@ -1,0 +1,67 @@
+"""First-use cost of the compiled kernels: compile (empty cache) and load (warm cache).
+
+Runs, in fresh processes with a temporary ``NUMBA_CACHE_DIR``, the first call of every
+compiled path a session uses (a fit, a selection with cross-validation, a robustness run,
+an inverse with and without a start, a correction map, the uncertainty map) and prints the
+CPU and wall time: first with an empty cache (what a fresh checkout pays once), then again
+with the cache it left (what every later process pays).  The peer is a bare
+``python -c "import numpy"`` process.
+
+    PYTHONPATH=src python benchmarks/bench_compile.py [--repeats 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+SESSION = r"""
+import time
+c0, w0 = time.process_time(), time.perf_counter()
+from oapcal.calibration import calibrate
+from oapcal.imaging.remap import correction_map
+from oapcal.model import undistort
+from oapcal.select import robustness, select_models
+from oapcal.synthetic import synthetic_pairs
+from oapcal.uncertainty import uncertainty_map
+d = synthetic_pairs(seed=3)
+cal = calibrate(d.xy_u, d.xy_d, "paper", image_size=(640, 480))
+select_models(d.xy_u[:40], d.xy_d[:40], cv=3)
+robustness(d.xy_u, d.xy_d, ["paper"], trials=10)
+undistort(d.xy_d, d.params, xy_start=d.xy_u)
+correction_map(cal, (480, 640))
+uncertainty_map(cal, step=40)
+print(f"{time.process_time() - c0:.2f} {time.perf_counter() - w0:.2f}")
+"""
+
+
+def run(code: str, cache: str) -> tuple[float, float, float]:
+    env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+    t = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    wall = time.perf_counter() - t
+    cpu, inner = (float(v) for v in (out.stdout.split() or ["nan", "nan"])[-2:])
+    return cpu, inner, wall
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=2)
+    args = ap.parse_args()
+    for i in range(args.repeats):
+        with tempfile.TemporaryDirectory() as cache:
+            cold = run(SESSION, cache)
+            warm = run(SESSION, cache)
+            bare = run("import time, numpy; print(time.process_time(), 0)", cache)
+        print(f"run {i + 1}: empty cache (compile): {cold[0]:5.1f} s CPU, {cold[1]:5.1f} s wall; "
+              f"warm cache (load): {warm[0]:4.2f} s CPU, {warm[1]:4.2f} s wall; "
+              f"bare python+numpy process {bare[2]:.2f} s")  # fmt: skip
+    print(f"load average: {os.getloadavg()[0]:.1f} (2 = both cores of a 2-core machine busy)")
+
+
+if __name__ == "__main__":
+    main()
