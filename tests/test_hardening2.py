@@ -563,3 +563,35 @@ def test_output_names_with_escape_sequences_print_as_text(run_cli, tmp_path):
     code, stdout, err = run_cli("simulate", "image", "--image-size", "96x64", "--groups", "4", "--out", out)
     assert code == 0, err
     assert "x\\x1b]0;pwned" in stdout and not any(c in stdout + err for c in "\x1b\x07\x9b"), repr(stdout)
+
+
+def test_libpng_warnings_stay_off_the_terminal(tmp_path):
+    """libpng writes ``libpng warning: tEXt: CRC error`` straight to descriptor 2."""
+    import struct
+    import subprocess
+    import sys
+
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "x.png"), np.full((64, 96), 128, np.uint8))
+    data = (tmp_path / "x.png").read_bytes()
+    chunk = b"tEXtComment\x00hello"
+    at = 8 + 8 + 13 + 4  # after IHDR
+    bad = struct.pack(">I", len(chunk) - 4) + chunk + struct.pack(">I", 12345)  # wrong CRC
+    (tmp_path / "bad.png").write_bytes(data[:at] + bad + data[at:])
+    plain = subprocess.run(
+        [sys.executable, "-c", "import sys, cv2; cv2.imread(sys.argv[1])", str(tmp_path / "bad.png")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    if "libpng warning" not in plain.stderr:
+        pytest.skip("this OpenCV build's libpng does not warn about the CRC")
+    proc = subprocess.run(
+        [sys.executable, "-m", "oapcal", "esf", str(tmp_path / "bad.png"), "--auto", "--json"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert "libpng warning" not in proc.stderr, proc.stderr
+    proc = subprocess.run(
+        [sys.executable, "-m", "oapcal", "esf", str(tmp_path / "nothere.png"), "--auto"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 2 and proc.stderr.startswith("oapcal: error: "), proc.stderr

@@ -116,13 +116,51 @@ def main(argv: list[str] | None = None) -> int:
     from oapcal.cli._common import quiet_third_party
 
     previous = _catch_termination()
+    # Run as the program (not called with argv by Python code): native libraries' own lines
+    # on the stderr file descriptor (libpng warnings, ...) go to /dev/null.
+    restore = _quiet_native_stderr() if argv is None else None
     try:
         with warnings.catch_warnings():  # the filters are restored for a caller (tests, notebooks)
             quiet_third_party()
             return _main(argv)
     finally:
+        if restore is not None:
+            restore()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def _quiet_native_stderr():
+    """Point file descriptor 2 at /dev/null and ``sys.stderr`` at a copy of the real stderr:
+    oapcal's own messages (always through ``sys.stderr``) still reach the user, while what C
+    libraries write straight to descriptor 2 (``libpng warning: ...``) does not.  Returns the
+    function that undoes it, or None when stderr has no descriptor."""
+    try:
+        fd = sys.stderr.fileno()
+        sys.stderr.flush()
+        saved = os.dup(fd)
+    except (AttributeError, OSError, ValueError):
+        return None
+    old = sys.stderr
+    ours = os.fdopen(
+        os.dup(saved), "w", buffering=1, encoding=old.encoding or "utf-8", errors="backslashreplace"
+    )
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
+    sys.stderr = ours
+
+    def restore():
+        try:
+            ours.flush()
+        except OSError:
+            pass
+        os.dup2(saved, fd)
+        os.close(saved)
+        sys.stderr = old
+        ours.close()
+
+    return restore
 
 
 def _main(argv: list[str] | None) -> int:
