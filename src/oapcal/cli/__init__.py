@@ -117,8 +117,8 @@ def main(argv: list[str] | None = None) -> int:
 
     previous = _catch_termination()
     # Run as the program (not called with argv by Python code): native libraries' own lines
-    # on the stderr file descriptor (libpng warnings, ...) go to /dev/null.
-    restore = _quiet_native_stderr() if argv is None else None
+    # on the stderr file descriptor (libpng warnings, ...) go to /dev/null (kept with OAPCAL_DEBUG).
+    restore = _quiet_native_stderr() if argv is None and not os.environ.get("OAPCAL_DEBUG") else None
     try:
         with warnings.catch_warnings():  # the filters are restored for a caller (tests, notebooks)
             quiet_third_party()
