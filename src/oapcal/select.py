@@ -53,6 +53,7 @@ reason that applies:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -61,10 +62,12 @@ import numpy as np
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.fit import STATUS_MESSAGES, fit_batch, initial_params
 from oapcal.model import (
+    N_OPTIONAL,
     PARAM_NAMES,
     all_masks,
     bits_from_mask,
     correction_errors,
+    mask_from_bits,
     min_jacobian_determinant,
     names_from_mask,
     parse_model,
@@ -168,6 +171,11 @@ class Selection:
             "cv_folds": self.cv_folds,
             "models": [m.to_dict() for m in self.models],
         }
+
+
+@functools.lru_cache(maxsize=2**N_OPTIONAL)
+def _names_of_bits(bits: int) -> tuple[str, ...]:
+    return names_from_mask(mask_from_bits(bits))
 
 
 def _starts(init, xy_u, xy_d, masks: np.ndarray) -> np.ndarray:
@@ -288,24 +296,28 @@ def select_models(
         for i, e, f in zip(top, errs, failed):
             cv_err[int(i)] = (float(e) / norm.scale_u, int(f))
 
+    # Plain Python values once per column (faster than converting 4,096 x 11 NumPy scalars).
+    cols = zip(bits[order].tolist(), k[order].tolist(), aicc[order].tolist(), delta[order].tolist(),
+               weight[order].tolist(), scores["rss"][order].tolist(), mean_error[order].tolist(),
+               valid[order].tolist(), scores["status"][order].tolist(), order.tolist())  # fmt: skip
     models = tuple(
         ModelScore(
-            bits=int(bits[i]),
-            free=names_from_mask(masks[i]),
-            k=int(k[i]),
-            aicc=float(aicc[i]),
-            delta_aicc=float(delta[i]),
-            weight=float(weight[i]),
-            rss=float(scores["rss"][i]),
-            mean_error=float(mean_error[i]),
-            valid=bool(valid[i]),
+            bits=b,
+            free=_names_of_bits(b),
+            k=kk,
+            aicc=a,
+            delta_aicc=da,
+            weight=w,
+            rss=r,
+            mean_error=me,
+            valid=v,
             reason=reasons[i],
-            fit_status=int(scores["status"][i]),
+            fit_status=st,
             reason_code=codes[i],
             cv_mean_error=cv_err[i][0] if i in cv_err else None,
             cv_failed=cv_err[i][1] if i in cv_err else 0,
         )
-        for i in (int(j) for j in order)
+        for b, kk, a, da, w, r, me, v, st, i in cols
     )
     init_name = init if isinstance(init, str) else "user"
     return Selection(n_points, normalization or "none", init_name, models, cv)
