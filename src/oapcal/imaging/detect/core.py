@@ -82,9 +82,10 @@ ORIENTATION_RATIO = 0.9
 #: The registration is refused when fewer than this fraction of the corners it expects
 #: inside the image pass the local checks (a wrong orientation keeps none).
 MIN_KEPT_FRACTION = 0.25
-#: Images up to this size are always also registered densely (and, with ``um_per_px``
-#: given, from the correlation search), the result with the most corners kept when all
-#: agree; larger ones only when the triplet path keeps less than 90 % (the time limit).
+#: With ``um_per_px`` given, images up to this size are always also registered densely and
+#: from the correlation search, and the result with the most corners is kept when all
+#: agree; otherwise the dense registration runs only when the triplet path keeps less than
+#: 90 % (the time limit).
 DENSE_MAX_PIXELS = 1_000_000
 #: Half an element step of the target, ``2 ** (1 / 12)`` (6 %).
 HALF_ELEMENT = 2.0 ** (1.0 / 12.0)
@@ -299,7 +300,7 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
         # The dense registration of the whole target: from the pose when there is one,
         # else (um_per_px given, the triplets did not place the target) from a correlation
         # search at that scale.
-        small = h * w <= DENSE_MAX_PIXELS
+        small = h * w <= DENSE_MAX_PIXELS and um_per_px is not None
         if det_p is not None and det_p.status == 0 and det_p.coverage >= 0.9 and not small:
             # a large image: the dense registration only when the triplets fell short
             return _replace(det_p, pose=dict(det_p.pose, method="triplets"))
