@@ -152,3 +152,20 @@ def test_cli_um_per_px_is_bounded(run_cli, tmp_path):
     code, _, err = run_cli("detect", tmp_path / "a.png", "--um-per-px", "1e-6", "--out", tmp_path / "p.csv")
     assert code == 2 and "--um-per-px" in err and "Traceback" not in err
     assert "--max-pixels" not in err
+
+
+@pytest.mark.slow
+@needs_real
+def test_single_element_with_scale_and_no_mirror_is_group_7_element_1():
+    # given the scale (from the bar period, 68 px = 2 w) and that the image is not mirrored,
+    # the element is named: its H triplet (vertical in this turned image) keeps its corners
+    det = detect_usaf(_read("highmag_g7e1.jpg"), (7,), 0.11, mirror="no")
+    assert det.status == 0, det.message
+    assert det.ids and all(i.startswith("G7E1") for i in det.ids)
+    index = {i: k for k, i in enumerate(det.ids)}
+    if "G7E1H1C0" in index:  # the middle bar of the H triplet is the one through (257, 567)
+        corners = det.xy_d[[index[f"G7E1H1C{c}"] for c in range(4)]]
+        assert (
+            corners[:, 0].min() < 257 < corners[:, 0].max()
+            and corners[:, 1].min() < 567 < corners[:, 1].max()
+        )

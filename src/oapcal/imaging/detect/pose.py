@@ -429,7 +429,8 @@ def search_pose(
                           "not_found")  # fmt: skip
     slip_scores = {k: v.score for k, v in slips.items()}
     for name, rival in rivals:
-        if rival is None or _same_pose(best, rival):
+        # a pose matching a single triplet is no rival: any one triplet fits any other
+        if rival is None or _same_pose(best, rival) or len(rival.matches) < 2:
             continue
         close = best.score - rival.score < max(AMBIGUITY_MARGIN, (1.0 - AMBIGUITY_RATIO) * best.score)
         if close and um_per_px is not None:
