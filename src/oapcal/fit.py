@@ -204,6 +204,13 @@ def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray) -
     return np.where(mask, p, 0.0)
 
 
+def initial_params_many(init, xy_u: np.ndarray, xy_d: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """Starting values ``(B, 13)`` for the models ``masks (B, 13)`` from one ``init`` (as in
+    :func:`initial_params`, evaluated once for the full model, fixed entries 0)."""
+    full = initial_params(init, xy_u, xy_d, np.ones(N_PARAMS, bool))
+    return np.where(np.atleast_2d(np.asarray(masks, bool)), full, 0.0)
+
+
 def _parse_assignments(text: str) -> dict[str, float]:
     values = {}
     for item in text.split(","):

@@ -1,0 +1,280 @@
+"""The paper's subsampling robustness test: refit models on random subsets of the points.
+
+Each trial keeps a random ``fraction`` of the points, fits every listed model to them and
+corrects the held-out points.  A trial *does not converge* for a model, for the first
+reason that applies:
+
+``non_finite``
+    a parameter or the cost is not finite (solver status -1);
+``iteration_cap``
+    the solver did not meet any of its tolerances within its iteration cap (status 0);
+``stalled``
+    no step reduced the cost any more while the damping grew without bound (status -2);
+``folded``
+    the fitted map folds over (``det d(x_d, y_d)/d(x_u, y_u) <= 0``) somewhere inside the
+    convex hull of the reference points (checked on the points and on a 41 x 41 grid
+    clipped to the hull);
+``wrong_minimum``
+    the solver reported success but the RMS residual on the kept points,
+    ``sqrt(RSS / kept points)``, exceeds ``wrong_minimum_ratio`` (default 1.5) times the
+    RMS the same model reaches on all points from its best start (the lowest of the
+    ``pixel``, ``zero`` and the requested start), and by more than ``1e-9`` of the
+    points' y span.  Two minima with equal RMS (the ``paper`` model's exact two-fold
+    ambiguity, ``docs/models.md``) are not wrong.
+
+The names are also importable from :mod:`oapcal.select` (their earlier home).
+
+>>> from oapcal.synthetic import synthetic_pairs
+>>> data = synthetic_pairs(seed=3)
+>>> rob = robustness(data.xy_u, data.xy_d, ["paper"], trials=20, init="pixel")
+>>> rob.models[0].trials, rob.models[0].not_converged
+(20, 0)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from oapcal.errors import DataError, ModelSpecError
+from oapcal.fit import fit_batch, initial_params_many
+from oapcal.model import PARAM_NAMES, min_jacobian_determinant, names_from_mask, parse_model, undistort
+from oapcal.normalize import normalize
+from oapcal.records import finite_or_none
+
+#: Reasons a robustness trial does not converge, in the order they are tested.
+REASONS = ("non_finite", "iteration_cap", "stalled", "folded", "wrong_minimum")
+_STATUS_REASON = {-1: "non_finite", 0: "iteration_cap", -2: "stalled"}
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class ModelRobustness:
+    """The subsampling test of one model (module docstring for the reasons).
+
+    ``param_std`` is the standard deviation (ddof = 1) of each free parameter over the
+    converged trials, in the fit's coordinates (the input's when ``normalization`` is
+    ``none``), ``None`` with fewer than two converged trials.  ``heldout_mean_error`` is
+    the mean over converged trials of the mean corrected error on that trial's held-out
+    points, in the units of the reference points as given; ``heldout_failed`` counts
+    held-out points whose inverse failed in converged trials (left out of that mean).
+    ``reference_rms`` is the all-points RMS used by the ``wrong_minimum`` test.
+    ``trial_codes (trials,)`` is 0 for a converged trial, else ``1 +`` the index of its
+    reason in :data:`REASONS`.
+    """
+
+    name: str
+    free: tuple[str, ...]
+    trials: int
+    not_converged: int
+    by_reason: dict[str, int]
+    param_std: dict[str, float | None]
+    heldout_mean_error: float
+    heldout_failed: int
+    reference_rms: float
+    trial_codes: np.ndarray = field(repr=False)
+
+    def to_dict(self) -> dict:
+        """``free trials not_converged by_reason param_std heldout_mean_error_px`` and extras."""
+        return {
+            "free": list(self.free),
+            "trials": self.trials,
+            "not_converged": self.not_converged,
+            "by_reason": dict(self.by_reason),
+            "param_std": {n: finite_or_none(v) for n, v in self.param_std.items()},
+            "heldout_mean_error_px": finite_or_none(self.heldout_mean_error),
+            "heldout_failed_points": self.heldout_failed,
+            "reference_rms": finite_or_none(self.reference_rms),
+        }
+
+
+@dataclass(frozen=True)
+class Robustness:
+    """Result of :func:`robustness`: settings and one :class:`ModelRobustness` per model."""
+
+    n_points: int
+    n_keep: int
+    fraction: float
+    seed: int
+    init: str
+    normalization: str
+    wrong_minimum_ratio: float
+    models: tuple[ModelRobustness, ...]
+
+    def to_dict(self) -> dict:
+        return {
+            "n_points": self.n_points,
+            "n_keep": self.n_keep,
+            "fraction": self.fraction,
+            "seed": self.seed,
+            "init": self.init,
+            "normalize": self.normalization,
+            "wrong_minimum_ratio": self.wrong_minimum_ratio,
+            "models": {m.name: m.to_dict() for m in self.models},
+        }
+
+
+def hull_grid(xy: np.ndarray, n: int = 41) -> np.ndarray:
+    """The points ``xy (N, 2)`` plus an ``n x n`` grid over their bounding box clipped to
+    their convex hull: where the fold-over test looks."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    xy = np.asarray(xy, float)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n))
+    grid = np.stack([gx.ravel(), gy.ravel()], -1)
+    try:
+        eq = ConvexHull(xy).equations  # rows (a, b, c): inside where a x + b y + c <= 0
+    except QhullError:
+        raise DataError("the reference points are all on one line; they span no area to test") from None
+    tol = 1e-12 * float(np.abs(xy).max())
+    inside = (grid @ eq[:, :2].T + eq[:, 2] <= tol).all(axis=1)
+    return np.concatenate([xy, grid[inside]])
+
+
+def _model_name(spec) -> str:
+    return spec if isinstance(spec, str) else ",".join(names_from_mask(parse_model(spec)))
+
+
+def robustness(
+    xy_u,
+    xy_d,
+    models: Sequence = ("paper", "full"),
+    *,
+    trials: int = 10000,
+    fraction: float = 0.9,
+    seed: int = 0,
+    init="zero",
+    normalization: str = "none",
+    wrong_minimum_ratio: float = 1.5,
+    max_iter: int = 200,
+    chunk: int = 1000,
+    progress: Progress | None = None,
+) -> Robustness:
+    """The paper's subsampling test (module docstring).
+
+    In each of ``trials`` trials a random ``round(fraction * N)`` of the points (drawn with
+    ``seed``; the same subsets for every model) is kept, each model is fitted to them from
+    ``init`` and classified; the held-out points measure overfitting.  ``progress(done,
+    total)`` is called after each chunk of trials.
+    """
+    norm = normalize(normalization, xy_u, xy_d)
+    u, d = norm.xy_u, norm.xy_d
+    n_points = len(u)
+    if not 0.0 < fraction < 1.0:
+        raise DataError(f"--fraction must lie strictly between 0 and 1, got {fraction}")
+    if trials < 1:
+        raise DataError(f"--trials must be at least 1, got {trials}")
+    n_keep = int(round(fraction * n_points))
+    if not 0 < n_keep < n_points:
+        raise DataError(
+            f"keeping {fraction:g} of {n_points} points leaves {n_keep} kept and {n_points - n_keep} "
+            "held out; both must be at least 1: change --fraction"
+        )
+    specs = list(models)
+    if not specs:
+        raise ModelSpecError("no models given: list at least one, e.g. --models paper,full")
+    masks = np.stack([parse_model(s) for s in specs])
+    for spec, mask in zip(specs, masks):
+        if n_keep < mask.sum() + 2:
+            raise DataError(
+                f"model {_model_name(spec)!r} has {int(mask.sum())} free parameters but each trial keeps "
+                f"only {n_keep} points; it needs at least {int(mask.sum()) + 2}: raise --fraction"
+            )
+
+    # Reference RMS of each model: all points, best of the pixel, zero and requested starts.
+    starts = ["pixel", "zero"] + ([init] if not (isinstance(init, str) and init in ("pixel", "zero")) else [])
+    ref_masks = np.repeat(masks, len(starts), axis=0)
+    ref_p0 = np.concatenate([initial_params_many(s, u, d, masks) for s in starts])
+    ref_p0 = ref_p0.reshape(len(starts), len(masks), -1).transpose(1, 0, 2).reshape(len(ref_masks), -1)
+    ref = fit_batch(u, d, ref_masks, ref_p0, covariance=False, max_iter=max_iter)
+    ref_rss = np.where(ref.converged, ref.rss, np.inf).reshape(len(masks), len(starts)).min(axis=1)
+    ref_rms = np.sqrt(ref_rss / n_points)
+    atol = 1e-9 * float(np.ptp(d[:, 1]))
+
+    rng = np.random.default_rng(seed)
+    perm = np.argsort(rng.random((trials, n_points)), axis=1)
+    keep = np.ascontiguousarray(np.sort(perm[:, :n_keep], axis=1))
+    held = np.ascontiguousarray(np.sort(perm[:, n_keep:], axis=1))
+    fold_points = hull_grid(u)
+    p0 = initial_params_many(init, u, d, masks)
+
+    n_models = len(masks)
+    reason_code = np.zeros((n_models, trials), dtype=np.int64)  # 0 = converged, else 1 + REASONS index
+    params = np.zeros((n_models, trials, len(PARAM_NAMES)))
+    heldout = np.full((n_models, trials), np.nan)
+    held_bad = np.zeros((n_models, trials), dtype=np.int64)
+    total = trials * n_models
+    for start in range(0, trials, chunk):
+        sl = slice(start, min(start + chunk, trials))
+        for j in range(n_models):
+            n_sl = sl.stop - sl.start
+            fits = fit_batch(u, d, np.repeat(masks[j][None], n_sl, 0), p0[j], points=keep[sl],
+                             covariance=False, max_iter=max_iter)  # fmt: skip
+            code = np.zeros(n_sl, dtype=np.int64)
+            finite = np.isfinite(fits.params).all(axis=1) & np.isfinite(fits.rss)
+            for s, name in _STATUS_REASON.items():
+                code[(code == 0) & (fits.status == s)] = 1 + REASONS.index(name)
+            code[(code == 0) & ~finite] = 1 + REASONS.index("non_finite")
+            todo = code == 0
+            min_det = np.full(n_sl, np.nan)
+            if todo.any():
+                min_det[todo] = min_jacobian_determinant(fits.params[todo], fold_points)
+            code[todo & ~(min_det > 0)] = 1 + REASONS.index("folded")
+            rms = np.sqrt(fits.rss / n_keep)
+            wrong = (rms > wrong_minimum_ratio * ref_rms[j]) & (rms - ref_rms[j] > atol)
+            code[(code == 0) & wrong] = 1 + REASONS.index("wrong_minimum")
+            ok = code == 0
+            if ok.any():
+                inv = undistort(d[held[sl][ok]], fits.params[ok])
+                conv = inv.converged
+                err = np.hypot(*np.moveaxis(inv.xy - u[held[sl][ok]], -1, 0))
+                n_ok = conv.sum(axis=1)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    h = np.where(n_ok > 0, np.where(conv, err, 0.0).sum(axis=1) / np.maximum(n_ok, 1), np.nan)
+                rows = np.arange(sl.start, sl.stop)[ok]
+                heldout[j, rows] = h
+                held_bad[j, rows] = (~conv).sum(axis=1)
+            reason_code[j, sl] = code
+            params[j, sl] = fits.params
+            if progress is not None:
+                progress(sl.start * n_models + (j + 1) * n_sl, total)
+
+    results = []
+    for j, spec in enumerate(specs):
+        conv = reason_code[j] == 0
+        free = names_from_mask(masks[j])
+        std = {}
+        for name in free:
+            i = PARAM_NAMES.index(name)
+            std[name] = float(np.std(params[j, conv, i], ddof=1)) if conv.sum() >= 2 else None
+        h = heldout[j, conv]
+        h = h[np.isfinite(h)]
+        results.append(
+            ModelRobustness(
+                name=_model_name(spec),
+                free=free,
+                trials=trials,
+                not_converged=int((~conv).sum()),
+                by_reason={r: int((reason_code[j] == 1 + i).sum()) for i, r in enumerate(REASONS)},
+                param_std=std,
+                heldout_mean_error=float(h.mean() / norm.scale_u) if h.size else float("nan"),
+                heldout_failed=int(held_bad[j, conv].sum()),
+                reference_rms=float(ref_rms[j]),
+                trial_codes=reason_code[j],
+            )
+        )
+    init_name = init if isinstance(init, str) else "user"
+    return Robustness(
+        n_points=n_points,
+        n_keep=n_keep,
+        fraction=float(fraction),
+        seed=int(seed),
+        init=init_name,
+        normalization=normalization or "none",
+        wrong_minimum_ratio=float(wrong_minimum_ratio),
+        models=tuple(results),
+    )
