@@ -165,7 +165,7 @@ def score_models(xy_u, xy_d, masks, init="zero", *, max_iter: int = 200, progres
     masks = np.atleast_2d(np.asarray(masks, bool))
     p0 = initial_params_many(init, xy_u, xy_d, masks)
     n_models = len(masks)
-    chunk = max(1, min(n_models, 1024))
+    chunk = max(1, min(n_models, 1024 if progress is not None else n_models))  # chunks only to report
     out = {
         "params": np.zeros((n_models, len(PARAM_NAMES))),
         "status": np.zeros(n_models, dtype=np.int64),
