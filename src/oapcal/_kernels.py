@@ -61,7 +61,8 @@ def bc_point(p, x, y, need, jp, j, want):
     ``jp[0, i, j] = d xd / d p_i`` and ``jp[1, i, j] = d yd / d p_i``, ``i`` in the order of
     :data:`oapcal.model.PARAM_NAMES` (``jp (2, 13, M)`` holds the columns of many points).
     ``want[i]`` says which columns the caller uses; a family may skip the others (this
-    one writes all 13: cheaper than a test per column).
+    one writes all 13: cheaper than a test per column).  Entries that are zero by the
+    family's ``moves`` need not be written: callers zero ``jp`` once.
     """
     k1, k2, p1, p2, s1, s2, s3, s4 = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]
     xo, yo, cx, cy, m = p[8], p[9], p[10], p[11], p[12]
@@ -85,7 +86,9 @@ def bc_point(p, x, y, need, jp, j, want):
     c = drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + xb * sy
     d = radial + drad * yb * yb + 6.0 * p1 * yb + 2.0 * p2 * xb + yb * sy
     if need == PARAM_JAC:
-        # Every column (cheaper than testing ``want`` per column for this family).
+        # Every column (cheaper than testing ``want`` per column for this family), except
+        # the entries that are identically zero by ``moves`` (s1, s2, c_x move x only; s3,
+        # s4, c_y y only): callers zero them once.
         r4 = r2 * r2
         jp[0, 0, j] = xb * r2
         jp[1, 0, j] = yb * r2
@@ -96,20 +99,14 @@ def bc_point(p, x, y, need, jp, j, want):
         jp[0, 3, j] = r2 + 2.0 * xb * xb
         jp[1, 3, j] = xy2
         jp[0, 4, j] = r2
-        jp[1, 4, j] = 0.0
         jp[0, 5, j] = r4
-        jp[1, 5, j] = 0.0
-        jp[0, 6, j] = 0.0
         jp[1, 6, j] = r2
-        jp[0, 7, j] = 0.0
         jp[1, 7, j] = r4
         jp[0, 8, j] = a * m
         jp[1, 8, j] = c * m
         jp[0, 9, j] = b * m
         jp[1, 9, j] = d * m
         jp[0, 10, j] = 1.0
-        jp[1, 10, j] = 0.0
-        jp[0, 11, j] = 0.0
         jp[1, 11, j] = 1.0
         jp[0, 12, j] = a * xs + b * ys
         jp[1, 12, j] = c * xs + d * ys
@@ -172,7 +169,7 @@ def evaluate(start, stop, family, params, xy, need, fd_step, out, jpt, jpar):
     ``jpar (B, N, 2, P)`` (central differences with relative step ``fd_step`` unless it is
     None)."""
     n = out.shape[1]
-    jp = np.empty((2, params.shape[1], 1))
+    jp = np.zeros((2, params.shape[1], 1))
     want = np.ones(params.shape[1], dtype=np.bool_)
     b = start // n
     j = start - b * n - 1
@@ -647,9 +644,9 @@ def lm_item(family, u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
 def lm_scratch(n_params, n_max):
     """Work arrays of :func:`lm_item` for up to ``n_params`` parameters and ``n_max`` points."""
     return (
-        np.empty((2, n_params, n_max)),
+        np.zeros((2, n_params, n_max)),  # zeros: entries a family leaves unwritten are 0
         np.empty(2 * n_max),
-        np.empty((2, n_params, 1)),
+        np.zeros((2, n_params, 1)),
         np.empty((4, n_max)),
     )
 
