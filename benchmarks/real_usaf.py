@@ -125,7 +125,7 @@ def truth_map(name: str, img: np.ndarray, groups, layout):
 
 
 def quadratic_rms(xy_u: np.ndarray, xy_d: np.ndarray) -> float:
-    if len(xy_u) < 12:
+    if len(xy_u) < 24:  # fewer than two triplets' corners: not a test of a smooth map
         return float("nan")
     c = xy_u.mean(axis=0)
     z = (xy_u - c) / max(float(np.ptp(xy_u, axis=0).max()) / 2, 1.0)
@@ -169,7 +169,9 @@ def main() -> None:
             print(f"| {name} | missing | | | | | | | | | | |")
             continue
         bench, summary, out = run_one(path, groups, extra, workdir, args.pictures, n)
-        scale = summary.get("um_per_px")
+        # the scale the pose search found (with --um-per-px, x_u,y_u use the given one)
+        scale = summary.get("pose", {}).get("best", {}).get("um_per_px") or summary.get("um_per_px")
+        scale = scale if bench["code"] == 0 else None  # a refused pose has no scale to report
         right = wrong = visible = 0
         qrms = anchor_rms = float("nan")
         if bench["code"] == 0:

@@ -332,7 +332,8 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
 
 
 def _combine(dets: list) -> Detection:
-    """The detection with the most corners, when all successful ones agree: a corner id
+    """The detection with the most corners (the lowest consistency rms among equals), when
+    all successful ones agree: a corner id
     found by two must be at the same place (within a quarter of its bar width) in both,
     else the detection is refused (one of them would give wrong ids)."""
     ok = [d for d in dets if d.status == 0]
@@ -360,7 +361,13 @@ def _combine(dets: list) -> Detection:
                 )
                 return _replace(d1, status=1, message=msg, ids=(), xy_u=np.zeros((0, 2)),
                                 xy_d=np.zeros((0, 2)), stderr_px=np.zeros(0))  # fmt: skip
-    best = max(ok, key=lambda d: len(d.ids))
+
+    # the most corners; among equals the smoothest (lowest consistency rms)
+    def rank(d):
+        rms = d.consistency.get("rms_px")
+        return (len(d.ids), -(rms if rms is not None and np.isfinite(rms) else np.inf))
+
+    best = max(ok, key=rank)
     if best is dets[0]:
         return _replace(best, pose=dict(best.pose, method="triplets"))
     if best.pose.get("method") != "correlation":
