@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from oapcal.fit import fit_batch, initial_params
+from oapcal.fitting import fit_batch, initial_params
 from oapcal.model import pack, parse_model, unpack
 from oapcal.select import REASONS, hull_grid, robustness
 from oapcal.synthetic import synthetic_pairs

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from oapcal.fit import fit
+from oapcal.fitting import fit
 from oapcal.imaging.detect import detect_usaf, evaluate_detection
 from oapcal.imaging.detect_plot import plot_image
 from oapcal.imaging.remap import correct_image, correction_map

@@ -14,7 +14,7 @@ LAYERS = [
     {"errors", "extras", "records"},
     {"model", "_kernels"},
     {"stats", "normalize", "synthetic", "uncertainty"},
-    {"fit"},
+    {"fitting"},
     {"select", "subsampling", "calibration"},
     {"imaging", "optics"},
     {"io"},
@@ -104,7 +104,7 @@ def test_nothing_imports_the_cli_or_the_report():
             assert not target.startswith(("cli", "report")), f"{module} imports {target}"
 
 
-@pytest.mark.parametrize("module", ["model", "fit", "select", "subsampling", "calibration", "stats"])
+@pytest.mark.parametrize("module", ["model", "fitting", "select", "subsampling", "calibration", "stats"])
 def test_the_core_imports_no_plotting_or_dask(module):
     for path in [SRC / f"{module}.py"]:
         text = path.read_text(encoding="utf-8")

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import reference_model as ref
-from oapcal.fit import fit_batch, initial_params
+from oapcal.fitting import fit_batch, initial_params
 from oapcal.model import (
     all_masks,
     correction_errors,

@@ -33,7 +33,7 @@ def test_detection_goal_at_paper_like_conditions(paper_like):
 
 
 def test_fit_on_detected_points_recovers_the_distortion(paper_like):
-    from oapcal.fit import fit
+    from oapcal.fitting import fit
     from oapcal.model import distort
 
     sim, det = paper_like

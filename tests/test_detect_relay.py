@@ -86,7 +86,7 @@ def _goal(sim, det):
 
 
 def test_relay_setup_2_meets_the_goal_and_fits_with_m_near_one():
-    from oapcal.fit import fit
+    from oapcal.fitting import fit
     from oapcal.optics import relay_distortion
 
     sim = simulate_image((4, 5), relay_distortion(2), sigma_px=0.8, snr=50, seed=21)

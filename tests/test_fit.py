@@ -5,7 +5,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from oapcal.errors import DataError, ModelSpecError
-from oapcal.fit import fit, fit_batch, initial_params
+from oapcal.fitting import fit, fit_batch, initial_params
 from oapcal.model import (
     BROWN_CONRADY,
     INDEX,

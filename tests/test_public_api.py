@@ -68,11 +68,8 @@ def test_functions_are_not_shadowed_by_submodules():
         if info.name.split(".")[1] not in {"cli", "__main__"}:
             __import__(info.name)
     shadowed = [n for n in PUBLIC - {"__version__"} if inspect.ismodule(getattr(oapcal, n))]
-    assert shadowed == [] or set(shadowed) <= KNOWN_SHADOWED, shadowed
-
-
-#: Public names that a submodule of the same name still replaces once it is imported.
-KNOWN_SHADOWED = {"fit"}
+    assert shadowed == []
+    assert inspect.isfunction(oapcal.fit) and oapcal.fit.__module__ == "oapcal.fitting"
 
 
 def test_unknown_name_is_an_attribute_error():

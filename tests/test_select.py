@@ -7,7 +7,7 @@ from scipy.optimize import least_squares
 
 import reference_model as ref
 from oapcal.errors import DataError
-from oapcal.fit import fit, fit_batch, initial_params
+from oapcal.fitting import fit, fit_batch, initial_params
 from oapcal.io.points import write_point_pairs
 from oapcal.model import (
     INDEX,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from oapcal.calibration import calibrate
-from oapcal.fit import fit_batch, initial_params
+from oapcal.fitting import fit_batch, initial_params
 from oapcal.model import distort, parse_model, undistort
 from oapcal.synthetic import EXAMPLE_TRUTH, synthetic_pairs
 from oapcal.uncertainty import inside_hull, position_covariance, uncertainty_map

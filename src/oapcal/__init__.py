@@ -12,7 +12,7 @@ is cheap (it imports neither NumPy's heavy users nor Numba, Matplotlib or Dask).
 
 Layers (``docs/architecture.md``), imports flowing one way::
 
-    errors <- model <- fit <- select, calibrate <- imaging, optics <- io <- report <- cli
+    errors <- model <- fitting <- select, calibration <- imaging, optics <- io <- report <- cli
 """
 
 from __future__ import annotations
@@ -30,15 +30,15 @@ _API: dict[str, str] = {
     "distort": "oapcal.model:distort",
     "undistort": "oapcal.model:undistort",
     # fitting, calibration, model choice
-    "fit": "oapcal.fit:fit",
-    "FitResult": "oapcal.fit:FitResult",
+    "fit": "oapcal.fitting:fit",
+    "FitResult": "oapcal.fitting:FitResult",
     "calibrate": "oapcal.calibration:calibrate",
     "correction_residuals": "oapcal.stats:correction_residuals",
     "select_models": "oapcal.select:select_models",
     "Selection": "oapcal.select:Selection",
     "cross_validate": "oapcal.select:cross_validate",
-    "robustness": "oapcal.select:robustness",
-    "Robustness": "oapcal.select:Robustness",
+    "robustness": "oapcal.subsampling:robustness",
+    "Robustness": "oapcal.subsampling:Robustness",
     # the calibration record and point files
     "Calibration": "oapcal.calibration:Calibration",
     "load_calibration": "oapcal.io.calibration:load_calibration",

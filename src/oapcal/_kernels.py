@@ -13,7 +13,7 @@
   arbitrary points, on a separable pixel grid (correction maps), and the smallest Jacobian
   determinant (fold-over test).
 
-Everything public goes through :mod:`oapcal.model` and :mod:`oapcal.fit`; the NumPy
+Everything public goes through :mod:`oapcal.model` and :mod:`oapcal.fitting`; the NumPy
 reference implementation the tests check these kernels against lives in
 ``tests/reference_model.py``.
 

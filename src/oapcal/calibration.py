@@ -128,7 +128,7 @@ def calibrate(
     """
     from scipy.spatial import ConvexHull, QhullError
 
-    from oapcal.fit import fit
+    from oapcal.fitting import fit
 
     norm = normalize(normalization, xy_u, xy_d)
     result = fit(norm.xy_u, norm.xy_d, model, init=init, **fit_options)

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.fit import STATUS_MESSAGES, fit_batch, initial_params_many
+from oapcal.fitting import STATUS_MESSAGES, fit_batch, initial_params_many
 from oapcal.model import (
     N_OPTIONAL,
     PARAM_NAMES,
@@ -210,7 +210,7 @@ def select_models(
     ``xy_u``, ``xy_d`` are the reference and distorted points ``(N, 2)`` as given;
     ``normalization`` is applied first (``none``, ``experiment`` or ``grid``, see
     :mod:`oapcal.normalize`).  ``masks`` defaults to all 4,096 models.  ``init`` is the
-    start of every fit (:func:`oapcal.fit.initial_params`; default ``zero``, the paper's
+    start of every fit (:func:`oapcal.fitting.initial_params`; default ``zero``, the paper's
     choice).  With ``cv = K``, the best ``cv_top`` models also get the K-fold
     cross-validated mean corrected error (:func:`cross_validate`, folds drawn with
     ``seed``).

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError, ModelSpecError
-from oapcal.fit import fit_batch, initial_params_many
+from oapcal.fitting import fit_batch, initial_params_many
 from oapcal.model import PARAM_NAMES, min_jacobian_determinant, names_from_mask, parse_model, undistort
 from oapcal.normalize import normalize
 from oapcal.records import finite_or_none

@@ -60,7 +60,7 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
     size = parse_size(image_size)
     parse_model(model)  # a bad spec fails before the file is read
     pairs = load_pairs(points)
-    from oapcal.fit import check_enough_points
+    from oapcal.fitting import check_enough_points
 
     check_enough_points(len(pairs), int(parse_model(model).sum()), source=pairs.source)
     cal = calibrate(

@@ -70,7 +70,7 @@ def select_command(points, normalization, init, top, cv, seed, json_out):
     """Rank all 4,096 models of Eq. 1 by AICc of the corrected points."""
     check_output(json_out, points)
     pairs = load_pairs(points)
-    from oapcal.fit import initial_params
+    from oapcal.fitting import initial_params
     from oapcal.select import select_models
 
     initial_params(init, pairs.xy_u[:1], pairs.xy_d[:1], [True] * 13)  # a bad --init fails here
@@ -189,7 +189,7 @@ def robustness_command(
     for spec in specs:
         parse_model(spec)  # a bad spec fails before the file is read
     pairs = load_pairs(points)
-    from oapcal.fit import initial_params
+    from oapcal.fitting import initial_params
     from oapcal.select import robustness
 
     initial_params(init, pairs.xy_u[:1], pairs.xy_d[:1], [True] * 13)

@@ -528,7 +528,7 @@ def radial_fit(grid: GridDistortion, max_side: int = RADIAL_FIT_MAX_SIDE):
     0.4 % above the full fit's (25.47 against 25.37 um for setup 1 over 1 mm).  Both
     residuals are always means over every grid point, normalized with the whole grid.
     """
-    from oapcal.fit import fit
+    from oapcal.fitting import fit
     from oapcal.model import distort
     from oapcal.normalize import normalize_grid
     from oapcal.stats import correction_residuals

@@ -2,7 +2,7 @@
 aligned relay, respond to misalignment (``oapcal tolerance``, ``docs/optics.md``).
 
 :class:`Tolerancing` traces the aligned relay's grid, fits a Brown-Conrady model to it
-(:func:`oapcal.fit.fit`) as a user would calibrate, and then, for misaligned copies of the
+(:func:`oapcal.fitting.fit`) as a user would calibrate, and then, for misaligned copies of the
 relay, measures in camera px
 
 * the grid distortion ``|real - paraxial|`` (max and mean; the paraxial map of the
@@ -127,12 +127,12 @@ class Tolerancing:
     object points over ``field_mm``, camera px of ``pixel_size_um`` (the axis at the
     centre of an ``image_size`` camera), ``model`` the Brown-Conrady model of the
     calibration (:func:`oapcal.model.parse_model`).  ``calibration`` is the aligned fit
-    (:class:`oapcal.fit.FitResult`); ``aligned`` the metrics of the aligned relay.
+    (:class:`oapcal.fitting.FitResult`); ``aligned`` the metrics of the aligned relay.
     """
 
     def __init__(self, relay: Relay, *, n: int = 17, field_mm: float = 1.0, pixel_size_um: float = 4.8,
                  model="paper", image_size=(640, 480)) -> None:  # fmt: skip
-        from oapcal.fit import fit
+        from oapcal.fitting import fit
 
         if not float(pixel_size_um) > 0:
             raise GeometrySpecError(f"the pixel size must be a positive number of um, got {pixel_size_um:g}")
@@ -357,7 +357,7 @@ class Tolerancing:
         }
 
     def _refit(self, traced: list[_Traced]) -> dict[str, np.ndarray]:
-        from oapcal.fit import fit
+        from oapcal.fitting import fit
         from oapcal.model import undistort
 
         mean, worst = np.full(len(traced), np.nan), np.full(len(traced), np.nan)

@@ -76,7 +76,7 @@ def check_consistency(
     max_rms_px: float = CONSISTENCY_MAX_RMS_PX,
 ) -> Consistency:
     """Check that matched pairs follow one smooth distortion: fit ``model``
-    (:func:`oapcal.fit.fit`, the pixel start) to the pairs and flag every pair whose
+    (:func:`oapcal.fitting.fit`, the pixel start) to the pairs and flag every pair whose
     residual exceeds ``min(max(n_sigma * s, floor_px), width_px / 2)``, with ``s`` a
     robust rms of the residuals (1.2 x their median); refit without the flagged pairs
     until nothing changes (at most 8 times).
@@ -94,7 +94,7 @@ def check_consistency(
     converge (an image with almost no distortion leaves the distortion centre undetermined)
     a cubic polynomial map is the smooth model (``model`` ``"cubic"`` in the result).
     """
-    from oapcal.fit import fit
+    from oapcal.fitting import fit
     from oapcal.model import distort
 
     n = len(xy_u)
