@@ -28,11 +28,13 @@ import cv2
 import numpy as np
 import tifffile
 
+from oapcal.calibration import Calibration, FitSummary
 from oapcal.cli import main
 from oapcal.imaging.remap import correct_image, correction_map
-from oapcal.io.calibration import Calibration, save_calibration
+from oapcal.io.calibration import save_calibration
 from oapcal.io.opencv_export import opencv_parameters
 from oapcal.model import PRESETS, scale_params
+from oapcal.stats import ResidualStats
 from oapcal.synthetic import EXAMPLE_TRUTH
 
 
@@ -108,7 +110,8 @@ def main_bench():
         free = PRESETS["paper"]
         cal = Calibration(free=free, params=EXAMPLE_TRUTH, stderr=np.full(13, np.nan),
                           covariance=np.zeros((len(free), len(free))),
-                          fit={"n_points": 1, "rss": 0.0, "converged": True}, residuals={},
+                          fit=FitSummary(n_points=1, rss=0.0, converged=True),
+                          residuals=ResidualStats(*[float("nan")] * 4, n_points=0),
                           um_per_px=4.8, image_size=(640, 480), name="bench")  # fmt: skip
         save_calibration(cal, tmp / "calib.json")
 

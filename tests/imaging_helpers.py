@@ -3,8 +3,10 @@ maps computed independently of oapcal's fast grid code (through ``model.distort`
 
 import numpy as np
 
-from oapcal.io.calibration import Calibration, save_calibration
+from oapcal.calibration import Calibration, FitSummary
+from oapcal.io.calibration import save_calibration
 from oapcal.model import PRESETS, distort
+from oapcal.stats import ResidualStats
 from oapcal.synthetic import EXAMPLE_TRUTH
 
 
@@ -16,8 +18,8 @@ def known_calibration(**changes) -> Calibration:
         params=EXAMPLE_TRUTH.copy(),
         stderr=np.full(13, np.nan),
         covariance=np.zeros((len(free), len(free))),
-        fit={"n_points": 252, "rss": 1.0, "converged": True},
-        residuals={"max_px": 1.0, "mean_px": 0.5, "rms_px": 0.5, "total_px": 8.0},
+        fit=FitSummary(n_points=252, rss=1.0, converged=True),
+        residuals=ResidualStats(max_px=1.0, mean_px=0.5, rms_px=0.5, total_px=8.0, n_points=252),
         um_per_px=4.8,
         image_size=(640, 480),
         bounds=(40.0, 40.0, 600.0, 440.0),

@@ -3,9 +3,10 @@ import json
 import numpy as np
 import pytest
 
-from oapcal.calibration import calibrate
+from oapcal.calibration import FitSummary, calibrate
 from oapcal.errors import InputFileError
 from oapcal.io.calibration import calibration_to_dict, load_calibration, save_calibration
+from oapcal.stats import ResidualStats
 
 
 @pytest.fixture
@@ -22,6 +23,8 @@ def test_round_trip_is_exact(tmp_path, cal):
     np.testing.assert_array_equal(back.covariance, cal.covariance)
     np.testing.assert_array_equal(back.hull, cal.hull)
     assert back.free == cal.free and back.fit == cal.fit and back.residuals == cal.residuals
+    assert isinstance(back.fit, FitSummary) and isinstance(back.residuals, ResidualStats)
+    assert back.fit.converged and back.fit.k == 8 and back.residuals.mean_um == cal.residuals.mean_um
     assert back.image_size == (640, 480) and back.um_per_px == 4.8
     data = json.loads(path.read_text())
     assert data["format"] == "oapcal-calibration" and data["version"] == 1

@@ -32,7 +32,7 @@ def test_demo_numbers(demo):
     assert demo.detection["median_error_px"] <= 0.25
     # the fitted model reproduces the ray-traced distortion at the corners to ~ a pixel
     assert demo.truth_error["mean_px"] < 1.0
-    assert demo.calibration.residuals["mean_px"] < 1.0
+    assert demo.calibration.residuals.mean_px < 1.0
 
 
 def test_demo_command(run_cli, tmp_path):

@@ -46,5 +46,5 @@ def test_scale_is_carried_through_the_normalization(pairs):
     cal = calibrate(ref_half, pairs.xy_d, "paper", normalization="experiment", um_per_px=9.6)
     ratio = np.ptp(pairs.xy_d[:, 1]) / np.ptp(ref_half[:, 1])
     assert cal.um_per_px == pytest.approx(9.6 / ratio, rel=1e-12)
-    assert cal.residuals["mean_um"] == pytest.approx(cal.residuals["mean_px"] * cal.um_per_px)
-    assert cal.fit["converged"] and cal.residuals["mean_px"] < 0.6
+    assert cal.residuals.mean_um == pytest.approx(cal.residuals.mean_px * cal.um_per_px)
+    assert cal.fit.converged and cal.residuals.mean_px < 0.6

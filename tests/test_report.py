@@ -86,8 +86,8 @@ def test_report_is_self_contained_and_has_every_section(report, inputs):
                     "Edge spread functions", "Model selection", "Robustness"):  # fmt: skip
         assert f"<h2>{heading}</h2>" in text
     # Table 1 from the points equals the calibration's own residuals (same points, same model).
-    assert f"<td>{cal.residuals['mean_px']:.4g}</td>" in text
-    assert f"<td>{cal.residuals['mean_um']:.4g}</td>" in text
+    assert f"<td>{cal.residuals.mean_px:.4g}</td>" in text
+    assert f"<td>{cal.residuals.mean_um:.4g}</td>" in text
     assert 'class="best"' in text and "did not converge" in text and "41.0 %" in text
     assert "@media print" in text
 
@@ -95,7 +95,7 @@ def test_report_is_self_contained_and_has_every_section(report, inputs):
 def test_report_numbers_show_the_correction_works(report, inputs):
     _, numbers = report
     _, cal = inputs
-    assert numbers["residuals"]["mean_px"] == pytest.approx(cal.residuals["mean_px"])
+    assert numbers["residuals"]["mean_px"] == pytest.approx(cal.residuals.mean_px)
     before, after = numbers["checks"]["before"], numbers["checks"]["after"]
     assert after["n_shapes"] >= 20 and after["n_edges"] >= 90
     assert after["straightness_max_px"] < 0.25 * before["straightness_max_px"]

@@ -7,7 +7,7 @@ is cheap (it imports neither NumPy's heavy users nor Numba, Matplotlib or Dask).
 >>> from oapcal.synthetic import synthetic_pairs
 >>> data = synthetic_pairs(seed=0)                      # (N, 2) reference and distorted px
 >>> cal = oapcal.calibrate(data.xy_u, data.xy_d, model="paper")
->>> bool(cal.fit["converged"]), bool(cal.residuals["mean_px"] < 1.0)
+>>> cal.fit.converged, bool(cal.residuals.mean_px < 1.0)
 (True, True)
 
 Layers (``docs/architecture.md``), imports flowing one way::

@@ -6,7 +6,7 @@ region.  ``imaging`` and ``report`` use the record; its file format lives in
 >>> from oapcal.synthetic import synthetic_pairs
 >>> data = synthetic_pairs(seed=0)
 >>> cal = calibrate(data.xy_u, data.xy_d, model="paper")
->>> cal.fit["converged"], cal.residuals["mean_px"] < 1.0
+>>> cal.fit.converged, cal.residuals.mean_px < 1.0
 (True, True)
 """
 
@@ -21,10 +21,38 @@ from oapcal import __version__
 from oapcal.errors import InputFileError
 from oapcal.model import PARAM_NAMES, parse_model
 from oapcal.normalize import normalize
-from oapcal.stats import correction_residuals
+from oapcal.stats import ResidualStats, correction_residuals
 
 #: Points per side of the grid on which :func:`check_model_region` evaluates the model.
 CHECK_GRID = 65
+
+
+@dataclass(frozen=True)
+class FitSummary:
+    """How the model was fitted: the statistics of :class:`oapcal.fitting.FitResult` that a
+    calibration keeps.
+
+    ``n_points`` point pairs give ``n_residuals = 2 n_points`` residuals; ``k`` free
+    parameters; ``rss`` the sum of squared forward residuals in the fit's coordinates and
+    ``aic``, ``aicc``, ``bic`` from it (:func:`oapcal.stats.information_criteria`);
+    ``converged``, ``status`` and ``message`` the solver's verdict after ``n_iter``
+    iterations from the start ``init``, on points normalized by ``normalize``.  Fields a
+    calibration file does not hold are None.
+    """
+
+    n_points: int
+    rss: float | None
+    converged: bool
+    n_residuals: int | None = None
+    k: int | None = None
+    aic: float | None = None
+    aicc: float | None = None
+    bic: float | None = None
+    status: int | None = None
+    message: str = ""
+    n_iter: int | None = None
+    init: str | None = None
+    normalize: str = "none"
 
 
 @dataclass(frozen=True)
@@ -32,16 +60,17 @@ class Calibration:
     """A fitted distortion model and what is known about it.
 
     ``params`` is the ``(13,)`` vector; ``stderr`` the ``(13,)`` standard errors (NaN for
-    fixed parameters); ``covariance`` the ``k x k`` covariance over ``free``.
-    ``fit`` and ``residuals`` are plain dicts (their keys: :mod:`oapcal.io.calibration`).
+    fixed parameters); ``covariance`` the ``k x k`` covariance over ``free``.  ``fit`` says
+    how it was fitted (:class:`FitSummary`); ``residuals`` are the paper's Table-1
+    statistics of the corrected calibration points (:class:`oapcal.stats.ResidualStats`).
     """
 
     free: tuple[str, ...]
     params: np.ndarray
     stderr: np.ndarray
     covariance: np.ndarray
-    fit: dict
-    residuals: dict
+    fit: FitSummary
+    residuals: ResidualStats
     um_per_px: float | None = None
     image_size: tuple[int, int] | None = None
     bounds: tuple[float, float, float, float] | None = None
@@ -146,22 +175,22 @@ def calibrate(
         params=np.array(result.params),
         stderr=np.array(result.stderr),
         covariance=np.array(result.covariance),
-        fit={
-            "n_points": len(norm.xy_u),
-            "n_residuals": result.n,
-            "k": result.k,
-            "rss": result.rss,
-            "aic": result.aic,
-            "aicc": result.aicc,
-            "bic": result.bic,
-            "converged": result.converged,
-            "status": result.status,
-            "message": result.message,
-            "n_iter": result.n_iter,
-            "init": init_name,
-            "normalize": normalization,
-        },
-        residuals=residuals.to_dict(),
+        fit=FitSummary(
+            n_points=len(norm.xy_u),
+            n_residuals=int(result.n),
+            k=int(result.k),
+            rss=float(result.rss),
+            aic=float(result.aic),
+            aicc=float(result.aicc),
+            bic=float(result.bic),
+            converged=bool(result.converged),
+            status=int(result.status),
+            message=str(result.message),
+            n_iter=int(result.n_iter),
+            init=init_name,
+            normalize=normalization or "none",
+        ),
+        residuals=residuals,
         um_per_px=scale,
         image_size=tuple(int(v) for v in image_size) if image_size else None,
         bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])),

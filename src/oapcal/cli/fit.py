@@ -74,8 +74,8 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
         print_json(fit_summary(cal))
     elif out != "-":
         print_fit(cal)
-    if not cal.fit["converged"]:
-        click.echo(f"oapcal: warning: the fit did not converge: {cal.fit['message']}", err=True)
+    if not cal.fit.converged:
+        click.echo(f"oapcal: warning: the fit did not converge: {cal.fit.message}", err=True)
         return 3
     return 0
 
@@ -118,10 +118,12 @@ def fit_summary(cal) -> dict:
         "free": list(cal.free),
         "params": cal.params_dict,
         "stderr": {n: _finite(cal.stderr[i]) for i, n in _free_index(cal)},
-        "converged": bool(cal.fit["converged"]),
-        "aicc": _finite(cal.fit["aicc"]),
+        "converged": bool(cal.fit.converged),
+        "aicc": _finite(cal.fit.aicc),
         "residuals": {
-            k: v for k, v in cal.residuals.items() if k.endswith(("_px", "_um")) and k != "um_per_px"
+            k: v
+            for k, v in cal.residuals.to_dict().items()
+            if k.endswith(("_px", "_um")) and k != "um_per_px"
         },
     }
 
@@ -151,12 +153,12 @@ def print_fit(cal) -> None:
             table.add_row(f"[dim]{name}[/dim]", "[dim]0 (fixed)[/dim]", "")
     out.print(table)
     f = cal.fit
-    status = "converged" if f["converged"] else "NOT converged"
+    status = "converged" if f.converged else "NOT converged"
     out.print(
-        f"{status} after {f['n_iter']} iterations ({f['message']}); {f['n_points']} points, "
-        f"RSS {f['rss']:.6g}, AICc {f['aicc']:.6g}"
+        f"{status} after {f.n_iter} iterations ({f.message}); {f.n_points} points, "
+        f"RSS {f.rss:.6g}, AICc {f.aicc:.6g}"
     )
-    r = cal.residuals
+    r = cal.residuals.to_dict()
     out.print("[bold]Residuals after correction (paper's Table 1)[/bold]")
     res = Table()
     for col in ("", "max", "mean", "rms", "total"):

@@ -26,13 +26,15 @@ bounds and on the ``image_size`` frame (:func:`check_model_region`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-from oapcal.calibration import CHECK_GRID, Calibration, check_model_region
+from oapcal.calibration import CHECK_GRID, Calibration, FitSummary, check_model_region
 from oapcal.errors import InputFileError
 from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
@@ -81,13 +83,42 @@ def calibration_to_dict(calibration: Calibration) -> dict:
             "params": calibration.params_dict,
             "stderr": {n: float(calibration.stderr[INDEX[n]]) for n in calibration.free},
             "covariance": np.asarray(calibration.covariance, float).tolist(),
-            "fit": calibration.fit,
-            "residuals": calibration.residuals,
+            "fit": {k: v for k, v in dataclasses.asdict(calibration.fit).items() if v is not None},
+            "residuals": calibration.residuals.to_dict(),
             "um_per_px": calibration.um_per_px,
             "image_size": list(calibration.image_size) if calibration.image_size else None,
             "bounds": list(calibration.bounds) if calibration.bounds is not None else None,
             "hull": np.asarray(calibration.hull).tolist() if calibration.hull is not None else None,
         }
+    )
+
+
+def _fit_summary(fit: dict) -> FitSummary:
+    """The ``fit`` object of a file as a :class:`FitSummary` (absent fields None)."""
+    names = {f.name for f in dataclasses.fields(FitSummary)}
+    known = {k: v for k, v in fit.items() if k in names}
+    known["message"] = known.get("message") or ""
+    known["normalize"] = known.get("normalize") or "none"
+    return FitSummary(**known)
+
+
+def _residual_stats(residuals: dict):
+    """The ``residuals`` object of a file as a :class:`~oapcal.stats.ResidualStats` (the
+    ``*_um`` entries follow from ``um_per_px``; absent distances are NaN)."""
+    from oapcal.stats import ResidualStats
+
+    def number(key):
+        value = residuals.get(key)
+        return math.nan if value is None else float(value)
+
+    return ResidualStats(
+        max_px=number("max_px"),
+        mean_px=number("mean_px"),
+        rms_px=number("rms_px"),
+        total_px=number("total_px"),
+        n_points=int(residuals.get("n_points") or 0),
+        n_failed=int(residuals.get("n_failed") or 0),
+        um_per_px=residuals.get("um_per_px"),
     )
 
 
@@ -124,8 +155,8 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         params=params,
         stderr=stderr,
         covariance=cov,
-        fit=dict(data["fit"]),
-        residuals=dict(data["residuals"]),
+        fit=_fit_summary(data["fit"]),
+        residuals=_residual_stats(data["residuals"]),
         um_per_px=data.get("um_per_px"),
         image_size=tuple(size) if size else None,
         bounds=tuple(data["bounds"]) if data.get("bounds") else None,

@@ -108,7 +108,7 @@ def _normalized_points(calibration, xy_u, xy_d):
     """The points in the calibration's coordinates (its normalization applied again)."""
     from oapcal.normalize import normalize
 
-    how = (calibration.fit or {}).get("normalize", "none") or "none"
+    how = calibration.fit.normalize or "none"
     norm = normalize(how, xy_u, xy_d)
     return norm.xy_u, norm.xy_d
 
@@ -169,7 +169,7 @@ def compute_report(
         vectors = residual_vectors(cal.params, xy_u, xy_d)
         residuals = residual_stats(vectors.xy_c, xy_u, cal.um_per_px).to_dict()
     else:
-        residuals = dict(cal.residuals)
+        residuals = cal.residuals.to_dict()
     step("uncertainty map")
     umap = uncertainty_map(cal, shape, step=max(1, max(shape) // 320))
     analysis = None
@@ -330,14 +330,14 @@ def _summary_html(cal, r: dict, from_points: bool) -> str:
         "distances)." + ("" if um else " No scale (um per px) is known, so no um columns.")
     )
     f = cal.fit
-    status = "" if f.get("converged") else "NOT converged: "
+    status = "" if f.converged else "NOT converged: "
     stats = [
         ["model (free parameters)", ", ".join(cal.free)],
-        ["fit", f"{status}{f.get('message', '')} ({f.get('n_iter', '?')} iterations)"],
-        ["points / residuals", f"{f.get('n_points')} / {f.get('n_residuals')}"],
-        ["RSS", H.fmt(f.get("rss"), 6)],
-        ["AIC / AICc / BIC", " / ".join(H.fmt(f.get(k), 6) for k in ("aic", "aicc", "bic"))],
-        ["normalization", f.get("normalize", "none")],
+        ["fit", f"{status}{f.message} ({'?' if f.n_iter is None else f.n_iter} iterations)"],
+        ["points / residuals", f"{f.n_points} / {f.n_residuals}"],
+        ["RSS", H.fmt(f.rss, 6)],
+        ["AIC / AICc / BIC", " / ".join(H.fmt(v, 6) for v in (f.aic, f.aicc, f.bic))],
+        ["normalization", f.normalize],
         ["scale", f"{um:.4g} um per px" if um else "unknown"],
     ]
     return out + H.table(["quantity", "value"], stats, "Fit")
