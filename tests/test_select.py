@@ -234,6 +234,13 @@ def test_select_cli_table_and_json(run_cli, grid_csv, tmp_path):
     assert code == 0, err
     assert "Top 4 of 4096 models" in stdout and "3-fold CV err" in stdout and "could not be scored" in stdout
     data = json.loads(out.read_text())
+    codes = {m["reason_code"] for m in data["models"] if not m["valid"]}
+    n_bad = sum(not m["valid"] for m in data["models"])
+    summary = stdout.split("could not be scored and are ranked last:")[1]
+    assert codes and all(
+        f"{sum(m['reason_code'] == c for m in data['models'])} " in summary for c in codes
+    ), summary
+    assert f"{n_bad} models could not be scored" in " ".join(stdout.split())
     assert data["n_points"] == 289 and len(data["models"]) == 4096
     first = data["models"][0]
     assert {"free", "k", "aicc", "delta_aicc", "weight", "rss", "valid", "reason"} <= set(first)

@@ -130,9 +130,18 @@ def print_selection(sel, top: int, source: str = "") -> None:
     )
     bad = [m for m in sel.models if not m.valid]
     if bad:
-        kinds = Counter(m.reason.split(" (")[0].split(" at ")[0] for m in bad)
-        summary = "; ".join(f"{n} {kind}" for kind, n in kinds.most_common())
+        kinds = Counter(m.reason_code for m in bad)
+        summary = "; ".join(f"{n} {_INVALID_TEXT.get(code, code)}" for code, n in kinds.most_common())
         out.print(f"{len(bad)} models could not be scored and are ranked last: {summary}.")
+
+
+#: How the selection table names each kind of invalid model (select.INVALID_REASONS).
+_INVALID_TEXT = {
+    "not_converged": "fit did not converge",
+    "too_few_residuals": "too few residuals for AICc",
+    "inverse_failed": "inverse failed",
+    "aicc_not_finite": "AICc is not finite",
+}
 
 
 @click.command("robustness")
