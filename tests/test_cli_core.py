@@ -83,3 +83,21 @@ def test_version_and_fast_help():
     assert "HEAVY []" in out.stdout
     out = subprocess.run([sys.executable, "-m", "oapcal", "--version"], capture_output=True, text=True)
     assert out.returncode == 0 and "0.1.0" in out.stdout
+
+
+def test_library_errors_name_parameters_and_the_cli_adds_the_flag(run_cli, tmp_path):
+    import pytest
+
+    from oapcal.errors import DataError
+    from oapcal.io.points import write_point_pairs
+    from oapcal.subsampling import robustness
+    from oapcal.synthetic import synthetic_pairs
+
+    d = synthetic_pairs(seed=4)
+    with pytest.raises(DataError) as err:
+        robustness(d.xy_u, d.xy_d, ["paper"], trials=2, fraction=0.001)
+    assert err.value.param == "fraction" and "--" not in str(err.value)
+    write_point_pairs(tmp_path / "p.csv", d.xy_u, d.xy_d)
+    code, _, stderr = run_cli("robustness", tmp_path / "p.csv", "--fraction", "0.001", "--trials", "2")
+    assert code == 2
+    assert stderr.strip().endswith("change fraction (set by --fraction)"), stderr

@@ -10,7 +10,19 @@ how to fix it.
 
 
 class OapcalError(ValueError):
-    """Base class of every user-facing input error in oapcal."""
+    """Base class of every user-facing input error in oapcal.
+
+    Messages name Python parameters, not command-line flags; ``param`` names the parameter
+    at fault (when one is), and the command line adds the flag that sets it.
+
+    >>> err = DataError("fraction must lie strictly between 0 and 1, got 1.5", param="fraction")
+    >>> str(err), err.param
+    ('fraction must lie strictly between 0 and 1, got 1.5', 'fraction')
+    """
+
+    def __init__(self, *args, param: str | None = None):
+        super().__init__(*args)
+        self.param = param
 
 
 class InputFileError(OapcalError):

@@ -165,24 +165,26 @@ def robustness(
     u, d = norm.xy_u, norm.xy_d
     n_points = len(u)
     if not 0.0 < fraction < 1.0:
-        raise DataError(f"--fraction must lie strictly between 0 and 1, got {fraction}")
+        raise DataError(f"fraction must lie strictly between 0 and 1, got {fraction}", param="fraction")
     if trials < 1:
-        raise DataError(f"--trials must be at least 1, got {trials}")
+        raise DataError(f"trials must be at least 1, got {trials}", param="trials")
     n_keep = int(round(fraction * n_points))
     if not 0 < n_keep < n_points:
         raise DataError(
             f"keeping {fraction:g} of {n_points} points leaves {n_keep} kept and {n_points - n_keep} "
-            "held out; both must be at least 1: change --fraction"
+            "held out; both must be at least 1: change fraction",
+            param="fraction",
         )
     specs = list(models)
     if not specs:
-        raise ModelSpecError("no models given: list at least one, e.g. --models paper,full")
+        raise ModelSpecError("no models given: list at least one, e.g. paper,full", param="models")
     masks = np.stack([parse_model(s) for s in specs])
     for spec, mask in zip(specs, masks):
         if n_keep < mask.sum() + 2:
             raise DataError(
                 f"model {_model_name(spec)!r} has {int(mask.sum())} free parameters but each trial keeps "
-                f"only {n_keep} points; it needs at least {int(mask.sum()) + 2}: raise --fraction"
+                f"only {n_keep} points; it needs at least {int(mask.sum()) + 2}: raise fraction",
+                param="fraction",
             )
 
     # Reference RMS of each model: all points, best of the pixel, zero and requested starts.

@@ -163,6 +163,26 @@ def _quiet_native_stderr():
     return restore
 
 
+def _flag_hint(exc, args: list[str]) -> str:
+    """`` (set by --flag)`` for an error whose ``param`` is an option of the command run."""
+    param = getattr(exc, "param", None)
+    if not param:
+        return ""
+    group, command = cli, None
+    ctx = click.Context(cli)
+    for word in args:
+        if word.startswith("-"):
+            continue
+        command = group.get_command(ctx, word) if isinstance(group, click.Group) else None
+        if not isinstance(command, click.Group):
+            break
+        group = command
+    for option in getattr(command, "params", []):
+        if option.name == param and isinstance(option, click.Option):
+            return f" (set by {option.opts[-1] if option.opts[-1].startswith('--') else option.opts[0]})"
+    return ""
+
+
 def _main(argv: list[str] | None) -> int:
     from oapcal.cli._common import sanitize
     from oapcal.errors import OapcalError
@@ -189,7 +209,7 @@ def _main(argv: list[str] | None) -> int:
         click.echo("oapcal: aborted", err=True)
         return 130
     except OapcalError as exc:
-        click.echo(f"oapcal: error: {sanitize(exc)}", err=True)
+        click.echo(f"oapcal: error: {sanitize(exc)}{_flag_hint(exc, args)}", err=True)
         return 2
     except Terminated as exc:
         return _terminated(exc)
