@@ -652,3 +652,21 @@ def test_a_map_too_large_for_memory_is_refused_before_it_is_built(run_cli, tmp_p
     assert code == 2, err
     assert "30000x30000 px output would need 6.71 GiB" in err and "MemoryError" not in err
     assert _visible(tmp_path) == ["c.json"]
+
+
+@pytest.mark.parametrize("dask", [False, True])
+def test_compressed_stacks_are_read_page_by_page(run_cli, tmp_path, small_calib, dask):
+    frames = _frames(5)
+    tifffile.imwrite(tmp_path / "z.tif", frames, photometric="minisblack", compression="zlib")
+    info = probe(tmp_path / "z.tif")
+    assert info.n_frames == 5 and info.segments[0][0] == "pages"  # not one contiguous block
+    extra = (
+        ["--dask", "--scheduler", "synchronous", "--dask-format", "tiff", "--chunk-frames", "2"]
+        if dask
+        else []
+    )
+    code, _, err = run_cli("correct", small_calib, tmp_path / "z.tif", "--out-dir", tmp_path / "o", *extra)
+    assert code == 0, err
+    got = tifffile.imread(tmp_path / "o" / "z.tif")
+    for f, g in zip(frames, got, strict=True):
+        np.testing.assert_array_equal(g, remap_reference(f, SMALL))
