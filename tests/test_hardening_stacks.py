@@ -670,3 +670,11 @@ def test_compressed_stacks_are_read_page_by_page(run_cli, tmp_path, small_calib,
     got = tifffile.imread(tmp_path / "o" / "z.tif")
     for f, g in zip(frames, got, strict=True):
         np.testing.assert_array_equal(g, remap_reference(f, SMALL))
+
+
+def test_per_file_geometry_errors_name_the_file(run_cli, tmp_path, small_calib):
+    tifffile.imwrite(tmp_path / "f.tif", _frames(1)[0])
+    code, _, err = run_cli("correct", small_calib, tmp_path / "f.tif", "--out-dir", tmp_path / "o",
+                           "--out-size", "60000x60000")  # fmt: skip
+    assert code == 4, err
+    assert err.startswith(f"oapcal: error: {tmp_path / 'f.tif'}: the output would be 60000x60000 px")

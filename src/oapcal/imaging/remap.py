@@ -260,8 +260,9 @@ def correct_image(
     """Correct one image (grey ``(rows, cols)`` or colour ``(rows, cols, ch)``) with a map
     from :func:`correction_map`; the output has the map's shape and keeps the input's dtype.
 
-    Pixels whose source falls outside the input get the value ``border`` (in every channel).  ``out`` (an
-    array of the output's shape and dtype) receives the result when given.  Images or maps
+    Pixels whose source falls outside the input get the value ``border`` (in every
+    channel).  ``out`` (an array of the output's shape and dtype) receives the result when
+    given.  Images or maps
     with a side of 32767 px or more (beyond ``cv2.remap``) are corrected tile by tile, with
     the same result.
     """
@@ -271,7 +272,7 @@ def correct_image(
         raise DataError(f"unknown interpolation {interp!r}: use one of {', '.join(INTERPOLATIONS)}")
     map_x, map_y = maps
     if max(image.shape[:2]) < REMAP_LIMIT and max(map_x.shape) < REMAP_LIMIT:
-        return cv2.remap(
+        return _remap(
             image, map_x, map_y, _CV2_INTERP[interp], dst=out, borderMode=cv2.BORDER_CONSTANT,
             borderValue=(border,) * 4,
         )  # fmt: skip
@@ -282,6 +283,18 @@ def correct_image(
             tile = (slice(r0, r0 + REMAP_TILE), slice(c0, c0 + REMAP_TILE))
             _remap_tile(image, map_x, map_y, tile, interp, border, out)
     return out
+
+
+def _remap(*args, **kwargs):
+    """``cv2.remap``, its errors as :class:`DataError` (one line, no C++ source path)."""
+    import cv2
+
+    try:
+        return cv2.remap(*args, **kwargs)
+    except cv2.error as exc:
+        lines = [ln for ln in str(exc).splitlines() if ln.strip()]
+        reason = lines[-1].split(") ", 1)[-1] if lines else "unknown error"
+        raise DataError(f"OpenCV cannot correct this image: {reason}") from None
 
 
 def _remap_tile(image, map_x, map_y, tile, interp, border, out) -> None:
@@ -318,7 +331,7 @@ def _remap_tile(image, map_x, map_y, tile, interp, border, out) -> None:
         return
     crop = np.ascontiguousarray(image[y0:y1, x0:x1])
     # Subtracting whole numbers is exact in float32 here, so the result equals one remap.
-    result = cv2.remap(
+    result = _remap(
         crop, mx - np.float32(x0), my - np.float32(y0), _CV2_INTERP[interp],
         borderMode=cv2.BORDER_CONSTANT, borderValue=(border,) * 4,
     )  # fmt: skip

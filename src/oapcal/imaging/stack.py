@@ -413,7 +413,14 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
                     )
             write_resume_record(dst, record)
     except OapcalError as exc:
-        return FileResult(str(src), str(dst), "failed", n, str(exc))
+        message = str(exc)
+        if not message.startswith(str(src)):  # map and geometry errors do not know the file
+            message = f"{src}: {message}"
+        return FileResult(str(src), str(dst), "failed", n, message)
+    except MemoryError:
+        return FileResult(str(src), str(dst), "failed", n,
+                          f"{src}: not enough memory to correct it; free memory or correct fewer files at "
+                          "once (--workers)")  # fmt: skip
     except OSError as exc:
         return FileResult(str(src), str(dst), "failed", n, _os_message(src, dst, exc))
     return FileResult(str(src), str(dst), "corrected", n)
