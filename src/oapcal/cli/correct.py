@@ -254,10 +254,15 @@ def _correct_dask(cal, plan, out_dir, name, interp, border, workers, geometry, m
                         overwrite=overwrite, progress=not quiet and not as_json, session=session,
                         **({} if map_file else geometry),
                     )  # fmt: skip
-                except (OapcalError, OSError) as exc:
+                except (OapcalError, OSError, MemoryError) as exc:
                     n_failed += 1
+                    message = str(exc)
+                    if isinstance(exc, MemoryError):
+                        message = f"{path}: not enough memory; lower --chunk-frames or --workers"
+                    elif str(path) not in message and str(out_dir) not in message:  # name the file
+                        message = f"{path}: {message}"
                     results.append({"input": str(path), "output": None, "status": "failed", "frames": 0,
-                                    "message": str(exc)})  # fmt: skip
+                                    "message": message})  # fmt: skip
                     continue
                 frames += r.frames
                 results.append({"input": r.input, "output": r.output, "frames": r.frames, "message": "",
