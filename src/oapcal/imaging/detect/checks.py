@@ -109,21 +109,22 @@ def check_consistency(
     # first (a target off the image centre is shifted by tens of px; residuals do not change).
     xy_u = np.asarray(xy_u, float) + np.median(np.asarray(xy_d, float) - np.asarray(xy_u, float), axis=0)
     xy_d = np.asarray(xy_d, float)
+    cubic = False
     for _ in range(8):
-        result = fit(xy_u[keep], xy_d[keep], model, init="pixel")
-        if result.converged:
+        result = None if cubic else fit(xy_u[keep], xy_d[keep], model, init="pixel")
+        if result is not None and result.converged:
             r = np.hypot(*(distort(xy_u, result.params) - xy_d).T)
         elif keep.sum() >= 2 * len(_poly_terms(xy_u[:1], 3)[0]):
             # An image with almost no distortion leaves Eq. (1)'s centre undetermined and
             # its fit may not converge: a cubic polynomial map (linear least squares) is
             # the smooth model then.
-            model = "cubic"
+            model, cubic = "cubic", True
             r = np.hypot(*(_poly_fit_predict(xy_u, xy_d, keep, 3) - xy_d).T)
         else:
             return Consistency(
                 ~everything, model, float("nan"), float("nan"), n, 1,
                 f"the global alignment could not be checked: the {model} model did not converge "
-                f"on the matched corners ({result.message})",
+                f"on the matched corners ({result.message if result is not None else 'too few pairs left'})",
             )  # fmt: skip
         s = 1.2 * float(np.median(r[keep]))
         limit = np.minimum(max(n_sigma * s, floor_px), 0.5 * width_px)

@@ -87,6 +87,9 @@ MIN_KEPT_FRACTION = 0.25
 #: agree; otherwise the dense registration runs only when the triplet path keeps less than
 #: 90 % (the time limit).
 DENSE_MAX_PIXELS = 1_000_000
+#: A kept corner must be this much farther inside than the 3 px of an expected one (its
+#: detected position is uncertain by up to ``max_stderr_px``).
+KEEP_MARGIN_EXTRA_PX = 0.5
 #: Half an element step of the target, ``2 ** (1 / 12)`` (6 %).
 HALF_ELEMENT = 2.0 ** (1.0 / 12.0)
 #: Groups of the whole target (the pose search matches image triplets against all of them).
@@ -281,7 +284,11 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
             )  # fmt: skip
             score = res.pose.score if res.pose is not None else -np.inf
             tried.append((score, res.status == 0, layout, ref, res))
+        # the default layout unless another one explains clearly more (2 triplets)
+        default = tried[0]
         tried.sort(key=lambda r: (-r[0], not r[1]))
+        if tried[0] is not default and tried[0][0] - default[0] < 2.0 and default[1]:
+            tried.insert(0, default)
         _, _, layout, ref, pres = tried[0]
         target = usaf_target(groups, layout_name=layout)
         bar.advance()
@@ -435,7 +442,7 @@ def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sig
                 continue
             nccs.append(info["ncc"])
             sigmas.append(info["sigma"])
-            ok = (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
+            ok = _inside(xy, w, h, m + KEEP_MARGIN_EXTRA_PX)
             dropped["outside"] += int((inside[idx] & ~ok).sum())
             for k, i in enumerate(idx):
                 if ok[k] and inside[i]:
@@ -513,6 +520,10 @@ def _model_boxes(target, source, u_ref, size, orient, near_um=None):
         grow = 0.15 * (masks[:, 2:] - masks[:, :2]).max(axis=1, keepdims=True) + 1.0
         masks = np.concatenate([masks[:, :2] - grow, masks[:, 2:] + grow], axis=1)
     return rects, masks
+
+
+def _inside(xy, w, h, m):
+    return (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
 
 
 def _replace(det: Detection, **changes) -> Detection:
@@ -696,7 +707,7 @@ def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, 
         if reason is not None:
             dropped[reason] += n_in
             continue
-        ok = (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
+        ok = _inside(xy, w, h, m + KEEP_MARGIN_EXTRA_PX)
         dropped["outside"] += int((inside[idx] & ~ok).sum())
         for k, i in enumerate(idx):
             if ok[k] and inside[i]:

@@ -33,6 +33,9 @@ MIN_PENALISED_BAR_PX = 4.0
 #: Bar widths found / predicted within this factor match (local scale changes of a
 #: strongly distorted image reach 20-30 %).
 WIDTH_TOL = 1.4
+#: The best pose must find at least this fraction of the named groups' triplets that it
+#: expects in the image (resolvable, inside); below, its evidence is too thin to trust.
+MIN_FOUND_FRACTION = 0.5
 #: A different pose scoring more than this fraction of the best makes the answer ambiguous.
 AMBIGUITY_RATIO = 0.85
 #: ... or within this many triplets of it.
@@ -88,6 +91,7 @@ class Pose:
     score: float = 0.0
     matches: list = field(default_factory=list)
     n_missing: int = 0
+    n_expected: int = 0  # triplets of the named groups it expects resolvable in the image
 
     @property
     def mirrored(self) -> bool:
@@ -194,6 +198,7 @@ def _score(
         _, first = np.unique(m[sel], return_index=True)
         score[hh] = weight[np.flatnonzero(sel)[first]].sum()
     score -= MISSING_PENALTY * missing
+    _score.n_expected = (expected if listed is None else expected & listed[None, :]).sum(axis=1)
     return score, missing, match
 
 
@@ -241,7 +246,7 @@ def _refine(pose: Pose, ref, img, tree, shape, listed, n_iter=5) -> Pose:
             pred=None if pred is None else pred[None], anchor=anchor[None], loose=loose, width_tol=WIDTH_TOL,
         )  # fmt: skip
         pairs = [(int(i), j) for j, i in enumerate(match[0]) if i >= 0]
-        new = Pose(pose.s, pose.lin, pose.t, float(sc[0]), pairs, int(miss[0]))
+        new = Pose(pose.s, pose.lin, pose.t, float(sc[0]), pairs, int(miss[0]), int(_score.n_expected[0]))
         if len(pairs) < 2 or it == n_iter:
             return new
         pairs_prev = pairs
@@ -422,6 +427,14 @@ def search_pose(
     others = [p for p in refined if p is not best and not _same_pose(best, p)]
     rivals = [("another pose", p) for p in others]
     rivals += [(f"the pose slipped by {k}", p) for k, p in slips.items()]
+    n_named = sum(1 for _, j in best.matches if listed is None or listed[j])
+    if n_named < MIN_FOUND_FRACTION * best.n_expected and best.score >= 1.9:
+        msg = (
+            f"the target was not found reliably: the best pose finds only {n_named} of the "
+            f"{best.n_expected} triplets of the named groups that it expects in the image"
+        )
+        return PoseResult(best, runner, 1, msg, {k: v.score for k, v in slips.items()}, n_img, refined,
+                          "not_found")  # fmt: skip
     if best.score < 1.9 or len(best.matches) < 2:
         msg = (f"the target was not found: the best pose explains only {len(best.matches)} of the "
                f"{n_img} bar triplets found (score {best.score:.1f})")  # fmt: skip
