@@ -678,3 +678,15 @@ def test_per_file_geometry_errors_name_the_file(run_cli, tmp_path, small_calib):
                            "--out-size", "60000x60000")  # fmt: skip
     assert code == 4, err
     assert err.startswith(f"oapcal: error: {tmp_path / 'f.tif'}: the output would be 60000x60000 px")
+
+
+def test_single_file_outputs_remove_what_a_killed_run_left(run_cli, tmp_path, calib):
+    stale = tmp_path / ".camera.yml.k1ll3d_x.tmp"  # atomic_write's name for camera.yml
+    stale.write_text("half")
+    stale_path = tmp_path / ".camera.abcdefgh.tmp.yml"  # atomic_path's name
+    stale_path.write_text("half")
+    other = tmp_path / ".notes.txt.abcdefgh.tmp"
+    other.write_text("not ours to remove")
+    code, _, err = run_cli("export-opencv", calib, "--out", tmp_path / "camera.yml")
+    assert code == 0, err
+    assert not stale.exists() and not stale_path.exists() and other.exists()

@@ -397,7 +397,7 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
             meta = dict(planar=info.planar, expected_bytes=out_bytes)
             if info.kind == "tiff":  # uncompressed: the size is known; PNG etc. compress
                 check_free_space(dst.parent, out_bytes, dst)
-            with atomic_path(dst) as tmp:
+            with atomic_path(dst, clean=False) as tmp:  # cleaned for the whole batch
                 with FrameWriter(tmp, info.kind, name, cmap.geometry.um_per_px, **meta) as writer:
                     out = None
                     for frame in frames:

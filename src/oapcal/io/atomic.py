@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import itertools
 import json
 import os
 import re
@@ -73,7 +74,7 @@ def _temp_prefix(name: str, suffix: str) -> str:
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Iterator:
+def atomic_write(path: str | os.PathLike, mode: str = "w", *, clean: bool = True, **open_kwargs) -> Iterator:
     """Open a temporary file beside ``path`` and rename it to ``path`` on success.
 
     ``mode`` is ``"w"`` (text, UTF-8 unless ``encoding`` is given) or ``"wb"``.
@@ -92,6 +93,8 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Ite
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
+    if clean:
+        _clean_beside(directory, path)
     fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.name, ".tmp"), suffix=".tmp", dir=directory)
     try:
         with os.fdopen(fd, mode, **open_kwargs) as fh:
@@ -109,7 +112,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Ite
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, *, clean: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` for a library that writes by file name
     (OpenCV, tifffile, Matplotlib); rename it to ``path`` on success, remove it on error.
 
@@ -119,6 +122,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
+    if clean:
+        _clean_beside(directory, path)
     suffix = f".tmp{path.suffix}"
     fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.stem, suffix), suffix=suffix, dir=directory)
     if fcntl is None:  # Windows cannot rename an open file
@@ -159,6 +164,13 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
             os.close(fd)
 
 
+def _clean_beside(directory: Path, path: Path) -> None:
+    """Remove what a killed run left while writing ``path`` (a quick look: the first 1000
+    entries of the directory)."""
+    with contextlib.suppress(OSError):
+        remove_stale_temps(directory, [path], limit=1000)
+
+
 def _lock(fd: int | None) -> None:
     """Hold an exclusive lock on a temporary file for as long as this process writes it."""
     if fcntl is not None and fd is not None:
@@ -169,10 +181,13 @@ def _lock(fd: int | None) -> None:
 _TEMP_NAME = re.compile(r"^\.(?P<base>.+)\.[A-Za-z0-9_]{8}\.tmp(?P<suffix>\..*)?$")
 
 
-def remove_stale_temps(directory: str | os.PathLike, outputs: Iterable[str | os.PathLike]) -> list[Path]:
+def remove_stale_temps(
+    directory: str | os.PathLike, outputs: Iterable[str | os.PathLike], limit: int | None = None
+) -> list[Path]:
     """Remove the temporary files and directories a killed run left for ``outputs`` (paths
     in ``directory``): names of this module's form, for one of those outputs, that no live
-    process holds locked.  Returns what was removed."""
+    process holds locked.  At most ``limit`` directory entries are looked at (None: all).
+    Returns what was removed."""
     directory = Path(directory)
     if fcntl is None or not directory.is_dir():
         return []
@@ -185,8 +200,11 @@ def remove_stale_temps(directory: str | os.PathLike, outputs: Iterable[str | os.
         wanted.add((_temp_prefix(out.name, ".tmp")[1:-1], ""))
         wanted.add((_temp_prefix(out.stem, f".tmp{out.suffix}")[1:-1], out.suffix))
     removed = []
-    for entry in directory.iterdir():
-        match = _TEMP_NAME.match(entry.name)
+    with os.scandir(directory) as entries:
+        names = [e.name for e in itertools.islice(entries, limit)]
+    for name in names:
+        entry = directory / name
+        match = _TEMP_NAME.match(name)
         if not match or (match["base"], match["suffix"] or "") not in wanted or entry.is_symlink():
             continue
         try:
@@ -243,7 +261,7 @@ def write_resume_record(output: str | os.PathLike, record: dict) -> None:
     path = resume_record_path(output)
     path.parent.mkdir(exist_ok=True)
     data = {"output": os.fsdecode(output.name), **record, "output_stat": _tree_stat(output)}
-    with atomic_write(path) as fh:
+    with atomic_write(path, clean=False) as fh:
         fh.write(json.dumps(data, sort_keys=True))
 
 
