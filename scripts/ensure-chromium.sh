@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Make sure Debian's headless-capable Chromium is installed at /usr/bin/chromium, which the
-# report's browser test uses (tests/test_report_browser.py).  Installs it with apt-get
+# report's browser test uses (tests/report/test_report_browser.py).  Installs it with apt-get
 # when it is missing and we are root; otherwise says why it cannot and exits 0, so the
 # test then skips with a clear reason.
 set -euo pipefail

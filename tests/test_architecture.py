@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-SRC = Path(__file__).resolve().parents[1] / "src" / "oapcal"
+SRC = Path(__file__).resolve().parent.parent / "src" / "oapcal"
 
 #: Layers, lowest first.  Keys are top-level modules or packages of oapcal.
 LAYERS = [
@@ -127,3 +127,12 @@ def test_no_library_module_sets_the_matplotlib_backend():
 #: Library modules that still call ``matplotlib.use("Agg")`` (their figures are to move to
 #: ``report`` and use ``Figure`` + ``FigureCanvasAgg``).
 KNOWN_BACKEND_SETTERS = {"imaging/detect_plot.py"}
+
+
+def test_tests_mirror_the_source_tree():
+    """Each folder of ``tests/`` is named after a module or package of ``src/oapcal`` (the
+    tests of that layer); only whole-package tests stay at the top."""
+    tests = Path(__file__).resolve().parent
+    modules = {p.stem for p in SRC.glob("*.py")} | {p.name for p in SRC.iterdir() if p.is_dir()}
+    folders = {p.name for p in tests.iterdir() if p.is_dir() and any(p.glob("test_*.py"))}
+    assert folders and folders <= modules, sorted(folders - modules)

@@ -35,7 +35,7 @@ class BicubicPatches:
     (its knots are a subset of the nodes), so it equals the bicubic Hermite patch built
     from its value, ``d/dx``, ``d/dy`` and ``d2/dxdy`` at the cell corners.  The patch
     coefficients are computed once; evaluating is a gather and a few polynomial terms.
-    Tested against ``RectBivariateSpline.ev`` in ``tests/test_optics_field.py``.
+    Tested against ``RectBivariateSpline.ev`` in ``tests/optics/test_optics_field.py``.
 
     ``xs`` (nx,), ``ys`` (ny,) uniformly spaced nodes, ``splines`` the fitted splines.
     """

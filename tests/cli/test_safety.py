@@ -10,7 +10,9 @@ from pathlib import Path
 
 import pytest
 
-SRC = Path(__file__).resolve().parents[1] / "src"
+from paths import REPO
+
+SRC = REPO / "src"
 
 #: Names whose use in code runs or deserializes arbitrary objects.
 FORBIDDEN_NAMES = {"pickle", "cPickle", "dill", "cloudpickle", "marshal", "shelve", "eval", "exec", "compile"}

@@ -21,6 +21,8 @@ import cv2
 import numpy as np
 import pytest
 
+from paths import REPO
+
 CHROMIUM = Path("/usr/bin/chromium")
 pytestmark = pytest.mark.skipif(
     not CHROMIUM.exists(),
@@ -112,7 +114,7 @@ def test_screenshot_and_print(tmp_path, demo_like_report):
     image = cv2.imread(str(shot), cv2.IMREAD_GRAYSCALE)
     assert image.shape == (2400, 1280)
     assert image.std() > 20  # not a blank page: text, tables and figures
-    keep = Path(__file__).parent.parent / ".pytest_cache" / "report-screenshot.png"
+    keep = REPO / ".pytest_cache" / "report-screenshot.png"
     keep.parent.mkdir(exist_ok=True)
     shutil.copyfile(shot, keep)  # for a human to look at after the run
     pdf = tmp_path / "report.pdf"

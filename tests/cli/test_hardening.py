@@ -24,8 +24,9 @@ from oapcal.io.calibration import load_calibration, save_calibration
 from oapcal.io.landmarks import read_landmark_pairs, read_landmarks
 from oapcal.io.points import read_points, write_point_pairs
 from oapcal.synthetic import synthetic_pairs
+from paths import DATA
 
-BAD = Path(__file__).parent / "data" / "bad"
+BAD = DATA / "bad"
 
 # -- good seed files, which the strategies break -------------------------------------------------
 

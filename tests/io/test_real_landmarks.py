@@ -12,8 +12,9 @@ import pytest
 
 from oapcal.errors import InputFileError
 from oapcal.io.landmarks import read_landmark_pairs, read_landmarks
+from paths import REAL as SHARED_REAL
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real" / "landmarks"
+REAL = SHARED_REAL / "landmarks"
 pytestmark = pytest.mark.skipif(
     not REAL.is_dir(), reason="the real landmark files (../shared/real/landmarks) are not on this machine"
 )

@@ -2,7 +2,6 @@
 symmetry, first-order behaviour and the sign conventions of ``docs/optics.md``."""
 
 import csv
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,8 +9,9 @@ import pytest
 from oapcal.errors import GeometrySpecError
 from oapcal.optics.misalign import PARAMETERS, SYMMETRIC, Misalignment
 from oapcal.optics.relay import chief_rays, grid_distortion, oap_relay, paraxial_map, trace_through_stop
+from paths import DATA
 
-BASELINE = Path(__file__).parent / "data" / "relay_baseline.csv"
+BASELINE = DATA / "relay_baseline.csv"
 BASELINE_CASES = {
     "setup1_U": dict(setup=1),
     "setup2_Z_stop300": dict(setup=2, orientation="Z", stop_distance_mm=300.0),

@@ -3,7 +3,6 @@
 centres per image."""
 
 from functools import cache
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,8 +16,9 @@ from oapcal.imaging.usaf_check import (
     triplet_names,
 )
 from oapcal.io.imagefile import read_image_grey
+from paths import REAL as SHARED_REAL
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real" / "usaf"
+REAL = SHARED_REAL / "usaf"
 needs_real = pytest.mark.skipif(
     not REAL.is_dir(), reason=f"the shared real images are not here ({REAL} is absent)"
 )
