@@ -1,41 +1,24 @@
-"""Automatic detection of USAF-1951 bar corners in a distorted, blurred camera image.
+"""Automatic detection of USAF-1951 bar corners in a camera image: :func:`detect_usaf`.
 
-The detector never looks for corners one by one and then guesses which is which;
-instead it registers the whole known target to the image, so every detected corner is
-matched by construction, and then refines and checks each bar triplet locally
-(``docs/detection.md``):
+The detector never looks for corners one by one and then guesses which is which; it
+places the whole known target on the image, so every corner is matched by construction,
+then refines and checks each bar triplet locally (``docs/detection.md``):
 
-1. **Find the target and its orientation.** Normalised cross-correlation
-   (``cv2.matchTemplate``) of the blurred image with the rendered target at scales 0.7-1.4,
-   in each of the 8 orientations of :data:`oapcal.imaging.usaf.ORIENTATIONS` (quarter
-   turns, with and without a mirror flip), gives the orientation, a similarity transform
-   and the polarity (bright or dark bars).  An orientation whose runner-up scores at least
-   :data:`ORIENTATION_RATIO` of it is ambiguous: the detection fails.  From here on the
-   reference target is the one turned into this orientation about the image centre, so
-   the output ``x_u, y_u`` share the camera's axes.
-2. **Register the target densely, coarse to fine.** A polynomial warp ``u = W(x)`` from
-   camera px ``x`` to reference px ``u`` is fitted by Gauss-Newton to every pixel around
-   the target, the model image being ``a + b * R(W(x))`` with ``R`` the area-sampled target
-   blurred by a Gaussian.  Blur and polynomial degree go 6 px / affine, 3 px / quadratic,
-   1.5 px / cubic, then the image's own blur (fitted) / degree 4.  Using whole images
-   rather than points lets 40 px of distortion be found without knowing it in advance.
-3. **Refine each triplet.** Around each three-bar triplet, a local affine correction
-   ``u = W(x) + d0 + D (x - x_t)`` with its own ``a, b`` and blur is fitted to the pixels;
-   the triplet's 12 corners are the camera points that this local warp sends to the
-   reference corners (Newton).
-4. **Drop what is not certain.** A triplet's corners are dropped, and counted, when the
-   local fit did not converge, the fitted contrast disagrees with the target's, the
-   refined corners moved by more than half a bar width from the registration (so they
-   could belong to a neighbouring bar), a copy of the fit shifted by one bar period fits
-   almost as well (``ambiguous``), a corner's standard error exceeds ``max_stderr_px``,
-   or a corner is not fully inside the image.
-5. **Check the global alignment.** A smooth model (``full``, Eq. 1) is fitted to all
-   matched pairs; pairs off it by more than a robust limit are dropped
-   (``inconsistent``), and the whole detection is refused when a quarter of them are,
-   when the fit fails, or when fewer than :data:`MIN_KEPT_FRACTION` of the expected
-   corners survive (:func:`check_consistency`).
+1. **Bar triplets** found bottom-up in any pose, scale and polarity (:mod:`.bars`).
+2. **Pose search** (:mod:`.pose`): which image triplet is which triplet of the whole
+   target (a similarity with optional mirror, continuous rotation, scale found or given),
+   accepted only when clearly better than every different pose, with the one-element and
+   two-group slips tested explicitly; every layout of ``oapcal.imaging.usaf.LAYOUTS``.
+3. **Registration**: a polynomial warp through the matched triplets; the dense
+   registration of the whole target (Gauss-Newton on the pixels, coarse to fine) from it,
+   or, with a given scale and no trusted pose, from a correlation search over the 8
+   quarter-turn orientations (:mod:`.registration`).  Several registrations must agree.
+4. **Refine each triplet** (:mod:`.triplet`) and **drop what is not certain**.
+5. **Check the global alignment** with a smooth model (:mod:`.checks`).
 
-Coordinates follow ``docs/conventions.md``; reference px are the target at ``um_per_px``
+Every internal fit is bounded (blur, shift, raster size, pixels per fit) and failures are
+``status != 0`` results with the reason, never exceptions.  Coordinates follow
+``docs/conventions.md``; reference px are the target at ``um_per_px`` (given or found)
 with its bounding-box centre at the image centre (``oapcal.imaging.usaf``).
 """
 
