@@ -690,3 +690,14 @@ def test_single_file_outputs_remove_what_a_killed_run_left(run_cli, tmp_path, ca
     code, _, err = run_cli("export-opencv", calib, "--out", tmp_path / "camera.yml")
     assert code == 0, err
     assert not stale.exists() and not stale_path.exists() and other.exists()
+
+
+def test_a_zarr_input_without_dask_says_to_give_dask(run_cli, tmp_path):
+    """Item 24: a zarr array given without --dask is named as such, not 'holds no images'."""
+    calib = write_calibration(tmp_path / "c.json")
+    z = zarr.create_array(str(tmp_path / "s.zarr"), shape=(2, 480, 640), chunks=(1, 480, 640), dtype="uint8")
+    z[:] = 1
+    code, _, err = run_cli("correct", calib, tmp_path / "s.zarr", "--out-dir", tmp_path / "out")
+    assert code == 4
+    assert "s.zarr: is a zarr array, which is corrected with Dask: give --dask" in err
+    assert "holds no images" not in err

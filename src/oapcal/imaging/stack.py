@@ -118,10 +118,16 @@ def expand_inputs(
         if path.is_dir() and path.suffix.lower() not in suffixes:
             dirs.append(path)
             found = sorted(p for p in path.iterdir() if usable(p))
+            is_zarr = path.suffix.lower() == ".zarr" or any(
+                (path / marker).exists() for marker in (".zarray", "zarr.json")
+            )
             if not found:
-                failures.append(
-                    FileResult(text, None, "failed", message=f"{text}: the directory holds no images")
+                why = (
+                    "is a zarr array, which is corrected with Dask: give --dask"
+                    if is_zarr
+                    else ("the directory holds no images")
                 )
+                failures.append(FileResult(text, None, "failed", message=f"{text}: {why}"))
             for p in found:
                 add(p)
         elif path.exists():
