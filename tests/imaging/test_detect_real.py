@@ -5,14 +5,13 @@ the target (the middle bar of a few triplets, a point on it): the detected corne
 bar must surround the point.  See benchmarks/real_usaf.py for the full measurement.
 """
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from oapcal.imaging.detect import detect_usaf
+from paths import REAL as SHARED_REAL
 
-REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "real" / "usaf"
+REAL = SHARED_REAL / "usaf"
 needs_real = pytest.mark.skipif(
     not REAL.is_dir(), reason="../shared/real/usaf (the real images) is not present"
 )
