@@ -37,7 +37,7 @@ WIDTH_TOL = 1.4
 #: expects in the image (resolvable, inside); below, its evidence is too thin to trust.
 MIN_FOUND_FRACTION = 0.5
 #: A different pose scoring more than this fraction of the best makes the answer ambiguous.
-AMBIGUITY_RATIO = 0.85
+AMBIGUITY_RATIO = 0.9
 #: ... or within this many triplets of it.
 AMBIGUITY_MARGIN = 2.0
 #: With ``um_per_px`` given, hypotheses within this factor of its scale are searched.
