@@ -12,10 +12,10 @@ import numpy as np
 
 from oapcal.fitting import fit
 from oapcal.imaging.detect import detect_usaf, evaluate_detection
-from oapcal.imaging.detect_plot import plot_image
 from oapcal.imaging.remap import correct_image, correction_map
 from oapcal.imaging.simulate import simulate_image
 from oapcal.optics import relay_distortion
+from oapcal.report.detect_plots import plot_image
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "img"
 

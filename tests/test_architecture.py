@@ -31,7 +31,6 @@ RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}
 KNOWN_VIOLATIONS = {
     ("imaging.remap", "io.atomic"),
     ("imaging.simulate", "io.points"),
-    ("imaging.detect_plot", "io.atomic"),
     ("imaging.stack", "io.atomic"),
     ("imaging.stack", "io.images"),
     ("imaging.distributed", "io.images"),
@@ -126,7 +125,7 @@ def test_no_library_module_sets_the_matplotlib_backend():
 
 #: Library modules that still call ``matplotlib.use("Agg")`` (their figures are to move to
 #: ``report`` and use ``Figure`` + ``FigureCanvasAgg``).
-KNOWN_BACKEND_SETTERS = {"imaging/detect_plot.py"}
+KNOWN_BACKEND_SETTERS: set[str] = set()
 
 
 def test_tests_mirror_the_source_tree():

@@ -110,7 +110,7 @@ def detect_command(
         summary["truth"] = evaluate_detection(det, *score)
     if det.status != 0:
         if plot:
-            from oapcal.imaging.detect_plot import plot_detection
+            from oapcal.report.detect_plots import plot_detection
 
             plot_detection(img, det, plot, groups=groups)
         click.echo(f"oapcal: detection failed: {det.message}", err=True)
@@ -122,8 +122,8 @@ def detect_command(
     # All outputs or none: the picture is drawn to a temporary file first, then the points
     # are written, then the picture is moved into place.
     if plot:
-        from oapcal.imaging.detect_plot import plot_detection
         from oapcal.io.atomic import atomic_path
+        from oapcal.report.detect_plots import plot_detection
 
         with atomic_path(plot) as tmp_plot:
             plot_detection(img, det, tmp_plot, groups=groups)

@@ -1,35 +1,36 @@
-"""Pictures of simulated images, detected corners and corrected images (Matplotlib, Agg)."""
+"""Pictures of simulated images, detected corners and corrected images.
+
+Each figure is built with :func:`oapcal.report.plots._figure` (a ``Figure`` with its own
+Agg canvas: no pyplot state, the caller's Matplotlib backend is left as it is) and written
+atomically with :func:`oapcal.report.plots.save_figure`.  Axes are in px with the
+pixel-centre convention of ``docs/conventions.md``.
+"""
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
 
+from oapcal.report.plots import _figure, save_figure
 
-def plot_image(
+
+def image_figure(
     image: np.ndarray,
-    path: str | Path,
     *,
     title: str,
     points: dict | None = None,
     crop: np.ndarray | None = None,
     units: str = "grey level (DN)",
-) -> None:
-    """Save ``image`` with optional marker sets ``points`` (label -> ``(N, 2)`` px) to ``path``.
+):
+    """``image`` with optional marker sets ``points`` (label -> ``(N, 2)`` px).
 
-    ``crop`` ``(x0, y0, x1, y1)`` limits the axes.  Axes in px with the pixel-centre
-    convention of ``docs/conventions.md``; a colour bar shows the grey levels.
+    ``crop`` ``(x0, y0, x1, y1)`` limits the axes; a colour bar shows the grey levels.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from oapcal.io.atomic import atomic_path
-
     h, w = image.shape[:2]
-    fig, ax = plt.subplots(figsize=(6.4, 4.6), dpi=100)
+    fig = _figure(6.4, 4.6, dpi=100)
+    ax = fig.add_subplot()
     im = ax.imshow(image, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5), interpolation="nearest")
     fig.colorbar(im, ax=ax, label=units, shrink=0.85)
     styles = [("+", "tab:red"), ("x", "tab:cyan"), ("o", "tab:orange")]
@@ -44,62 +45,56 @@ def plot_image(
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    return fig
 
 
-def plot_detection(image: np.ndarray, det, path: str | Path, *, groups: str = "") -> None:
-    """Save a picture of a detection, successful or not: the image, the bar triplets found
-    (circles), the best pose's prediction of the named groups' triplets (boxes; dashed for
-    a rival pose the detection could not rule out), the detected corners, and the outcome
-    (or the reason for the refusal) as the title."""
-    import textwrap
+def plot_image(
+    image: np.ndarray,
+    path: str | Path,
+    *,
+    title: str,
+    points: dict | None = None,
+    crop: np.ndarray | None = None,
+    units: str = "grey level (DN)",
+) -> None:
+    """Save :func:`image_figure` to ``path`` (atomically; the format follows the suffix)."""
+    save_figure(image_figure(image, title=title, points=points, crop=crop, units=units), path)
 
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from oapcal.io.atomic import atomic_path
+def detection_figure(image: np.ndarray, det, *, groups: str = ""):
+    """A detection, successful or not: the image, the bar triplets found (circles), the best
+    pose's prediction of the named groups' triplets (boxes; dashed for a rival pose the
+    detection could not rule out), the detected corners, and the outcome (or the reason for
+    the refusal) as the title."""
+    from matplotlib.patches import Circle
 
     h, w = image.shape[:2]
-    fig, ax = plt.subplots(figsize=(7.2, 6.0), dpi=100)
+    fig = _figure(7.2, 6.0, dpi=100)
+    ax = fig.add_subplot()
     ax.imshow(image, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5), interpolation="nearest")
     dbg = getattr(det, "debug", {}) or {}
     trips = dbg.get("image_triplets")
     if trips is not None and len(trips):
         for (x, y), wd in zip(trips.centre, trips.width):
-            ax.add_patch(plt.Circle((x, y), max(2.5 * wd, 3.0), fill=False, color="tab:cyan", lw=0.7))
+            ax.add_patch(Circle((x, y), max(2.5 * wd, 3.0), fill=False, color="tab:cyan", lw=0.7))
         ax.plot([], [], "o", mfc="none", color="tab:cyan", label=f"bar triplets found ({len(trips)})")
     ref = dbg.get("ref")
     for key, style, label in (("pose", "-", "best pose"), ("runner_up", "--", "rival pose")):
         pose = dbg.get(key)
         if pose is None or ref is None or (key == "runner_up" and det.status == 0):
             continue
+        colour = "tab:orange" if key == "pose" else "tab:purple"
         for j in range(len(ref.width)):
-            wpx = ref.width[j] * pose.s
-            if wpx < 1.5:
+            if ref.width[j] * pose.s < 1.5:
                 continue
             half = 2.5 * ref.width[j]
-            c = ref.centre[j]
-            box = np.array(
-                [
-                    c + [-half, -half],
-                    c + [half, -half],
-                    c + [half, half],
-                    c + [-half, half],
-                    c + [-half, -half],
-                ]
-            )
-            xy = pose.apply(box)
+            corners = np.array([[-half, -half], [half, -half], [half, half], [-half, half], [-half, -half]])
+            xy = pose.apply(ref.centre[j] + corners)
             if (xy[:, 0].max() < 0) or (xy[:, 0].min() > w) or (xy[:, 1].max() < 0) or (xy[:, 1].min() > h):
                 continue
-            colour = "tab:orange" if key == "pose" else "tab:purple"
             ax.plot(xy[:, 0], xy[:, 1], style, color=colour, lw=0.6)
         mirrored = ", mirrored" if pose.mirrored else ""
-        ax.plot([], [], style, color="tab:orange" if key == "pose" else "tab:purple",
+        ax.plot([], [], style, color=colour,
                 label=f"{label}: {1 / pose.s:.4g} um/px, {pose.angle_deg:.1f} deg{mirrored}")  # fmt: skip
     if len(det.ids):
         ax.plot(det.xy_d[:, 0], det.xy_d[:, 1], "+", color="tab:red", ms=4, mew=0.8, ls="none",
@@ -115,7 +110,9 @@ def plot_detection(image: np.ndarray, det, path: str | Path, *, groups: str = ""
     else:
         title = "refused: " + det.message
     ax.set_title("\n".join(textwrap.wrap(title, 90)), fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    return fig
+
+
+def plot_detection(image: np.ndarray, det, path: str | Path, *, groups: str = "") -> None:
+    """Save :func:`detection_figure` to ``path`` (atomically; the format follows the suffix)."""
+    save_figure(detection_figure(image, det, groups=groups), path)
