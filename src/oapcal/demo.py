@@ -96,12 +96,12 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
     from oapcal.calibration import calibrate
     from oapcal.imaging.detect import detect_usaf, evaluate_detection
     from oapcal.imaging.remap import correct_image, correction_map
-    from oapcal.imaging.simulate import simulate_image, write_truth
+    from oapcal.imaging.simulate import simulate_image
     from oapcal.io.calibration import save_calibration
     from oapcal.io.grid import write_grid_csv
     from oapcal.io.images import write_image
     from oapcal.io.jsonfile import write_json
-    from oapcal.io.points import read_points, write_point_pairs
+    from oapcal.io.points import read_points, write_point_pairs, write_truth
     from oapcal.io.results import save_robustness, save_selection
     from oapcal.model import distort
     from oapcal.optics import relay_distortion

@@ -229,12 +229,12 @@ def test_absurd_simulate_options_are_refused_up_front(run_cli, tmp_path, argv, e
 
 
 def test_simulate_image_writes_both_outputs_or_neither(run_cli, tmp_path, monkeypatch):
-    import oapcal.imaging.simulate
+    import oapcal.io.points
 
     def fails(path, sim):
         raise OSError(28, "No space left on device", str(path))
 
-    monkeypatch.setattr(oapcal.imaging.simulate, "write_truth", fails)
+    monkeypatch.setattr(oapcal.io.points, "write_truth", fails)
     argv = ["simulate", "image", "--image-size", "160x120", "--groups", "4", "--out", tmp_path / "x.png"]
     code, _, err = run_cli(*argv, "--truth", tmp_path / "t.csv")
     one_error(code, err)

@@ -23,9 +23,10 @@ import zarr
 from imaging_helpers import known_calibration, remap_reference, write_calibration
 from oapcal.errors import InputFileError
 from oapcal.imaging import remap as remap_module
-from oapcal.imaging.remap import correct_image, load_map
+from oapcal.imaging.remap import correct_image
 from oapcal.io import images as images_module
 from oapcal.io.images import open_frames, probe
+from oapcal.io.maps import load_map
 from oapcal.model import params_from_dict
 
 SMALL = params_from_dict({"k1": 4e-6, "p1": -1e-4, "s3": 6e-4, "x_off": -32, "y_off": -24,
@@ -569,10 +570,6 @@ def test_a_zip_bomb_map_is_refused_from_its_header(tmp_path):
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert peak < 50 * 2**20
-
-
-def test_the_map_limit_follows_the_image_limit():
-    assert remap_module.MAP_MAX_PIXELS == images_module.MAX_PIXELS
 
 
 # ------------------------------------------------------- 20: report --image, large images

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from imaging_helpers import known_calibration, reference_maps
-from oapcal.errors import DataError, InputFileError
-from oapcal.imaging.remap import correct_image, correction_map, load_map, output_geometry, save_map
+from oapcal.errors import DataError
+from oapcal.imaging.remap import correct_image, correction_map, output_geometry
 from oapcal.model import params_from_dict, undistort
 
 FULL = params_from_dict(
@@ -76,25 +76,3 @@ def test_geometry_errors_are_named():
         output_geometry(known_calibration(bounds=None), (480, 640), extent="calibrated")
     with pytest.raises(DataError, match="more than 16 times"):
         output_geometry(known_calibration(), (480, 640), um_per_px=0.5)
-
-
-@pytest.mark.parametrize("suffix", [".npz", ".npy", ".tiff"])
-def test_map_files_round_trip(tmp_path, suffix):
-    cmap = correction_map(known_calibration(), (48, 64), extent="full")
-    save_map(cmap, tmp_path / f"m{suffix}")
-    back = load_map(tmp_path / f"m{suffix}")
-    np.testing.assert_array_equal(back.map_x, cmap.map_x)
-    np.testing.assert_array_equal(back.map_y, cmap.map_y)
-    if suffix == ".npz":
-        assert back.geometry == cmap.geometry and back.input_shape == (48, 64)
-
-
-def test_bad_map_files_are_refused_without_unpickling(tmp_path):
-    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
-    with pytest.raises(InputFileError, match="obj.npy: cannot be read as a map"):
-        load_map(tmp_path / "obj.npy")
-    np.save(tmp_path / "shape.npy", np.zeros((3, 4, 5), np.float32))
-    with pytest.raises(InputFileError, match=r"two float arrays .* got float32 \(3, 4, 5\)"):
-        load_map(tmp_path / "shape.npy")
-    with pytest.raises(InputFileError, match="must end in"):
-        load_map(tmp_path / "m.csv")

@@ -128,3 +128,24 @@ def test_an_endless_text_stream_is_cut_at_the_limit(monkeypatch):
     monkeypatch.setattr("sys.stdin", stdin)
     with pytest.raises(InputFileError, match="-: is over 3 MiB"):
         read_points("-")
+
+
+def test_write_truth_keeps_every_corner_to_full_precision(tmp_path):
+    from types import SimpleNamespace
+
+    from oapcal.io.points import write_truth
+
+    sim = SimpleNamespace(
+        ids=["4.1.h.0", "4.1.h.1"],
+        xy_u=np.array([[0.1, 1 / 3], [2.0, 3.0]]),
+        xy_d=np.array([[0.2, 2 / 3], [-1.5, 1e-17]]),
+        visible=np.array([True, False]),
+    )
+    write_truth(tmp_path / "t.csv", sim)
+    assert (tmp_path / "t.csv").read_text().splitlines() == [
+        "id,x_u,y_u,x_d,y_d,visible",
+        "4.1.h.0,0.1,0.3333333333333333,0.2,0.6666666666666666,1",
+        "4.1.h.1,2.0,3.0,-1.5,1e-17,0",
+    ]
+    back = read_points(tmp_path / "t.csv")
+    np.testing.assert_array_equal(back.xy_d, sim.xy_d)

@@ -189,8 +189,9 @@ def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels):
     """The map given by --map, or built for --save-map (for the calibration's image size or
     the first input's), or None (built per input size while correcting)."""
     from oapcal.errors import DataError
-    from oapcal.imaging.remap import correction_map, load_map
-    from oapcal.imaging.remap import save_map as write_map
+    from oapcal.imaging.remap import correction_map
+    from oapcal.io.maps import load_map
+    from oapcal.io.maps import save_map as write_map
 
     if map_file:
         cmap = load_map(map_file, max_pixels=max_pixels)

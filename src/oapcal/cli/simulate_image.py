@@ -155,9 +155,10 @@ def simulate_image_command(
     """Simulate a camera image of the USAF-1951 target through a distortion field."""
     from oapcal.errors import DataError
     from oapcal.imaging.field import identity_field, setup1_like_field
-    from oapcal.imaging.simulate import simulate_image, write_truth
+    from oapcal.imaging.simulate import simulate_image
     from oapcal.imaging.usaf import parse_groups
     from oapcal.io.images import write_image
+    from oapcal.io.points import write_truth
 
     check_output(out, calibration)
     check_output(truth, calibration, out)

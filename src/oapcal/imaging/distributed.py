@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from oapcal.errors import InputFileError, OutputError
-from oapcal.imaging.remap import CorrectionMap, OutputGeometry, correct_image, correction_map, load_map
+from oapcal.imaging.remap import CorrectionMap, OutputGeometry, correct_image, correction_map
 from oapcal.io.images import (
     MAX_PIXELS,
     TIFF_SUFFIXES,
@@ -41,6 +41,7 @@ from oapcal.io.images import (
     probe,
     read_tiff_frames,
 )
+from oapcal.io.maps import load_map
 
 ZARR_SUFFIX = ".zarr"
 LOCAL_SCHEDULERS = ("threads", "synchronous", "processes")

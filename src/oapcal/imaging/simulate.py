@@ -300,15 +300,3 @@ class _Stages:
         if self.enabled:
             self._progress.__exit__(*exc)
         return False
-
-
-def write_truth(path, sim: SimulatedImage) -> None:
-    """Write the ground truth CSV ``id,x_u,y_u,x_d,y_d,visible`` (atomically)."""
-    from oapcal.io.points import write_points
-
-    rows = [
-        {"id": i, "x_u": repr(float(u[0])), "y_u": repr(float(u[1])),
-         "x_d": repr(float(d[0])), "y_d": repr(float(d[1])), "visible": int(v)}
-        for i, u, d, v in zip(sim.ids, sim.xy_u, sim.xy_d, sim.visible)
-    ]  # fmt: skip
-    write_points(path, ("id", "x_u", "y_u", "x_d", "y_d", "visible"), rows)

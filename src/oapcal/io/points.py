@@ -269,3 +269,18 @@ def write_point_pairs(path: str | Path, xy_u, xy_d, ids=None) -> None:
             row["id"] = str(ids[i])
         rows.append(row)
     write_points(path, fields, rows)
+
+
+#: The columns of a simulated image's ground truth (``oapcal simulate image --truth``).
+TRUTH_COLUMNS = ("id", "x_u", "y_u", "x_d", "y_d", "visible")
+
+
+def write_truth(path: str | Path, sim) -> None:
+    """Write the ground truth of a :class:`~oapcal.imaging.simulate.SimulatedImage` as the
+    CSV ``id,x_u,y_u,x_d,y_d,visible`` (atomically; coordinates to full precision)."""
+    rows = [
+        {"id": i, "x_u": repr(float(u[0])), "y_u": repr(float(u[1])),
+         "x_d": repr(float(d[0])), "y_d": repr(float(d[1])), "visible": int(v)}
+        for i, u, d, v in zip(sim.ids, sim.xy_u, sim.xy_d, sim.visible)
+    ]  # fmt: skip
+    write_points(path, TRUTH_COLUMNS, rows)
