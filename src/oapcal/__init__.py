@@ -12,7 +12,7 @@ is cheap (it imports neither NumPy's heavy users nor Numba, Matplotlib or Dask).
 
 Layers (``docs/architecture.md``), imports flowing one way::
 
-    errors <- model <- fitting <- select, calibration <- imaging, optics <- io <- report <- cli
+    errors <- model <- fitting <- select, calibration <- imaging, optics <- io <- batch <- report <- cli
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ import pytest
 import tifffile
 
 from imaging_helpers import known_calibration, remap_reference, write_calibration
-from oapcal.imaging.stack import correct_stack
+from oapcal.batch.stack import correct_stack
 
 
 @pytest.fixture

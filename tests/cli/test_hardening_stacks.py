@@ -240,7 +240,7 @@ def test_outputs_over_the_classic_tiff_limit_are_bigtiff(run_cli, tmp_path, smal
 @pytest.mark.slow
 def test_a_real_stack_over_4_gib_is_written(tmp_path):
     """A 4.3 GB uint8 stack (disk space needed: about 9 GB)."""
-    from oapcal.imaging.stack import correct_stack
+    from oapcal.batch.stack import correct_stack
 
     cal = known_calibration(params=SMALL, image_size=None)
     frames = 1100
@@ -325,7 +325,7 @@ def _fake_server(reply: bytes | None):
     "reply", [pytest.param(None, marks=pytest.mark.slow), b"\xff" * 64], ids=["silent", "garbage"]
 )
 def test_a_scheduler_that_is_not_one_is_refused(run_cli, tmp_path, small_calib, monkeypatch, reply):
-    from oapcal.imaging import distributed
+    from oapcal.batch import distributed
 
     monkeypatch.setattr(distributed, "CONNECT_TIMEOUT", 1)
     _imwrite(tmp_path / "a.tif", _frames(2))
@@ -358,7 +358,7 @@ def test_dask_options_without_dask_are_refused(run_cli, tmp_path, small_calib):
 
 
 def test_chunk_frames_is_bounded_by_the_stack_length(tmp_path):
-    from oapcal.imaging.distributed import correct_stack_dask
+    from oapcal.batch.distributed import correct_stack_dask
 
     cal = known_calibration(params=SMALL, image_size=(64, 48))
     frames = _frames(40, dtype=np.uint8)

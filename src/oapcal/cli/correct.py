@@ -153,7 +153,7 @@ def correct_command(
         return _correct_dask(cal, plan, out_dir, name, interp, border, workers, geometry, map_file,
                              allow_size_mismatch, max_pixels, overwrite, scheduler, chunk_frames,
                              dask_format, quiet, as_json)  # fmt: skip
-    from oapcal.imaging.stack import correct_stack
+    from oapcal.batch.stack import correct_stack
 
     report = correct_stack(
         cal, inputs, out_dir, interp=interp, border=border, workers=workers, cmap=cmap,
@@ -170,8 +170,8 @@ def _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map):
     """Expand the inputs and check every output path before any work: ``(files, failures,
     outputs)``.  Refuses (exit 2) two inputs with one output name, an output that is an input
     or the calibration, and an image output that is the --save-map file."""
-    from oapcal.imaging.distributed import ZARR_SUFFIX, dask_output_name
-    from oapcal.imaging.stack import expand_inputs, plan_outputs
+    from oapcal.batch.distributed import ZARR_SUFFIX, dask_output_name
+    from oapcal.batch.stack import expand_inputs, plan_outputs
     from oapcal.io.images import TIFF_SUFFIXES
 
     if use_dask:
@@ -233,7 +233,7 @@ def _correct_dask(cal, plan, out_dir, name, interp, border, workers, geometry, m
 
     for module in EXTRAS["dask"]:  # before any work: a missing extra is one clear error
         require(module, "dask")
-    from oapcal.imaging.distributed import correct_stack_dask, dask_scheduler
+    from oapcal.batch.distributed import correct_stack_dask, dask_scheduler
     from oapcal.io.atomic import remove_stale_temps
 
     # Dask's event loop reports the tasks a Ctrl-C cancelled when they are garbage collected,

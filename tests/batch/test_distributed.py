@@ -7,7 +7,7 @@ import tifffile
 import zarr
 
 from imaging_helpers import known_calibration, remap_reference, write_calibration
-from oapcal.imaging.distributed import correct_stack_dask
+from oapcal.batch.distributed import correct_stack_dask
 from oapcal.model import params_from_dict
 
 # A 256x256 camera: the example distortion re-centred.

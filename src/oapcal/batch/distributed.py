@@ -302,14 +302,14 @@ def correct_stack_dask(
 
     The output appears atomically (written under a temporary name, then renamed); an
     existing output is skipped, unless ``overwrite``, when its resume record (see
-    :mod:`oapcal.imaging.stack`) matches the calibration, settings and input.  Output
+    :mod:`oapcal.batch.stack`) matches the calibration, settings and input.  Output
     arrays are chunked like the input (``chunk_frames`` frames, at most the stack) and
     carry the calibration's name and the pixel size (zarr attributes
     ``oapcal_calibration``, ``um_per_px``; TIFF metadata; a BigTIFF when over 4 GiB).
     ``session`` is an open :func:`dask_scheduler` ``(scheduler, window)`` to run on
     (default: open ``scheduler`` for this stack alone).
     """
-    from oapcal.imaging.stack import correction_digest
+    from oapcal.batch.stack import correction_digest
     from oapcal.io.atomic import (
         atomic_dir,
         atomic_path,
