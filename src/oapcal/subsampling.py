@@ -163,7 +163,35 @@ def robustness(
     """
     norm = normalize(normalization, xy_u, xy_d)
     u, d = norm.xy_u, norm.xy_d
-    n_points = len(u)
+    specs = list(models)
+    n_keep, masks = _check_robustness(len(u), trials, fraction, specs)
+    ref_rms = _reference_rms(u, d, masks, init, max_iter)
+    keep, held = _draw_subsets(seed, trials, len(u), n_keep)
+    trial = _Trials(u, d, masks, ref_rms, wrong_minimum_ratio, n_keep, trials)
+    p0 = initial_params_many(init, u, d, masks)
+    n_models = len(masks)
+    for start in range(0, trials, chunk):
+        sl = slice(start, min(start + chunk, trials))
+        for j in range(n_models):
+            fits = fit_batch(u, d, np.repeat(masks[j][None], sl.stop - sl.start, 0), p0[j], points=keep[sl],
+                             covariance=False, max_iter=max_iter)  # fmt: skip
+            trial.record(j, sl, fits, held[sl])
+            if progress is not None:
+                progress(sl.start * n_models + (j + 1) * (sl.stop - sl.start), trials * n_models)
+    return Robustness(
+        n_points=len(u),
+        n_keep=n_keep,
+        fraction=float(fraction),
+        seed=int(seed),
+        init=init if isinstance(init, str) else "user",
+        normalization=normalization or "none",
+        wrong_minimum_ratio=float(wrong_minimum_ratio),
+        models=tuple(trial.summary(j, spec, norm.scale_u) for j, spec in enumerate(specs)),
+    )
+
+
+def _check_robustness(n_points: int, trials: int, fraction: float, specs: list) -> tuple[int, np.ndarray]:
+    """Refuse settings no trial could fit; the points each trial keeps and the models' masks."""
     if not 0.0 < fraction < 1.0:
         raise DataError(f"fraction must lie strictly between 0 and 1, got {fraction}", param="fraction")
     if trials < 1:
@@ -175,7 +203,6 @@ def robustness(
             "held out; both must be at least 1: change fraction",
             param="fraction",
         )
-    specs = list(models)
     if not specs:
         raise ModelSpecError("no models given: list at least one, e.g. paper,full", param="models")
     masks = np.stack([parse_model(s) for s in specs])
@@ -186,97 +213,100 @@ def robustness(
                 f"only {n_keep} points; it needs at least {int(mask.sum()) + 2}: raise fraction",
                 param="fraction",
             )
+    return n_keep, masks
 
-    # Reference RMS of each model: all points, best of the pixel, zero and requested starts.
+
+def _reference_rms(u: np.ndarray, d: np.ndarray, masks: np.ndarray, init, max_iter: int) -> np.ndarray:
+    """Reference RMS of each model: all points, best of the pixel, zero and requested starts."""
     starts = ["pixel", "zero"] + ([init] if not (isinstance(init, str) and init in ("pixel", "zero")) else [])
     ref_masks = np.repeat(masks, len(starts), axis=0)
     ref_p0 = np.concatenate([initial_params_many(s, u, d, masks) for s in starts])
     ref_p0 = ref_p0.reshape(len(starts), len(masks), -1).transpose(1, 0, 2).reshape(len(ref_masks), -1)
     ref = fit_batch(u, d, ref_masks, ref_p0, covariance=False, max_iter=max_iter)
     ref_rss = np.where(ref.converged, ref.rss, np.inf).reshape(len(masks), len(starts)).min(axis=1)
-    ref_rms = np.sqrt(ref_rss / n_points)
-    atol = 1e-9 * float(np.ptp(d[:, 1]))
+    return np.sqrt(ref_rss / len(u))
 
+
+def _draw_subsets(seed: int, trials: int, n_points: int, n_keep: int) -> tuple[np.ndarray, np.ndarray]:
+    """The sorted indices each trial keeps and holds out, ``(trials, n_keep)`` and the rest."""
     rng = np.random.default_rng(seed)
     perm = np.argsort(rng.random((trials, n_points)), axis=1)
     keep = np.ascontiguousarray(np.sort(perm[:, :n_keep], axis=1))
     held = np.ascontiguousarray(np.sort(perm[:, n_keep:], axis=1))
-    fold_points = hull_grid(u)
-    p0 = initial_params_many(init, u, d, masks)
+    return keep, held
 
-    n_models = len(masks)
-    reason_code = np.zeros((n_models, trials), dtype=np.int64)  # 0 = converged, else 1 + REASONS index
-    params = np.zeros((n_models, trials, len(PARAM_NAMES)))
-    heldout = np.full((n_models, trials), np.nan)
-    held_bad = np.zeros((n_models, trials), dtype=np.int64)
-    total = trials * n_models
-    for start in range(0, trials, chunk):
-        sl = slice(start, min(start + chunk, trials))
-        for j in range(n_models):
-            n_sl = sl.stop - sl.start
-            fits = fit_batch(u, d, np.repeat(masks[j][None], n_sl, 0), p0[j], points=keep[sl],
-                             covariance=False, max_iter=max_iter)  # fmt: skip
-            code = np.zeros(n_sl, dtype=np.int64)
-            finite = np.isfinite(fits.params).all(axis=1) & np.isfinite(fits.rss)
-            for s, name in _STATUS_REASON.items():
-                code[(code == 0) & (fits.status == s)] = 1 + REASONS.index(name)
-            code[(code == 0) & ~finite] = 1 + REASONS.index("non_finite")
-            todo = code == 0
-            min_det = np.full(n_sl, np.nan)
-            if todo.any():
-                min_det[todo] = min_jacobian_determinant(fits.params[todo], fold_points)
-            code[todo & ~(min_det > 0)] = 1 + REASONS.index("folded")
-            rms = np.sqrt(fits.rss / n_keep)
-            wrong = (rms > wrong_minimum_ratio * ref_rms[j]) & (rms - ref_rms[j] > atol)
-            code[(code == 0) & wrong] = 1 + REASONS.index("wrong_minimum")
-            ok = code == 0
-            if ok.any():
-                inv = undistort(d[held[sl][ok]], fits.params[ok])
-                conv = inv.converged
-                err = np.hypot(*np.moveaxis(inv.xy - u[held[sl][ok]], -1, 0))
-                n_ok = conv.sum(axis=1)
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    h = np.where(n_ok > 0, np.where(conv, err, 0.0).sum(axis=1) / np.maximum(n_ok, 1), np.nan)
-                rows = np.arange(sl.start, sl.stop)[ok]
-                heldout[j, rows] = h
-                held_bad[j, rows] = (~conv).sum(axis=1)
-            reason_code[j, sl] = code
-            params[j, sl] = fits.params
-            if progress is not None:
-                progress(sl.start * n_models + (j + 1) * n_sl, total)
 
-    results = []
-    for j, spec in enumerate(specs):
-        conv = reason_code[j] == 0
-        free = names_from_mask(masks[j])
+class _Trials:
+    """The outcome of every trial of every model: its reason code (0 = converged, else 1 +
+    index in REASONS), parameters, held-out mean error and held-out points not inverted."""
+
+    def __init__(self, u, d, masks, ref_rms, wrong_minimum_ratio, n_keep, trials):
+        self.u, self.d, self.masks, self.ref_rms = u, d, masks, ref_rms
+        self.wrong_minimum_ratio, self.n_keep = wrong_minimum_ratio, n_keep
+        self.atol = 1e-9 * float(np.ptp(d[:, 1]))
+        self.fold_points = hull_grid(u)
+        n_models = len(masks)
+        self.reason_code = np.zeros((n_models, trials), dtype=np.int64)
+        self.params = np.zeros((n_models, trials, len(PARAM_NAMES)))
+        self.heldout = np.full((n_models, trials), np.nan)
+        self.held_bad = np.zeros((n_models, trials), dtype=np.int64)
+
+    def classify(self, j: int, fits) -> np.ndarray:
+        """The reason code of each fit of model ``j``: status, non-finite, folded, wrong minimum."""
+        n_sl = len(fits.rss)
+        code = np.zeros(n_sl, dtype=np.int64)
+        finite = np.isfinite(fits.params).all(axis=1) & np.isfinite(fits.rss)
+        for s, name in _STATUS_REASON.items():
+            code[(code == 0) & (fits.status == s)] = 1 + REASONS.index(name)
+        code[(code == 0) & ~finite] = 1 + REASONS.index("non_finite")
+        todo = code == 0
+        min_det = np.full(n_sl, np.nan)
+        if todo.any():
+            min_det[todo] = min_jacobian_determinant(fits.params[todo], self.fold_points)
+        code[todo & ~(min_det > 0)] = 1 + REASONS.index("folded")
+        rms = np.sqrt(fits.rss / self.n_keep)
+        ref = self.ref_rms[j]
+        wrong = (rms > self.wrong_minimum_ratio * ref) & (rms - ref > self.atol)
+        code[(code == 0) & wrong] = 1 + REASONS.index("wrong_minimum")
+        return code
+
+    def record(self, j: int, sl: slice, fits, held: np.ndarray) -> None:
+        """Classify the fits of model ``j`` for trials ``sl`` and measure their held-out points."""
+        code = self.classify(j, fits)
+        ok = code == 0
+        if ok.any():
+            inv = undistort(self.d[held[ok]], fits.params[ok])
+            conv = inv.converged
+            err = np.hypot(*np.moveaxis(inv.xy - self.u[held[ok]], -1, 0))
+            n_ok = conv.sum(axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                h = np.where(n_ok > 0, np.where(conv, err, 0.0).sum(axis=1) / np.maximum(n_ok, 1), np.nan)
+            rows = np.arange(sl.start, sl.stop)[ok]
+            self.heldout[j, rows] = h
+            self.held_bad[j, rows] = (~conv).sum(axis=1)
+        self.reason_code[j, sl] = code
+        self.params[j, sl] = fits.params
+
+    def summary(self, j: int, spec, scale_u: float) -> ModelRobustness:
+        """Model ``j`` over all trials: failures by reason, parameter spread, held-out error."""
+        codes = self.reason_code[j]
+        conv = codes == 0
+        free = names_from_mask(self.masks[j])
         std = {}
         for name in free:
             i = PARAM_NAMES.index(name)
-            std[name] = float(np.std(params[j, conv, i], ddof=1)) if conv.sum() >= 2 else None
-        h = heldout[j, conv]
+            std[name] = float(np.std(self.params[j, conv, i], ddof=1)) if conv.sum() >= 2 else None
+        h = self.heldout[j, conv]
         h = h[np.isfinite(h)]
-        results.append(
-            ModelRobustness(
-                name=_model_name(spec),
-                free=free,
-                trials=trials,
-                not_converged=int((~conv).sum()),
-                by_reason={r: int((reason_code[j] == 1 + i).sum()) for i, r in enumerate(REASONS)},
-                param_std=std,
-                heldout_mean_error=float(h.mean() / norm.scale_u) if h.size else float("nan"),
-                heldout_failed=int(held_bad[j, conv].sum()),
-                reference_rms=float(ref_rms[j]),
-                trial_codes=reason_code[j],
-            )
+        return ModelRobustness(
+            name=_model_name(spec),
+            free=free,
+            trials=len(codes),
+            not_converged=int((~conv).sum()),
+            by_reason={r: int((codes == 1 + i).sum()) for i, r in enumerate(REASONS)},
+            param_std=std,
+            heldout_mean_error=float(h.mean() / scale_u) if h.size else float("nan"),
+            heldout_failed=int(self.held_bad[j, conv].sum()),
+            reference_rms=float(self.ref_rms[j]),
+            trial_codes=codes,
         )
-    init_name = init if isinstance(init, str) else "user"
-    return Robustness(
-        n_points=n_points,
-        n_keep=n_keep,
-        fraction=float(fraction),
-        seed=int(seed),
-        init=init_name,
-        normalization=normalization or "none",
-        wrong_minimum_ratio=float(wrong_minimum_ratio),
-        models=tuple(results),
-    )
