@@ -1,5 +1,6 @@
 import json
 import tracemalloc
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -7,8 +8,11 @@ import tifffile
 import zarr
 
 from imaging_helpers import known_calibration, remap_reference, write_calibration
-from oapcal.batch.distributed import correct_stack_dask
-from oapcal.model import params_from_dict
+from oapcal.batch.distributed import DaskSettings, correct_stack_dask
+from oapcal.errors import InputFileError
+from oapcal.imaging.remap import correction_map
+from oapcal.io.maps import save_map
+from oapcal.model import PARAM_NAMES, params_from_dict
 
 # A 256x256 camera: the example distortion re-centred.
 SMALL = params_from_dict({"k1": 4e-6, "p1": -1e-4, "s3": 6e-4, "x_off": -128, "y_off": -128,
@@ -22,10 +26,10 @@ def test_memory_stays_bounded_for_a_stack_much_larger_than_a_chunk(tmp_path):
     tifffile.imwrite(tmp_path / "s.tif", stack)
     tifffile.imwrite(tmp_path / "warm.tif", stack[:8])
     for fmt in ("zarr", "tiff"):
-        options = dict(chunk_frames=4, scheduler="threads", workers=2, output_format=fmt)
-        correct_stack_dask(cal, tmp_path / "warm.tif", tmp_path / "warm", **options)  # imports, caches
+        options = DaskSettings(chunk_frames=4, scheduler="threads", workers=2, output_format=fmt)
+        correct_stack_dask(cal, tmp_path / "warm.tif", tmp_path / "warm", settings=options)  # imports, caches
         tracemalloc.start()
-        result = correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "out", **options)
+        result = correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "out", settings=options)
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
         assert result.frames == 160 and result.chunks == 40
@@ -79,3 +83,38 @@ def test_default_local_cluster_from_the_command_line(tmp_path):
     z = zarr.open_array(str(tmp_path / "o" / "s.zarr"), mode="r")
     for i in range(10):
         np.testing.assert_array_equal(z[i], remap_reference(stack[i], SMALL))
+
+
+def test_a_prebuilt_map_is_the_one_applied_from_its_file_or_from_memory(run_cli, tmp_path):
+    # The map comes from other parameters than the calibration: the output must follow the map.
+    other = SMALL.copy()
+    other[PARAM_NAMES.index("k1")] = 9e-6
+    cmap = correction_map(other, (256, 256))
+    save_map(cmap, tmp_path / "m.npz")
+    calib = write_calibration(tmp_path / "calib.json", params=SMALL, image_size=(256, 256))
+    stack = np.random.default_rng(5).integers(0, 255, (5, 256, 256), dtype=np.uint8)
+    tifffile.imwrite(tmp_path / "s.tif", stack)
+    dask = ("--dask", "--scheduler", "synchronous", "--map", tmp_path / "m.npz")
+    code, _, err = run_cli(
+        "correct", calib, tmp_path / "s.tif", "--out-dir", tmp_path / "a", *dask, "--chunk-frames", "2"
+    )
+    assert code == 0, err
+    cal = known_calibration(params=SMALL, image_size=(256, 256))
+    settings = DaskSettings(scheduler="synchronous", chunk_frames=2)
+    result = correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "b", cmap, settings)
+    assert result.frames == 5 and result.chunks == 3
+    from_file = zarr.open_array(str(tmp_path / "a" / "s.zarr"), mode="r")
+    in_memory = zarr.open_array(str(tmp_path / "b" / "s.zarr"), mode="r")
+    for i in range(5):
+        expected = remap_reference(stack[i], other)
+        np.testing.assert_array_equal(from_file[i], expected)
+        np.testing.assert_array_equal(in_memory[i], expected)
+    # A stack of another size than the map was built for is refused, naming both sizes.
+    tifffile.imwrite(tmp_path / "small.tif", stack[:, :128])
+    code, _, err = run_cli("correct", calib, tmp_path / "small.tif", "--out-dir", tmp_path / "c", *dask)
+    assert code == 4 and "small.tif: frames are 256x128 px but the calibration is for 256x256 px" in err
+    no_size = replace(cal, image_size=None)  # only the map's input size is left to check
+    with pytest.raises(InputFileError, match=r"frames are 256x128 px but the map was built for 256x256 px"):
+        correct_stack_dask(no_size, tmp_path / "small.tif", tmp_path / "d", cmap, settings)
+    loose = replace(settings, allow_size_mismatch=True)
+    assert correct_stack_dask(no_size, tmp_path / "small.tif", tmp_path / "d", cmap, loose).frames == 5

@@ -358,15 +358,18 @@ def test_dask_options_without_dask_are_refused(run_cli, tmp_path, small_calib):
 
 
 def test_chunk_frames_is_bounded_by_the_stack_length(tmp_path):
-    from oapcal.batch.distributed import correct_stack_dask
+    from dataclasses import replace
+
+    from oapcal.batch.distributed import DaskSettings, correct_stack_dask
 
     cal = known_calibration(params=SMALL, image_size=(64, 48))
     frames = _frames(40, dtype=np.uint8)
     _imwrite(tmp_path / "s.tif", frames)
-    options = dict(scheduler="synchronous", output_format="zarr")
-    correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "warm", chunk_frames=4, **options)
+    options = DaskSettings(scheduler="synchronous", output_format="zarr", chunk_frames=4)
+    correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "warm", settings=options)
     tracemalloc.start()
-    result = correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "o", chunk_frames=100_000, **options)
+    huge = replace(options, chunk_frames=100_000)
+    result = correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "o", settings=huge)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert result.frames == 40 and result.chunks == 1

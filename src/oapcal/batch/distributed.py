@@ -12,8 +12,9 @@ Memory stays bounded however long the stack is: chunks are computed a window at 
 more frames than the stack.  TIFF inputs are read like :mod:`oapcal.io.images` reads them
 (every page of every series, planar colour, ImageJ hyperstacks in one page memory-mapped).  Workers build the
 correction map themselves from the parameters and the output geometry (cached per
-process), so the task graph stays small; with a map file they load it (workers must see
-the file).  Workers must also see the input and output paths (a shared file system).
+process), so the task graph stays small; a prebuilt map given with its file is loaded by
+them (workers must see the file), one given without travels in the task graph.  Workers
+must also see the input and output paths (a shared file system).
 """
 
 from __future__ import annotations
@@ -151,8 +152,8 @@ def _worker_map(source: tuple) -> CorrectionMap:
     return correction_map(np.array(params), shape, geometry=geometry)
 
 
-def _correct_block(block: np.ndarray, source: tuple, interp: str, border: float) -> np.ndarray:
-    cmap = _worker_map(source)
+def _correct_block(block: np.ndarray, source, interp: str, border: float) -> np.ndarray:
+    cmap = source if isinstance(source, CorrectionMap) else _worker_map(source)
     out = np.empty((block.shape[0], *cmap.shape, *block.shape[3:]), block.dtype)
     for i, frame in enumerate(block):
         out[i] = correct_image(frame, cmap, interp, border).reshape(out.shape[1:])
@@ -276,29 +277,56 @@ def dask_output_name(input_path: str | Path, output_format: str = "zarr") -> str
     return input_path.name.removesuffix(input_path.suffix) + suffix
 
 
+@dataclass(frozen=True)
+class DaskSettings:
+    """The output and scheduler options of :func:`correct_stack_dask`.
+
+    ``extent``, ``um_per_px`` and ``out_size`` shape the map built for each stack's size
+    when no prebuilt map is given (see :func:`oapcal.imaging.remap.correction_map`).
+    """
+
+    output_format: str = "zarr"
+    chunk_frames: int = 16
+    interp: str = "linear"
+    border: float = 0
+    extent: str = "input"
+    um_per_px: float | None = None
+    out_size: tuple[int, int] | None = None
+    allow_size_mismatch: bool = False
+    max_pixels: int = MAX_PIXELS
+    scheduler: str | None = None
+    workers: int | None = None
+    calibration_name: str | None = None
+    overwrite: bool = False
+    progress: bool = False
+
+
+@dataclass(frozen=True)
+class _MapPlan:
+    """What the workers build (or load) the map from, its geometry, and the resume digest."""
+
+    source: object
+    geometry: OutputGeometry
+    digest: str
+
+
 def correct_stack_dask(
     calibration,
     input_path: str | Path,
     out_dir: str | Path,
+    cmap: CorrectionMap | None = None,
+    settings: DaskSettings = DaskSettings(),
     *,
-    output_format: str = "zarr",
-    chunk_frames: int = 16,
-    interp: str = "linear",
-    border: float = 0,
-    extent: str = "input",
-    um_per_px: float | None = None,
-    out_size: tuple[int, int] | None = None,
     map_path: str | Path | None = None,
-    allow_size_mismatch: bool = False,
-    max_pixels: int = MAX_PIXELS,
-    scheduler: str | None = None,
-    workers: int | None = None,
-    calibration_name: str | None = None,
-    overwrite: bool = False,
-    progress: bool = False,
     session: tuple | None = None,
 ) -> DaskResult:
     """Correct one TIFF or zarr stack with Dask into ``out_dir/STEM.zarr`` (or ``.tif``).
+
+    ``cmap`` is a prebuilt map (``--map``), which the stack's frames must fit unless
+    ``settings.allow_size_mismatch``; ``map_path``, the file it was loaded from, lets the
+    workers load it themselves (otherwise it travels in the task graph).  Without ``cmap``
+    the map is built for the stack's frame size from the calibration and the settings'
+    geometry, by each worker (so the graph stays small).
 
     The output appears atomically (written under a temporary name, then renamed); an
     existing output is skipped, unless ``overwrite``, when its resume record (see
@@ -307,138 +335,186 @@ def correct_stack_dask(
     carry the calibration's name and the pixel size (zarr attributes
     ``oapcal_calibration``, ``um_per_px``; TIFF metadata; a BigTIFF when over 4 GiB).
     ``session`` is an open :func:`dask_scheduler` ``(scheduler, window)`` to run on
-    (default: open ``scheduler`` for this stack alone).
+    (default: open ``settings.scheduler`` for this stack alone).
     """
-    from oapcal.batch.stack import correction_digest
-    from oapcal.io.atomic import (
-        atomic_dir,
-        atomic_path,
-        check_free_space,
-        file_fingerprint,
-        remove_stale_temps,
-        resume_complete,
-        write_resume_record,
-    )
+    from oapcal.io.atomic import file_fingerprint, resume_complete, write_resume_record
 
     input_path = Path(input_path)
+    out_path = _plan_output(input_path, Path(out_dir), settings.output_format)
+    stack = _open_input(calibration, input_path, settings)
+    plan = _plan_map(calibration, input_path, stack.shape[1:3], cmap, map_path, settings)
+    record = {
+        "calibration": plan.digest,
+        "input": file_fingerprint(input_path),
+        "frames": int(stack.shape[0]),
+    }
+    if out_path.exists() and not settings.overwrite and resume_complete(out_path, record):
+        return DaskResult(str(input_path), str(out_path), 0, 0, skipped=True)
+    corrected = _build_graph(stack, plan, settings)
+    name = settings.calibration_name or getattr(calibration, "name", None)
+    n_chunks = _run_and_write(corrected, out_path, plan.geometry, name, input_path.name, settings, session)
+    write_resume_record(out_path, {**record})
+    return DaskResult(str(input_path), str(out_path), corrected.shape[0], n_chunks)
+
+
+def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
+    """The output path of ``input_path``; refuses an unknown format or overwriting the input."""
     if output_format not in ("zarr", "tiff"):
         raise OutputError(f"unknown output format {output_format!r}: use zarr or tiff")
-    out_dir = Path(out_dir)
     out_path = out_dir / dask_output_name(input_path, output_format)
     if out_path.resolve() == input_path.resolve():
         raise OutputError(
             f"{out_path}: the output would overwrite the input {input_path}; choose another --out-dir"
         )
-    stack = lazy_stack(input_path, chunk_frames, max_pixels)
-    chunk_frames = min(chunk_frames, stack.shape[0])
+    return out_path
+
+
+def _open_input(calibration, input_path: Path, settings: DaskSettings):
+    """The stack as a lazy Dask array; refuses frames of another size than the calibration's."""
+    stack = lazy_stack(input_path, settings.chunk_frames, settings.max_pixels)
     rows, cols = stack.shape[1:3]
     cal_size = getattr(calibration, "image_size", None)
-    if cal_size and tuple(cal_size) != (cols, rows) and not allow_size_mismatch:
+    if cal_size and tuple(cal_size) != (cols, rows) and not settings.allow_size_mismatch:
         raise InputFileError(
             f"{input_path}: frames are {cols}x{rows} px but the calibration is for "
             f"{cal_size[0]}x{cal_size[1]} px; give --allow-size-mismatch to correct them anyway"
         )
-    if map_path is not None:
-        cmap = load_map(map_path, max_pixels=max_pixels)
-        if cmap.input_shape and cmap.input_shape != (rows, cols) and not allow_size_mismatch:
+    return stack
+
+
+def _plan_map(calibration, input_path: Path, frame_shape, cmap, map_path, settings: DaskSettings) -> _MapPlan:
+    """How the workers get the map for frames of ``frame_shape = (rows, cols)``."""
+    from oapcal.batch.stack import correction_digest
+
+    rows, cols = frame_shape
+    interp, border = settings.interp, float(settings.border)
+    if cmap is not None:
+        if cmap.input_shape and cmap.input_shape != (rows, cols) and not settings.allow_size_mismatch:
+            where = f" {map_path}" if map_path is not None else ""
             raise InputFileError(
-                f"{input_path}: frames are {cols}x{rows} px but the map {map_path} was built for "
+                f"{input_path}: frames are {cols}x{rows} px but the map{where} was built for "
                 f"{cmap.input_shape[1]}x{cmap.input_shape[0]} px input"
             )
-        source = ("file", str(Path(map_path).resolve()))
-        geometry = cmap.geometry
-        digest = correction_digest(calibration, cmap, interp=interp, border=float(border))
-    else:
-        cmap = None
-        params = np.asarray(getattr(calibration, "params", calibration), float)
-        geometry = correction_map(
-            calibration, (rows, cols), extent=extent, um_per_px=um_per_px, out_size=out_size, geometry=None
-        ).geometry
-        source = (
-            "params",
-            tuple(float(v) for v in params),
-            geometry.shape,
-            geometry.x0,
-            geometry.y0,
-            geometry.scale,
-            geometry.um_per_px,
-        )
-        fit_size = None if out_size is None else list(out_size)
-        digest = correction_digest(calibration, None, interp=interp, border=float(border), extent=extent,
-                                   um_per_px=um_per_px, out_size=fit_size)  # fmt: skip
-    record = {"calibration": digest, "input": file_fingerprint(input_path), "frames": int(stack.shape[0])}
-    if out_path.exists() and not overwrite and resume_complete(out_path, record):
-        return DaskResult(str(input_path), str(out_path), 0, 0, skipped=True)
-    out_shape = (stack.shape[0], *geometry.shape, *stack.shape[3:])
-    out_bytes = int(np.prod(out_shape, dtype=np.int64)) * stack.dtype.itemsize
-    corrected = stack.map_blocks(
+        source = ("file", str(Path(map_path).resolve())) if map_path is not None else None
+        if source is None:
+            import dask
+
+            source = dask.delayed(cmap, pure=True)
+        digest = correction_digest(calibration, cmap, interp=interp, border=border)
+        return _MapPlan(source, cmap.geometry, digest)
+    params = np.asarray(getattr(calibration, "params", calibration), float)
+    geometry = correction_map(calibration, (rows, cols), extent=settings.extent, um_per_px=settings.um_per_px,
+                              out_size=settings.out_size, geometry=None).geometry  # fmt: skip
+    source = ("params", tuple(float(v) for v in params), geometry.shape, geometry.x0, geometry.y0,
+              geometry.scale, geometry.um_per_px)  # fmt: skip
+    fit_size = None if settings.out_size is None else list(settings.out_size)
+    digest = correction_digest(calibration, None, interp=interp, border=border, extent=settings.extent,
+                               um_per_px=settings.um_per_px, out_size=fit_size)  # fmt: skip
+    return _MapPlan(source, geometry, digest)
+
+
+def _build_graph(stack, plan: _MapPlan, settings: DaskSettings):
+    """The corrected stack as a lazy Dask array, one task per chunk of frames."""
+    shape = plan.geometry.shape
+    return stack.map_blocks(
         _correct_block,
-        source,
-        interp,
-        border,
+        plan.source,
+        settings.interp,
+        settings.border,
         dtype=stack.dtype,
-        chunks=(stack.chunks[0], (geometry.shape[0],), (geometry.shape[1],), *stack.chunks[3:]),
+        chunks=(stack.chunks[0], (shape[0],), (shape[1],), *stack.chunks[3:]),
     )
-    name = calibration_name or getattr(calibration, "name", None)
-    starts = np.concatenate([[0], np.cumsum(stack.chunks[0])[:-1]]).astype(int)
-    n_chunks = len(starts)
+
+
+def _run_and_write(corrected, out_path: Path, geometry, name, label, settings: DaskSettings, session) -> int:
+    """Compute ``corrected`` a window of chunks at a time into ``out_path``, atomically;
+    return the number of chunks."""
+    from oapcal.io.atomic import check_free_space, remove_stale_temps
+
+    out_dir = out_path.parent
+    out_shape = corrected.shape
+    out_bytes = int(np.prod(out_shape, dtype=np.int64)) * corrected.dtype.itemsize
+    n_chunks = len(corrected.chunks[0])
     out_dir.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(out_dir, [out_path])
-    if output_format == "tiff":
+    if settings.output_format == "tiff":
         check_free_space(out_dir, out_bytes, out_path)
-    bar = _bar(progress, n_chunks, out_shape[0], input_path.name)
-    own = contextlib.nullcontext(session) if session is not None else dask_scheduler(scheduler, workers)
+    bar = _bar(settings.progress, n_chunks, out_shape[0], label)
+    own = (
+        contextlib.nullcontext(session)
+        if session is not None
+        else dask_scheduler(settings.scheduler, settings.workers)
+    )
     try:
         with own as (sched, window), bar:
-            if output_format == "zarr":
-                import zarr
-
-                with atomic_dir(out_path) as tmp:
-                    try:
-                        z = zarr.create_array(
-                            str(tmp), shape=out_shape, chunks=(chunk_frames, *out_shape[1:]),
-                            dtype=stack.dtype, overwrite=True,
-                        )  # fmt: skip
-                        z.attrs.update(
-                            {
-                                "oapcal_calibration": name,
-                                "um_per_px": geometry.um_per_px,
-                                "axes": "TYX" + "C" * (len(out_shape) == 4),
-                            }
-                        )
-                        drop = list(range(1, corrected.ndim))
-                        written = corrected.map_blocks(
-                            _write_zarr_block, str(tmp), dtype=int, chunks=((1,) * n_chunks,), drop_axis=drop
-                        )
-                        total = 0
-                        for j in range(0, n_chunks, window):
-                            counts = written[j : j + window].compute(scheduler=sched)
-                            total += int(counts.sum())
-                            bar.advance(len(counts), int(counts.sum()))
-                    except BaseException:
-                        _settle(sched)
-                        raise
-                    if total != out_shape[0]:
-                        raise OutputError(f"{out_path}: {total} of {out_shape[0]} frames were written")
+            if settings.output_format == "zarr":
+                _write_zarr(corrected, out_path, geometry, name, sched, window, bar)
             else:
-                with (
-                    atomic_path(out_path) as tmp,
-                    FrameWriter(tmp, "tiff", name, geometry.um_per_px, expected_bytes=out_bytes) as writer,
-                ):
-                    for j in range(0, n_chunks, window):
-                        last = min(n_chunks - 1, j + window - 1)
-                        lo, hi = int(starts[j]), int(starts[last] + corrected.chunks[0][last])
-                        block = corrected[lo:hi].compute(scheduler=sched)
-                        for frame in block:
-                            writer.write(frame)
-                        bar.advance(min(window, n_chunks - j), len(block))
-                        del block
-                    if writer.n != out_shape[0]:
-                        raise OutputError(f"{out_path}: {writer.n} of {out_shape[0]} frames were written")
+                _write_tiff(corrected, out_path, geometry, name, out_bytes, sched, window, bar)
     except OSError as exc:
         raise _os_error(out_path, exc) from None
-    write_resume_record(out_path, {**record})
-    return DaskResult(str(input_path), str(out_path), out_shape[0], n_chunks)
+    return n_chunks
+
+
+def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, bar) -> None:
+    """Each chunk written into a temporary zarr store by the worker that corrected it."""
+    import zarr
+
+    from oapcal.io.atomic import atomic_dir
+
+    out_shape = corrected.shape
+    n_chunks = len(corrected.chunks[0])
+    with atomic_dir(out_path) as tmp:
+        try:
+            z = zarr.create_array(
+                str(tmp), shape=out_shape, chunks=(corrected.chunks[0][0], *out_shape[1:]),
+                dtype=corrected.dtype, overwrite=True,
+            )  # fmt: skip
+            z.attrs.update(
+                {
+                    "oapcal_calibration": name,
+                    "um_per_px": geometry.um_per_px,
+                    "axes": "TYX" + "C" * (len(out_shape) == 4),
+                }
+            )
+            drop = list(range(1, corrected.ndim))
+            written = corrected.map_blocks(
+                _write_zarr_block, str(tmp), dtype=int, chunks=((1,) * n_chunks,), drop_axis=drop
+            )
+            total = 0
+            for j in range(0, n_chunks, window):
+                counts = written[j : j + window].compute(scheduler=sched)
+                total += int(counts.sum())
+                bar.advance(len(counts), int(counts.sum()))
+        except BaseException:
+            _settle(sched)
+            raise
+        if total != out_shape[0]:
+            raise OutputError(f"{out_path}: {total} of {out_shape[0]} frames were written")
+
+
+def _write_tiff(corrected, out_path: Path, geometry, name, out_bytes: int, sched, window: int, bar) -> None:
+    """Chunks gathered in order, a window at a time, and appended to a temporary TIFF."""
+    from oapcal.io.atomic import atomic_path
+
+    n_frames = corrected.shape[0]
+    sizes = corrected.chunks[0]
+    n_chunks = len(sizes)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int)
+    with (
+        atomic_path(out_path) as tmp,
+        FrameWriter(tmp, "tiff", name, geometry.um_per_px, expected_bytes=out_bytes) as writer,
+    ):
+        for j in range(0, n_chunks, window):
+            last = min(n_chunks - 1, j + window - 1)
+            lo, hi = int(starts[j]), int(starts[last] + sizes[last])
+            block = corrected[lo:hi].compute(scheduler=sched)
+            for frame in block:
+                writer.write(frame)
+            bar.advance(min(window, n_chunks - j), len(block))
+            del block
+        if writer.n != n_frames:
+            raise OutputError(f"{out_path}: {writer.n} of {n_frames} frames were written")
 
 
 def _os_error(out_path: Path, exc: OSError) -> OutputError:

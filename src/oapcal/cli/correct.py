@@ -150,9 +150,15 @@ def correct_command(
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
         return 0
     if use_dask:
-        return _correct_dask(cal, plan, out_dir, name, interp, border, workers, geometry, map_file,
-                             allow_size_mismatch, max_pixels, overwrite, scheduler, chunk_frames,
-                             dask_format, quiet, as_json)  # fmt: skip
+        from oapcal.batch.distributed import DaskSettings
+
+        settings = DaskSettings(
+            output_format=dask_format, chunk_frames=chunk_frames, interp=interp, border=border,
+            allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, scheduler=scheduler,
+            workers=workers, calibration_name=name, overwrite=overwrite, progress=not quiet and not as_json,
+            **({} if map_file else geometry),
+        )  # fmt: skip
+        return _correct_dask(cal, plan, out_dir, cmap if map_file else None, map_file, settings, as_json)
     from oapcal.batch.stack import correct_stack
 
     report = correct_stack(
@@ -222,9 +228,9 @@ def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels):
     return cmap
 
 
-def _correct_dask(cal, plan, out_dir, name, interp, border, workers, geometry, map_file,
-                  allow_size_mismatch, max_pixels, overwrite, scheduler, chunk_frames, dask_format,
-                  quiet, as_json):  # fmt: skip
+def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json):
+    """Correct each planned stack with Dask on one scheduler; ``cmap`` is the --map or None
+    (a map built per stack size)."""
     import logging
     from pathlib import Path
 
@@ -245,16 +251,12 @@ def _correct_dask(cal, plan, out_dir, name, interp, border, workers, geometry, m
     n_failed = len(failures)
     frames = 0
     try:
-        with dask_scheduler(scheduler, workers) as session:
+        with dask_scheduler(settings.scheduler, settings.workers) as session:
             for path in files:
                 try:
                     r = correct_stack_dask(
-                        cal, path, out_dir, output_format=dask_format, chunk_frames=chunk_frames,
-                        interp=interp, border=border, map_path=map_file,
-                        allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, calibration_name=name,
-                        overwrite=overwrite, progress=not quiet and not as_json, session=session,
-                        **({} if map_file else geometry),
-                    )  # fmt: skip
+                        cal, path, out_dir, cmap, settings, map_path=map_file, session=session
+                    )
                 except (OapcalError, OSError, MemoryError) as exc:
                     n_failed += 1
                     message = str(exc)
