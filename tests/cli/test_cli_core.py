@@ -101,3 +101,10 @@ def test_library_errors_name_parameters_and_the_cli_adds_the_flag(run_cli, tmp_p
     code, _, stderr = run_cli("robustness", tmp_path / "p.csv", "--fraction", "0.001", "--trials", "2")
     assert code == 2
     assert stderr.strip().endswith("change fraction (set by --fraction)"), stderr
+
+
+def test_help_shows_no_empty_ranges(run_cli):
+    """Unbounded float options (made finite by harden) show no ``[x<=None]`` in --help."""
+    for command in (["simulate", "relay"], ["simulate", "image"], ["tolerance"], ["correct"], ["fit"]):
+        code, out, _ = run_cli(*command, "--help")
+        assert code == 0 and "None]" not in out, command

@@ -371,6 +371,13 @@ class Finite(click.FloatRange):
             self.fail(f"{value!r} is not a finite number.", param, ctx)
         return super().convert(number, param, ctx)
 
+    def _describe_range(self) -> str:
+        """The range shown in ``--help``; nothing for an unbounded option (click would
+        print ``x<=None``)."""
+        if self.min is None and self.max is None:
+            return ""
+        return super()._describe_range()
+
 
 #: Float options that may be NaN or infinite on purpose (correct's fill value for pixels
 #: outside the input).
