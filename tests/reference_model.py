@@ -6,11 +6,9 @@ version, written directly from the equations in ``docs/models.md``.  Shapes and
 broadcasting as in :mod:`oapcal.model`.
 """
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from oapcal.model import INDEX, N_PARAMS
+from oapcal.model import INDEX, N_PARAMS, InverseResult  # the result container only
 
 
 def _split(xy_u: np.ndarray, params: np.ndarray):
@@ -73,26 +71,6 @@ def jacobian_params(xy_u: np.ndarray, params: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------- the inverse
-
-
-@dataclass(frozen=True)
-class InverseResult:
-    """Result of :func:`undistort`.
-
-    Attributes
-    ----------
-    xy : (..., N, 2) undistorted points; NaN where ``converged`` is False.
-    converged : (..., N) bool, the residual ``|distort(xy) - xy_d|`` reached ``tol``
-        and the map is locally one-to-one there.
-    folded : (..., N) bool, Newton stopped where the Jacobian determinant is <= 0: the
-        fitted map folds over near this point, so no trustworthy inverse exists.
-    n_iter : number of Newton iterations taken.
-    """
-
-    xy: np.ndarray
-    converged: np.ndarray
-    folded: np.ndarray
-    n_iter: int
 
 
 def undistort(

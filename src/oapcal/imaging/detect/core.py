@@ -405,38 +405,18 @@ def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sig
         sigma = float(np.hypot(sigma_hint_px, np.sqrt(1 / 12))) * scale_ref
         swap_axes = orientation_matrix(orient)[0, 0] == 0
         bar.stage("refining triplets")
-        keep_idx, keep_xy, keep_se, nccs, sigmas = [], [], [], [], []
-        dropped = dict.fromkeys(DROP_REASONS, 0)
-        for bars in target.triplets():
-            idx = np.concatenate([4 * bars + c for c in range(4)])
-            idx.sort()
-            n_in = int(inside[idx].sum())
-            if n_in == 0:
-                bar.advance()
-                continue
-            reason, xy, se, info = _refine_triplet(
+
+        def refine(bars, idx):
+            return _refine_triplet(
                 img, warp, rects, target, bars, idx, corners_u, pred, None, polarity, sigma, u_ref,
                 max_stderr_px=max_stderr_px, ambiguity_ratio=ambiguity_ratio, swap_axes=swap_axes,
                 masks=masks,
             )  # fmt: skip
-            bar.advance()
-            if reason is not None:
-                dropped[reason] += n_in
-                continue
-            nccs.append(info["ncc"])
-            sigmas.append(info["sigma"])
-            ok = _inside(xy, w, h, m + KEEP_MARGIN_EXTRA_PX)
-            dropped["outside"] += int((inside[idx] & ~ok).sum())
-            for k, i in enumerate(idx):
-                if ok[k] and inside[i]:
-                    keep_idx.append(i)
-                    keep_xy.append(xy[k])
-                    keep_se.append(se[k])
+
+        keep_idx, keep_xy, keep_se, dropped, infos = _refine_triplets(target, inside, w, h, m, refine, bar)
+        nccs = [info["ncc"] for info in infos]
+        sigmas = [info["sigma"] for info in infos]
         bar.stage("consistency check")
-        order = np.argsort(keep_idx)
-        keep_idx = np.asarray(keep_idx, int)[order]
-        keep_xy = np.asarray(keep_xy, float).reshape(-1, 2)[order]
-        keep_se = np.asarray(keep_se, float)[order]
         width_px = target.corner_width_um[keep_idx] / u_ref
         check = check_consistency(corners_u[keep_idx], keep_xy, width_px, consistency_model)
         bar.advance()
@@ -503,6 +483,44 @@ def _model_boxes(target, source, u_ref, size, orient, near_um=None):
         grow = 0.15 * (masks[:, 2:] - masks[:, :2]).max(axis=1, keepdims=True) + 1.0
         masks = np.concatenate([masks[:, :2] - grow, masks[:, 2:] + grow], axis=1)
     return rects, masks
+
+
+def _refine_triplets(target, inside, w, h, m, refine, bar):
+    """Refine every triplet with a corner expected ``inside`` the image (margin ``m``):
+    ``refine(bars, idx)`` returns ``(reason, xy, se, info)`` for its corner indices ``idx``.
+
+    Returns the kept corner indices, positions and standard errors (sorted by index), the
+    dropped corners by reason and the ``info`` of every refined triplet."""
+    keep_idx, keep_xy, keep_se, infos = [], [], [], []
+    dropped = dict.fromkeys(DROP_REASONS, 0)
+    for bars in target.triplets():
+        idx = np.concatenate([4 * bars + c for c in range(4)])
+        idx.sort()
+        n_in = int(inside[idx].sum())
+        if n_in == 0:
+            bar.advance()
+            continue
+        reason, xy, se, info = refine(bars, idx)
+        bar.advance()
+        if reason is not None:
+            dropped[reason] += n_in
+            continue
+        infos.append(info)
+        ok = _inside(xy, w, h, m + KEEP_MARGIN_EXTRA_PX)
+        dropped["outside"] += int((inside[idx] & ~ok).sum())
+        for k, i in enumerate(idx):
+            if ok[k] and inside[i]:
+                keep_idx.append(i)
+                keep_xy.append(xy[k])
+                keep_se.append(se[k])
+    order = np.argsort(keep_idx)
+    return (
+        np.asarray(keep_idx, int)[order],
+        np.asarray(keep_xy, float).reshape(-1, 2)[order],
+        np.asarray(keep_se, float)[order],
+        dropped,
+        infos,
+    )
 
 
 def _inside(xy, w, h, m):
@@ -673,34 +691,14 @@ def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, 
     inside = np.isfinite(pred).all(axis=1) & (pred[:, 0] >= m) & (pred[:, 0] <= w - 1 - m)
     inside &= (pred[:, 1] >= m) & (pred[:, 1] <= h - 1 - m)
     n_expected = int(inside.sum())
-    keep_idx, keep_xy, keep_se = [], [], []
-    dropped = dict.fromkeys(DROP_REASONS, 0)
-    for bars in target.triplets():
-        idx = np.concatenate([4 * bars + c for c in range(4)])
-        idx.sort()
-        n_in = int(inside[idx].sum())
-        if n_in == 0:
-            bar.advance()
-            continue
-        reason, xy, se, _ = _refine_triplet(
+
+    def refine(bars, idx):
+        return _refine_triplet(
             img, warp, rects, target, bars, idx, corners_u, pred, a, b, sigma, um_per_px,
             max_stderr_px=max_stderr_px, ambiguity_ratio=ambiguity_ratio, swap_axes=swap_axes, masks=masks,
         )  # fmt: skip
-        bar.advance()
-        if reason is not None:
-            dropped[reason] += n_in
-            continue
-        ok = _inside(xy, w, h, m + KEEP_MARGIN_EXTRA_PX)
-        dropped["outside"] += int((inside[idx] & ~ok).sum())
-        for k, i in enumerate(idx):
-            if ok[k] and inside[i]:
-                keep_idx.append(i)
-                keep_xy.append(xy[k])
-                keep_se.append(se[k])
-    order = np.argsort(keep_idx)
-    keep_idx = np.asarray(keep_idx, int)[order]
-    keep_xy = np.asarray(keep_xy, float).reshape(-1, 2)[order]
-    keep_se = np.asarray(keep_se, float)[order]
+
+    keep_idx, keep_xy, keep_se, dropped, _ = _refine_triplets(target, inside, w, h, m, refine, bar)
     width_px = target.corner_width_um[keep_idx] / um_per_px
     check = check_consistency(corners_u[keep_idx], keep_xy, width_px, consistency_model)
     common = dict(
