@@ -187,13 +187,14 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
     # 8. the report
     if report:
         start("report")
+        from oapcal.io.results import load_robustness, load_selection
         from oapcal.report import build_report, write_report
-        from oapcal.report.inputs import read_robustness, read_selection
 
         html_text, _ = build_report(
             cal, points=(detection.xy_u, detection.xy_d), image=image.image.astype(float),
-            image_name="distorted.png", selection=read_selection(files["model selection"]),
-            robustness=read_robustness(files["robustness"]) if rob is not None else None,
+            image_name="distorted.png", selection=load_selection(files["model selection"]),
+            robustness=load_robustness(files["robustness"]) if rob is not None else None,
+            selection_source=files["model selection"], robustness_source=files.get("robustness"),
             title="oapcal demo: setup 1",
         )  # fmt: skip
         files["report"] = out / "report.html"

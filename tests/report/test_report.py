@@ -12,6 +12,9 @@ from oapcal.calibration import calibrate
 from oapcal.imaging.bars import bar_target, demo_layout
 from oapcal.io.calibration import save_calibration
 from oapcal.io.points import write_point_pairs
+from oapcal.io.results import save_robustness, save_selection
+from oapcal.model import bits_from_mask, names_from_mask, parse_model
+from oapcal.select import ModelRobustness, ModelScore, Robustness, Selection
 from oapcal.synthetic import EXAMPLE_TRUTH, synthetic_pairs
 
 # A half-size version of the example distortion, centred on a 320 x 240 frame.
@@ -30,24 +33,31 @@ def inputs(tmp_path_factory):
     image, _ = bar_target((240, 320), demo_layout((240, 320), bar=8), sigma=1.1, low=30, high=220,
                           params=TRUTH, noise=1.0, seed=4)  # fmt: skip
     cv2.imwrite(str(d / "target.png"), np.clip(np.round(image), 0, 255).astype(np.uint8))
-    selection = {"n_points": len(data.xy_u), "models": [
-        {"free": list(cal.free), "k": 8, "aicc": -10.0, "delta_aicc": 0.0, "weight": 0.9, "rss": 1.0,
-         "valid": True, "reason": ""},
-        {"free": ["k1", "c_x", "c_y", "m"], "k": 4, "aicc": 50.0, "delta_aicc": 60.0, "weight": 0.0,
-         "rss": 9.0, "valid": True, "reason": ""},
-        {"free": "full", "k": 13, "aicc": None, "valid": False, "reason": "did not converge"},
-    ]}  # fmt: skip
-    selection["models"][2]["free"] = ["k1", "k2", "p1", "p2", "s1", "s2", "s3", "s4", "x_off", "y_off", "c_x",
-                                      "c_y", "m"]  # fmt: skip
-    selection["models"][2]["aicc"] = 12.5
-    (d / "sel.json").write_text(json.dumps(selection))
-    robustness = {"models": [
-        {"free": list(cal.free), "trials": 100, "not_converged": 0, "by_reason": {},
-         "param_std": {"k1": 1e-7}, "heldout_mean_error_px": 0.31},
-        {"free": "k1,k2,p1,p2,s1,s2,s3,s4,x_off,y_off,c_x,c_y,m", "trials": 100, "not_converged": 41,
-         "by_reason": {"iteration cap": 41}, "param_std": {}, "heldout_mean_error_px": 0.5},
-    ]}  # fmt: skip
-    (d / "rob.json").write_text(json.dumps(robustness))
+
+    # the selection and robustness files as 'oapcal select --json' / 'oapcal robustness --json' write them
+    def score(spec, aicc, delta, weight, rss, reason="", code=""):
+        free = names_from_mask(parse_model(spec))
+        return ModelScore(bits=int(bits_from_mask(parse_model(spec))), free=free, k=len(free), aicc=aicc,
+                          delta_aicc=delta, weight=weight, rss=rss, mean_error=0.1, valid=not reason,
+                          reason=reason, fit_status=0 if reason else 1, reason_code=code)  # fmt: skip
+
+    nan = float("nan")
+    selection = Selection(len(data.xy_u), "experiment", "zero", (
+        score(",".join(cal.free), -10.0, 0.0, 0.9, 1.0),
+        score("k1,c_x,c_y,m", 50.0, 60.0, 0.0, 9.0),
+        score("full", nan, nan, nan, nan, "fit did not converge (iteration cap)", "not_converged"),
+    ))  # fmt: skip
+    save_selection(selection, d / "sel.json")
+
+    def trials(name, spec, not_converged, by_reason, param_std, heldout):
+        return ModelRobustness(name, names_from_mask(parse_model(spec)), 100, not_converged, by_reason,
+                               param_std, heldout, 0, 0.2, np.zeros(0, np.int64))  # fmt: skip
+
+    robustness = Robustness(len(data.xy_u), 86, 0.8, 0, "pixel", "experiment", 3.0, (
+        trials(",".join(cal.free), ",".join(cal.free), 0, {}, {"k1": 1e-7}, 0.31),
+        trials("full", "full", 41, {"iteration_cap": 41}, {}, 0.5),
+    ))  # fmt: skip
+    save_robustness(robustness, d / "rob.json")
     return d, cal
 
 
@@ -89,6 +99,8 @@ def test_report_is_self_contained_and_has_every_section(report, inputs):
     assert f"<td>{cal.residuals.mean_px:.4g}</td>" in text
     assert f"<td>{cal.residuals.mean_um:.4g}</td>" in text
     assert 'class="best"' in text and "did not converge" in text and "41.0 %" in text
+    d, _ = inputs
+    assert f"From {d / 'sel.json'}." in text and f"From {d / 'rob.json'}." in text
     assert "@media print" in text
 
 
@@ -139,7 +151,7 @@ def test_esf_command_json_and_plot(run_cli, tmp_path):
         ),
         (
             ["report", "{tmp}/calib.json", "--robustness", "{tmp}/rob.json", "--out", "{tmp}/r.html"],
-            "models[0]: missing field 'not_converged'",
+            "field 'models.paper': 'not_converged' is a required property",
         ),
         (
             ["report", "{tmp}/calib.json", "--image", "{tmp}/bad.csv", "--out", "{tmp}/r.html"],
@@ -154,7 +166,11 @@ def test_user_errors_exit_2_one_line_nothing_written(run_cli, tmp_path, inputs, 
     cv2.imwrite(str(tmp_path / "flat.png"), np.full((40, 60), 9, np.uint8))
     (tmp_path / "bad.csv").write_text("x0,y0,x1,y1\n1,2,3,ten\n")
     (tmp_path / "out.csv").write_text("x0,y0,x1,y1\n50,2,70,30\n")
-    (tmp_path / "rob.json").write_text(json.dumps([{"free": ["k1", "m"], "trials": 3}]))
+    rob = json.loads((d / "rob.json").read_text())
+    rob["models"] = {
+        "paper": {k: v for k, v in next(iter(rob["models"].values())).items() if k != "not_converged"}
+    }
+    (tmp_path / "rob.json").write_text(json.dumps(rob))
     before = sorted(p.name for p in tmp_path.iterdir())
     code, _, err = run_cli(*(a.format(tmp=tmp_path) for a in args))
     assert code == 2, err

@@ -57,8 +57,8 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
             param_hint="--expected-ratios",
         ) from None
     from oapcal.io.calibration import load_calibration
+    from oapcal.io.results import load_robustness, load_selection
     from oapcal.report import build_report, write_report
-    from oapcal.report.inputs import read_robustness, read_selection
 
     cal = load_calibration(calib)
     pairs = load_pairs(points) if points else None
@@ -80,13 +80,14 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
         from oapcal.io.calibration import check_model_region
 
         check_model_region(cal, (img.shape[1], img.shape[0]), source=calib)
-    sel = read_selection(selection) if selection else None
-    rob = read_robustness(robustness) if robustness else None
+    sel = load_selection(selection) if selection else None
+    rob = load_robustness(robustness) if robustness else None
     bar, update = progress_bar("report")
     with bar:
         html_text, data = build_report(
             cal, points=None if pairs is None else (pairs.xy_u, pairs.xy_d), image=img, image_name=image,
-            selection=sel, robustness=rob, expected_ratios=ratios, title=title, progress=update,
+            selection=sel, robustness=rob, selection_source=selection, robustness_source=robustness,
+            expected_ratios=ratios, title=title, progress=update,
         )  # fmt: skip
     write_report(out, html_text)
     if as_json:

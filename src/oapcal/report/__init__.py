@@ -10,7 +10,10 @@ is given, a :class:`ReportContent`:
 * with an image of a bar target, the image corrected, the edge straightness and
   aspect-ratio checks before and after (:mod:`oapcal.imaging.checks`), and the edge
   spread functions of the corrected image (:mod:`oapcal.imaging.esf`);
-* model-selection and robustness results, to be tabulated.
+* model-selection and robustness results (the :class:`~oapcal.select.Selection` and
+  :class:`~oapcal.subsampling.Robustness` of the library, or of their files read with
+  :func:`oapcal.io.results.load_selection` / :func:`~oapcal.io.results.load_robustness`),
+  to be tabulated.
 
 :func:`render_report` draws the figures (the distortion field among them) and writes the
 page; :func:`build_report` does both.  :func:`write_report` writes the page atomically.
@@ -21,13 +24,19 @@ oapcal imports this package.
 from __future__ import annotations
 
 import datetime as _dt
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from oapcal.report import html as H
+
+if TYPE_CHECKING:
+    from oapcal.select import Selection
+    from oapcal.subsampling import Robustness
 
 #: ``progress(done, total, label)``: ``done`` steps of ``total`` finished, ``label`` the next.
 Progress = Callable[[int, int, str], None]
@@ -68,7 +77,9 @@ class ReportContent:
     landmarks when given (``vectors`` their :class:`~oapcal.imaging.checks.ResidualVectors`)
     else the calibration's; ``uncertainty`` the
     :class:`~oapcal.uncertainty.UncertaintyMap`; ``image`` the :class:`ImageAnalysis` or
-    None; ``selection`` / ``robustness`` the dicts of :mod:`oapcal.report.inputs` or None.
+    None; ``selection`` / ``robustness`` the :class:`~oapcal.select.Selection` and
+    :class:`~oapcal.subsampling.Robustness` or None, ``selection_source`` /
+    ``robustness_source`` where they came from (a file name), shown under their tables.
     """
 
     calibration: object
@@ -77,8 +88,10 @@ class ReportContent:
     vectors: object | None
     uncertainty: object
     image: ImageAnalysis | None = None
-    selection: dict | None = None
-    robustness: dict | None = None
+    selection: Selection | None = None
+    robustness: Robustness | None = None
+    selection_source: str | None = None
+    robustness_source: str | None = None
 
     @property
     def data(self) -> ReportData:
@@ -149,8 +162,10 @@ def compute_report(
     *,
     points=None,
     image: np.ndarray | None = None,
-    selection: dict | None = None,
-    robustness: dict | None = None,
+    selection: Selection | None = None,
+    robustness: Robustness | None = None,
+    selection_source: str | None = None,
+    robustness_source: str | None = None,
     expected_ratios=(5.0, 1.0),
     progress: Progress | None = None,
 ) -> ReportContent:
@@ -175,7 +190,11 @@ def compute_report(
     analysis = None
     if image is not None:
         analysis = analyse_image(cal, image, shape, tuple(expected_ratios), step)
-    return ReportContent(cal, shape, residuals, vectors, umap, analysis, selection, robustness)
+    return ReportContent(
+        cal, shape, residuals, vectors, umap, analysis, selection, robustness,
+        None if selection_source is None else str(selection_source),
+        None if robustness_source is None else str(robustness_source),
+    )  # fmt: skip
 
 
 def analyse_image(calibration, image: np.ndarray, shape, expected_ratios, step=None) -> ImageAnalysis:
@@ -253,9 +272,12 @@ def render_report(
         step("edge spread functions")
         sections.append(H.section("Edge spread functions", _esf_html(a.esf, plots), "esf"))
     if content.selection is not None:
-        sections.append(H.section("Model selection", _selection_html(content.selection, cal)))
+        body = _selection_html(content.selection, cal, content.selection_source)
+        sections.append(H.section("Model selection", body))
     if content.robustness is not None:
-        sections.append(H.section("Robustness", _robustness_html(content.robustness)))
+        sections.append(
+            H.section("Robustness", _robustness_html(content.robustness, content.robustness_source))
+        )
     name = cal.name or (Path(cal.source).name if cal.source else "calibration")
     page_title = title or f"oapcal calibration report: {name}"
     now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
@@ -274,8 +296,10 @@ def build_report(
     points=None,
     image: np.ndarray | None = None,
     image_name: str | None = None,
-    selection: dict | None = None,
-    robustness: dict | None = None,
+    selection: Selection | None = None,
+    robustness: Robustness | None = None,
+    selection_source: str | None = None,
+    robustness_source: str | None = None,
     expected_ratios=(5.0, 1.0),
     title: str | None = None,
     progress: Progress | None = None,
@@ -285,15 +309,18 @@ def build_report(
 
     ``points`` is ``(xy_u, xy_d)`` (``(N, 2)`` each, as given to the fit; the calibration's
     normalization is applied again); ``image`` a grey distorted image of a bar target;
-    ``selection`` / ``robustness`` dicts from :mod:`oapcal.report.inputs`; ``image_name``
-    and ``title`` label the page.  ``progress(done, total, label)`` is called as each step
-    of both phases starts.
+    ``selection`` / ``robustness`` a :class:`~oapcal.select.Selection` and a
+    :class:`~oapcal.subsampling.Robustness` (of the library, or loaded from their files by
+    :mod:`oapcal.io.results`), ``selection_source`` / ``robustness_source`` the files they
+    came from; ``image_name`` and ``title`` label the page.  ``progress(done, total, label)``
+    is called as each step of both phases starts.
     """
     parts = (points is not None, image is not None)
     n_compute = _compute_steps(*parts)
     total = n_compute + _render_steps(*parts)
     content = compute_report(
         calibration, points=points, image=image, selection=selection, robustness=robustness,
+        selection_source=selection_source, robustness_source=robustness_source,
         expected_ratios=expected_ratios, progress=_within(progress, 0, total),
     )  # fmt: skip
     page = render_report(
@@ -442,37 +469,45 @@ def _esf_html(esf, plots) -> str:
     return out
 
 
-def _selection_html(sel: dict, cal) -> str:
-    models = sorted(sel["models"], key=lambda m: (not m["valid"], np.inf if m["aicc"] is None else m["aicc"]))
+def _shown(value):
+    """A number of a result as the tables show it: None when it is not finite."""
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+def _selection_html(sel: Selection, cal, source: str | None = None) -> str:
+    def by_aicc(m):
+        aicc = _shown(m.aicc)
+        return (not m.valid, np.inf if aicc is None else aicc)
+
+    models = sorted(sel.models, key=by_aicc)
     shown = models[:15]
     rows, classes = [], []
     for i, m in enumerate(shown):
-        rows.append([i + 1, ", ".join(m["free"]), m.get("k"), m["aicc"], m.get("delta_aicc"), m.get("weight"),
-                     m.get("rss"), m["valid"], m["reason"]])  # fmt: skip
-        classes.append("best" if tuple(m["free"]) == tuple(cal.free) else ("dim" if not m["valid"] else ""))
-    caption = f"Models by AICc ({len(shown)} of {len(models)} shown"
-    caption += f"; {sel['n_points']} points)" if sel.get("n_points") is not None else ")"
+        numbers = [_shown(v) for v in (m.aicc, m.delta_aicc, m.weight, m.rss)]
+        rows.append([i + 1, ", ".join(m.free), int(m.k), *numbers, bool(m.valid), m.reason])
+        classes.append("best" if tuple(m.free) == tuple(cal.free) else ("dim" if not m.valid else ""))
+    caption = f"Models by AICc ({len(shown)} of {len(models)} shown; {sel.n_points} points)"
     out = H.table(["rank", "free parameters", "k", "AICc", "delta AICc", "weight", "RSS", "valid", "reason"],
                   rows, caption, classes)  # fmt: skip
     return out + H.paragraph(
-        f"From {sel.get('source', 'the selection file')}. The highlighted row is this calibration's model."
+        f"From {source or 'the selection file'}. The highlighted row is this calibration's model."
     )
 
 
-def _robustness_html(rob: dict) -> str:
+def _robustness_html(rob: Robustness, source: str | None = None) -> str:
     rows, cells = [], []
-    for m in rob["models"]:
-        trials, nc = m["trials"], m["not_converged"]
+    for m in rob.models:
+        trials, nc = int(m.trials), int(m.not_converged)
         share = 100.0 * nc / trials if trials else float("nan")
-        reasons = ", ".join(f"{k}: {v}" for k, v in m["by_reason"].items()) or "-"
-        stds = ", ".join(f"{k} {H.fmt(v, 2)}" for k, v in m["param_std"].items()) or "-"
-        rows.append([m["name"] or ", ".join(m["free"]), trials, nc, f"{share:.1f} %", reasons,
-                     m["heldout_mean_error_px"], stds])  # fmt: skip
+        reasons = ", ".join(f"{k}: {v}" for k, v in m.by_reason.items()) or "-"
+        stds = ", ".join(f"{k} {H.fmt(_shown(v), 2)}" for k, v in m.param_std.items()) or "-"
+        rows.append([m.name or ", ".join(m.free), trials, nc, f"{share:.1f} %", reasons,
+                     _shown(m.heldout_mean_error), stds])  # fmt: skip
         cells.append(["", "", "bad" if nc else "", "bad" if nc else "", "", "", ""])
     out = H.table(["model", "trials", "not converged", "share", "by reason", "held-out mean error [px]",
                    "parameter std over trials"], rows, "Refits on random subsets of the points",
                   cell_classes=cells)  # fmt: skip
-    return out + H.paragraph(f"From {rob.get('source', 'the robustness file')}.")
+    return out + H.paragraph(f"From {source or 'the robustness file'}.")
 
 
 # ------------------------------------------------------------------------- the demo
