@@ -29,6 +29,8 @@ import os
 import numba
 import numpy as np
 
+from oapcal._relay_kernel import relay_point
+
 # Reassociation lets the compiler vectorise the sums over points; NaN and inf keep their
 # IEEE meaning (no 'nnan'/'ninf'), which the status tests rely on.
 _FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
@@ -44,8 +46,12 @@ POINT_BLOCK = 256
 #: parameter-Jacobian columns.
 VALUE, POINT_JAC, PARAM_JAC = 0, 1, 2
 
-#: Family codes of :func:`point` (the Python side: :class:`oapcal.model.ModelFamily`).
+#: Family codes of :func:`point` (the Python side: :class:`oapcal.model.ModelFamily`):
+#: Eq. (1); Eq. (1) after an in-plane rotation of the reference points (the target's
+#: pose); the physical relay (:mod:`oapcal._relay_kernel`).
 FAMILY_BC = 0
+FAMILY_BC_POSE = 1
+FAMILY_RELAY = 2
 
 
 # ---------------------------------------------------------------------- model families
@@ -120,6 +126,29 @@ def bc_inverse_start(p, xd, yd):
     return (xd - p[10]) / m - p[8], (yd - p[11]) / m - p[9]
 
 
+@numba.njit(inline="always", fastmath=_FASTMATH, **_JIT)
+def bc_pose_point(p, x, y, need, jp, j, want):
+    """Eq. (1) after rotating the reference point by ``p[13]`` degrees (counter-clockwise
+    about the origin of the fit's coordinates): the target's in-plane pose.  ``p[:13]`` are
+    Eq. (1)'s parameters, which already hold its scale (``m``) and shift (``x_o, y_o``).
+    The contract of :func:`bc_point`, with the rotation's column ``jp[:, 13, j]`` (per
+    degree) from the chain rule."""
+    th = p[13] * (np.pi / 180.0)
+    cs = np.cos(th)
+    sn = np.sin(th)
+    xr = cs * x - sn * y
+    yr = sn * x + cs * y
+    xd, yd, a, b, c, d = bc_point(p, xr, yr, need, jp, j, want)
+    if need == VALUE:
+        return xd, yd, 0.0, 0.0, 0.0, 0.0
+    if need == PARAM_JAC:
+        # d(xr, yr) / d(theta) = (-yr, xr), per radian
+        jp[0, 13, j] = (b * xr - a * yr) * (np.pi / 180.0)
+        jp[1, 13, j] = (d * xr - c * yr) * (np.pi / 180.0)
+    # the point Jacobian of Eq. (1) times the rotation's
+    return xd, yd, a * cs + b * sn, b * cs - a * sn, c * cs + d * sn, d * cs - c * sn
+
+
 @numba.njit(inline="always", **_JIT)
 def point(family, p, x, y, need, jp, j, want):
     """The model of ``family`` at one point (see :func:`bc_point` for the contract).
@@ -128,6 +157,12 @@ def point(family, p, x, y, need, jp, j, want):
     """
     if family == FAMILY_BC:
         return bc_point(p, x, y, need, jp, j, want)
+    if family == FAMILY_BC_POSE:
+        return bc_pose_point(p, x, y, need, jp, j, want)
+    if family == FAMILY_RELAY:
+        # no analytic parameter columns: callers use fd_param_columns (the family's
+        # ``analytic_jacobian`` is False)
+        return relay_point(p, x, y, min(need, POINT_JAC))
     return np.nan, np.nan, np.nan, np.nan, np.nan, np.nan
 
 
@@ -136,6 +171,10 @@ def inverse_start(family, p, xd, yd):
     """Where the Newton inverse of ``family`` starts for the distorted point ``(xd, yd)``."""
     if family == FAMILY_BC:
         return bc_inverse_start(p, xd, yd)
+    if family == FAMILY_BC_POSE:
+        xr, yr = bc_inverse_start(p, xd, yd)
+        th = p[13] * (np.pi / 180.0)
+        return np.cos(th) * xr + np.sin(th) * yr, np.cos(th) * yr - np.sin(th) * xr
     return xd, yd
 
 

@@ -300,6 +300,11 @@ def fit_batch(
     for name in family.always_free:
         if not masks[:, family.param_names.index(name)].all():
             raise ModelSpecError(f"the parameter {name!r} must be free in every model")
+    for name in family.never_free:
+        if masks[:, family.param_names.index(name)].any():
+            raise ModelSpecError(
+                f"the parameter {name!r} is a constant of the {family.name} model: it cannot be fitted"
+            )
     for xy in (xy_u, xy_d):
         if xy.shape[-1:] != (2,) or xy.ndim not in (2, 3) or xy.shape[-2] != xy_u.shape[-2]:
             raise ModelSpecError(f"points must be (N, 2) or (B, N, 2), got {xy_u.shape} and {xy_d.shape}")
@@ -321,7 +326,8 @@ def fit_batch(
     p = np.broadcast_to(np.asarray(p0, dtype=float), masks.shape)
     if exps is not None:
         p = p * f**exps
-    p = kernel_array(np.where(masks, p, 0.0))
+    fixed = 0.0 if family.zero_when_fixed else p
+    p = kernel_array(np.where(masks, p, fixed))
     status = np.zeros(n_models, dtype=np.int64)
     n_iter = np.zeros(n_models, dtype=np.int64)
     cost = np.zeros(n_models)
@@ -337,7 +343,7 @@ def fit_batch(
         cov = _covariance(jtj, masks, rss_scaled, n_res)
     # Back to the data's units: p = p' * f**-e, cov = D cov' D with D = f**-e.
     back = np.ones(n_params) if exps is None else f ** (-exps)
-    params = np.where(masks, p * back, 0.0)
+    params = np.where(masks, p * back, fixed) if family.zero_when_fixed else p * back
     if cov is not None:
         cov = cov * back[None, :, None] * back[None, None, :]
     return BatchFit(masks=masks.copy(), params=params, covariance=cov, rss=rss_scaled * f * f, n=n_res,

@@ -199,7 +199,9 @@ class ModelFamily:
     parameter whether it moves the distorted ``"x"`` only, ``"y"`` only or ``"xy"``
     (the solver skips the zero halves of the Jacobian); ``analytic_jacobian`` False
     makes the solver use central differences of the point function (relative step
-    ``fd_step``).
+    ``fd_step``); ``never_free`` the parameters no model of the family fits (constants
+    of a design carried in the vector); ``zero_when_fixed``: a parameter a model does not
+    fit is 0 (Eq. 1: the term is absent) or, when False, keeps its starting value.
     """
 
     name: str
@@ -210,6 +212,8 @@ class ModelFamily:
     moves: tuple[str, ...]
     analytic_jacobian: bool = True
     fd_step: float = 1e-6
+    never_free: tuple[str, ...] = ()
+    zero_when_fixed: bool = True
 
     @property
     def n_params(self) -> int:
@@ -230,6 +234,51 @@ BROWN_CONRADY = ModelFamily(
     scale_exponents=SCALE_EXPONENTS,
     moves=("xy", "xy", "xy", "xy", "x", "x", "y", "y", "xy", "xy", "x", "y", "xy"),
 )
+
+
+#: Eq. (1) after an in-plane rotation of the reference points by ``rotation`` degrees
+#: (counter-clockwise about the origin of the fit's coordinates): with Eq. (1)'s own
+#: scale ``m`` and shift ``x_o, y_o``, the target's whole in-plane pose.  Its models are
+#: Eq. (1)'s with ``rotation`` free as well (one more parameter in AICc).
+BROWN_CONRADY_POSE = ModelFamily(
+    name="brown-conrady+rotation",
+    code=1,
+    param_names=PARAM_NAMES + ("rotation",),
+    always_free=("m", "rotation"),
+    scale_exponents=np.append(SCALE_EXPONENTS, 0.0),
+    moves=BROWN_CONRADY.moves + ("xy",),
+)
+
+#: Names of the physical relay family's parameters (:mod:`oapcal._relay_kernel` has the
+#: model): the target's pose, the relay's 20 misalignment values
+#: (:data:`oapcal.optics.misalign.PARAMETERS`), and the design's constants.
+RELAY_POSE_NAMES = ("scale", "rotation", "shift_x", "shift_y")
+RELAY_MISALIGNMENT_NAMES = (
+    "m1_tilt_x", "m1_tilt_y", "m1_decentre_x", "m1_decentre_y", "m1_clock", "m1_focal_length",
+    "m2_tilt_x", "m2_tilt_y", "m2_decentre_x", "m2_decentre_y", "m2_clock", "m2_focal_length",
+    "d1", "stop_decentre_x", "stop_decentre_y", "camera_tilt_x", "camera_tilt_y", "camera_defocus",
+    "object_tilt_x", "object_tilt_y",
+)  # fmt: skip
+RELAY_DESIGN_NAMES = ("d1_mm", "f1_mm", "f2_mm", "orientation", "stop_mm", "pixel_mm", "cx", "cy",
+                      "a11", "a12", "a21", "a22")  # fmt: skip
+
+#: The physical relay (``docs/models.md``): central differences for the parameter
+#: columns (step 1e-3 deg, mm or px: the aimed chief rays are exact to ~1e-13 mm, so a
+#: smaller step loses digits on the weakly-acting d1), fitted in the data's px.
+RELAY = ModelFamily(
+    name="relay",
+    code=2,
+    param_names=RELAY_POSE_NAMES + RELAY_MISALIGNMENT_NAMES + RELAY_DESIGN_NAMES,
+    always_free=(),
+    scale_exponents=None,
+    moves=("xy",) * (len(RELAY_POSE_NAMES) + len(RELAY_MISALIGNMENT_NAMES) + len(RELAY_DESIGN_NAMES)),
+    analytic_jacobian=False,
+    fd_step=1e-3,
+    never_free=RELAY_DESIGN_NAMES,
+    zero_when_fixed=False,
+)
+
+FAMILIES = {f.name: f for f in (BROWN_CONRADY, BROWN_CONRADY_POSE, RELAY)}
 
 
 def _kernels():
