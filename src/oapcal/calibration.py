@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal import __version__
-from oapcal.errors import InputFileError
-from oapcal.model import PARAM_NAMES, parse_model
+from oapcal.errors import DataError, InputFileError
+from oapcal.model import ModelFamily, family_of
 from oapcal.normalize import normalize
 from oapcal.stats import ResidualStats, correction_residuals
 
@@ -59,8 +59,11 @@ class FitSummary:
 class Calibration:
     """A fitted distortion model and what is known about it.
 
-    ``params`` is the ``(13,)`` vector; ``stderr`` the ``(13,)`` standard errors (NaN for
-    fixed parameters); ``covariance`` the ``k x k`` covariance over ``free``.  ``fit`` says
+    ``params`` is the parameter vector of the model family (``(13,)`` for Eq. 1, ``(14,)``
+    with the target's rotation, ``(36,)`` for the physical relay: :func:`oapcal.model.family_of`);
+    ``stderr`` its standard errors (NaN for fixed parameters); ``covariance`` the ``k x k``
+    covariance over ``free``; ``relay_design`` the nominal design a relay model was fitted
+    from (:class:`oapcal.optics.relay_model.RelayDesign` as a dict; None for Eq. 1).  ``fit`` says
     how it was fitted (:class:`FitSummary`); ``residuals`` are the paper's Table-1
     statistics of the corrected calibration points (:class:`oapcal.stats.ResidualStats`).
     """
@@ -79,14 +82,20 @@ class Calibration:
     source: str | None = None
     oapcal_version: str = __version__
     created_utc: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
+    relay_design: dict | None = None
+
+    @property
+    def family(self) -> ModelFamily:
+        """The model family of ``params``."""
+        return family_of(self.params)
 
     @property
     def mask(self) -> np.ndarray:
-        return parse_model(self.free)
+        return np.array([n in self.free for n in self.family.param_names])
 
     @property
     def params_dict(self) -> dict[str, float]:
-        return {n: float(v) for n, v in zip(PARAM_NAMES, self.params)}
+        return {n: float(v) for n, v in zip(self.family.param_names, self.params)}
 
 
 def check_model_region(
@@ -147,9 +156,14 @@ def calibrate(
     image_size: tuple[int, int] | None = None,
     name: str | None = None,
     source: str | None = None,
+    relay_design: dict | None = None,
     **fit_options,
 ) -> Calibration:
     """Fit ``model`` to reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``.
+
+    ``model`` is any spec of :func:`oapcal.fitting.fit` (Eq. 1, ``"...+rotation"``, or a
+    relay mask with ``init`` its design's vector and ``relay_design`` the design as a dict,
+    kept in the record; a relay model is fitted in px, without normalization).
 
     ``um_per_px`` is the object-space size of one unit of the reference points *as given*;
     with ``normalization="experiment"`` it is converted through the normalization scale.
@@ -159,6 +173,11 @@ def calibrate(
 
     from oapcal.fitting import fit
 
+    if relay_design is not None and normalization not in (None, "none"):
+        raise DataError(
+            f"normalization {normalization!r} cannot be used with the relay model: it fits the "
+            "target's pose itself, in px (use normalization 'none')"
+        )
     norm = normalize(normalization, xy_u, xy_d)
     result = fit(norm.xy_u, norm.xy_d, model, init=init, **fit_options)
     scale = None if um_per_px is None else float(um_per_px) / norm.scale_u
@@ -197,4 +216,5 @@ def calibrate(
         hull=hull,
         name=name,
         source=source,
+        relay_design=relay_design,
     )

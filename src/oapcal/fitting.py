@@ -36,16 +36,14 @@ import numpy as np
 
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.model import (
-    BROWN_CONRADY,
-    INDEX,
     N_PARAMS,
-    PARAM_NAMES,
     ModelFamily,
+    family_of,
     identity_params,
     kernel_array,
     names_from_mask,
     params_from_dict,
-    parse_model,
+    parse_any_model,
 )
 from oapcal.stats import information_criteria
 
@@ -94,22 +92,28 @@ class FitResult:
     message: str
     n_iter: int
 
+    @property
+    def family(self) -> ModelFamily:
+        """The model family (:func:`oapcal.model.family_of` the parameter vector)."""
+        return family_of(self.params)
+
     def value(self, name: str) -> float:
         """The fitted value of one parameter."""
-        return float(self.params[INDEX[name]])
+        return float(self.params[self.family.param_names.index(name)])
 
     @property
     def params_dict(self) -> dict[str, float]:
-        return {name: float(v) for name, v in zip(PARAM_NAMES, self.params)}
+        return {name: float(v) for name, v in zip(self.family.param_names, self.params)}
 
     @property
     def stderr_dict(self) -> dict[str, float]:
         """Standard errors of the free parameters, by name."""
-        return {name: float(self.stderr[INDEX[name]]) for name in self.free}
+        names = self.family.param_names
+        return {name: float(self.stderr[names.index(name)]) for name in self.free}
 
     @property
     def mask(self) -> np.ndarray:
-        return parse_model(self.free)
+        return np.array([name in self.free for name in self.family.param_names])
 
 
 @dataclass(frozen=True)
@@ -263,7 +267,7 @@ def fit_batch(
     xtol: float = 1e-12,
     gtol: float = 1e-12,
     scale: float | None = None,
-    family: ModelFamily = BROWN_CONRADY,
+    family: ModelFamily | None = None,
 ) -> BatchFit:
     """Fit B models at once by Levenberg-Marquardt (the one solver of oapcal).
 
@@ -294,6 +298,7 @@ def fit_batch(
     xy_u = np.asarray(xy_u, dtype=float)
     xy_d = np.asarray(xy_d, dtype=float)
     masks = kernel_array(np.atleast_2d(np.asarray(masks, dtype=bool)), bool)
+    family = family_of(masks, family)
     n_models, n_params = masks.shape
     if n_params != family.n_params:
         raise ModelSpecError(f"model masks must have {family.n_params} entries, got {n_params}")
@@ -388,7 +393,9 @@ def fit(
     init="auto",
     **options,
 ) -> FitResult:
-    """Fit one model (a spec for :func:`oapcal.model.parse_model`) to point pairs ``(N, 2)``.
+    """Fit one model (a spec for :func:`oapcal.model.parse_any_model`: Eq. 1, with
+    ``+rotation`` the target's rotation too, or a mask of another family) to point pairs
+    ``(N, 2)``.  A relay model (mask ``(36,)``) needs ``init``, its design's vector.
 
     ``init`` is as in :func:`initial_params`, or ``"auto"`` (the default): fit from both
     the ``pixel`` and the ``zero`` start and keep the converged fit with the lower RSS
@@ -399,13 +406,24 @@ def fit(
     Raises :class:`~oapcal.errors.DataError` when there are fewer points than the free
     parameters + 2; otherwise returns a :class:`FitResult` whether or not it converged.
     """
-    mask = parse_model(model)
+    mask = parse_any_model(model)
+    family = family_of(mask)
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
     check_enough_points(len(xy_u), int(mask.sum()))
-    starts = ["pixel", "zero"] if isinstance(init, str) and init == "auto" else [init]
-    p0 = np.stack([initial_params(s, xy_u, xy_d, mask) for s in starts])
-    batch = fit_batch(xy_u, xy_d, np.repeat(mask[None], len(starts), 0), p0, **options)
+    if family.zero_when_fixed:  # Eq. (1), with or without the rotation (which starts at 0)
+        starts = ["pixel", "zero"] if isinstance(init, str) and init == "auto" else [init]
+        p0 = np.stack([initial_params(s, xy_u, xy_d, mask[:N_PARAMS]) for s in starts])
+        p0 = np.pad(p0, ((0, 0), (0, family.n_params - N_PARAMS)))
+    else:  # a design-based family starts from its design's vector
+        p0 = np.asarray(init, float)
+        if isinstance(init, str) or p0.shape != (family.n_params,):
+            raise ModelSpecError(
+                f"a {family.name} model starts from its design: give init as its ({family.n_params},) "
+                "parameter vector (oapcal.optics.relay_model.relay_params)"
+            )
+        p0 = p0[None]
+    batch = fit_batch(xy_u, xy_d, np.repeat(mask[None], len(p0), 0), p0, **options)
     rss = np.where(batch.converged & np.isfinite(batch.rss), batch.rss, np.inf)
     if not np.isfinite(rss).any():
         return batch.item(0)

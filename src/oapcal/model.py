@@ -108,9 +108,37 @@ def parse_model(spec: str | Mapping | np.ndarray | tuple | list) -> np.ndarray:
     return mask
 
 
+#: A model specification ending in this adds the target's in-plane rotation to Eq. (1)
+#: (:data:`BROWN_CONRADY_POSE`): ``"paper+rotation"``.
+ROTATION_SUFFIX = "+rotation"
+
+
+def parse_any_model(spec) -> np.ndarray:
+    """The free-parameter mask of a model of any family: :func:`parse_model`'s specs
+    (Eq. 1), the same with :data:`ROTATION_SUFFIX` (``"paper+rotation"``: ``(14,)``, Eq. 1
+    with the target's rotation), or a boolean mask of any family's length (returned as
+    is).  Relay subsets are parsed by :func:`oapcal.optics.relay_model.relay_mask`.
+
+    >>> names_from_mask(parse_any_model("k1+rotation"))
+    ('k1', 'm', 'rotation')
+    """
+    if isinstance(spec, np.ndarray) and spec.dtype == bool and spec.shape != (N_PARAMS,):
+        family = family_of(spec)
+        if spec.shape != (family.n_params,):
+            sizes = ", ".join(str(n) for n in sorted(_BY_SIZE))
+            raise ModelSpecError(f"a model mask must have {sizes} entries, got shape {spec.shape}")
+        return spec.copy()
+    if isinstance(spec, str) and spec.strip().endswith(ROTATION_SUFFIX):
+        base = spec.strip()[: -len(ROTATION_SUFFIX)]
+        return np.append(parse_model(base or "paper"), True)
+    return parse_model(spec)
+
+
 def names_from_mask(mask: np.ndarray) -> tuple[str, ...]:
-    """The names of the free parameters of a mask, in :data:`PARAM_NAMES` order."""
-    return tuple(name for name, free in zip(PARAM_NAMES, np.asarray(mask, bool)) if free)
+    """The names of the free parameters of a mask, in :data:`PARAM_NAMES` order (or the
+    order of the family whose vector has the mask's length, :func:`family_of`)."""
+    mask = np.asarray(mask, bool)
+    return tuple(name for name, free in zip(family_of(mask).param_names, mask) if free)
 
 
 def mask_from_bits(bits: int | np.ndarray) -> np.ndarray:
@@ -279,6 +307,17 @@ RELAY = ModelFamily(
 )
 
 FAMILIES = {f.name: f for f in (BROWN_CONRADY, BROWN_CONRADY_POSE, RELAY)}
+_BY_SIZE = {f.n_params: f for f in FAMILIES.values()}
+
+
+def family_of(params, family: ModelFamily | None = None) -> ModelFamily:
+    """The family of a parameter vector ``(..., P)``: ``family`` if given, else the one
+    whose vector has ``P`` entries (13 Eq. 1, 14 Eq. 1 with rotation, 36 the relay; the
+    sizes are distinct, so a vector names its family).  Unknown sizes give Eq. (1), whose
+    shape check then reports them."""
+    if family is not None:
+        return family
+    return _BY_SIZE.get(int(np.shape(params)[-1]) if np.ndim(params) else -1, BROWN_CONRADY)
 
 
 def _kernels():
@@ -317,7 +356,8 @@ def _as_batches(xy: np.ndarray, params: np.ndarray, n_params: int):
     return flat(xy, xy.shape[-2:]), flat(params, (n_params,)), lead, n_items
 
 
-def _evaluate(xy_u, params, need: int, family: ModelFamily, finite_difference: bool = False):
+def _evaluate(xy_u, params, need: int, family: ModelFamily | None, finite_difference: bool = False):
+    family = family_of(params, family)
     k = _kernels()
     u, p, lead, n_items = _as_batches(xy_u, params, family.n_params)
     n = u.shape[1]
@@ -333,14 +373,12 @@ def _evaluate(xy_u, params, need: int, family: ModelFamily, finite_difference: b
 # ------------------------------------------------------------------------- forward map
 
 
-def distort(xy_u: np.ndarray, params: np.ndarray, *, family: ModelFamily = BROWN_CONRADY) -> np.ndarray:
+def distort(xy_u: np.ndarray, params: np.ndarray, *, family: ModelFamily | None = None) -> np.ndarray:
     """Eq. (1): distorted points ``(..., N, 2)`` from undistorted points ``(..., N, 2)``."""
     return _evaluate(xy_u, params, 0, family)[0]
 
 
-def jacobian_point(
-    xy_u: np.ndarray, params: np.ndarray, *, family: ModelFamily = BROWN_CONRADY
-) -> np.ndarray:
+def jacobian_point(xy_u: np.ndarray, params: np.ndarray, *, family: ModelFamily | None = None) -> np.ndarray:
     """d(x_d, y_d) / d(x_u, y_u), shape ``(..., N, 2, 2)`` (row = output, column = input)."""
     _, jpt, _, shape = _evaluate(xy_u, params, 1, family)
     return jpt.reshape(shape + (2, 2))
@@ -350,7 +388,7 @@ def jacobian_params(
     xy_u: np.ndarray,
     params: np.ndarray,
     *,
-    family: ModelFamily = BROWN_CONRADY,
+    family: ModelFamily | None = None,
     finite_difference: bool = False,
 ) -> np.ndarray:
     """d(x_d, y_d) / d(params), shape ``(..., N, 2, P)``, columns in :data:`PARAM_NAMES` order.
@@ -359,12 +397,13 @@ def jacobian_params(
     ``family.fd_step * max(|p_i|, 1)``; what the solver uses for a family without
     analytic columns).
     """
+    family = family_of(params, family)
     _, _, jpar, shape = _evaluate(xy_u, params, 2, family, finite_difference)
     return jpar.reshape(shape + (2, family.n_params))
 
 
 def jacobian_determinant(
-    xy_u: np.ndarray, params: np.ndarray, *, family: ModelFamily = BROWN_CONRADY
+    xy_u: np.ndarray, params: np.ndarray, *, family: ModelFamily | None = None
 ) -> np.ndarray:
     """``det d(x_d, y_d)/d(x_u, y_u)`` at each point, ``(..., N)``; <= 0 where the map folds."""
     jac = jacobian_point(xy_u, params, family=family)
@@ -372,12 +411,13 @@ def jacobian_determinant(
 
 
 def min_jacobian_determinant(
-    params: np.ndarray, xy_u: np.ndarray, *, family: ModelFamily = BROWN_CONRADY
+    params: np.ndarray, xy_u: np.ndarray, *, family: ModelFamily | None = None
 ) -> np.ndarray:
     """The smallest Jacobian determinant of each model ``params (B, P)`` over the points
     ``xy_u (M, 2)``, ``(B,)``: <= 0 where a model folds over among the points, NaN where a
     determinant is not finite."""
     params = kernel_array(np.atleast_2d(params))
+    family = family_of(params, family)
     out = np.empty(len(params))
     k = _kernels()
     xy = kernel_array(np.asarray(xy_u, dtype=float).reshape(-1, 2).T)
@@ -415,7 +455,7 @@ def undistort(
     tol: float = 1e-10,
     max_iter: int = 50,
     xy_start: np.ndarray | None = None,
-    family: ModelFamily = BROWN_CONRADY,
+    family: ModelFamily | None = None,
 ) -> InverseResult:
     """Correct observed points: solve ``distort(xy_u, params) = xy_d`` for ``xy_u``.
 
@@ -432,6 +472,7 @@ def undistort(
     Shapes follow :func:`distort`: ``xy_d`` ``(..., N, 2)`` with ``params`` ``(..., 13)``;
     each point is solved independently (compiled, in parallel).
     """
+    family = family_of(params, family)
     k = _kernels()
     d, p, lead, n_items = _as_batches(xy_d, params, family.n_params)
     n = d.shape[1]
@@ -455,7 +496,7 @@ def undistort(
 
 
 def correction_errors(params: np.ndarray, xy_d: np.ndarray, xy_u: np.ndarray, *, tol: float = 1e-10,
-                      max_iter: int = 50, family: ModelFamily = BROWN_CONRADY):  # fmt: skip
+                      max_iter: int = 50, family: ModelFamily | None = None):  # fmt: skip
     """Correct all points ``xy_d (N, 2)`` through each model ``params (B, P)`` (as
     :func:`undistort`) and compare with ``xy_u (N, 2)`` without storing the points.
 
@@ -465,6 +506,7 @@ def correction_errors(params: np.ndarray, xy_d: np.ndarray, xy_u: np.ndarray, *,
     """
     k = _kernels()
     params = kernel_array(np.atleast_2d(params))
+    family = family_of(params, family)
     n_items = len(params)
     rss = np.empty(n_items)
     mean_dist = np.empty(n_items)

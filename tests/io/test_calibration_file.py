@@ -27,14 +27,16 @@ def test_round_trip_is_exact(tmp_path, cal):
     assert back.fit.converged and back.fit.k == 8 and back.residuals.mean_um == cal.residuals.mean_um
     assert back.image_size == (640, 480) and back.um_per_px == 4.8
     data = json.loads(path.read_text())
-    assert data["format"] == "oapcal-calibration" and data["version"] == 1
+    assert data["format"] == "oapcal-calibration" and data["version"] == 2
+    assert data["model_family"] == "brown-conrady" and data["relay_design"] is None
     assert data["created_utc"].endswith("Z") and data["oapcal_version"]
 
 
 @pytest.mark.parametrize(
     "mutate,pattern",
     [
-        (lambda d: d.update(version=2), "field 'version' is 2"),
+        (lambda d: d.update(version=3), "field 'version' is 3"),
+        (lambda d: d.update(model_family="spline"), "field 'model_family'"),
         (lambda d: d.update(format="other"), "field 'format'"),
         (lambda d: d["params"].update(k1="abc"), r"field 'params.k1': 'abc' is not of type 'number'"),
         (lambda d: d["params"].pop("m"), r"field 'params': 'm' is a required property"),

@@ -4,8 +4,10 @@ The record itself is :class:`oapcal.calibration.Calibration` (re-exported here).
 
 Layout (``docs/file-formats.md`` has an annotated example)::
 
-    {"format": "oapcal-calibration", "version": 1, "oapcal_version": ..., "created_utc": ...,
-     "free": ["k1", ...], "params": {all 13 by name}, "stderr": {free ones by name},
+    {"format": "oapcal-calibration", "version": 2, "oapcal_version": ..., "created_utc": ...,
+     "model_family": "brown-conrady" | "brown-conrady+rotation" | "relay",
+     "relay_design": {the nominal relay of a relay model} or null,
+     "free": ["k1", ...], "params": {all of the family's by name}, "stderr": {free ones by name},
      "covariance": [[...]]  (free parameters, in "free" order),
      "fit": {"n_points", "n_residuals", "k", "rss", "aic", "aicc", "bic", "converged",
              "status", "message", "n_iter", "init", "normalize"},
@@ -15,9 +17,10 @@ Layout (``docs/file-formats.md`` has an annotated example)::
      "bounds": [x_min, y_min, x_max, y_max] of the reference points, or null,
      "hull": convex hull of the reference points [[x, y], ...], or null}
 
-Non-finite numbers are written as null.  On reading, every number must be finite (NaN,
-Infinity and numbers too large for a double are refused, naming the field), the
-parameters must lie in :data:`PARAM_LIMIT` with ``m`` in :data:`M_RANGE`, ``um_per_px`` in
+Version 1 (no ``model_family``: Eq. 1) is still read.  Non-finite numbers are written as
+null.  On reading, every number must be finite (NaN, Infinity and numbers too large for
+a double are refused, naming the field), the parameters must lie in :data:`PARAM_LIMIT`
+with ``m`` in :data:`M_RANGE`, ``um_per_px`` in
 :data:`UM_PER_PX_RANGE`, each side of ``image_size`` at most :data:`MAX_IMAGE_SIDE`,
 ``bounds`` must be ordered and ``hull`` a polygon; and the model must be usable where it
 is applied: finite and not folding over (Jacobian determinant > 0) on the reference points'
@@ -39,7 +42,7 @@ from oapcal.errors import InputFileError
 from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
 from oapcal.io.textfile import read_json
-from oapcal.model import INDEX, N_PARAMS, PARAM_NAMES
+from oapcal.model import BROWN_CONRADY, FAMILIES
 
 __all__ = [
     "CHECK_GRID",
@@ -53,7 +56,10 @@ __all__ = [
 ]
 
 FORMAT = "oapcal-calibration"
-VERSION = 1
+#: Version written: 2 adds ``model_family`` and ``relay_design``; version 1 files (always
+#: Eq. 1) still load.
+VERSION = 2
+VERSIONS = (1, 2)
 
 #: Largest absolute value of any parameter (far beyond any real fit in px, um or mm).
 PARAM_LIMIT = 1e30
@@ -75,13 +81,18 @@ def calibration_to_dict(calibration: Calibration) -> dict:
         {
             "format": FORMAT,
             "version": VERSION,
+            "model_family": calibration.family.name,
+            "relay_design": calibration.relay_design,
             "oapcal_version": calibration.oapcal_version,
             "created_utc": calibration.created_utc,
             "name": calibration.name,
             "source": calibration.source,
             "free": list(calibration.free),
             "params": calibration.params_dict,
-            "stderr": {n: float(calibration.stderr[INDEX[n]]) for n in calibration.free},
+            "stderr": {
+                n: float(calibration.stderr[calibration.family.param_names.index(n)])
+                for n in calibration.free
+            },  # fmt: skip
             "covariance": np.asarray(calibration.covariance, float).tolist(),
             "fit": {k: v for k, v in dataclasses.asdict(calibration.fit).items() if v is not None},
             "residuals": calibration.residuals.to_dict(),
@@ -126,19 +137,22 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
     """A validated :class:`Calibration` from the JSON object of a calibration file."""
     validate(data, source)
     _check_numbers(data, source)
-    free = tuple(n for n in PARAM_NAMES if n in data["free"])
-    params = np.array([float(data["params"][n]) for n in PARAM_NAMES])
-    for name in PARAM_NAMES:
-        if name not in free and params[INDEX[name]] != 0.0:
-            raise InputFileError(
-                f"{source}: field 'params.{name}' is {params[INDEX[name]]:g} but {name} is not "
-                "in 'free'; fixed parameters must be 0"
-            )
-    stderr = np.full(N_PARAMS, np.nan)
+    family = _family(data)
+    names = family.param_names
+    free = tuple(n for n in names if n in data["free"])
+    params = np.array([float(data["params"][n]) for n in names])
+    if family.zero_when_fixed:
+        for i, name in enumerate(names):
+            if name not in free and params[i] != 0.0:
+                raise InputFileError(
+                    f"{source}: field 'params.{name}' is {params[i]:g} but {name} is not "
+                    "in 'free'; fixed parameters must be 0"
+                )
+    stderr = np.full(len(names), np.nan)
     for name, value in data["stderr"].items():
         if name not in free:
             raise InputFileError(f"{source}: field 'stderr.{name}': {name} is not a free parameter")
-        stderr[INDEX[name]] = np.nan if value is None else float(value)
+        stderr[names.index(name)] = np.nan if value is None else float(value)
     rows = data["covariance"]
     k = len(free)
     if len(rows) != k or any(len(row) != k for row in rows):
@@ -165,9 +179,15 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         source=data.get("source"),
         oapcal_version=data.get("oapcal_version", "unknown"),
         created_utc=data.get("created_utc", "unknown"),
+        relay_design=data.get("relay_design"),
     )
     check_model_region(cal, source=source)
     return cal
+
+
+def _family(data: dict):
+    """The model family a (validated) file names; version 1 files are Eq. (1)."""
+    return FAMILIES[data.get("model_family") or BROWN_CONRADY.name]
 
 
 def validate(data, source: str = "calibration") -> None:
@@ -181,10 +201,16 @@ def validate(data, source: str = "calibration") -> None:
             f"{source}: field 'format' is {data.get('format')!r}, expected {FORMAT!r}; "
             "is this an oapcal calibration file?"
         )
-    if data.get("version") != VERSION:
+    version = data.get("version")
+    if isinstance(version, bool) or version not in VERSIONS:
         raise InputFileError(
-            f"{source}: field 'version' is {data.get('version')!r}; this oapcal reads version "
-            f"{VERSION} calibration files"
+            f"{source}: field 'version' is {version!r}; this oapcal reads versions "
+            f"{' and '.join(str(v) for v in VERSIONS)} of calibration files"
+        )
+    if version == 1 and data.get("model_family", BROWN_CONRADY.name) != BROWN_CONRADY.name:
+        raise InputFileError(
+            f"{source}: field 'model_family' is {data.get('model_family')!r}, but version 1 files hold "
+            "Eq. (1) only; write it as version 2"
         )
     validator = jsonschema.Draft202012Validator(_schema())
     error = jsonschema.exceptions.best_match(validator.iter_errors(data))
@@ -223,14 +249,15 @@ def _check_numbers(data: dict, source: str) -> None:
                 f"{source}: field '{_where(path)}' is {value if isinstance(value, float) else 'too large'}; "
                 "calibration numbers must be finite (write null where a statistic is unknown)"
             )
-    for name in PARAM_NAMES:
+    family = _family(data)
+    for name in family.param_names:
         value = float(data["params"][name])
         if abs(value) > PARAM_LIMIT:
             raise InputFileError(
                 f"{source}: field 'params.{name}' is {value:g}, beyond +-{PARAM_LIMIT:g}; "
                 "this is not a fitted model (refit with 'oapcal fit')"
             )
-    m = float(data["params"]["m"])
+    m = float(data["params"].get("m", 1.0))
     if not M_RANGE[0] <= m <= M_RANGE[1]:
         raise InputFileError(
             f"{source}: field 'params.m' is {m:g}; the magnification m must be between "
