@@ -13,6 +13,13 @@ from oapcal.cli._common import (
     points_options,
     print_json,
 )
+from oapcal.cli._relay import (
+    RELAY_MODEL_HELP,
+    check_relay_spec,
+    design_from_options,
+    is_relay,
+    relay_design_options,
+)
 
 
 @click.command("fit")
@@ -22,7 +29,8 @@ from oapcal.cli._common import (
     "model",
     default="paper",
     show_default=True,
-    help="Free parameters: a preset (full, paper, radial) or a comma list of names.",
+    help="Free parameters: a preset (full, paper, radial) or a comma list of names; add "
+    "'+rotation' (paper+rotation) to fit the target's in-plane rotation too." + RELAY_MODEL_HELP,
 )
 @click.option("--init", "init", default="auto", show_default=True, help=INIT_HELP)
 @click.option(
@@ -49,24 +57,39 @@ from oapcal.cli._common import (
     help="Write the calibration file (JSON) here.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
-def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json):
+@relay_design_options
+def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json, relay_design):
     """Fit a distortion model to point pairs: a CSV with x_u,y_u,x_d,y_d (POINTS), or
     landmark files --distorted FILE --reference FILE (VIA, napari, BigWarp, CSV)."""
     from oapcal.calibration import calibrate
     from oapcal.io.calibration import save_calibration
-    from oapcal.model import parse_model
+    from oapcal.model import parse_any_model
 
     check_output(out, points)
     size = parse_size(image_size)
-    parse_model(model)  # a bad spec fails before the file is read
-    pairs = load_pairs(points)
-    from oapcal.fitting import check_enough_points
+    if is_relay(model):
+        check_relay_spec(model)  # a bad spec fails before the file is read
+        if normalization != "none":
+            raise click.BadParameter(
+                "the relay model fits the target's pose itself, in px: drop --normalize",
+                param_hint="--normalize",
+            )
+        design = design_from_options(relay_design)
+        pairs = load_pairs(points)
+        from oapcal.optics.relay_model import calibrate_relay
 
-    check_enough_points(len(pairs), int(parse_model(model).sum()), source=pairs.source)
-    cal = calibrate(
-        pairs.xy_u, pairs.xy_d, model, init=init, normalization=normalization,
-        um_per_px=um_per_px, image_size=size, source=pairs.source,
-    )  # fmt: skip
+        cal = calibrate_relay(pairs.xy_u, pairs.xy_d, design, model, um_per_px=um_per_px, image_size=size,
+                              source=pairs.source)  # fmt: skip
+    else:
+        parse_any_model(model)  # a bad spec fails before the file is read
+        pairs = load_pairs(points)
+        from oapcal.fitting import check_enough_points
+
+        check_enough_points(len(pairs), int(parse_any_model(model).sum()), source=pairs.source)
+        cal = calibrate(
+            pairs.xy_u, pairs.xy_d, model, init=init, normalization=normalization,
+            um_per_px=um_per_px, image_size=size, source=pairs.source,
+        )  # fmt: skip
     _check_fit_usable(cal, pairs.source)
     if out is not None:
         save_calibration(cal, out)
@@ -129,29 +152,35 @@ def fit_summary(cal) -> dict:
 
 
 def _free_index(cal):
-    from oapcal.model import INDEX
-
-    return [(INDEX[n], n) for n in cal.free]
+    names = cal.family.param_names
+    return [(names.index(n), n) for n in cal.free]
 
 
 def print_fit(cal) -> None:
     """Readable tables: parameters with errors, fit statistics, Table-1 residuals."""
     from rich.table import Table
 
-    from oapcal.model import PARAM_NAMES
-
+    family = cal.family
     out = console()
-    out.print("[bold]Fitted parameters[/bold]")
+    out.print(f"[bold]Fitted parameters[/bold] ({family.name} model)")
     table = Table()
     table.add_column("parameter")
     table.add_column("value", justify="right")
     table.add_column("std. error", justify="right")
-    for i, name in enumerate(PARAM_NAMES):
+    for i, name in enumerate(family.param_names):
+        if name in family.never_free:
+            continue
         if name in cal.free:
             table.add_row(name, f"{cal.params[i]:.6g}", f"{cal.stderr[i]:.3g}")
         else:
-            table.add_row(f"[dim]{name}[/dim]", "[dim]0 (fixed)[/dim]", "")
+            table.add_row(f"[dim]{name}[/dim]", f"[dim]{cal.params[i]:.6g} (fixed)[/dim]", "")
     out.print(table)
+    if cal.relay_design is not None:
+        from oapcal.optics.relay_model import describe
+
+        out.print("[bold]The relay as fitted[/bold]")
+        for line in describe(cal):
+            out.print("  " + line)
     f = cal.fit
     status = "converged" if f.converged else "NOT converged"
     out.print(

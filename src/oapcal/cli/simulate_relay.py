@@ -179,12 +179,19 @@ def misalignment_options(func):
 )  # fmt: skip
 @misalignment_options
 @click.option(
+    "--reference", type=click.Choice(["paraxial", "design"]), default="paraxial", show_default=True,
+    help="x_u,y_u of the CSV: the paraxial image through this (misaligned) relay, or through the "
+    "aligned design (the ideal image of the target, as an experiment's reference points are; "
+    "what 'oapcal fit --model relay' takes).",
+)  # fmt: skip
+@click.option(
     "--layout", type=click.Path(dir_okay=False), default=None,
     help="Figure of the relay in its fold plane with the frames of the misalignment conventions.",
 )  # fmt: skip
 def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,
                   image_size, beam_diameter, wavelength, spot_fields, rings, out, plot, spots,
-                  as_json, focal_length_2=None, misalignment=None, layout=None):  # fmt: skip
+                  as_json, focal_length_2=None, misalignment=None, layout=None,
+                  reference="paraxial"):  # fmt: skip
     """Trace the OAP relay: grid distortion (paraxial vs real chief rays), spots, limits."""
     from oapcal.errors import GeometrySpecError
 
@@ -227,7 +234,8 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
         with OutputSet() as outputs:  # all three or none
             if out is not None:
                 update(0, 1, "writing the grid CSV")
-                write_grid_csv(sim.grid, outputs.stage(out), units, pixel_size, size, progress=update)
+                grid = sim.grid if reference == "paraxial" else _design_reference(sim.grid)
+                write_grid_csv(grid, outputs.stage(out), units, pixel_size, size, progress=update)
             if plot is not None:
                 from oapcal.report.optics_plots import plot_grid
 
@@ -248,6 +256,16 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
     elif out != "-":
         print_summary(sim.summary)
     return 0
+
+
+def _design_reference(grid):
+    """``grid`` with its paraxial points ``xy_u`` those of the aligned design (no offset)."""
+    import dataclasses
+
+    from oapcal.optics.relay import apply_matrix, paraxial_matrix
+
+    design = grid.relay.with_misalignment(None)
+    return dataclasses.replace(grid, xy_u=apply_matrix(paraxial_matrix(design), grid.xy_obj))
 
 
 def _parse_point(text: str) -> tuple[float, float]:
