@@ -71,7 +71,9 @@ def run_demo(
 
     final = Path(out_dir)
     if final.exists() and not final.is_dir():
-        raise OutputError(f"{out_dir}: exists and is not a directory; choose another --out-dir")
+        raise OutputError(
+            f"{out_dir}: exists and is not a directory; choose another out_dir", param="out_dir"
+        )
     created = not final.exists()
     final.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=".oapcal-demo-", dir=final))

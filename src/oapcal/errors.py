@@ -13,14 +13,15 @@ class OapcalError(ValueError):
     """Base class of every user-facing input error in oapcal.
 
     Messages name Python parameters, not command-line flags; ``param`` names the parameter
-    at fault (when one is), and the command line adds the flag that sets it.
+    at fault (when one is; a tuple when the message offers several), and the command line
+    adds the flag that sets each.
 
     >>> err = DataError("fraction must lie strictly between 0 and 1, got 1.5", param="fraction")
     >>> str(err), err.param
     ('fraction must lie strictly between 0 and 1, got 1.5', 'fraction')
     """
 
-    def __init__(self, *args, param: str | None = None):
+    def __init__(self, *args, param: str | tuple[str, ...] | None = None):
         super().__init__(*args)
         self.param = param
 

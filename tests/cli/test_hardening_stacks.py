@@ -339,7 +339,8 @@ def test_a_scheduler_that_is_not_one_is_refused(run_cli, tmp_path, small_calib, 
     finally:
         close()
     assert code == 2, err
-    assert f"--scheduler {address}" in err and "MemoryError" not in err and "Traceback" not in err
+    assert f"scheduler {address}" in err and "(set by --scheduler)" in err
+    assert "MemoryError" not in err and "Traceback" not in err
     assert err.count("oapcal: error") == 1  # connected once for the batch, not per file
     assert elapsed < 60  # a hang would never return; this bounds nothing else
 
@@ -678,6 +679,9 @@ def test_per_file_geometry_errors_name_the_file(run_cli, tmp_path, small_calib):
                            "--out-size", "60000x60000")  # fmt: skip
     assert code == 4, err
     assert err.startswith(f"oapcal: error: {tmp_path / 'f.tif'}: the output would be 60000x60000 px")
+    # the library names its parameters, the command line the options that set them
+    assert err.rstrip().endswith("a smaller out_size, a coarser um_per_px or another extent "
+                                 "(set by --out-size, --um-per-px, --extent)")  # fmt: skip
 
 
 def test_single_file_outputs_remove_what_a_killed_run_left(run_cli, tmp_path, calib):

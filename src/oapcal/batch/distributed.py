@@ -84,7 +84,9 @@ def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_P
 
     path = Path(path)
     if chunk_frames < 1:
-        raise InputFileError(f"{path}: --chunk-frames must be at least 1, got {chunk_frames}")
+        raise InputFileError(
+            f"{path}: chunk_frames must be at least 1, got {chunk_frames}", param="chunk_frames"
+        )
     if path.suffix.lower() == ZARR_SUFFIX:
         import zarr
 
@@ -103,7 +105,8 @@ def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_P
             raise InputFileError(f"{path}: the zarr array is empty (shape {z.shape})")
         if shape[1] * shape[2] > max_pixels:
             raise InputFileError(
-                f"{path}: frames of {shape[2]}x{shape[1]} px exceed --max-pixels {max_pixels}"
+                f"{path}: frames of {shape[2]}x{shape[1]} px exceed max_pixels {max_pixels}",
+                param="max_pixels",
             )
         _check_chunks(path, shape[0], chunk_frames)
         if z.nchunks_initialized == 0:
@@ -117,7 +120,9 @@ def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_P
         check_frame(path, np.empty((1, 1) + arr.shape[3:], arr.dtype))
         return arr.rechunk({0: min(chunk_frames, shape[0]), 1: -1, 2: -1})
     if path.suffix.lower() not in TIFF_SUFFIXES:
-        raise InputFileError(f"{path}: --dask reads TIFF stacks and zarr arrays ({ZARR_SUFFIX} directories)")
+        raise InputFileError(
+            f"{path}: the Dask correction reads TIFF stacks and zarr arrays ({ZARR_SUFFIX} directories)"
+        )
     info = probe(path, max_pixels)
     check_frame(path, np.empty((1, 1) + info.frame_shape[2:], info.dtype))
     _check_chunks(path, info.n_frames, chunk_frames)
@@ -135,7 +140,8 @@ def _check_chunks(path: Path, n_frames: int, chunk_frames: int) -> None:
     if n_chunks > MAX_CHUNKS:
         raise InputFileError(
             f"{path}: {n_frames} frames in chunks of {chunk_frames} make {n_chunks} chunks, more than "
-            f"{MAX_CHUNKS}; give a larger --chunk-frames (if the frame count is genuine)"
+            f"{MAX_CHUNKS}; give a larger chunk_frames (if the frame count is genuine)",
+            param="chunk_frames",
         )
 
 
@@ -226,17 +232,20 @@ def connect_scheduler(address: str, timeout: float | None = None):
     thread = threading.Thread(target=connect, name="oapcal-connect", daemon=True)
     thread.start()
     thread.join(timeout + 1)
-    hint = "check the address (tcp://HOST:PORT of a running dask scheduler) or drop --scheduler"
+    hint = "check the address (tcp://HOST:PORT of a running dask scheduler) or leave the scheduler out"
     if thread.is_alive():
         raise InputFileError(
-            f"--scheduler {address}: no answer from a Dask scheduler within {timeout:g} s; {hint}"
+            f"scheduler {address}: no answer from a Dask scheduler within {timeout:g} s; {hint}",
+            param="scheduler",
         )
     if "error" in box:
         exc = box["error"]
         if isinstance(exc, KeyboardInterrupt):
             raise exc
         what = "not a Dask scheduler" if isinstance(exc, MemoryError) else f"{type(exc).__name__}: {exc}"
-        raise InputFileError(f"--scheduler {address}: cannot connect to a Dask scheduler ({what}); {hint}")
+        raise InputFileError(
+            f"scheduler {address}: cannot connect to a Dask scheduler ({what}); {hint}", param="scheduler"
+        )
     return box["client"]
 
 
@@ -364,7 +373,8 @@ def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
     out_path = out_dir / dask_output_name(input_path, output_format)
     if out_path.resolve() == input_path.resolve():
         raise OutputError(
-            f"{out_path}: the output would overwrite the input {input_path}; choose another --out-dir"
+            f"{out_path}: the output would overwrite the input {input_path}; choose another out_dir",
+            param="out_dir",
         )
     return out_path
 
@@ -377,7 +387,8 @@ def _open_input(calibration, input_path: Path, settings: DaskSettings):
     if cal_size and tuple(cal_size) != (cols, rows) and not settings.allow_size_mismatch:
         raise InputFileError(
             f"{input_path}: frames are {cols}x{rows} px but the calibration is for "
-            f"{cal_size[0]}x{cal_size[1]} px; give --allow-size-mismatch to correct them anyway"
+            f"{cal_size[0]}x{cal_size[1]} px; give allow_size_mismatch=True to correct them anyway",
+            param="allow_size_mismatch",
         )
     return stack
 

@@ -55,13 +55,16 @@ _GLOB_CHARS = set("*?[")
 @dataclass(frozen=True)
 class FileResult:
     """What happened to one input: ``status`` is ``corrected``, ``skipped`` (its complete
-    output already existed) or ``failed`` (``message`` says why)."""
+    output already existed) or ``failed`` (``message`` says why; ``param`` names the
+    parameter of :func:`correct_stack` that the message suggests changing, if any, as
+    :class:`~oapcal.errors.OapcalError` does)."""
 
     input: str
     output: str | None
     status: str
     frames: int = 0
     message: str = ""
+    param: str | tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -87,6 +90,14 @@ class StackReport:
             f"{self.count('corrected')} corrected ({self.frames} frames), "
             f"{self.count('skipped')} skipped (complete output exists), {self.count('failed')} failed"
         )
+
+
+def is_zarr_array(path: str | Path) -> bool:
+    """Whether the directory ``path`` is a zarr array (its suffix or its metadata file)."""
+    path = Path(path)
+    return path.is_dir() and (
+        path.suffix.lower() == ".zarr" or any((path / marker).exists() for marker in (".zarray", "zarr.json"))
+    )
 
 
 def expand_inputs(
@@ -118,13 +129,11 @@ def expand_inputs(
         if path.is_dir() and path.suffix.lower() not in suffixes:
             dirs.append(path)
             found = sorted(p for p in path.iterdir() if usable(p))
-            is_zarr = path.suffix.lower() == ".zarr" or any(
-                (path / marker).exists() for marker in (".zarray", "zarr.json")
-            )
             if not found:
                 why = (
-                    "is a zarr array, which is corrected with Dask: give --dask"
-                    if is_zarr
+                    "is a zarr array, which is corrected with Dask "
+                    "(oapcal.batch.distributed.correct_stack_dask)"
+                    if is_zarr_array(path)
                     else ("the directory holds no images")
                 )
                 failures.append(FileResult(text, None, "failed", message=f"{text}: {why}"))
@@ -256,15 +265,17 @@ class MapCache:
         if self.image_size and (cols, rows) != self.image_size and not self.allow:
             raise InputFileError(
                 f"{source}: image is {cols}x{rows} px but the calibration is for "
-                f"{self.image_size[0]}x{self.image_size[1]} px; give --allow-size-mismatch "
-                "to correct it anyway"
+                f"{self.image_size[0]}x{self.image_size[1]} px; give allow_size_mismatch=True "
+                "to correct it anyway",
+                param="allow_size_mismatch",
             )
         if self.cmap is not None:
             shape = self.cmap.input_shape
             if shape and shape != (rows, cols) and not self.allow:
                 raise InputFileError(
                     f"{source}: image is {cols}x{rows} px but the map was built for {shape[1]}x{shape[0]} "
-                    "px input; build a map for this size or give --allow-size-mismatch"
+                    "px input; build a map for this size or give allow_size_mismatch=True",
+                    param="allow_size_mismatch",
                 )
             return self.cmap
         with self._lock:
@@ -368,7 +379,9 @@ def correct_stack(
             info = probe(src, max_pixels)
             record = {"calibration": digest, "input": file_fingerprint(src), "frames": info.n_frames}
         except (OapcalError, OSError) as exc:
-            results[i] = FileResult(str(src), str(dst), "failed", message=str(exc))
+            results[i] = FileResult(
+                str(src), str(dst), "failed", message=str(exc), param=getattr(exc, "param", None)
+            )
             continue
         if dst.exists() and not overwrite and resume_complete(dst, record):
             results[i] = FileResult(str(src), str(dst), "skipped")
@@ -422,11 +435,11 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
         message = str(exc)
         if not message.startswith(str(src)):  # map and geometry errors do not know the file
             message = f"{src}: {message}"
-        return FileResult(str(src), str(dst), "failed", n, message)
+        return FileResult(str(src), str(dst), "failed", n, message, exc.param)
     except MemoryError:
         return FileResult(str(src), str(dst), "failed", n,
                           f"{src}: not enough memory to correct it; free memory or correct fewer files at "
-                          "once (--workers)")  # fmt: skip
+                          "once (fewer workers)", "workers")  # fmt: skip
     except OSError as exc:
         return FileResult(str(src), str(dst), "failed", n, _os_message(src, dst, exc))
     return FileResult(str(src), str(dst), "corrected", n)

@@ -177,10 +177,9 @@ def _flag_hint(exc, args: list[str]) -> str:
         if not isinstance(command, click.Group):
             break
         group = command
-    for option in getattr(command, "params", []):
-        if option.name == param and isinstance(option, click.Option):
-            return f" (set by {option.opts[-1] if option.opts[-1].startswith('--') else option.opts[0]})"
-    return ""
+    from oapcal.cli._common import flag_hint
+
+    return flag_hint(command, param)
 
 
 def _main(argv: list[str] | None) -> int:

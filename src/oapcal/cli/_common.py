@@ -37,6 +37,34 @@ def sanitize(text) -> str:
     return _UNSAFE.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), str(text))
 
 
+def flag_hint(command, param) -> str:
+    """`` (set by --flag)`` for the options of ``command`` whose Python names are ``param``
+    (a name or a tuple of names, as :class:`oapcal.errors.OapcalError` ``.param``); ``""``
+    when the command has none of them.
+
+    >>> @click.command()
+    ... @click.option("--um-per-px", type=float)
+    ... @click.option("--out-size")
+    ... def cmd(um_per_px, out_size): ...
+    >>> flag_hint(cmd, ("out_size", "extent", "um_per_px"))
+    ' (set by --out-size, --um-per-px)'
+    """
+    names = (param,) if isinstance(param, str) else tuple(param or ())
+    options = {p.name: p for p in getattr(command, "params", []) if isinstance(p, click.Option)}
+    flags = []
+    for name in names:
+        option = options.get(name)
+        if option is not None:
+            flags.append(option.opts[-1] if option.opts[-1].startswith("--") else option.opts[0])
+    return f" (set by {', '.join(flags)})" if flags else ""
+
+
+def with_flag_hint(message: str, param) -> str:
+    """``message`` with the flags of the running command that set ``param`` (:func:`flag_hint`)."""
+    ctx = click.get_current_context(silent=True)
+    return message + (flag_hint(ctx.command, param) if ctx is not None else "")
+
+
 def markup_safe(text) -> str:
     """:func:`sanitize` and escape Rich markup (``[bold]`` in a file name prints as is)."""
     from rich.markup import escape

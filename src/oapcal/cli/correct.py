@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, parse_size, print_json
+from oapcal.cli._common import check_output, console, parse_size, print_json, with_flag_hint
 
 GEOMETRY_HELP = (
     "Output region: 'input' (default: the input's size and undistorted coordinates), 'full' "
@@ -168,8 +168,21 @@ def correct_command(
         reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
         progress=not quiet and not as_json, **({} if cmap else geometry),
     )  # fmt: skip
-    results = [r.__dict__ for r in report.results]
+    results = [_result(r) for r in report.results]
     return _finish(results, report.summary(), report.count("failed"), as_json)
+
+
+def _result(r) -> dict:
+    """A :class:`~oapcal.batch.stack.FileResult` as the command reports it: its message
+    with the flags that set the parameters it names (a zarr array: the --dask option)."""
+    from oapcal.batch.stack import is_zarr_array
+
+    out = {k: v for k, v in r.__dict__.items() if k != "param"}
+    if r.status == "failed" and r.output is None and is_zarr_array(r.input):
+        out["message"] = f"{r.input}: is a zarr array, which is corrected with Dask: give --dask"
+    elif r.message:
+        out["message"] = with_flag_hint(r.message, r.param)
+    return out
 
 
 def _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map):
@@ -247,7 +260,7 @@ def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json):
     for logger in ("asyncio", "distributed", "tornado"):
         logging.getLogger(logger).setLevel(logging.CRITICAL)
     files, failures, outputs = plan
-    results = [f.__dict__ for f in failures]
+    results = [_result(f) for f in failures]
     n_failed = len(failures)
     frames = 0
     try:
@@ -264,6 +277,7 @@ def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json):
                         message = f"{path}: not enough memory; lower --chunk-frames or --workers"
                     elif str(path) not in message and str(out_dir) not in message:  # name the file
                         message = f"{path}: {message}"
+                    message = with_flag_hint(message, getattr(exc, "param", None))
                     results.append({"input": str(path), "output": None, "status": "failed", "frames": 0,
                                     "message": message})  # fmt: skip
                     continue

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, print_json
+from oapcal.cli._common import check_output, console, print_json, with_flag_hint
 
 #: ``auto`` and the keys of ``oapcal.imaging.usaf.ORIENTATIONS`` (written out so that this
 #: module imports only click; a test checks that they agree).
@@ -113,7 +113,7 @@ def detect_command(
             from oapcal.report.detect_plots import plot_detection
 
             plot_detection(img, det, plot, groups=groups)
-        click.echo(f"oapcal: detection failed: {det.message}", err=True)
+        click.echo(with_flag_hint(f"oapcal: detection failed: {det.message}", det.param), err=True)
         if score is not None and not as_json:
             _print_summary(summary)
         if as_json:
@@ -146,7 +146,7 @@ def _check_size(path):
     try:
         info = probe(path)
     except InputFileError as exc:
-        if "max-pixels" in str(exc):
+        if exc.param == "max_pixels":
             raise InputFileError(
                 f"{path}: too large for detection (at most {MAX_IMAGE_PIXELS} px); "
                 f"crop it to the target or bin it"

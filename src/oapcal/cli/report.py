@@ -69,12 +69,11 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
 
         try:
             img = read_image_grey(image)
-        except InputFileError as exc:  # the reader's hint names correct's --max-pixels, not ours
-            text = str(exc)
-            if "--max-pixels" not in text:
+        except InputFileError as exc:  # the reader's limit is correct's --max-pixels; report has none
+            if exc.param != "max_pixels":
                 raise
             raise InputFileError(
-                text.split("; raise --max-pixels")[0] + "; the report takes images up to that size: "
+                str(exc).split("; raise max_pixels")[0] + "; the report takes images up to that size: "
                 "crop the image to the target or bin it"
             ) from None
         from oapcal.io.calibration import check_model_region

@@ -75,7 +75,9 @@ class ModelDistortionField:
         size = image_size or calibration.image_size
         if calibration.um_per_px is None or size is None:
             raise DataError(
-                "the calibration has no um_per_px or image_size; refit it with --um-per-px and --image-size"
+                "the calibration has no um_per_px or image_size; refit it with both given "
+                "(calibrate(..., um_per_px=..., image_size=...))",
+                param="calibration",
             )
         return cls(np.asarray(calibration.params), float(calibration.um_per_px), tuple(size), 1.0)
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.model import N_PARAMS, undistort
+from oapcal.model import family_of, undistort
 
 INTERPOLATIONS = ("nearest", "linear", "cubic", "lanczos")
 EXTENTS = ("input", "full", "calibrated")
@@ -40,8 +40,8 @@ MAX_GROWTH = 16
 
 def _params_of(calibration_or_params) -> np.ndarray:
     params = np.asarray(getattr(calibration_or_params, "params", calibration_or_params), dtype=float)
-    if params.shape != (N_PARAMS,):
-        raise DataError(f"a correction map needs one parameter vector of shape ({N_PARAMS},)")
+    if params.ndim != 1 or params.shape != (family_of(params).n_params,):
+        raise DataError(f"a correction map needs one parameter vector of a model family, not {params.shape}")
     return params
 
 
@@ -128,10 +128,13 @@ def output_geometry(
         if not cal_um:
             raise DataError(
                 "an output scale in um per px needs a calibration with 'um_per_px'; "
-                "refit with 'oapcal fit --um-per-px S'"
+                "refit it with um_per_px given, or leave um_per_px out",
+                param="um_per_px",
             )
         if not um_per_px > 0:
-            raise DataError(f"the output scale must be positive, got {um_per_px} um per px")
+            raise DataError(
+                f"the output scale must be positive, got {um_per_px} um per px", param="um_per_px"
+            )
         scale = float(um_per_px) / float(cal_um)
     if out_size is not None:
         w, h = int(out_size[0]), int(out_size[1])
@@ -146,7 +149,8 @@ def output_geometry(
     if shape[0] * shape[1] > MAX_GROWTH * rows * cols:
         raise DataError(
             f"the output would be {shape[1]}x{shape[0]} px, more than {MAX_GROWTH} times the "
-            f"input's {cols}x{rows}; choose a coarser output scale (um per px) or another extent"
+            f"input's {cols}x{rows}; choose a smaller out_size, a coarser um_per_px or another extent",
+            param=("out_size", "um_per_px", "extent"),
         )
     out_um = None if not cal_um else float(cal_um) * scale
     return OutputGeometry(shape=shape, x0=x0, y0=y0, scale=scale, um_per_px=out_um)
@@ -226,7 +230,8 @@ def correction_map(
         raise DataError(
             f"the correction map for a {cols}x{rows} px output would need "
             f"{8 * rows * cols / 2**30:.3g} GiB of memory, over the {MAX_MAP_BYTES / 2**30:g} GiB "
-            "limit; choose a smaller --out-size, a coarser --um-per-px or another --extent"
+            "limit; choose a smaller out_size, a coarser um_per_px or another extent",
+            param=("out_size", "um_per_px", "extent"),
         )
     xs = geometry.x0 + geometry.scale * np.arange(cols, dtype=float)
     ys = geometry.y0 + geometry.scale * np.arange(rows, dtype=float)
@@ -234,10 +239,10 @@ def correction_map(
     out_y = np.empty((rows, cols), np.float32)
     # The model's compiled point function over the separable grid, rows in parallel.
     from oapcal import _kernels
-    from oapcal.model import BROWN_CONRADY, kernel_array
+    from oapcal.model import kernel_array
 
     block = _kernels.block_size(rows, -(-(1 << 20) // max(cols, 1)))  # threads only for > 1 Mpx
-    _kernels.run_blocks(_kernels.grid_map, rows, block, BROWN_CONRADY.code,
+    _kernels.run_blocks(_kernels.grid_map, rows, block, family_of(params).code,
                         kernel_array(params), xs, ys, out_x, out_y)  # fmt: skip
     return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
 

@@ -288,7 +288,8 @@ def check_free_space(directory: str | os.PathLike, n_bytes: int, what: str | os.
     if n_bytes > free:
         raise OutputError(
             f"{what}: the output needs {n_bytes / 2**30:.3g} GiB but {directory} has "
-            f"{free / 2**30:.3g} GiB free; free some space or choose another --out-dir"
+            f"{free / 2**30:.3g} GiB free; free some space or choose another output directory",
+            param="out_dir",
         )
 
 

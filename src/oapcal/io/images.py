@@ -73,7 +73,8 @@ def _check_pixels(path: Path, width: int, height: int, max_pixels: int) -> None:
     if width * height > max_pixels:
         raise InputFileError(
             f"{path}: {width}x{height} = {width * height} pixels per frame exceeds the limit of "
-            f"{max_pixels} (a guard against decompression bombs); raise --max-pixels if the image is genuine"
+            f"{max_pixels} (a guard against decompression bombs); raise max_pixels if the image is genuine",
+            param="max_pixels",
         )
 
 

@@ -61,12 +61,12 @@ def _check_map_header(path: Path, shape, dtype, stored: int, unpacked: int, max_
     if pixels > limit:
         raise InputFileError(
             f"{path}: the map is {shape[-1]}x{shape[-2]} px, more than the {limit} px a map for the "
-            "largest image (--max-pixels) can have; the file is not a map oapcal wrote"
+            "largest image (max_pixels) can have; the file is not a map oapcal wrote"
         )
     if unpacked > 64 * 2**20 and unpacked > MAX_MAP_RATIO * max(stored, 1):
         raise InputFileError(
             f"{path}: {stored} bytes that unpack to {unpacked} (a decompression bomb?); "
-            "write the map again with 'oapcal correct --save-map'"
+            "write the map again with save_map"
         )
     if np.dtype(dtype).kind != "f":
         raise InputFileError(f"{path}: a map must hold float arrays, got {np.dtype(dtype)}")
@@ -114,7 +114,7 @@ def load_map(path: str | Path, max_pixels: int | None = None) -> CorrectionMap:
     if suffix not in MAP_SUFFIXES:
         raise InputFileError(f"{path}: a map file must end in {', '.join(MAP_SUFFIXES)}")
     if not path.is_file():
-        raise InputFileError(f"{path}: no such map file; write one with 'oapcal correct --save-map'")
+        raise InputFileError(f"{path}: no such map file; write one with save_map")
     max_pixels = max_pixels or MAX_PIXELS
     geometry_vals = None
     input_shape = None

@@ -82,7 +82,8 @@ def _validate(data, expected: str, source: str) -> None:
     if fmt != expected:
         raise InputFileError(
             f"{source}: field 'format' is {fmt!r}, expected {expected!r}; "
-            f"is this the output of 'oapcal {expected.removeprefix('oapcal-')} --json'?"
+            f"is this a file written by save_{expected.removeprefix('oapcal-')} "
+            f"(the JSON of 'oapcal {expected.removeprefix('oapcal-')}')?"
         )
     if data.get("version") != VERSION:
         raise InputFileError(

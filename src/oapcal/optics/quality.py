@@ -91,12 +91,13 @@ def spot_diagram(relay: Relay, field_mm, beam_diameter_mm: float = 20.0, rings: 
     ok = rays.clear & np.isfinite(xy_um).all(axis=-1)
     if not ok.any():
         x, y = (float(v) for v in np.broadcast_to(field_mm, (2,)))
-        fix = "a smaller field (--field, --spot-field) or a shorter d1"
+        fix = "a smaller field (field_mm) or a shorter d1"
         if not relay.misalignment.is_zero:
             fix = "smaller misalignments, " + fix
         raise GeometrySpecError(
             f"no ray of the {float(beam_diameter_mm):g} mm beam from the field point ({x:g}, {y:g}) mm "
-            f"passes both mirrors (d1 = {relay.d1_mm:g} mm); give {fix}"
+            f"passes both mirrors (d1 = {relay.d1_mm:g} mm); give {fix}",
+            param=("field_mm", "spot_fields", "d1"),
         )
     use = xy_um[ok]
     centroid = use.mean(axis=0)

@@ -226,8 +226,10 @@ def trace_grid(relay: Relay, n: int, field_mm: float, progress: Progress | None 
             if lost
             else "the rays near the field centre"
         )
-        fix = "smaller misalignments" if not relay.misalignment.is_zero else "a smaller field (--field)"
-        raise GeometrySpecError(f"{what} miss a mirror surface or the image plane; give {fix}")
+        fix = "smaller misalignments" if not relay.misalignment.is_zero else "a smaller field (field_mm)"
+        raise GeometrySpecError(
+            f"{what} miss a mirror surface or the image plane; give {fix}", param="field_mm"
+        )
     return grid
 
 

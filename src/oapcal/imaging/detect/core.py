@@ -99,6 +99,8 @@ class Detection:
     registered model with the image; median over the triplets) describe the registration;
     ``um_per_px`` the scale of ``xy_u`` (given, or found by the pose search), ``pose`` the
     pose search's result (scale, rotation, mirror, scores of the best and rival poses).
+    ``param`` names the parameters of :func:`detect_usaf` that the message of a failed
+    detection suggests changing (``um_per_px``, ``groups``, ``orientation``), else ``()``.
     """
 
     ids: tuple[str, ...]
@@ -121,6 +123,7 @@ class Detection:
     triplets_found: int = 0
     work: dict = field(default_factory=dict)
     debug: dict = field(default_factory=dict, repr=False)
+    param: tuple[str, ...] = ()
 
     @property
     def coverage(self) -> float:
@@ -279,7 +282,7 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
         pose_info = dict(_pose_summary(pres, um_per_px), layout=layout)
         empty = _replace(empty, pose=pose_info, debug=debug, triplets_found=len(trips))
         if pres.status != 0 and um_per_px is None:
-            return _replace(empty, message=pres.message)
+            return _replace(empty, message=pres.message, param=pres.param)
         det_p = None
         init = None
         if pres.status == 0:
@@ -329,7 +332,7 @@ def _combine(dets: list) -> Detection:
     ok = [d for d in dets if d.status == 0]
     if not ok:
         reason = "; ".join(dict.fromkeys(d.message for d in dets))
-        return _replace(dets[0], message=reason)
+        return _replace(dets[0], message=reason, param=tuple(dict.fromkeys(p for d in dets for p in d.param)))
     tw = _full_target()
     width = {i: tw.bar_width[k // 4] for k, i in enumerate(tw.corner_ids)}
     for n, d1 in enumerate(ok):
@@ -596,9 +599,9 @@ def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr
     if extent.max() > 4 * max(w, h) or extent.min() < 8:
         msg = (
             f"the target was not found: at {um_per_px:g} um/px groups {target.groups[0]}-{target.groups[-1]} "
-            f"would be {extent[0]:.0f} x {extent[1]:.0f} px in a {w} x {h} px image; check --um-per-px"
+            f"would be {extent[0]:.0f} x {extent[1]:.0f} px in a {w} x {h} px image; check um_per_px"
         )
-        return _replace(empty, message=msg)
+        return _replace(empty, message=msg, param=("um_per_px",))
     if init is not None:
         return _dense_levels(
             img, target, um_per_px, init["orientation"], {}, init["rects"], init["warp"], init["polarity"],
@@ -617,14 +620,17 @@ def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr
     found = scores[best][1]
     empty = _replace(empty, orientation=best, orientation_scores=score_table)
     if found is None or found[2] < 0.2:
-        return _replace(empty, message="the target was not found (no bar triplets, no correlation with the "
-                        "rendered groups); check --groups and --um-per-px")  # fmt: skip
+        msg = (
+            "the target was not found (no bar triplets, no correlation with the rendered groups); "
+            "check groups and um_per_px"
+        )
+        return _replace(empty, message=msg, param=("groups", "um_per_px"))
     if len(ranked) > 1 and scores[ranked[1]][0] >= orientation_ratio * scores[best][0]:
         msg = (
             f"the target's orientation is ambiguous: {best} scores {scores[best][0]:.3f} and "
-            f"{ranked[1]} {scores[ranked[1]][0]:.3f}; give the orientation (--orientation)"
+            f"{ranked[1]} {scores[ranked[1]][0]:.3f}; give the orientation"
         )
-        return _replace(empty, message=msg)
+        return _replace(empty, message=msg, param=("orientation",))
     rects = target.rectangles_px(um_per_px, (w, h), best)
     s, shift, score, sign = found  # camera = s u + shift
     warp = _initial_warp(s, shift, ref_centre, rects, w, h)

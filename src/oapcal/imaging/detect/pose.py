@@ -325,6 +325,7 @@ class PoseResult:
     n_image_triplets: int
     candidates: list = field(default_factory=list)
     kind: str = "ok"  # "ok", "not_found" or "ambiguous"
+    param: tuple[str, ...] = ()  # the parameters the message suggests changing
 
 
 def search_pose(
@@ -378,8 +379,10 @@ def search_pose(
                     hyps_t.append(t[keep])
                     hyps_anchor.append(np.repeat(img.centre[i][None], keep.sum(), 0))
     if not hyps_s:
-        msg = _no_scale_message(img, um_per_px) if um_per_px is not None else "no pose fits the options given"
-        return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found")
+        if um_per_px is None:
+            return PoseResult(None, None, 1, "no pose fits the options given", {}, n_img, kind="not_found")
+        msg = _no_scale_message(img, um_per_px)
+        return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("um_per_px",))
     s = np.concatenate(hyps_s)
     lin = np.concatenate(hyps_lin)
     t = np.concatenate(hyps_t)
@@ -458,10 +461,11 @@ def search_pose(
                 f"the target's identity is ambiguous: the best pose (scale {1 / best.s:.4g} um/px, "
                 f"{len(best.matches)} triplets) scores {best.score:.1f} and {name} "
                 f"(scale {1 / rival.s:.4g} um/px, {len(rival.matches)} triplets) {rival.score:.1f}; "
-                f"give --um-per-px (to within 6 %) or list "
-                f"every group in view in --groups"
+                f"give um_per_px (to within 6 %) or list every group in view in groups"
             )
-            return PoseResult(best, rival, 1, msg, slip_scores, n_img, refined, "ambiguous")
+            return PoseResult(
+                best, rival, 1, msg, slip_scores, n_img, refined, "ambiguous", ("um_per_px", "groups")
+            )
     return PoseResult(best, runner, 0, "ok", slip_scores, n_img, refined)
 
 
@@ -495,6 +499,6 @@ def _slip_scores(best: Pose, ref, img, tree, shape, listed) -> dict:
 def _no_scale_message(img: Triplets, um_per_px) -> str:
     w = np.sort(img.width)[::-1]
     return (
-        f"no triplet of the target fits the bar triplets found at --um-per-px {um_per_px:g} "
-        f"(the widest bars found are {w[0]:.1f} px); check --um-per-px or leave it out to find the scale"
+        f"no triplet of the target fits the bar triplets found at um_per_px {um_per_px:g} "
+        f"(the widest bars found are {w[0]:.1f} px); check um_per_px or leave it out to find the scale"
     )
