@@ -16,7 +16,7 @@ fi
 stamp=.venv/.oapcal-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     .venv/bin/python -m pip install --quiet --upgrade pip
-    .venv/bin/python -m pip install --quiet -e ".[test,dask]"
+    .venv/bin/python -m pip install --quiet -e ".[test,dask,napari]"
     touch "$stamp"
 fi
 
@@ -26,6 +26,7 @@ case "$task" in
         ;;
     test)
         bash scripts/ensure-chromium.sh   # the report's browser test (skips with a reason if absent)
+        bash scripts/ensure-qt-libs.sh    # Xvfb and Qt's libraries for the napari plugin's tests (skip if absent)
         .venv/bin/ruff check src tests benchmarks
         exec .venv/bin/python -m pytest -q "$@"
         ;;

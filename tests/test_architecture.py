@@ -21,7 +21,7 @@ LAYERS = [
     {"batch"},
     {"report"},
     {"demo"},
-    {"cli", "__main__"},
+    {"cli", "__main__", "napari_plugin"},
 ]
 RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}
 
@@ -92,8 +92,16 @@ def test_the_list_of_known_violations_is_exact():
 def test_nothing_imports_the_cli_or_the_report():
     for module, target in _edges():
         top = module.split(".")[0]
-        if top not in {"cli", "__main__", "demo", "report"}:
+        if top not in {"cli", "__main__", "demo", "report", "napari_plugin"}:
             assert not target.startswith(("cli", "report")), f"{module} imports {target}"
+
+
+def test_nothing_imports_the_napari_plugin():
+    """The napari plugin is a top layer beside ``cli``: only napari loads it (its manifest)."""
+    for module, target in _edges():
+        if module.split(".")[0] != "napari_plugin":
+            assert not target.startswith("napari_plugin"), f"{module} imports {target}"
+    assert not any(t.startswith("cli") for m, t in _edges() if m.startswith("napari_plugin"))
 
 
 @pytest.mark.parametrize("module", ["model", "fitting", "select", "subsampling", "calibration", "stats"])

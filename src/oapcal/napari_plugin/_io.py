@@ -1,0 +1,115 @@
+"""The plugin's reader and writer (npe2 ``readers`` and ``writers`` contributions).
+
+* ``*.json`` written by ``oapcal fit`` (``"format": "oapcal-calibration"``): the distortion
+  field (magnitude image, vectors) and the hull, with the calibration in the layers'
+  metadata (:func:`oapcal.napari_plugin._layers.calibration_layers`);
+* ``*.csv`` / ``*.tsv`` point-pair files (``x_u, y_u, x_d, y_d``, optional ``id``): the
+  ``distorted`` and ``reference`` points layers with ``id`` as a feature;
+* writing: two points layers (one ``distorted``, one ``reference``, told apart by their
+  ``oapcal_role`` metadata or their names) paired by ``id``, through
+  :func:`oapcal.write_point_pairs` (atomic).
+
+Files that are not oapcal's (other JSON, CSVs without the pair columns) are left to other
+readers (``None``).  oapcal's own checks name the file, line and field of a bad file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from oapcal.napari_plugin._layers import (
+    DISTORTED,
+    REFERENCE,
+    ROLE,
+    calibration_layers,
+    pair_layers,
+    points_layers,
+)
+
+#: Bytes read to decide whether a file is oapcal's.
+SNIFF_BYTES = 4096
+
+
+def _is_calibration(path: Path) -> bool:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            head = fh.read(SNIFF_BYTES)
+    except (OSError, UnicodeDecodeError):
+        return False
+    return '"oapcal-calibration"' in head
+
+
+def _is_point_pairs(path: Path) -> bool:
+    try:
+        with open(path, encoding="utf-8-sig") as fh:
+            header = fh.readline()
+    except (OSError, UnicodeDecodeError):
+        return False
+    names = {h.strip() for h in header.replace("\t", ",").split(",")}
+    return {"x_u", "y_u", "x_d", "y_d"} <= names
+
+
+def napari_get_reader(path):
+    """The reader for ``path`` when it is an oapcal calibration or point-pair file, else None."""
+    if isinstance(path, list | tuple):
+        if len(path) != 1:
+            return None
+        path = path[0]
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix == ".json" and _is_calibration(p):
+        return read_calibration
+    if suffix in (".csv", ".tsv") and _is_point_pairs(p):
+        return read_point_pairs
+    return None
+
+
+def read_calibration(path) -> list[tuple]:
+    """Layers of an oapcal calibration file (module docstring)."""
+    import oapcal
+
+    path = path[0] if isinstance(path, list | tuple) else path
+    cal = oapcal.load_calibration(path)
+    return calibration_layers(cal, name=Path(path).stem)
+
+
+def read_point_pairs(path) -> list[tuple]:
+    """The ``distorted`` and ``reference`` layers of a point-pair file."""
+    import oapcal
+
+    path = path[0] if isinstance(path, list | tuple) else path
+    pairs = oapcal.read_points(path)
+    return points_layers(pairs.xy_u, pairs.xy_d, pairs.ids, source=str(path))
+
+
+def _role(meta: dict, name: str) -> str | None:
+    role = (meta or {}).get(ROLE)
+    if role in (DISTORTED, REFERENCE):
+        return role
+    lowered = name.lower()
+    if "ref" in lowered or "undist" in lowered:
+        return REFERENCE
+    if "dist" in lowered:
+        return DISTORTED
+    return None
+
+
+def write_point_pairs(path: str, layer_data: list[tuple]) -> list[str]:
+    """Write two points layers as a point-pair CSV ``id,x_u,y_u,x_d,y_d`` (module docstring)."""
+    import oapcal
+    from oapcal.errors import DataError
+
+    roles = {}
+    for data, meta, _kind in layer_data:
+        role = _role(meta.get("metadata", {}), meta.get("name", ""))
+        if role is None or role in roles:
+            raise DataError(
+                "save two points layers, one of distorted and one of reference points (named "
+                "'distorted' and 'reference', or as the oapcal widgets make them)"
+            )
+        roles[role] = (data, meta.get("features"))
+    xy_u, xy_d, ids = pair_layers(roles[DISTORTED], roles[REFERENCE])
+    if len(ids) == 0:
+        raise DataError("the two points layers share no id: nothing to save")
+    oapcal.write_point_pairs(path, xy_u, xy_d, ids=ids)
+    return [str(path)]

@@ -1,0 +1,587 @@
+"""The plugin's dock widgets (magicgui containers; ``docs/napari.md``).
+
+Each widget takes the viewer (npe2 passes it), runs its long step in a napari thread worker
+(the viewer stays responsive; a busy bar in the widget and napari's activity panel show it)
+and reports the outcome in its status line.  A failure (bad input, a target that cannot be
+found) is shown as a notification and in the status line with oapcal's one-line reason,
+never as a traceback.  ``widget.busy`` is True while a worker runs; ``widget.worker`` is the
+last one started.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from magicgui.widgets import (
+    CheckBox,
+    ComboBox,
+    Container,
+    FileEdit,
+    FloatSpinBox,
+    Label,
+    LineEdit,
+    ProgressBar,
+    PushButton,
+    SpinBox,
+    Table,
+)
+
+from oapcal.napari_plugin import _layers as L
+
+#: Models offered by *Fit & inspect*: oapcal's presets and AICc selection.
+SELECT = "select (AICc)"
+#: In camera px the origin is the image corner, not the distortion centre: selection keeps
+#: these terms free whatever it chooses (as ``oapcal demo`` does).
+FRAME_TERMS = ("x_off", "y_off", "c_x", "c_y")
+#: Step (px) of the uncertainty map the *Correct* widget shows.
+UNCERTAINTY_STEP = 4
+
+
+def _message(exc: BaseException) -> str:
+    """One line for the user: oapcal's own message, or the exception's type and text."""
+    from oapcal.errors import OapcalError
+
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    return text if isinstance(exc, OapcalError) else f"{type(exc).__name__}: {text}"
+
+
+def _layers_of(viewer, kind: str):
+    import napari.layers
+
+    cls = {"image": napari.layers.Image, "points": napari.layers.Points}[kind]
+    return [(layer.name, layer) for layer in viewer.layers if isinstance(layer, cls)]
+
+
+def _plane(layer, viewer) -> np.ndarray:
+    """The 2-D (or RGB) plane of an image layer that the viewer shows."""
+    data = layer.data
+    spatial = 3 if layer.rgb else 2
+    if data.ndim > spatial:
+        step = viewer.dims.current_step[: data.ndim - spatial]
+        data = data[tuple(int(min(max(s, 0), n - 1)) for s, n in zip(step, data.shape))]
+    return np.asarray(data)
+
+
+def _replace_layer(viewer, layer_tuple):
+    """Add a layer from a layer data tuple, replacing a layer of the same name."""
+    data, kwargs, kind = layer_tuple
+    name = kwargs.get("name")
+    if name in viewer.layers:
+        viewer.layers.remove(name)
+    return getattr(viewer, f"add_{kind}")(data, **kwargs)
+
+
+class _OapcalWidget(Container):
+    """A container with a status line, a busy bar and a thread-worker runner."""
+
+    step_name = "oapcal"
+
+    def __init__(self, napari_viewer, widgets):
+        self._status = Label(value="")
+        self._busy_bar = ProgressBar(min=0, max=0, visible=False, label="working")
+        super().__init__(widgets=[*widgets, self._busy_bar, self._status], labels=True)
+        self.viewer = napari_viewer
+        self.busy = False
+        self.worker = None
+        self.last_error: str | None = None
+        napari_viewer.layers.events.inserted.connect(self._refresh)
+        napari_viewer.layers.events.removed.connect(self._refresh)
+        napari_viewer.layers.events.reordered.connect(self._refresh)
+
+    def _refresh(self, _event=None):
+        self.reset_choices()
+
+    @property
+    def status(self) -> str:
+        return str(self._status.value)
+
+    def _set_status(self, text: str) -> None:
+        self._status.value = text
+
+    def _fail(self, message: str) -> None:
+        from napari.utils.notifications import show_warning
+
+        self.last_error = message
+        self._set_status(f"{self.step_name} failed: {message}")
+        show_warning(f"oapcal {self.step_name.lower()}: {message}")
+
+    def _run(self, what: str, func, done) -> None:
+        """Run ``func()`` in a thread worker; ``done(result)`` in the main thread after it.
+        Exceptions (and ``done``'s own) become :meth:`_fail` messages."""
+        from napari.qt.threading import create_worker
+
+        if self.busy:
+            self._set_status(f"busy: {what} waits until the running step ends")
+            return
+
+        def safe():
+            try:
+                return True, func()
+            except Exception as exc:  # shown to the user, not raised into Qt
+                return False, _message(exc)
+
+        def finish(out):
+            ok, value = out
+            try:
+                if ok:
+                    done(value)
+                else:
+                    self._fail(value)
+            except Exception as exc:
+                self._fail(_message(exc))
+            finally:
+                self.busy = False
+                self._busy_bar.visible = False
+
+        self.busy = True
+        self.last_error = None
+        self._busy_bar.visible = True
+        self._set_status(f"{what}...")
+        self.worker = create_worker(safe, _progress={"desc": f"oapcal: {what}"})
+        self.worker.returned.connect(finish)
+        self.worker.start()
+
+
+class DetectWidget(_OapcalWidget):
+    """USAF-1951 detection (:func:`oapcal.detect_usaf`, oapcal's defaults) on the shown plane
+    of an image layer; adds the ``distorted`` and ``reference`` points layers with ids."""
+
+    step_name = "Detect"
+
+    def __init__(self, napari_viewer):
+        self.image = ComboBox(label="image", choices=lambda _w: _layers_of(napari_viewer, "image"))
+        self.groups = LineEdit(label="groups", value="4-5")
+        self.um_per_px = FloatSpinBox(label="um per px (0: find)", value=0.0, min=0.0, max=1e6, step=0.1)
+        from oapcal.imaging.usaf import ORIENTATIONS
+
+        self.orient = ComboBox(label="orientation", choices=["auto", *ORIENTATIONS], value="auto")
+        self.mirror = ComboBox(label="mirror", choices=["auto", "yes", "no"], value="auto")
+        self.max_stderr_px = FloatSpinBox(label="max stderr (px)", value=0.3, min=0.01, max=10.0, step=0.05)
+        self.button = PushButton(text="Detect")
+        self.button.changed.connect(self.run)
+        super().__init__(napari_viewer, [self.image, self.groups, self.um_per_px, self.orient,
+                                         self.mirror, self.max_stderr_px, self.button])  # fmt: skip
+        self.detection = None
+
+    def run(self, _=None) -> None:
+        import oapcal
+        from oapcal.imaging.usaf import parse_groups
+
+        layer = self.image.value
+        if layer is None:
+            self._fail("open an image first (no image layer)")
+            return
+        try:
+            groups = parse_groups(self.groups.value)
+        except Exception as exc:
+            self._fail(_message(exc))
+            return
+        image = _plane(layer, self.viewer)
+        kwargs = {"um_per_px": self.um_per_px.value or None, "orientation": self.orient.value,
+                  "mirror": self.mirror.value, "max_stderr_px": self.max_stderr_px.value}  # fmt: skip
+
+        def done(det):
+            self.detection = det
+            if det.status != 0:
+                self._fail(det.message)
+                return
+            layers = L.points_layers(det.xy_u, det.xy_d, det.ids, um_per_px=det.um_per_px,
+                                     source=layer.name, extra={"stderr_px": det.stderr_px})  # fmt: skip
+            for t in layers:
+                _replace_layer(self.viewer, t)
+            self._set_status(
+                f"{len(det.ids)} of {det.n_expected} corners, {det.um_per_px:.4g} um/px, "
+                f"orientation {det.orientation}, blur {det.sigma_px:.2f} px"
+            )
+
+        self._run("detect", lambda: oapcal.detect_usaf(image, groups, **kwargs), done)
+
+
+class LabelWidget(_OapcalWidget):
+    """Label by hand: click a few corners with their ids, then let oapcal propose the rest
+    (:mod:`oapcal.napari_plugin._labelling`), optionally refined by detection at the pose the
+    clicks give; the proposal becomes the ``distorted``/``reference`` layers, which can be
+    edited (drag, delete) before fitting."""
+
+    step_name = "Label by hand"
+    LAYER = "hand labels"
+
+    def __init__(self, napari_viewer):
+        self.image = ComboBox(label="image", choices=lambda _w: _layers_of(napari_viewer, "image"))
+        self.groups = LineEdit(label="groups", value="4-5")
+        self.corner = ComboBox(label="next corner id", choices=self._ids)
+        self.um_per_px = FloatSpinBox(
+            label="um per px (0: from clicks)", value=0.0, min=0.0, max=1e6, step=0.1
+        )
+        self.refine = CheckBox(label="refine with detection", value=True)
+        self.start = PushButton(text="Start labelling")
+        self.propose = PushButton(text="Propose the other corners")
+        self.start.changed.connect(self.start_labelling)
+        self.propose.changed.connect(self.run)
+        self.corner.changed.connect(self._corner_changed)
+        self.groups.changed.connect(lambda _v: self.corner.reset_choices())
+        super().__init__(napari_viewer, [self.image, self.groups, self.corner, self.um_per_px, self.refine,
+                                         self.start, self.propose])  # fmt: skip
+        self.proposal = None
+
+    def _ids(self, _w=None):
+        import oapcal
+        from oapcal.imaging.usaf import parse_groups
+
+        try:
+            return list(oapcal.usaf_target(parse_groups(self.groups.value)).corner_ids)
+        except Exception:
+            return []
+
+    def _corner_changed(self, value) -> None:
+        if self.LAYER in self.viewer.layers and value:
+            self.viewer.layers[self.LAYER].feature_defaults["id"] = value
+
+    def start_labelling(self, _=None):
+        """The ``hand labels`` points layer in add mode; each click gets the selected id."""
+        if self.LAYER not in self.viewer.layers:
+            layer = self.viewer.add_points(
+                np.zeros((0, 2)), name=self.LAYER, features={"id": np.array([], dtype=object)},
+                face_color="magenta", size=7, text={"string": "{id}", "size": 8, "color": "magenta",
+                                                    "translation": np.array([-8.0, 0.0])},
+            )  # fmt: skip
+        layer = self.viewer.layers[self.LAYER]
+        layer.feature_defaults["id"] = self.corner.value
+        layer.events.data.connect(self._advance)
+        layer.mode = "add"
+        self.viewer.layers.selection.active = layer
+        self._set_status(f"click corner {self.corner.value}; choose the id before each click")
+        return layer
+
+    def _advance(self, event=None) -> None:
+        """After a click, select the next id not yet placed (the user may choose another)."""
+        if getattr(event, "action", None) not in (None, "added"):
+            return
+        placed = set(
+            L.layer_ids(self.viewer.layers[self.LAYER].data, self.viewer.layers[self.LAYER].features)
+        )
+        ids = self._ids()
+        if self.corner.value in ids:
+            k = ids.index(self.corner.value)
+            for i in ids[k + 1 :] + ids[:k]:
+                if i not in placed:
+                    self.corner.value = i
+                    break
+
+    def clicks(self) -> dict:
+        """The ``hand labels`` layer as id -> (x, y) image px."""
+        if self.LAYER not in self.viewer.layers:
+            return {}
+        layer = self.viewer.layers[self.LAYER]
+        ids = L.layer_ids(layer.data, layer.features)
+        return dict(zip(ids, map(tuple, L.rc_to_xy(layer.data))))
+
+    def run(self, _=None) -> None:
+        import oapcal
+        from oapcal.imaging.usaf import parse_groups
+        from oapcal.napari_plugin._labelling import propose_corners, refine_with_detection
+
+        layer = self.image.value
+        if layer is None:
+            self._fail("open an image first (no image layer)")
+            return
+        image = _plane(layer, self.viewer)
+        size = (image.shape[1], image.shape[0])
+        clicks = self.clicks()
+        refine = self.refine.value
+        um = self.um_per_px.value or None
+        groups_text = self.groups.value
+
+        def work():
+            groups = parse_groups(groups_text)
+            prop = propose_corners(clicks, size, groups, um)
+            det = None
+            if refine:
+                hints = {"um_per_px": prop.um_per_px, "orientation": prop.orientation,
+                         "mirror": "yes" if prop.mirrored else "no"}  # fmt: skip
+                det = oapcal.detect_usaf(image, groups, **hints)
+                prop = refine_with_detection(prop, det, size, groups)
+            return prop, det
+
+        def done(out):
+            prop, det = out
+            self.proposal = prop
+            source = np.where(prop.clicked, "clicked", "proposed").astype(object)
+            if det is not None and det.status == 0:
+                found = set(det.ids)
+                source = np.array(
+                    [("detected" if i in found else s) for i, s in zip(prop.ids, source)], object
+                )
+            for t in L.points_layers(prop.xy_u, prop.xy_d, prop.ids, um_per_px=prop.um_per_px,
+                                     source=layer.name, extra={"source": source}):  # fmt: skip
+                _replace_layer(self.viewer, t)
+            note = "" if det is None else (f"; detection at that pose: {det.message}" if det.status else
+                                           f"; detection at that pose found {len(det.ids)}")  # fmt: skip
+            self._set_status(
+                f"{len(prop.ids)} corners ({int(prop.clicked.sum())} clicked) from a {prop.map_kind} map, "
+                f"{prop.um_per_px:.4g} um/px, {prop.orientation}, clicks off the map by "
+                f"{prop.click_rms_px:.2g} px rms{note}; drag or delete in 'distorted', then fit"
+            )
+
+        self._run("propose", work, done)
+
+
+class FitWidget(_OapcalWidget):
+    """Fit a model (or select one by AICc) to the ``distorted``/``reference`` layers
+    (:func:`oapcal.calibrate`); show the residual vectors, the paper's Table 1, the
+    parameters and the worst landmarks."""
+
+    step_name = "Fit"
+
+    def __init__(self, napari_viewer):
+        import oapcal
+
+        points = lambda _w: _layers_of(napari_viewer, "points")  # noqa: E731
+        self.distorted = ComboBox(label="distorted", choices=points)
+        self.reference = ComboBox(label="reference", choices=points)
+        self.model = ComboBox(label="model", choices=[*oapcal.PRESETS, SELECT], value="paper")
+        self.um_per_px = FloatSpinBox(
+            label="um per px (0: from layers)", value=0.0, min=0.0, max=1e6, step=0.1
+        )
+        self.n_worst = SpinBox(label="worst landmarks", value=5, min=0, max=100)
+        self.exaggerate = FloatSpinBox(label="residual arrows x", value=20.0, min=1.0, max=1000.0)
+        self.button = PushButton(text="Fit")
+        self.button.changed.connect(self.run)
+        self.table1 = Label(label="Table 1", value="")
+        self.table1.native.setStyleSheet("font-family: monospace")
+        self.params = Table(label="parameters", value={"parameter": [], "value": [], "stderr": []})
+        self.worst_text = Label(label="worst", value="")
+        super().__init__(napari_viewer, [self.distorted, self.reference, self.model, self.um_per_px,
+                                         self.n_worst, self.exaggerate, self.button, self.table1,
+                                         self.params, self.worst_text])  # fmt: skip
+        self.calibration = None
+        self.residual_px = None
+        self.ids: list[str] = []
+        self._default_layers()
+
+    def _default_layers(self):
+        for combo, name in ((self.distorted, L.DISTORTED), (self.reference, L.REFERENCE)):
+            if name in self.viewer.layers:
+                combo.value = self.viewer.layers[name]
+
+    def _refresh(self, _event=None):
+        super()._refresh()
+        self._default_layers()
+
+    def run(self, _=None) -> None:
+        import oapcal
+
+        d_layer, r_layer = self.distorted.value, self.reference.value
+        if d_layer is None or r_layer is None or d_layer is r_layer:
+            self._fail("choose two points layers: distorted and reference (detect or label first)")
+            return
+        try:
+            xy_u, xy_d, ids = L.pair_layers(
+                (d_layer.data, d_layer.features), (r_layer.data, r_layer.features)
+            )
+        except Exception as exc:
+            self._fail(_message(exc))
+            return
+        scale = self.um_per_px.value or d_layer.metadata.get(L.SCALE) or r_layer.metadata.get(L.SCALE)
+        model = self.model.value
+        image = next((lay for lay in self.viewer.layers if lay.__class__.__name__ == "Image"), None)
+        size = None
+        if image is not None:
+            shape = image.data.shape[-3:-1] if image.rgb else image.data.shape[-2:]
+            size = (int(shape[1]), int(shape[0]))
+
+        def work():
+            if model == SELECT:
+                selection = oapcal.select_models(xy_u, xy_d, init="pixel")
+                chosen = tuple(n for n in oapcal.PARAM_NAMES if n in selection.best.free or n in FRAME_TERMS)
+            else:
+                chosen = model
+            return oapcal.calibrate(xy_u, xy_d, chosen, um_per_px=scale, image_size=size, name="napari",
+                                    source=d_layer.name)  # fmt: skip
+
+        def done(cal):
+            self.show_calibration(cal, xy_u, xy_d, ids)
+
+        self._run("fit", work, done)
+
+    def show_calibration(self, cal, xy_u, xy_d, ids) -> None:
+        """Show a calibration's residuals, Table 1, parameters and worst landmarks."""
+        self.calibration = cal
+        res = L.residual_vectors(cal, xy_u, xy_d, ids, exaggerate=self.exaggerate.value)
+        self.residual_px = res["residual_px"]
+        self.ids = list(ids)
+        for name in [lay.name for lay in self.viewer.layers if lay.name.startswith("residuals (x")]:
+            self.viewer.layers.remove(name)
+        _replace_layer(self.viewer, res["layer"])
+        worst = res["worst"][: self.n_worst.value]
+        if len(worst):
+            text = {"string": "{id}", "size": 9, "color": "red", "translation": np.array([-10.0, 0.0])}
+            _replace_layer(self.viewer, (L.xy_to_rc(xy_d[worst]), {
+                "name": "worst landmarks", "features": {"id": np.array(ids, object)[worst],
+                                                        "residual_px": res["residual_px"][worst]},
+                "symbol": "ring", "size": 18, "face_color": "transparent", "border_color": "red",
+                "text": text, "metadata": {L.CALIBRATION: cal}}, "points"))  # fmt: skip
+        self.worst_text.value = "\n".join(f"{ids[k]}: {res['residual_px'][k]:.3g} px" for k in worst)
+        self.table1.value = L.table1_text(cal.residuals)
+        names = list(cal.free)
+        self.params.value = {
+            "parameter": names,
+            "value": [f"{cal.params_dict[n]:.6g}" for n in names],
+            "stderr": [f"{s:.3g}" for s in cal.stderr[list(cal.mask.nonzero()[0])]],
+        }
+        state = "converged" if cal.fit.converged else f"did NOT converge ({cal.fit.message})"
+        self._set_status(f"{cal.fit.n_points} pairs, model {', '.join(cal.free)}: {state}; "
+                         f"mean residual {cal.residuals.mean_px:.3g} px")  # fmt: skip
+
+
+class CorrectWidget(_OapcalWidget):
+    """Correct an image or a stack (lazily, frame by frame, for stacks) with a calibration
+    (from *Fit & inspect*, a layer opened from a calibration file, or a file); show the
+    uncertainty map and the calibration hull; save the calibration."""
+
+    step_name = "Correct"
+
+    def __init__(self, napari_viewer):
+        from oapcal.imaging.remap import INTERPOLATIONS
+
+        self.image = ComboBox(label="image", choices=lambda _w: _layers_of(napari_viewer, "image"))
+        self.source = ComboBox(label="calibration", choices=self._calibrations)
+        self.file = FileEdit(label="or file", mode="r", filter="*.json", value="")
+        self.interp = ComboBox(label="interpolation", choices=list(INTERPOLATIONS), value="cubic")
+        self.show_uncertainty = CheckBox(label="uncertainty map", value=True)
+        self.show_hull = CheckBox(label="calibration hull", value=True)
+        self.button = PushButton(text="Correct")
+        self.save_path = FileEdit(label="save as", mode="w", filter="*.json", value="")
+        self.save_button = PushButton(text="Save calibration")
+        self.button.changed.connect(self.run)
+        self.save_button.changed.connect(self.save)
+        widgets = [self.image, self.source, self.file, self.interp, self.show_uncertainty, self.show_hull,
+                   self.button, self.save_path, self.save_button]  # fmt: skip
+        super().__init__(napari_viewer, widgets)
+
+    def _calibrations(self, _w=None):
+        seen, out = set(), []
+        for layer in self.viewer.layers if hasattr(self, "viewer") else []:
+            cal = layer.metadata.get(L.CALIBRATION)
+            if cal is not None and id(cal) not in seen:
+                seen.add(id(cal))
+                out.append((f"{layer.name}", cal))
+        return out
+
+    def calibration(self):
+        """The chosen calibration: the file when one is given, else the chosen layer's."""
+        import oapcal
+
+        path = str(self.file.value or "")
+        if path and path != "." and Path(path).is_file():
+            return oapcal.load_calibration(path)
+        cal = self.source.value
+        if cal is None:
+            from oapcal.errors import DataError
+
+            raise DataError("no calibration: fit one, open a calibration file, or choose a file")
+        return cal
+
+    def run(self, _=None) -> None:
+        import oapcal
+
+        layer = self.image.value
+        if layer is None:
+            self._fail("open an image first (no image layer)")
+            return
+        try:
+            cal = self.calibration()
+        except Exception as exc:
+            self._fail(_message(exc))
+            return
+        data = layer.data
+        spatial = 3 if layer.rgb else 2
+        shape = data.shape[data.ndim - spatial : data.ndim - spatial + 2]
+        interp = self.interp.value
+        want_unc, want_hull = self.show_uncertainty.value, self.show_hull.value
+
+        def work():
+            cmap = oapcal.correction_map(cal, shape)
+            if data.ndim == spatial:
+                corrected = oapcal.correct_image(np.asarray(data), cmap, interp)
+            else:
+                corrected = _lazy_stack(data, cmap, interp, spatial)
+            unc = None
+            if want_unc and cal.covariance is not None and np.size(cal.covariance):
+                from oapcal.uncertainty import uncertainty_map
+
+                unc = uncertainty_map(cal, shape, step=UNCERTAINTY_STEP)
+            return corrected, unc
+
+        def done(out):
+            corrected, unc = out
+            _replace_layer(self.viewer, (corrected, {"name": f"{layer.name} corrected", "rgb": layer.rgb,
+                                                     "colormap": None if layer.rgb else layer.colormap.name,
+                                                     "contrast_limits": layer.contrast_limits,
+                                                     "metadata": {L.CALIBRATION: cal}}, "image"))  # fmt: skip
+            if unc is not None:
+                sigma = unc.sigma_px if unc.um_per_px is None else unc.sigma_um
+                unit = "px" if unc.um_per_px is None else "um"
+                kwargs = {"name": f"uncertainty ({unit})", "colormap": "magma", "opacity": 0.6,
+                          "blending": "additive", "scale": (UNCERTAINTY_STEP, UNCERTAINTY_STEP),
+                          "metadata": {L.CALIBRATION: cal, "summary": unc.summary()}}  # fmt: skip
+                _replace_layer(self.viewer, (sigma.astype(np.float32), kwargs, "image"))
+            if want_hull:
+                hull = L.hull_layer(cal)
+                if hull is not None:
+                    _replace_layer(self.viewer, hull)
+            lazy = " (lazy: frames are corrected when shown)" if data.ndim > spatial else ""
+            self._set_status(f"corrected {layer.name}{lazy}")
+
+        self._run("correct", work, done)
+
+    def save(self, _=None) -> None:
+        """Save the chosen calibration to ``save as`` (atomically, never over the input)."""
+        import oapcal
+
+        path = str(self.save_path.value or "")
+        if not path or path == "." or Path(path).is_dir():
+            self._fail("choose a file name to save the calibration as")
+            return
+        try:
+            cal = self.calibration()
+            if (
+                str(self.file.value or "") not in ("", ".")
+                and Path(path).resolve() == Path(str(self.file.value)).resolve()
+            ):
+                self._fail(f"{path}: is the calibration file it was read from; choose another name")
+                return
+            oapcal.save_calibration(cal, path)
+        except Exception as exc:
+            self._fail(_message(exc))
+            return
+        self._set_status(f"saved the calibration to {path}")
+
+
+def _lazy_stack(data, cmap, interp: str, spatial: int):
+    """A stack corrected frame by frame when napari shows a frame (a Dask array), or at once
+    when Dask is not installed."""
+    import oapcal
+
+    lead = data.shape[: data.ndim - spatial]
+    frame_shape = tuple(cmap.shape) + tuple(data.shape[data.ndim - spatial + 2 :])
+    try:
+        import dask.array as da
+    except ImportError:
+        out = np.empty(lead + frame_shape, data.dtype)
+        for idx in np.ndindex(*lead):
+            out[idx] = oapcal.correct_image(np.asarray(data[idx]), cmap, interp)
+        return out
+    stack = (
+        data
+        if isinstance(data, da.Array)
+        else da.from_array(data, chunks=(1,) * len(lead) + data.shape[len(lead) :])
+    )
+    stack = stack.rechunk((1,) * len(lead) + stack.shape[len(lead) :])
+
+    def correct_block(block):
+        frame = oapcal.correct_image(np.asarray(block).reshape(block.shape[len(lead) :]), cmap, interp)
+        return frame.reshape((1,) * len(lead) + frame.shape)
+
+    return stack.map_blocks(correct_block, dtype=data.dtype, chunks=(1,) * len(lead) + frame_shape)
