@@ -42,7 +42,6 @@ from oapcal.errors import DataError
 from oapcal.fitting import STATUS_MESSAGES, fit_batch, initial_params_many
 from oapcal.model import (
     N_OPTIONAL,
-    PARAM_NAMES,
     all_masks,
     bits_from_mask,
     correction_errors,
@@ -153,8 +152,17 @@ def _names_of_bits(bits: int) -> tuple[str, ...]:
     return names_from_mask(mask_from_bits(bits))
 
 
+def _starts(init, xy_u, xy_d, masks) -> np.ndarray:
+    """Starting values ``(B, P)``: ``init`` itself when it is a ``(B, P)`` array (a family
+    that starts from a design, e.g. the relay), else :func:`initial_params_many`."""
+    if isinstance(init, np.ndarray) and init.ndim == 2:
+        return np.broadcast_to(init, masks.shape).astype(float)
+    return initial_params_many(init, xy_u, xy_d, masks)
+
+
 def score_models(xy_u, xy_d, masks, init="zero", *, max_iter: int = 200, progress: Progress | None = None):
-    """Fit and score the models ``masks (B, 13)`` on points already normalized.
+    """Fit and score the models ``masks (B, P)`` (any family: ``P`` names it, and ``init``
+    is then its ``(B, P)`` starts) on points already normalized.
 
     Returns a dict of arrays over the B models: ``params``, ``status``, ``rss`` (corrected
     residuals), ``mean_error``, ``n_bad`` (points whose inverse failed), ``n_folded``,
@@ -163,11 +171,11 @@ def score_models(xy_u, xy_d, masks, init="zero", *, max_iter: int = 200, progres
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
     masks = np.atleast_2d(np.asarray(masks, bool))
-    p0 = initial_params_many(init, xy_u, xy_d, masks)
+    p0 = _starts(init, xy_u, xy_d, masks)
     n_models = len(masks)
     chunk = max(1, min(n_models, 1024 if progress is not None else n_models))  # chunks only to report
     out = {
-        "params": np.zeros((n_models, len(PARAM_NAMES))),
+        "params": np.zeros(masks.shape),
         "status": np.zeros(n_models, dtype=np.int64),
         "rss": np.full(n_models, np.nan),
         "mean_error": np.full(n_models, np.nan),
@@ -294,7 +302,8 @@ def select_models(
 
 
 def cross_validate(xy_u, xy_d, masks, *, folds: int = 5, init="zero", seed: int = 0, max_iter: int = 200):
-    """K-fold cross-validated mean corrected error of each model ``masks (B, 13)``.
+    """K-fold cross-validated mean corrected error of each model ``masks (B, P)`` (``init``
+    as in :func:`score_models`).
 
     The points are shuffled with ``seed`` and split into ``folds`` nearly equal folds;
     each model is fitted (from ``init``) to all folds but one and the held-out fold's
@@ -319,7 +328,7 @@ def cross_validate(xy_u, xy_d, masks, *, folds: int = 5, init="zero", seed: int 
         )
     rng = np.random.default_rng(seed)
     parts = np.array_split(rng.permutation(n_points), folds)
-    p0 = initial_params_many(init, xy_u, xy_d, masks)
+    p0 = _starts(init, xy_u, xy_d, masks)
     total = np.zeros(len(masks))
     count = np.zeros(len(masks), dtype=np.int64)
     failed = np.zeros(len(masks), dtype=np.int64)
