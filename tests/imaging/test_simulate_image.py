@@ -192,3 +192,26 @@ def test_cli_layout_and_bars_only(run_cli, tmp_path):
     bars = cv2.imread(str(tmp_path / "b.png"), cv2.IMREAD_UNCHANGED) / (0.8 * 255)
     ref = render_usaf((4, 5), um_per_px=4.8, squares=False, digits=False).image
     np.testing.assert_allclose(bars, ref, atol=0.6 / 255 / 0.8 + 1e-9)
+
+
+def test_settings_object_and_keywords_are_the_same_simulation():
+    from dataclasses import FrozenInstanceError
+
+    from oapcal.imaging.simulate import ImageSettings
+
+    settings = ImageSettings(sigma_px=0.6, snr=30, bits=16, oversample=2, digits=False)
+    by_object = simulate_image((5,), identity_field(), settings=settings, seed=4)
+    by_keywords = simulate_image((5,), identity_field(), sigma_px=0.6, snr=30, bits=16, oversample=2,
+                                 digits=False, seed=4)  # fmt: skip
+    np.testing.assert_array_equal(by_object.image, by_keywords.image)
+    assert by_object.image.dtype == np.uint16
+    # a keyword overrides the settings object; the object itself is frozen
+    noiseless = simulate_image((5,), identity_field(), settings=settings, snr=None, seed=4)
+    assert noiseless.peak_electrons is None and settings.snr == 30
+    with pytest.raises(FrozenInstanceError):
+        settings.snr = 10
+    with pytest.raises(TypeError, match="unexpected keyword argument 'sigma'"):
+        simulate_image((5,), identity_field(), sigma=1.0)
+    with pytest.raises(DataError, match="bits 12: use 8 or 16") as err:
+        ImageSettings(bits=12)
+    assert err.value.param == "bits"

@@ -131,126 +131,99 @@ def peak_electrons_for_snr(snr: float, read_noise_e: float) -> float:
     return 0.5 * (s2 + np.sqrt(s2 * s2 + 4.0 * s2 * float(read_noise_e) ** 2))
 
 
+@dataclass(frozen=True)
+class ImageSettings:
+    """The optics, camera and drawing of :func:`simulate_image` (module docstring).
+
+    The PSF is the Airy pattern when ``na`` and ``wavelength_um`` are given, else a Gaussian
+    of ``sigma_px`` (0: no blur); ``snr=None`` gives a noise-free (only quantized) image;
+    ``read_noise_e`` electrons of read noise; ``bits`` 8 or 16; ``polarity`` ``bright`` or
+    ``dark`` bars on a ``background`` of that relative level; ``oversample`` sub-pixels per
+    pixel side; the target is drawn in the layout ``layout_name`` (default ``"compact"``,
+    :data:`oapcal.imaging.usaf.LAYOUTS`) with its reference squares (``squares``) and
+    printed numbers (``digits``).  Invalid values raise :class:`~oapcal.errors.DataError`.
+
+    >>> ImageSettings(snr=None, oversample=2).bits
+    8
+    """
+
+    sigma_px: float = 0.8
+    na: float | None = None
+    wavelength_um: float | None = None
+    snr: float | None = 50.0
+    read_noise_e: float = 5.0
+    bits: int = 8
+    polarity: str = "bright"
+    background: float = 0.05
+    oversample: int = 4
+    squares: bool = True
+    digits: bool = True
+    layout_name: str | None = None
+
+    def __post_init__(self):
+        if self.bits not in (8, 16):
+            raise DataError(f"bits {self.bits}: use 8 or 16", param="bits")
+        object.__setattr__(self, "oversample", int(self.oversample))
+        if self.oversample < 1:
+            raise DataError(f"oversample {self.oversample}: must be at least 1", param="oversample")
+        if self.sigma_px < 0:
+            raise DataError(f"sigma_px {self.sigma_px}: must be >= 0", param="sigma_px")
+        if self.snr is not None and not self.snr > 0:
+            raise DataError(f"snr {self.snr}: must be positive (or None for no noise)", param="snr")
+        if (self.na is None) != (self.wavelength_um is None):
+            raise DataError("an Airy PSF needs both na and wavelength_um", param=("na", "wavelength_um"))
+
+
 def simulate_image(
     groups=(4, 5),
     field=None,
     *,
-    sigma_px: float = 0.8,
-    na: float | None = None,
-    wavelength_um: float | None = None,
-    snr: float | None = 50.0,
-    read_noise_e: float = 5.0,
-    bits: int = 8,
-    polarity: str = "bright",
-    background: float = 0.05,
-    oversample: int = 4,
+    settings: ImageSettings | None = None,
     um_per_px: float | None = None,
     seed: int = 0,
     progress: bool = False,
-    squares: bool = True,
-    digits: bool = True,
-    layout_name=None,
+    **options,
 ) -> SimulatedImage:
     """Simulate a camera image of USAF ``groups`` through ``field`` (module docstring).
 
-    ``field`` defaults to :func:`oapcal.imaging.field.setup1_like_field`.  The PSF is the
-    Airy pattern when ``na`` and ``wavelength_um`` are given, else a Gaussian of
-    ``sigma_px`` (0: no blur).  ``snr=None`` gives a noise-free (only quantized) image.
-    ``um_per_px`` is the scale of the reference positions ``xy_u`` (default: the field's
-    paraxial scale, so that ``xy_u`` is the paraxial image of each corner).
-    The whole target is drawn in the true layout ``layout_name`` (default ``"compact"``,
-    :data:`oapcal.imaging.usaf.LAYOUTS`): bars, reference squares (``squares``) and printed
-    numbers (``digits``); only bar corners are landmarks.
+    ``field`` defaults to :func:`oapcal.imaging.field.setup1_like_field`.  ``settings``
+    (an :class:`ImageSettings`) holds the optics, camera and drawing; any of its fields may
+    also be given as a keyword (``sigma_px=0.8, snr=None, ...``), which overrides
+    ``settings``.  ``um_per_px`` is the scale of the reference positions ``xy_u``
+    (default: the field's paraxial scale, so that ``xy_u`` is the paraxial image of each
+    corner); ``seed`` seeds the noise.  Only bar corners are landmarks.
     """
+    from dataclasses import fields, replace
+
     from oapcal.imaging.field import setup1_like_field
 
+    unknown = sorted(set(options) - {f.name for f in fields(ImageSettings)})
+    if unknown:
+        raise TypeError(f"simulate_image() got an unexpected keyword argument {unknown[0]!r}")
+    settings = replace(settings, **options) if settings is not None else ImageSettings(**options)
     if field is None:
         field = setup1_like_field()
-    if bits not in (8, 16):
-        raise DataError(f"bits {bits}: use 8 or 16")
-    oversample = int(oversample)
-    if oversample < 1:
-        raise DataError(f"oversample {oversample}: must be at least 1")
-    if sigma_px < 0:
-        raise DataError(f"sigma_px {sigma_px}: must be >= 0")
-    if snr is not None and not snr > 0:
-        raise DataError(f"snr {snr}: must be positive (or None for no noise)")
-    if (na is None) != (wavelength_um is None):
-        raise DataError("an Airy PSF needs both na and wavelength_um")
-    target = usaf_target(groups, layout_name)
+    target = usaf_target(groups, settings.layout_name)
     w, h = (int(v) for v in field.image_size)
-    q = oversample
+    q = settings.oversample
     p0, mat = _paraxial_affine(field)
-    mat_inv = np.linalg.inv(mat)
     paraxial_scale = float(np.sqrt(abs(np.linalg.det(mat))))  # px per um
     orientation = nearest_orientation(mat)
     ref_scale = float(um_per_px) if um_per_px is not None else 1.0 / paraxial_scale
-    centre_um = target.centre_um
 
     with _Stages(progress, 5) as stages:
-        # 1. Sub-pixel centres -> paraxial px -> object um.
-        gx, gy = np.meshgrid(np.arange(-1.0, w + 1.0), np.arange(-1.0, h + 1.0))
-        coarse = np.asarray(field.inverse(np.stack([gx, gy], -1).reshape(-1, 2)), float)
-        coarse = coarse.reshape(h + 2, w + 2, 2)
-        fine = _bilinear_upsample(coarse, q, (h, w))  # (q h, q w, 2) paraxial px
-        obj = (fine - p0) @ mat_inv.T + centre_um  # target um
+        obj = _object_positions(field, target, q)
         stages.advance("mapped pixels through the field")
-
-        # 2. Area-sampled target raster, one cell per sub-pixel, aligned with the sub-pixels.
-        step = 1.0 / (q * float(np.linalg.svd(mat, compute_uv=False).max()))
-        anchor = mat_inv @ (np.array([0.5 / q - 0.5] * 2) - p0) + centre_um
-        extent = target.full_bbox_um if (squares or digits) else target.bbox_um
-        lo = extent[:2] - 4 * step
-        hi = extent[2:] + 4 * step
-        start = anchor + np.floor((lo - anchor) / step) * step
-        n = np.ceil((hi - start) / step).astype(int) + 1
-        raster = target_coverage(
-            target, (n[1], n[0]), start=tuple(start), step=step, squares=squares, digits=digits
-        )
-        from scipy.ndimage import map_coordinates
-
-        col = (obj[..., 0] - start[0]) / step
-        row = (obj[..., 1] - start[1]) / step
-        inside = (col > -1) & (row > -1) & (col < n[0]) & (row < n[1])  # NaN -> False
-        cover = np.zeros(obj.shape[:2])
-        cover[inside] = map_coordinates(raster, [row[inside], col[inside]], order=1, cval=0.0)
-        sub = intensity(cover, polarity, background).astype(np.float32)
+        sub = _sample_target(target, obj, field, settings)
         stages.advance("sampled the target")
-
-        # 3. PSF in the camera plane.
-        sub = _blur(sub, q, sigma_px, na, wavelength_um, field.pixel_size_um)
+        sub = _blur(sub, q, settings.sigma_px, settings.na, settings.wavelength_um, field.pixel_size_um)
         stages.advance("blurred")
-
-        # 4. Integration over each camera pixel.
-        clean = sub.reshape(h, q, w, q).mean(axis=(1, 3), dtype=np.float64)
+        clean = sub.reshape(h, q, w, q).mean(axis=(1, 3), dtype=np.float64)  # over each camera pixel
         stages.advance("integrated over pixels")
-
-        # 5. Noise and quantization.
-        rng = np.random.default_rng(seed)
-        full = float(2**bits - 1)
-        if snr is None:
-            electrons, n_peak = clean, 1.0
-            peak = None
-        else:
-            n_peak = peak_electrons_for_snr(snr, read_noise_e)
-            electrons = rng.poisson(np.clip(clean, 0, None) * n_peak) + rng.normal(
-                0.0, read_noise_e, clean.shape
-            )
-            peak = float(n_peak)
-        dn = np.clip(np.rint(electrons / n_peak * WHITE_FRACTION * full), 0, full)
-        image = dn.astype(np.uint8 if bits == 8 else np.uint16)
+        image, peak = _expose(clean, settings, seed)
         stages.advance("added noise")
 
-    corners_field = target.corners_um - centre_um
-    xy_d = np.asarray(field.forward(field.paraxial_from_object_um(corners_field)), float)
-    m = VISIBLE_MARGIN_PX
-    visible = (
-        np.isfinite(xy_d).all(axis=1)
-        & (xy_d[:, 0] >= m)
-        & (xy_d[:, 0] <= w - 1 - m)
-        & (xy_d[:, 1] >= m)
-        & (xy_d[:, 1] <= h - 1 - m)
-    )
+    xy_d, visible = _true_corners(target, field)
     return SimulatedImage(
         image=image,
         clean=clean,
@@ -263,6 +236,81 @@ def simulate_image(
         peak_electrons=peak,
         orientation=orientation,
     )
+
+
+def _object_positions(field, target, q: int) -> np.ndarray:
+    """Step 1: the object position (target um) of every sub-pixel centre ``(q h, q w, 2)``:
+    distorted -> paraxial px through the field's inverse on the pixel grid, interpolated
+    bilinearly, then the inverse paraxial affine."""
+    w, h = (int(v) for v in field.image_size)
+    p0, mat = _paraxial_affine(field)
+    gx, gy = np.meshgrid(np.arange(-1.0, w + 1.0), np.arange(-1.0, h + 1.0))
+    coarse = np.asarray(field.inverse(np.stack([gx, gy], -1).reshape(-1, 2)), float)
+    coarse = coarse.reshape(h + 2, w + 2, 2)
+    fine = _bilinear_upsample(coarse, q, (h, w))  # (q h, q w, 2) paraxial px
+    return (fine - p0) @ np.linalg.inv(mat).T + target.centre_um
+
+
+def _sample_target(target, obj: np.ndarray, field, settings: ImageSettings) -> np.ndarray:
+    """Step 2: the target's relative intensity at the object positions ``obj``, read from
+    an area-sampled raster with one cell per sub-pixel, aligned with the sub-pixels."""
+    from scipy.ndimage import map_coordinates
+
+    q = settings.oversample
+    p0, mat = _paraxial_affine(field)
+    mat_inv = np.linalg.inv(mat)
+    step = 1.0 / (q * float(np.linalg.svd(mat, compute_uv=False).max()))
+    anchor = mat_inv @ (np.array([0.5 / q - 0.5] * 2) - p0) + target.centre_um
+    extent = target.full_bbox_um if (settings.squares or settings.digits) else target.bbox_um
+    lo = extent[:2] - 4 * step
+    hi = extent[2:] + 4 * step
+    start = anchor + np.floor((lo - anchor) / step) * step
+    n = np.ceil((hi - start) / step).astype(int) + 1
+    raster = target_coverage(
+        target, (n[1], n[0]), start=tuple(start), step=step, squares=settings.squares, digits=settings.digits
+    )
+    col = (obj[..., 0] - start[0]) / step
+    row = (obj[..., 1] - start[1]) / step
+    inside = (col > -1) & (row > -1) & (col < n[0]) & (row < n[1])  # NaN -> False
+    cover = np.zeros(obj.shape[:2])
+    cover[inside] = map_coordinates(raster, [row[inside], col[inside]], order=1, cval=0.0)
+    return intensity(cover, settings.polarity, settings.background).astype(np.float32)
+
+
+def _expose(clean: np.ndarray, settings: ImageSettings, seed: int) -> tuple[np.ndarray, float | None]:
+    """Step 5: shot and read noise, then quantization: the image and the electrons at the
+    brightest level (None without noise)."""
+    rng = np.random.default_rng(seed)
+    full = float(2**settings.bits - 1)
+    if settings.snr is None:
+        electrons, n_peak = clean, 1.0
+        peak = None
+    else:
+        n_peak = peak_electrons_for_snr(settings.snr, settings.read_noise_e)
+        electrons = rng.poisson(np.clip(clean, 0, None) * n_peak) + rng.normal(
+            0.0, settings.read_noise_e, clean.shape
+        )
+        peak = float(n_peak)
+    dn = np.clip(np.rint(electrons / n_peak * WHITE_FRACTION * full), 0, full)
+    return dn.astype(np.uint8 if settings.bits == 8 else np.uint16), peak
+
+
+def _true_corners(target, field) -> tuple[np.ndarray, np.ndarray]:
+    """The ground truth: every bar corner's camera position and whether it lies at least
+    :data:`VISIBLE_MARGIN_PX` inside the image."""
+    w, h = (int(v) for v in field.image_size)
+    xy_d = np.asarray(
+        field.forward(field.paraxial_from_object_um(target.corners_um - target.centre_um)), float
+    )
+    m = VISIBLE_MARGIN_PX
+    visible = (
+        np.isfinite(xy_d).all(axis=1)
+        & (xy_d[:, 0] >= m)
+        & (xy_d[:, 0] <= w - 1 - m)
+        & (xy_d[:, 1] >= m)
+        & (xy_d[:, 1] <= h - 1 - m)
+    )
+    return xy_d, visible
 
 
 def _blur(sub, q, sigma_px, na, wavelength_um, pixel_size_um):

@@ -282,143 +282,223 @@ def fit_layout(
     ``model``: ``"affine"``, ``"quadratic"``, ``"cubic"`` (e.g. a photograph through a lens
     with radial distortion) or ``"auto"`` (quadratic); a map is used once there are enough
     triplets for it (:data:`MODELS`), a simpler one before.
+
+    The steps: the image normalized to its 0.5-99.5 % range; the map started from the pose
+    (:func:`_start_map`); the triplets in view measured coarse to fine, largest first
+    (:func:`_stages`), each stage measuring the edges of its triplets through the current
+    map (:func:`_measure_edges`) and solving for the map, the layer shifts and the edge
+    bias (:func:`_solve_map`).
     """
     img = np.asarray(image, float)
     if img.ndim != 2:
         raise DataError("fit_layout needs a grey image")
     lo, hi = np.percentile(img, [0.5, 99.5])
     img = (img - lo) / max(hi - lo, 1e-12)
-    h, w_img = img.shape
-    names = triplet_names(target)
-    boxes = target.triplet_boxes()
-    trip_bars = target.triplets()
-    widths = np.array([target.bar_width[b[0]] for b in trip_bars])
-    orients = [target.bar_orientation[b[0]] for b in trip_bars]
-    layer_of = np.array([target.bar_group[b[0]] - target.bar_group[b[0]] % 2 for b in trip_bars])
-    centre = target.triplet_boxes().reshape(-1, 2, 2).mean(axis=(0, 1))
-    scale = float(np.ptp(boxes[:, [0, 2]]) + np.ptp(boxes[:, [1, 3]])) / 2 or 1.0
-    # start: the affine pose written in the map's own coordinates
-    if isinstance(pose, LayoutFit):  # continue from an earlier fit (e.g. of another layout)
-        cur_model = pose.model
-        b = target.full_bbox_um
-        g = np.stack(np.meshgrid(np.linspace(b[0], b[2], 9), np.linspace(b[1], b[3], 9)), -1).reshape(-1, 2)
-        coef = np.linalg.lstsq(_phi((g - centre) / scale, cur_model), pose(g), rcond=None)[0].T
-        lin = coef[:, 1:3] / scale
-    else:
-        pose = np.asarray(pose, float)
-        lin = pose[:, :2]
-        coef = np.column_stack([lin @ centre + pose[:, 2], lin * scale])
-        cur_model = "affine"
-    shifts = {}
-
-    def mapping_for(coef_, model_):
-        return lambda xy: _phi((np.asarray(xy, float) - centre) / scale, model_) @ coef_.T
-
-    order = np.argsort(-widths, kind="stable")
+    geo = _TripletGeometry.of(target)
+    coef, cur_model, lin = _start_map(pose, target, geo)
     um_per_px = 1.0 / np.sqrt(abs(np.linalg.det(lin)))
-    usable = widths / um_per_px >= min_w_px
-    mapped = mapping_for(coef, cur_model)(boxes.reshape(-1, 2)).reshape(-1, 2, 2)
-    usable &= ((mapped >= 0) & (mapped <= [w_img - 1, h - 1])).all(axis=(1, 2))  # in view
-    split = usable.sum() < 8  # few triplets: measure each edge on two halves (sees tilts)
-    last = None
-    # coarse to fine: the largest elements first, then all
-    stages = []
-    for frac in (0.25, 0.5, 1.0) if not isinstance(pose, LayoutFit) else (1.0,):
-        k = max(2, int(np.ceil(frac * usable.sum())))
-        stages.append(order[usable[order]][:k])
-    stages += [stages[-1]] * max(0, iterations - 1)
-    rejected = {}
+    stages, split = _stages(geo, geo.mapping(coef, cur_model), img.shape, um_per_px, min_w_px, iterations,
+                            continued=isinstance(pose, LayoutFit))  # fmt: skip
+    shifts: dict = {}
+    rejected: dict = {}
+    solved = None
     for sel in stages:
-        mapping = mapping_for(coef, cur_model)
-        rows = []
-        rejected = {}
-        for i in sel:
-            shift = shifts.get(layer_of[i], np.zeros(2))
-            box = boxes[i]
-            corners = np.array([[box[0], box[1]], [box[2], box[1]], [box[2], box[3]], [box[0], box[3]]])
-            for m in (1.2 * widths[i], 0.9 * widths[i], 0.6 * widths[i]):  # context around the triplet
-                grown = corners + np.array([[-m, -m], [m, -m], [m, m], [-m, m]])
-                gp = mapping(grown) + shift
-                if (gp >= 0).all() and (gp[:, 0] <= w_img - 1).all() and (gp[:, 1] <= h - 1).all():
-                    break
-            else:
-                rejected[names[i]] = "not fully inside the image"
-                continue
-
-            def local_map(xy, _s=shift):
-                return mapping(xy) + _s  # noqa: B023  (used within the iteration)
-
-            step = min(widths[i] / 6.0, max(0.35 * um_per_px, widths[i] / 40.0))
-            res, why = _measure_triplet(img, local_map, box, widths[i], orients[i], step, m, split)
-            if res is None:
-                rejected[names[i]] = why
-                continue
-            edges, sigma, sign = res
-            for p, n, d in edges:
-                q = local_map(p + d * n)
-                eps = 1e-3 * widths[i]
-                mdir = local_map(p + eps * n) - local_map(p - eps * n)
-                mdir = mdir / np.hypot(*mdir)
-                rows.append((i, p, mdir, q, sigma / um_per_px, sign))
+        rows, rejected = _measure_edges(img, geo, geo.mapping(coef, cur_model), sel, shifts, um_per_px, split)
         if len({r[0] for r in rows}) < 2:
             why = "; ".join(f"{k}: {v}" for k, v in rejected.items())
             raise DataError(
                 f"fewer than two triplets could be measured ({why}): check the starting pose and groups"
             )
-        n_trip = len({r[0] for r in rows})
-        wanted = "quadratic" if model == "auto" else model
-        cur_model = max((m for m in MODELS if MODELS[m] <= max(n_trip, 2) and MODELS[m] <= MODELS[wanted]),
-                        key=MODELS.get)  # fmt: skip
-        p_um = np.array([r[1] for r in rows])
-        mdir = np.array([r[2] for r in rows])
-        q = np.array([r[3] for r in rows])
-        phi = _phi((p_um - centre) / scale, cur_model)
-        k = phi.shape[1]
-        layers = sorted({layer_of[r[0]] for r in rows})
-        free_layers = layers[1:] if layer_shifts else []
-        a_mat = np.concatenate([phi * mdir[:, :1], phi * mdir[:, 1:]], axis=1)
-        extra = np.zeros((len(rows), 2 * len(free_layers)))
-        for j, g in enumerate(free_layers):
-            on = np.array([layer_of[r[0]] == g for r in rows])
-            extra[on, 2 * j] = mdir[on, 0]
-            extra[on, 2 * j + 1] = mdir[on, 1]
-        # one more unknown: every edge lies outward by the same bias (wider or narrower bars
-        # than gaps: exposure, etching, blur of the print), which is no layout error
-        a_full = np.concatenate([a_mat, extra, np.ones((len(rows), 1))], axis=1)
-        rhs = np.sum(mdir * q, axis=1)
-        sol, *_ = np.linalg.lstsq(a_full, rhs, rcond=None)
-        coef = np.stack([sol[:k], sol[k : 2 * k]])
-        shifts = {g: sol[2 * k + 2 * j : 2 * k + 2 * j + 2] for j, g in enumerate(free_layers)}
-        bias = float(sol[-1])
-        resid = a_full @ sol - rhs
-        last = (rows, resid, n_trip, p_um, q, mdir)
-    rows, resid, n_trip, p_um, q, mdir = last
-    lin_px = coef[:, 1:3] / scale
+        solved = _solve_map(rows, geo, model, layer_shifts)
+        coef, cur_model, shifts = solved.coef, solved.model, solved.shifts
+    rows = solved.rows
+    lin_px = coef[:, 1:3] / geo.scale
     shift_w1 = {}
     for g, sft in shifts.items():
         shift_w1[int(g)] = (np.linalg.solve(lin_px, sft) / bar_width_um(int(g), 1)).tolist()
     sig = {}
     for r in rows:
-        sig.setdefault(names[r[0]], r[4])
+        sig.setdefault(geo.names[r[0]], r[4])
     polarity = "bright" if np.mean([r[5] for r in rows]) > 0 else "dark"
     return LayoutFit(
         coef=coef,
-        centre_um=centre,
-        scale_um=scale,
+        centre_um=geo.centre,
+        scale_um=geo.scale,
         model=cur_model,
-        rms_px=float(np.sqrt(np.mean(resid**2))),
+        rms_px=float(np.sqrt(np.mean(solved.resid**2))),
         n_edges=len(rows),
-        n_triplets=n_trip,
-        residuals_px=resid,
-        edge_triplet=tuple(names[r[0]] for r in rows),
-        edge_um=p_um,
-        edge_px=q,
-        edge_normal_px=mdir,
+        n_triplets=solved.n_triplets,
+        residuals_px=solved.resid,
+        edge_triplet=tuple(geo.names[r[0]] for r in rows),
+        edge_um=solved.p_um,
+        edge_px=solved.q,
+        edge_normal_px=solved.mdir,
         sigma_px=sig,
         polarity=polarity,
         layer_shift_w1=shift_w1,
         rejected=rejected,
-        edge_bias_px=bias,
+        edge_bias_px=solved.bias,
+    )
+
+
+@dataclass(frozen=True)
+class _TripletGeometry:
+    """The triplets of a target: ``names``, ``boxes (T, 4)`` um, bar ``widths (T,)`` um,
+    ``orients``, the layer (even group) of each, and the centre and scale (um) of the map's
+    own coordinates."""
+
+    names: list
+    boxes: np.ndarray
+    widths: np.ndarray
+    orients: list
+    layer_of: np.ndarray
+    centre: np.ndarray
+    scale: float
+
+    @classmethod
+    def of(cls, target: UsafTarget) -> _TripletGeometry:
+        boxes = target.triplet_boxes()
+        trip_bars = target.triplets()
+        return cls(
+            names=triplet_names(target),
+            boxes=boxes,
+            widths=np.array([target.bar_width[b[0]] for b in trip_bars]),
+            orients=[target.bar_orientation[b[0]] for b in trip_bars],
+            layer_of=np.array([target.bar_group[b[0]] - target.bar_group[b[0]] % 2 for b in trip_bars]),
+            centre=target.triplet_boxes().reshape(-1, 2, 2).mean(axis=(0, 1)),
+            scale=float(np.ptp(boxes[:, [0, 2]]) + np.ptp(boxes[:, [1, 3]])) / 2 or 1.0,
+        )
+
+    def mapping(self, coef, model):
+        """The map um -> px of coefficients ``coef (2, k)`` of ``model``."""
+        centre, scale = self.centre, self.scale
+        return lambda xy: _phi((np.asarray(xy, float) - centre) / scale, model) @ coef.T
+
+
+def _start_map(pose, target: UsafTarget, geo: _TripletGeometry):
+    """The starting map ``(coef, model, lin)``: the affine pose written in the map's own
+    coordinates, or an earlier :class:`LayoutFit` (e.g. of another layout) refitted on a
+    grid over the target; ``lin`` the linear part (px per um) of the start."""
+    if isinstance(pose, LayoutFit):
+        model = pose.model
+        b = target.full_bbox_um
+        g = np.stack(np.meshgrid(np.linspace(b[0], b[2], 9), np.linspace(b[1], b[3], 9)), -1).reshape(-1, 2)
+        coef = np.linalg.lstsq(_phi((g - geo.centre) / geo.scale, model), pose(g), rcond=None)[0].T
+        return coef, model, coef[:, 1:3] / geo.scale
+    pose = np.asarray(pose, float)
+    lin = pose[:, :2]
+    return np.column_stack([lin @ geo.centre + pose[:, 2], lin * geo.scale]), "affine", lin
+
+
+def _stages(geo: _TripletGeometry, mapping, shape, um_per_px, min_w_px, iterations, continued: bool):
+    """The triplets measured at each stage, coarse to fine (the widest quarter, half, then
+    all of those wide enough and in view; all at once when ``continued``), the last stage
+    ``iterations`` times; and whether each edge is measured on two halves (few triplets:
+    that sees tilts)."""
+    h, w_img = shape
+    order = np.argsort(-geo.widths, kind="stable")
+    usable = geo.widths / um_per_px >= min_w_px
+    mapped = mapping(geo.boxes.reshape(-1, 2)).reshape(-1, 2, 2)
+    usable &= ((mapped >= 0) & (mapped <= [w_img - 1, h - 1])).all(axis=(1, 2))  # in view
+    split = usable.sum() < 8
+    stages = []
+    for frac in (0.25, 0.5, 1.0) if not continued else (1.0,):
+        k = max(2, int(np.ceil(frac * usable.sum())))
+        stages.append(order[usable[order]][:k])
+    stages += [stages[-1]] * max(0, iterations - 1)
+    return stages, split
+
+
+def _measure_edges(img, geo: _TripletGeometry, mapping, sel, shifts, um_per_px, split):
+    """The edges of the triplets ``sel`` measured through ``mapping`` (plus their layer's
+    shift): rows ``(triplet, edge point um, edge normal px, measured edge px, sigma px,
+    sign)``, and the triplets left out with the reason."""
+    h, w_img = img.shape
+    rows = []
+    rejected = {}
+    for i in sel:
+        shift = shifts.get(geo.layer_of[i], np.zeros(2))
+        box = geo.boxes[i]
+        width = geo.widths[i]
+        corners = np.array([[box[0], box[1]], [box[2], box[1]], [box[2], box[3]], [box[0], box[3]]])
+        for m in (1.2 * width, 0.9 * width, 0.6 * width):  # context around the triplet
+            grown = corners + np.array([[-m, -m], [m, -m], [m, m], [-m, m]])
+            gp = mapping(grown) + shift
+            if (gp >= 0).all() and (gp[:, 0] <= w_img - 1).all() and (gp[:, 1] <= h - 1).all():
+                break
+        else:
+            rejected[geo.names[i]] = "not fully inside the image"
+            continue
+
+        def local_map(xy, _s=shift):
+            return mapping(xy) + _s  # noqa: B023  (used within the iteration)
+
+        step = min(width / 6.0, max(0.35 * um_per_px, width / 40.0))
+        res, why = _measure_triplet(img, local_map, box, width, geo.orients[i], step, m, split)
+        if res is None:
+            rejected[geo.names[i]] = why
+            continue
+        edges, sigma, sign = res
+        for p, n, d in edges:
+            q = local_map(p + d * n)
+            eps = 1e-3 * width
+            mdir = local_map(p + eps * n) - local_map(p - eps * n)
+            mdir = mdir / np.hypot(*mdir)
+            rows.append((i, p, mdir, q, sigma / um_per_px, sign))
+    return rows, rejected
+
+
+@dataclass(frozen=True)
+class _MapSolution:
+    rows: list
+    coef: np.ndarray
+    model: str
+    shifts: dict
+    bias: float
+    resid: np.ndarray
+    n_triplets: int
+    p_um: np.ndarray
+    q: np.ndarray
+    mdir: np.ndarray
+
+
+def _solve_map(rows, geo: _TripletGeometry, model: str, layer_shifts: bool) -> _MapSolution:
+    """The map through the measured edges (least squares along each edge's normal), the
+    richest of :data:`MODELS` up to ``model`` that the triplets support; with
+    ``layer_shifts`` a shift per layer after the first; and one edge bias for all."""
+    n_trip = len({r[0] for r in rows})
+    wanted = "quadratic" if model == "auto" else model
+    cur_model = max((m for m in MODELS if MODELS[m] <= max(n_trip, 2) and MODELS[m] <= MODELS[wanted]),
+                    key=MODELS.get)  # fmt: skip
+    p_um = np.array([r[1] for r in rows])
+    mdir = np.array([r[2] for r in rows])
+    q = np.array([r[3] for r in rows])
+    phi = _phi((p_um - geo.centre) / geo.scale, cur_model)
+    k = phi.shape[1]
+    layers = sorted({geo.layer_of[r[0]] for r in rows})
+    free_layers = layers[1:] if layer_shifts else []
+    a_mat = np.concatenate([phi * mdir[:, :1], phi * mdir[:, 1:]], axis=1)
+    extra = np.zeros((len(rows), 2 * len(free_layers)))
+    for j, g in enumerate(free_layers):
+        on = np.array([geo.layer_of[r[0]] == g for r in rows])
+        extra[on, 2 * j] = mdir[on, 0]
+        extra[on, 2 * j + 1] = mdir[on, 1]
+    # one more unknown: every edge lies outward by the same bias (wider or narrower bars
+    # than gaps: exposure, etching, blur of the print), which is no layout error
+    a_full = np.concatenate([a_mat, extra, np.ones((len(rows), 1))], axis=1)
+    rhs = np.sum(mdir * q, axis=1)
+    sol, *_ = np.linalg.lstsq(a_full, rhs, rcond=None)
+    return _MapSolution(
+        rows=rows,
+        coef=np.stack([sol[:k], sol[k : 2 * k]]),
+        model=cur_model,
+        shifts={g: sol[2 * k + 2 * j : 2 * k + 2 * j + 2] for j, g in enumerate(free_layers)},
+        bias=float(sol[-1]),
+        resid=a_full @ sol - rhs,
+        n_triplets=n_trip,
+        p_um=p_um,
+        q=q,
+        mdir=mdir,
     )
 
 

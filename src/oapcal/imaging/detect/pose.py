@@ -343,19 +343,54 @@ def search_pose(
     """Find the pose (module docstring).  ``listed`` marks the reference triplets of the
     groups the user named (weighted 1; others 0.25).  ``orientation`` (a key of
     :data:`~oapcal.imaging.usaf.ORIENTATIONS`) keeps only the poses nearest to it;
-    ``mirror`` True/False only mirrored / unmirrored poses."""
-    from oapcal.imaging.usaf import ORIENTATIONS
+    ``mirror`` True/False only mirrored / unmirrored poses.
 
-    names = list(ORIENTATIONS)
-    mats = np.array([ORIENTATIONS[k] for k in names], float)
+    The steps: every pairing of an image triplet with a reference triplet proposes poses
+    (:func:`_hypotheses`); each is scored (:func:`_score_hypotheses`); the best are
+    refined and merged (:func:`_refined_poses`); the given scale may pick among the best
+    (:func:`_at_given_scale`); the winner is judged against its rivals and its slipped
+    copies (:func:`_judge`).
+    """
     from scipy.spatial import cKDTree
 
     n_img = len(img)
     if n_img == 0:
         msg = "no bar triplet (three parallel bars side by side) was found in the image"
         return PoseResult(None, None, 1, msg, {}, 0, kind="not_found")
-    order = np.argsort(-img.width)[:max_image_triplets]
+    hyps = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets)
+    if hyps is None:
+        if um_per_px is None:
+            return PoseResult(None, None, 1, "no pose fits the options given", {}, n_img, kind="not_found")
+        msg = _no_scale_message(img, um_per_px)
+        return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("um_per_px",))
     tree = cKDTree(img.centre)
+    scores = _score_hypotheses(hyps, ref, img, tree, shape, listed)
+    refined = _refined_poses(hyps, scores, ref, img, tree, shape, listed, top)
+    best = _at_given_scale(refined, um_per_px)
+    slips = _slip_scores(best, ref, img, tree, shape, listed)
+    return _judge(best, refined, slips, um_per_px, listed, n_img)
+
+
+@dataclass(frozen=True)
+class _Hypotheses:
+    """Poses proposed by pairing triplets: scale ``s (H,)``, linear part ``lin (H, 2, 2)``,
+    shift ``t (H, 2)`` and the image triplet's centre ``anchor (H, 2)`` of each."""
+
+    s: np.ndarray
+    lin: np.ndarray
+    t: np.ndarray
+    anchor: np.ndarray
+
+
+def _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets) -> _Hypotheses | None:
+    """Every pose that maps a reference triplet onto one of the ``max_image_triplets``
+    widest image triplets (both mirrors, both half turns), kept when it agrees with the
+    given scale, orientation and mirror; None when none does."""
+    from oapcal.imaging.usaf import ORIENTATIONS
+
+    names = list(ORIENTATIONS)
+    mats = np.array([ORIENTATIONS[k] for k in names], float)
+    order = np.argsort(-img.width)[:max_image_triplets]
     hyps_s, hyps_lin, hyps_t, hyps_anchor = [], [], [], []
     for i in order:
         for mir in (1.0, -1.0):
@@ -379,33 +414,30 @@ def search_pose(
                     hyps_t.append(t[keep])
                     hyps_anchor.append(np.repeat(img.centre[i][None], keep.sum(), 0))
     if not hyps_s:
-        if um_per_px is None:
-            return PoseResult(None, None, 1, "no pose fits the options given", {}, n_img, kind="not_found")
-        msg = _no_scale_message(img, um_per_px)
-        return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("um_per_px",))
-    s = np.concatenate(hyps_s)
-    lin = np.concatenate(hyps_lin)
-    t = np.concatenate(hyps_t)
-    anchor = np.concatenate(hyps_anchor)
-    scores = np.empty(len(s))
-    for lo in range(0, len(s), 2000):
-        sl = slice(lo, lo + 2000)
+        return None
+    return _Hypotheses(
+        np.concatenate(hyps_s), np.concatenate(hyps_lin), np.concatenate(hyps_t), np.concatenate(hyps_anchor)
+    )
+
+
+def _score_hypotheses(hyps: _Hypotheses, ref, img, tree, shape, listed, chunk: int = 2000) -> np.ndarray:
+    """The score of every hypothesis, ``chunk`` at a time."""
+    scores = np.empty(len(hyps.s))
+    for lo in range(0, len(hyps.s), chunk):
+        sl = slice(lo, lo + chunk)
         scores[sl] = _score(
-            s[sl],
-            lin[sl],
-            t[sl],
-            ref,
-            img,
-            tree,
-            shape,
-            anchor=anchor[sl],
-            listed=listed,
-            width_tol=WIDTH_TOL,
-        )[0]
-    best_idx = np.argsort(-scores)[: top * 4]
+            hyps.s[sl], hyps.lin[sl], hyps.t[sl], ref, img, tree, shape,
+            anchor=hyps.anchor[sl], listed=listed, width_tol=WIDTH_TOL,
+        )[0]  # fmt: skip
+    return scores
+
+
+def _refined_poses(hyps: _Hypotheses, scores, ref, img, tree, shape, listed, top: int) -> list[Pose]:
+    """The best ``4 top`` hypotheses refined, the same pose kept once (its best score),
+    until ``top`` distinct poses; best first."""
     refined: list[Pose] = []
-    for h in best_idx:
-        p = _refine(Pose(float(s[h]), lin[h], t[h]), ref, img, tree, shape, listed)
+    for h in np.argsort(-scores)[: top * 4]:
+        p = _refine(Pose(float(hyps.s[h]), hyps.lin[h], hyps.t[h]), ref, img, tree, shape, listed)
         if any(_same_pose(p, q) and q.score >= p.score for q in refined):
             continue
         refined = [q for q in refined if not (_same_pose(p, q) and q.score < p.score)]
@@ -413,10 +445,15 @@ def search_pose(
         if len(refined) >= top:
             break
     refined.sort(key=lambda p: -p.score)
+    return refined
+
+
+def _at_given_scale(refined: list[Pose], um_per_px) -> Pose:
+    """The best pose; with a given scale, among the poses about as good as the best the
+    one at that scale (to within half an element step): it names the element when the
+    view alone cannot."""
     best = refined[0]
     if um_per_px is not None:
-        # among the poses about as good as the best, the one at the given scale (to within
-        # half an element step) wins: it names the element when the view alone cannot
         margin = max(AMBIGUITY_MARGIN, (1.0 - AMBIGUITY_RATIO) * best.score)
         near = [
             p
@@ -425,25 +462,29 @@ def search_pose(
         ]
         if near:
             best = max(near, key=lambda p: p.score)
-    slips = _slip_scores(best, ref, img, tree, shape, listed)
+    return best
+
+
+def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, listed, n_img: int) -> PoseResult:
+    """The result for ``best``: not found when it explains too little, ambiguous when
+    another pose or a slipped copy scores about as well (and the given scale does not
+    decide), else found."""
+    slip_scores = {k: v.score for k, v in slips.items()}
     runner = next((p for p in refined[1:] if not _same_pose(best, p)), None)
-    others = [p for p in refined if p is not best and not _same_pose(best, p)]
-    rivals = [("another pose", p) for p in others]
-    rivals += [(f"the pose slipped by {k}", p) for k, p in slips.items()]
     n_named = sum(1 for _, j in best.matches if listed is None or listed[j])
     if n_named < MIN_FOUND_FRACTION * best.n_expected and best.score >= 1.9:
         msg = (
             f"the target was not found reliably: the best pose finds only {n_named} of the "
             f"{best.n_expected} triplets of the named groups that it expects in the image"
         )
-        return PoseResult(best, runner, 1, msg, {k: v.score for k, v in slips.items()}, n_img, refined,
-                          "not_found")  # fmt: skip
+        return PoseResult(best, runner, 1, msg, slip_scores, n_img, refined, "not_found")
     if best.score < 1.9 or len(best.matches) < 2:
         msg = (f"the target was not found: the best pose explains only {len(best.matches)} of the "
                f"{n_img} bar triplets found (score {best.score:.1f})")  # fmt: skip
-        return PoseResult(best, runner, 1, msg, {k: v.score for k, v in slips.items()}, n_img, refined,
-                          "not_found")  # fmt: skip
-    slip_scores = {k: v.score for k, v in slips.items()}
+        return PoseResult(best, runner, 1, msg, slip_scores, n_img, refined, "not_found")
+    others = [p for p in refined if p is not best and not _same_pose(best, p)]
+    rivals = [("another pose", p) for p in others]
+    rivals += [(f"the pose slipped by {k}", p) for k, p in slips.items()]
     for name, rival in rivals:
         # a pose matching a single triplet is no rival: any one triplet fits any other
         if rival is None or _same_pose(best, rival) or len(rival.matches) < 2:
