@@ -16,7 +16,7 @@ LAYERS = [
     {"stats", "normalize", "synthetic", "uncertainty"},
     {"fitting"},
     {"select", "subsampling", "calibration"},
-    {"imaging", "optics"},
+    {"imaging", "optics", "families"},
     {"io"},
     {"batch"},
     {"report"},

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
+
 import click
 
 from oapcal.cli._common import check_output, check_work, console, load_pairs, points_options, progress_bar
+from oapcal.cli._relay import relay_design_options
 
 #: Most robustness trials (and the memory per trial, per point and per model: measured about
 #: 10 B per point for 252 points, so these are generous).
@@ -66,9 +69,23 @@ def _fmt(value, spec: str) -> str:
     default=None,
     help="Write all 4,096 models, best first, to this JSON file ('-': stdout, no table).",
 )
-def select_command(points, normalization, init, top, cv, seed, json_out):
-    """Rank all 4,096 models of Eq. 1 by AICc of the corrected points."""
+@click.option(
+    "--families",
+    default=None,
+    help="Rank model families together: a comma list of bc (Eq. 1), bc+rotation (Eq. 1 with the "
+    "target's rotation) and relay (the physical relay, from the design options), by AICc and "
+    "--cv-fold held-out error (default 5 folds); recommends by the held-out error.",
+)
+@click.option("--image-size", default=None, help="With --families relay: camera image size WxH in px.")
+@relay_design_options
+def select_command(points, normalization, init, top, cv, seed, json_out, families=None, image_size=None,
+                   relay_design=None):  # fmt: skip
+    """Rank all 4,096 models of Eq. 1 by AICc of the corrected points (with --families: Eq. 1,
+    its rotation variant and the physical relay together)."""
     check_output(json_out, points)
+    if families is not None:
+        return _select_families(points, families, normalization, init, top, cv, seed, json_out, image_size,
+                                relay_design)  # fmt: skip
     pairs = load_pairs(points)
     from oapcal.fitting import initial_params
     from oapcal.select import select_models
@@ -90,6 +107,69 @@ def select_command(points, normalization, init, top, cv, seed, json_out):
         click.echo("oapcal: warning: no model could be scored; see the reasons in the table", err=True)
         return 3
     return 0
+
+
+def _select_families(
+    points, families, normalization, init, top, cv, seed, json_out, image_size, relay_design
+):
+    """``oapcal select --families``."""
+    from oapcal.cli._common import parse_size
+    from oapcal.cli._relay import design_from_options
+    from oapcal.families import parse_families, select_families
+
+    keys = parse_families(families)
+    if normalization != "none":
+        raise click.BadParameter(
+            "models of different families are compared on the points as given: drop --normalize",
+            param_hint="--normalize",
+        )
+    size = parse_size(image_size)
+    design = design_from_options(relay_design)
+    init = "pixel" if init == "zero" else init  # Eq. 1 in px starts from the pixel guesses
+    pairs = load_pairs(points)
+    bar, update = progress_bar("fitting the models of " + ", ".join(keys))
+    with bar:
+        sel = select_families(pairs.xy_u, pairs.xy_d, design, keys, cv=cv or 5, cv_top=min(top, 10),
+                              init=init, seed=seed, progress=update, image_size=size)  # fmt: skip
+    if json_out is not None:
+        from oapcal.io.atomic import atomic_write
+        from oapcal.io.jsonfile import json_safe
+
+        text = json.dumps(json_safe(sel.to_dict()), indent=1) + "\n"
+        if json_out == "-":
+            click.echo(text, nl=False)
+        else:
+            with atomic_write(json_out) as fh:
+                fh.write(text)
+    if json_out != "-":
+        print_family_selection(sel, top, source=pairs.source)
+    return 0 if sel.recommended is not None else 3
+
+
+def print_family_selection(sel, top: int, source: str = "") -> None:
+    """The best ``top`` models of each family by AICc, and the recommendation."""
+    from rich.table import Table
+
+    out = _wide_console()
+    table = Table(
+        title=f"Best models of each family by AICc ({source}, {sel.n_points} points)", title_justify="left"
+    )
+    for col in ("family", "model (--model)", "K", "AICc", "dAICc", "mean err", f"{sel.cv_folds}-fold CV err"):
+        table.add_column(col, justify="left" if col in ("family", "model (--model)") else "right")
+    families = list(dict.fromkeys(c.family for c in sel.candidates))
+    for family in families:
+        for c in [c for c in sel.candidates if c.family == family and c.valid][:top]:
+            mark = " [bold green]<- recommended[/bold green]" if c is sel.recommended else ""
+            table.add_row(c.family, c.spec + mark, str(c.k + 1), _fmt(c.aicc, ".2f"),
+                          _fmt(c.delta_aicc, ".2f"), _fmt(c.mean_error, ".4g"),
+                          _fmt(c.cv_mean_error, ".4g"))  # fmt: skip
+    out.print(table)
+    n_bad = sum(not c.valid for c in sel.candidates)
+    if n_bad:
+        out.print(f"{n_bad} models could not be scored (not identifiable, or the fit or its inverse failed).")
+    if sel.recommended is not None:
+        r = sel.recommended
+        out.print(f"Recommended by held-out error: --model {r.spec} ({r.family}, {r.cv_mean_error:.4g} px).")
 
 
 def print_selection(sel, top: int, source: str = "") -> None:

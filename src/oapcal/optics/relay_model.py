@@ -221,7 +221,9 @@ def identifiability(xy_u, params, mask) -> Identifiability:
     return Identifiability(names, rel, tuple(groups))
 
 
-def _default_centre(design: RelayDesign, xy_u, image_size) -> RelayDesign:
+def default_centre(design: RelayDesign, xy_u, image_size=None) -> RelayDesign:
+    """``design`` with its centre set if unset: the image centre ``((w - 1) / 2, (h - 1) /
+    2)`` with ``image_size``, else the middle of the reference points ``xy_u``."""
     if design.centre is not None:
         return design
     if image_size is not None:
@@ -260,7 +262,7 @@ def calibrate_relay(
     xy_d = np.asarray(xy_d, float)
     mask = relay_mask(free)
     check_enough_points(len(xy_u), int(mask.sum()), source=source or "the point data")
-    design = _default_centre(design, xy_u, image_size)
+    design = default_centre(design, xy_u, image_size)
     p0 = relay_params(design)
     ident = identifiability(xy_u, p0, mask)
     if not ident.ok:
