@@ -41,25 +41,65 @@ MAX_SIDE = 2**20
 )
 @geometry_options
 def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size):
-    """Write camera_matrix, dist_coeffs and new_camera_matrix for cv2.initUndistortRectifyMap."""
+    """Write camera_matrix, dist_coeffs and new_camera_matrix for cv2.initUndistortRectifyMap.
+
+    A relay calibration has no exact OpenCV coefficients: the export then also holds the
+    exact maps for cv2.remap (map_x, map_y; beside a .json file in FILE.maps.npz) and says
+    how far the coefficients (the best Eq. (1) approximation) are from them.
+    """
+    import math
     from pathlib import Path
 
     from oapcal.errors import DataError
     from oapcal.imaging.remap import output_geometry
     from oapcal.io.calibration import load_calibration
-    from oapcal.io.opencv_export import opencv_parameters, save_opencv
+    from oapcal.io.opencv_export import maps_path, opencv_export, save_opencv
+    from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE
 
     check_output(out, calib)
     size = parse_size(image_size) or None
     fit_size = parse_size(out_size, "--out-size")
     cal = load_calibration(calib)
+    family = cal.family
+    side = None
+    if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE) and Path(out).suffix.lower() == ".json":
+        side = maps_path(out)
+        check_output(str(side), calib)
     size = size or cal.image_size
     if not size:
         raise DataError(f"{calib}: the calibration has no image_size; give --image-size WxH")
     _check_size(size, "--image-size" if image_size else f"{calib}: image_size")
     geometry = output_geometry(cal, (size[1], size[0]), extent=extent, um_per_px=um_per_px, out_size=fit_size)
-    export = opencv_parameters(cal.params, size, geometry)
+    export = opencv_export(cal, size, geometry)
+    approx = export.get("approximation")
+    if approx is not None and not all(math.isfinite(v) for v in (approx["mean_px"], approx["max_px"])):
+        click.echo(
+            f"oapcal: {calib}: the Eq. (1) approximation of the {family.name} model failed "
+            "(no finite coefficients); nothing written",
+            err=True,
+        )
+        return 3
     save_opencv(export, out, cal.name or Path(calib).name)
     w, h = export["new_image_size"]
-    click.echo(f"wrote {out}: pass new_image_size {w}x{h} to cv2.initUndistortRectifyMap")
+    if family is BROWN_CONRADY:
+        click.echo(f"wrote {out}: pass new_image_size {w}x{h} to cv2.initUndistortRectifyMap")
+    elif family is BROWN_CONRADY_POSE:
+        click.echo(
+            f"wrote {out} (exact for the {family.name} model): pass R and new_image_size {w}x{h} "
+            "to cv2.initUndistortRectifyMap"
+        )
+    else:
+        where = f"{out} and {side}" if side is not None else str(out)
+        click.echo(f"wrote {where}: the exact correction is cv2.remap with map_x, map_y ({w}x{h})")
+        cal_part = ""
+        if approx["calibrated_mean_px"] is not None:
+            cal_part = (
+                f"; {approx['calibrated_mean_px']:.3g} px mean, {approx['calibrated_max_px']:.3g} px max "
+                "over the calibrated region"
+            )
+        click.echo(
+            f"no OpenCV coefficient set is exact for the {family.name} model: camera_matrix, dist_coeffs "
+            f"and new_camera_matrix are the best Brown-Conrady approximation, off by {approx['mean_px']:.3g} "
+            f"px mean, {approx['max_px']:.3g} px max over the image{cal_part}"
+        )
     return 0
