@@ -9,8 +9,8 @@ from click.testing import CliRunner
 from oapcal.cli import cli
 from oapcal.errors import DataError
 from oapcal.families import relay_subset_masks, select_families
-from oapcal.model import distort
-from oapcal.optics.relay_model import RelayDesign, relay_params
+from oapcal.model import RELAY, distort
+from oapcal.optics.relay_model import RelayDesign, relay_mask, relay_params
 
 
 def _relay_points(seed=2, noise=0.05, n=200, d1=15.0):
@@ -35,6 +35,9 @@ def test_relay_family_alone_recovers_the_true_subset_and_is_recommended():
     # the truth lies in relay:tilt2,d1,camera; the best model by AICc contains it
     assert {"m2_tilt_x", "m2_tilt_y", "d1", "camera_tilt_x", "camera_tilt_y"} <= set(best.free)
     assert sel.recommended is not None and sel.recommended.family == "relay"
+    # every candidate's spec is what --model takes to fit it again
+    for c in sel.candidates:
+        assert {n for n, m in zip(RELAY.param_names, relay_mask(c.spec)) if m} == set(c.free)
     # held-out error at the noise level (0.02 px per axis: mean distance ~0.025)
     assert sel.recommended.cv_mean_error < 0.04
     # unidentifiable subsets are ranked last with the reason

@@ -40,7 +40,14 @@ import numpy as np
 
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.fitting import fit_batch, initial_params_many
-from oapcal.model import PARAM_NAMES, min_jacobian_determinant, names_from_mask, parse_model, undistort
+from oapcal.model import (
+    N_PARAMS,
+    family_of,
+    min_jacobian_determinant,
+    names_from_mask,
+    parse_any_model,
+    undistort,
+)
 from oapcal.normalize import normalize
 from oapcal.records import finite_or_none
 
@@ -135,8 +142,33 @@ def hull_grid(xy: np.ndarray, n: int = 41) -> np.ndarray:
     return np.concatenate([xy, grid[inside]])
 
 
+@dataclass(frozen=True)
+class StartedModel:
+    """A model of a family that starts from a design (the relay): its ``name``, free-parameter
+    ``mask (P,)`` and starting vector ``p0 (P,)`` (:func:`oapcal.optics.relay_model.relay_params`)."""
+
+    name: str
+    mask: np.ndarray
+    p0: np.ndarray
+
+
 def _model_name(spec) -> str:
-    return spec if isinstance(spec, str) else ",".join(names_from_mask(parse_model(spec)))
+    if isinstance(spec, StartedModel):
+        return spec.name
+    return spec if isinstance(spec, str) else ",".join(names_from_mask(parse_any_model(spec)))
+
+
+def _mask_of(spec) -> np.ndarray:
+    return np.asarray(spec.mask, bool) if isinstance(spec, StartedModel) else parse_any_model(spec)
+
+
+def _starts_of(spec, init, u, d, mask) -> np.ndarray:
+    """The start ``(P,)`` of one model: its own for a :class:`StartedModel`, else ``init``
+    for Eq. (1) (the rotation, if any, starting at 0)."""
+    if isinstance(spec, StartedModel):
+        return np.asarray(spec.p0, float)
+    p = initial_params_many(init, u, d, mask[None, :N_PARAMS])[0]
+    return np.pad(p, (0, len(mask) - N_PARAMS))
 
 
 def robustness(
@@ -159,16 +191,18 @@ def robustness(
     In each of ``trials`` trials a random ``round(fraction * N)`` of the points (drawn with
     ``seed``; the same subsets for every model) is kept, each model is fitted to them from
     ``init`` and classified; the held-out points measure overfitting.  ``progress(done,
-    total)`` is called after each chunk of trials.
+    total)`` is called after each chunk of trials.  ``models`` are specs of
+    :func:`oapcal.model.parse_any_model` (Eq. 1, ``"...+rotation"``) or
+    :class:`StartedModel` (a relay subset with its design's start).
     """
     norm = normalize(normalization, xy_u, xy_d)
     u, d = norm.xy_u, norm.xy_d
     specs = list(models)
     n_keep, masks = _check_robustness(len(u), trials, fraction, specs)
-    ref_rms = _reference_rms(u, d, masks, init, max_iter)
+    ref_rms = _reference_rms(u, d, specs, masks, init, max_iter)
     keep, held = _draw_subsets(seed, trials, len(u), n_keep)
     trial = _Trials(u, d, masks, ref_rms, wrong_minimum_ratio, n_keep, trials)
-    p0 = initial_params_many(init, u, d, masks)
+    p0 = [_starts_of(s, init, u, d, m) for s, m in zip(specs, masks)]
     n_models = len(masks)
     for start in range(0, trials, chunk):
         sl = slice(start, min(start + chunk, trials))
@@ -205,7 +239,7 @@ def _check_robustness(n_points: int, trials: int, fraction: float, specs: list) 
         )
     if not specs:
         raise ModelSpecError("no models given: list at least one, e.g. paper,full", param="models")
-    masks = np.stack([parse_model(s) for s in specs])
+    masks = [_mask_of(s) for s in specs]
     for spec, mask in zip(specs, masks):
         if n_keep < mask.sum() + 2:
             raise DataError(
@@ -216,15 +250,17 @@ def _check_robustness(n_points: int, trials: int, fraction: float, specs: list) 
     return n_keep, masks
 
 
-def _reference_rms(u: np.ndarray, d: np.ndarray, masks: np.ndarray, init, max_iter: int) -> np.ndarray:
-    """Reference RMS of each model: all points, best of the pixel, zero and requested starts."""
+def _reference_rms(u: np.ndarray, d: np.ndarray, specs, masks, init, max_iter: int) -> np.ndarray:
+    """Reference RMS of each model: all points, best of the pixel, zero and requested starts
+    (a :class:`StartedModel`: its own start)."""
     starts = ["pixel", "zero"] + ([init] if not (isinstance(init, str) and init in ("pixel", "zero")) else [])
-    ref_masks = np.repeat(masks, len(starts), axis=0)
-    ref_p0 = np.concatenate([initial_params_many(s, u, d, masks) for s in starts])
-    ref_p0 = ref_p0.reshape(len(starts), len(masks), -1).transpose(1, 0, 2).reshape(len(ref_masks), -1)
-    ref = fit_batch(u, d, ref_masks, ref_p0, covariance=False, max_iter=max_iter)
-    ref_rss = np.where(ref.converged, ref.rss, np.inf).reshape(len(masks), len(starts)).min(axis=1)
-    return np.sqrt(ref_rss / len(u))
+    out = np.empty(len(masks))
+    for j, (spec, mask) in enumerate(zip(specs, masks)):
+        tries = [spec] if isinstance(spec, StartedModel) else starts
+        p0 = np.stack([_starts_of(spec, s, u, d, mask) for s in tries])
+        ref = fit_batch(u, d, np.repeat(mask[None], len(p0), 0), p0, covariance=False, max_iter=max_iter)
+        out[j] = np.where(ref.converged, ref.rss, np.inf).min()
+    return np.sqrt(out / len(u))
 
 
 def _draw_subsets(seed: int, trials: int, n_points: int, n_keep: int) -> tuple[np.ndarray, np.ndarray]:
@@ -247,7 +283,7 @@ class _Trials:
         self.fold_points = hull_grid(u)
         n_models = len(masks)
         self.reason_code = np.zeros((n_models, trials), dtype=np.int64)
-        self.params = np.zeros((n_models, trials, len(PARAM_NAMES)))
+        self.params = [np.zeros((trials, len(m))) for m in masks]
         self.heldout = np.full((n_models, trials), np.nan)
         self.held_bad = np.zeros((n_models, trials), dtype=np.int64)
 
@@ -285,7 +321,7 @@ class _Trials:
             self.heldout[j, rows] = h
             self.held_bad[j, rows] = (~conv).sum(axis=1)
         self.reason_code[j, sl] = code
-        self.params[j, sl] = fits.params
+        self.params[j][sl] = fits.params
 
     def summary(self, j: int, spec, scale_u: float) -> ModelRobustness:
         """Model ``j`` over all trials: failures by reason, parameter spread, held-out error."""
@@ -293,9 +329,10 @@ class _Trials:
         conv = codes == 0
         free = names_from_mask(self.masks[j])
         std = {}
+        names = family_of(self.masks[j]).param_names
         for name in free:
-            i = PARAM_NAMES.index(name)
-            std[name] = float(np.std(self.params[j, conv, i], ddof=1)) if conv.sum() >= 2 else None
+            i = names.index(name)
+            std[name] = float(np.std(self.params[j][conv, i], ddof=1)) if conv.sum() >= 2 else None
         h = self.heldout[j, conv]
         h = h[np.isfinite(h)]
         return ModelRobustness(

@@ -267,21 +267,27 @@ _INVALID_TEXT = {
     default=None,
     help="Write the results to this JSON file ('-': stdout, no table).",
 )
+@click.option("--image-size", default=None, help="With a relay model: camera image size WxH in px.")
+@relay_design_options
 def robustness_command(
-    points, models, trials, fraction, seed, init, normalization, wrong_minimum_ratio, json_out
-):
+    points, models, trials, fraction, seed, init, normalization, wrong_minimum_ratio, json_out,
+    image_size=None, relay_design=None,
+):  # fmt: skip
     """Subsampling test: refit each model on random subsets, count non-convergence."""
     check_output(json_out, points)
-    from oapcal.model import parse_model
+    from oapcal.cli._relay import is_relay
 
-    specs = [s.strip().replace("+", ",") for s in models.split(",") if s.strip()]
-    for spec in specs:
-        parse_model(spec)  # a bad spec fails before the file is read
+    specs = [_robustness_spec(s) for s in models.split(",") if s.strip()]
+    if any(is_relay(s) for s in specs) and normalization != "none":
+        raise click.BadParameter(
+            "a relay model fits the points as given: drop --normalize", param_hint="--normalize"
+        )
     pairs = load_pairs(points)
     from oapcal.fitting import initial_params
     from oapcal.select import robustness
 
     initial_params(init, pairs.xy_u[:1], pairs.xy_d[:1], [True] * 13)
+    specs = [_started_relay(s, pairs, image_size, relay_design) if is_relay(s) else s for s in specs]
     check_work(
         trials * (BYTES_PER_TRIAL_POINT * len(pairs) + BYTES_PER_TRIAL_MODEL * len(specs)),
         f"{trials} trials of {len(pairs)} points x {len(specs)} models", "give fewer --trials",
@@ -299,6 +305,36 @@ def robustness_command(
     if json_out != "-":
         print_robustness(result, source=pairs.source)
     return 0
+
+
+def _robustness_spec(text: str) -> str:
+    """One --models entry: '+'-joined names become a comma list (``k1+s3`` -> ``k1,s3``),
+    keeping a ``+rotation`` suffix (``k1+s3+rotation``) and relay subsets
+    (``relay:d1+tilt2x``); checked before any file is read."""
+    from oapcal.cli._relay import check_relay_spec, is_relay
+    from oapcal.model import ROTATION_SUFFIX, parse_any_model
+
+    text = text.strip()
+    if is_relay(text):
+        spec = text.replace("+", ",")
+        check_relay_spec(spec)
+        return spec
+    rotation = text.endswith(ROTATION_SUFFIX)
+    base = text[: -len(ROTATION_SUFFIX)] if rotation else text
+    spec = base.replace("+", ",") + (ROTATION_SUFFIX if rotation else "")
+    parse_any_model(spec)
+    return spec
+
+
+def _started_relay(spec: str, pairs, image_size, relay_design):
+    """A relay --models entry as a model with its design's start."""
+    from oapcal.cli._common import parse_size
+    from oapcal.cli._relay import design_from_options
+    from oapcal.optics.relay_model import default_centre, relay_mask, relay_params
+    from oapcal.subsampling import StartedModel
+
+    design = default_centre(design_from_options(relay_design), pairs.xy_u, parse_size(image_size))
+    return StartedModel(spec, relay_mask(spec), relay_params(design))
 
 
 def print_robustness(result, source: str = "") -> None:
@@ -336,14 +372,11 @@ def print_robustness(result, source: str = "") -> None:
     spread.add_column("parameter")
     for m in result.models:
         spread.add_column(m.name, justify="right")
-    names = [n for n in _param_names() if any(n in m.free for m in result.models)]
+    from oapcal.model import BROWN_CONRADY_POSE, RELAY
+
+    order = list(dict.fromkeys(BROWN_CONRADY_POSE.param_names + RELAY.param_names))
+    names = [n for n in order if any(n in m.free for m in result.models)]
     for name in names:
         cells = (_fmt(m.param_std.get(name), ".3g") if name in m.free else "" for m in result.models)
         spread.add_row(name, *cells)
     out.print(spread)
-
-
-def _param_names():
-    from oapcal.model import PARAM_NAMES
-
-    return PARAM_NAMES

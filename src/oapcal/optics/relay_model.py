@@ -38,6 +38,8 @@ DEFAULT_FREE = ("scale", "rotation", "shift_x", "shift_y", "m2_tilt_x", "m2_tilt
 #: parameters.
 ALIASES: dict[str, tuple[str, ...]] = {
     "pose": RELAY_POSE_NAMES,
+    "tilt1": ("m1_tilt_x", "m1_tilt_y"),
+    "tilt2": ("m2_tilt_x", "m2_tilt_y"),
     "tilt1x": ("m1_tilt_x",),
     "tilt1y": ("m1_tilt_y",),
     "tilt2x": ("m2_tilt_x",),
