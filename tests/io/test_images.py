@@ -101,3 +101,26 @@ def test_safe_output_path_refuses_escapes(tmp_path):
     for name in ["../a.tif", "/etc/passwd", "sub/../../a.tif", "link/a.tif", "b.tif", ""]:
         with pytest.raises(OutputError, match="must stay inside the output directory"):
             safe_output_path(out, name)
+
+
+@pytest.mark.parametrize("kind", ["probe", "read_image_grey", "load_map"])
+def test_every_binary_input_is_checked_by_one_routine(tmp_path, kind):
+    from oapcal.io.imagefile import read_image_grey
+    from oapcal.io.maps import load_map
+
+    read, what, good = {
+        "probe": (probe, "an image file", "a.png"),
+        "read_image_grey": (read_image_grey, "an image file", "a.png"),
+        "load_map": (load_map, "a map file", "a.npz"),
+    }[kind]
+    kind_name = what.split(" ", 1)[1]
+    (tmp_path / "d" / good).mkdir(parents=True)
+    cases = [
+        (tmp_path / "nope" / good, f"nope/{good}: no such {kind_name}; "),
+        (tmp_path / "d" / good, f"d/{good}: is a directory, not {what}"),
+        (tmp_path / "a.gif", f"a.gif: unsupported file type '.gif'; {what} must end in "),
+    ]
+    for path, message in cases:
+        with pytest.raises(InputFileError) as err:
+            read(path)
+        assert message in str(err.value)

@@ -1,7 +1,8 @@
 """Reading single images for analysis (edge spread, correction checks, reports).
 
-Files are read by :func:`oapcal.io.images.read_image` (pixel-count limit, errors naming the
-file), TIFF through tifffile and everything else through OpenCV.  Colour
+Files are read by :func:`oapcal.io.images.read_image` (the path checked by
+:func:`~oapcal.io.images.check_input_file`, the pixel-count limit checked before decoding,
+errors naming the file), TIFF through tifffile and everything else through OpenCV.  Colour
 images are converted to grey (ITU-R BT.601 weights, as OpenCV does); the result is a
 ``float64 (rows, cols)`` array in the file's own intensity units.  Problems raise
 :class:`~oapcal.errors.InputFileError` naming the file.
@@ -30,11 +31,7 @@ def read_image_grey(path: str | Path) -> np.ndarray:
 
     name = str(path)
     p = Path(path)
-    if not p.exists():
-        raise InputFileError(f"{name}: no such image file; check the path")
-    if p.is_dir():
-        raise InputFileError(f"{name}: is a directory, not an image file")
-    # read_image checks the pixel count before decoding and names the file on any error.
+    # read_image checks the path and the pixel count before decoding and names the file on any error.
     image = read_image(p)
     if image.ndim == 3 and image.shape[-1] in (3, 4) and p.suffix.lower() not in (".tif", ".tiff"):
         image = image[..., [2, 1, 0]]  # OpenCV decodes colour as BGR

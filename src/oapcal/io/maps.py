@@ -17,7 +17,7 @@ import numpy as np
 from oapcal.errors import InputFileError
 from oapcal.imaging.remap import MAX_GROWTH, CorrectionMap, OutputGeometry
 from oapcal.io.atomic import atomic_path, atomic_write
-from oapcal.io.images import MAX_PIXELS
+from oapcal.io.images import MAX_PIXELS, MAX_UNPACK_RATIO, check_input_file
 
 MAP_SUFFIXES = (".npz", ".npy", ".tif", ".tiff")
 
@@ -49,11 +49,6 @@ def save_map(cmap: CorrectionMap, path: str | Path) -> None:
         raise InputFileError(f"{path}: a map file must end in {', '.join(MAP_SUFFIXES)}")
 
 
-#: A map file whose arrays unpack to more than this many times their stored size (and to
-#: over 64 MiB) is refused as a decompression bomb; oapcal writes maps uncompressed.
-MAX_MAP_RATIO = 50
-
-
 def _check_map_header(path: Path, shape, dtype, stored: int, unpacked: int, max_pixels: int) -> None:
     """Refuse a map from its header alone, before anything is decompressed."""
     limit = MAX_GROWTH * max_pixels
@@ -63,7 +58,9 @@ def _check_map_header(path: Path, shape, dtype, stored: int, unpacked: int, max_
             f"{path}: the map is {shape[-1]}x{shape[-2]} px, more than the {limit} px a map for the "
             "largest image (max_pixels) can have; the file is not a map oapcal wrote"
         )
-    if unpacked > 64 * 2**20 and unpacked > MAX_MAP_RATIO * max(stored, 1):
+    if unpacked > 64 * 2**20 and unpacked > MAX_UNPACK_RATIO * max(
+        stored, 1
+    ):  # oapcal writes them uncompressed
         raise InputFileError(
             f"{path}: {stored} bytes that unpack to {unpacked} (a decompression bomb?); "
             "write the map again with save_map"
@@ -109,12 +106,8 @@ def load_map(path: str | Path, max_pixels: int | None = None) -> CorrectionMap:
     :data:`~oapcal.imaging.remap.MAX_GROWTH`) or one
     that decompresses to far more than it stores is refused.
     """
-    path = Path(path)
+    path = check_input_file(path, "map file", MAP_SUFFIXES, missing="write one with save_map")
     suffix = path.suffix.lower()
-    if suffix not in MAP_SUFFIXES:
-        raise InputFileError(f"{path}: a map file must end in {', '.join(MAP_SUFFIXES)}")
-    if not path.is_file():
-        raise InputFileError(f"{path}: no such map file; write one with save_map")
     max_pixels = max_pixels or MAX_PIXELS
     geometry_vals = None
     input_shape = None
