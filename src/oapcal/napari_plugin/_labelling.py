@@ -27,7 +27,7 @@ QUADRATIC_FROM = 10
 #: Proposed corners must be this far inside the image (px).
 MARGIN_PX = 2.0
 #: Corners of bars narrower than this (image px) are not proposed.
-RESOLVED_BAR_PX = 2.0
+RESOLVED_BAR_PX = 1.0
 
 
 @dataclass(frozen=True)
