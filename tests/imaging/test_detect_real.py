@@ -106,7 +106,7 @@ def test_an_absurd_scale_is_refused_quickly_not_rendered():
     # at 1e-4 um/px the target would be millions of px wide: refused before any raster is made
     rng = np.random.default_rng(0)
     det = detect_usaf(rng.integers(0, 255, (200, 300)).astype(np.uint8), (4, 5), 1e-4)
-    assert det.status != 0 and "check um_per_px" in det.message and det.param == ("um_per_px",)
+    assert det.status != 0 and not det.ok and "check um_per_px" in det.message and det.param == ("um_per_px",)
 
 
 def test_fit_parameters_are_bounded():

@@ -66,6 +66,11 @@ class FileResult:
     message: str = ""
     param: str | tuple[str, ...] | None = None
 
+    @property
+    def ok(self) -> bool:
+        """Whether the input is done (corrected now or before; docs/conventions.md)."""
+        return self.status != "failed"
+
 
 @dataclass(frozen=True)
 class StackReport:

@@ -126,6 +126,11 @@ class Detection:
     param: tuple[str, ...] = ()
 
     @property
+    def ok(self) -> bool:
+        """Whether the target was found (``status == 0``; docs/conventions.md)."""
+        return self.status == 0
+
+    @property
     def coverage(self) -> float:
         """Kept corners / corners expected fully inside the image."""
         return len(self.ids) / self.n_expected if self.n_expected else 0.0
