@@ -52,6 +52,10 @@ _API: dict[str, str] = {
     "correct_image": "oapcal.imaging.remap:correct_image",
     # the optics and the target
     "relay_distortion": "oapcal.optics.field:relay_distortion",
+    # the physical relay as a model, and choosing across model families
+    "RelayDesign": "oapcal.optics.relay_model:RelayDesign",
+    "calibrate_relay": "oapcal.optics.relay_model:calibrate_relay",
+    "select_families": "oapcal.families:select_families",
     "usaf_target": "oapcal.imaging.usaf:usaf_target",
     "simulate_image": "oapcal.imaging.simulate:simulate_image",
     "detect_usaf": "oapcal.imaging.detect:detect_usaf",
