@@ -229,7 +229,9 @@ class ModelFamily:
     makes the solver use central differences of the point function (relative step
     ``fd_step``); ``never_free`` the parameters no model of the family fits (constants
     of a design carried in the vector); ``zero_when_fixed``: a parameter a model does not
-    fit is 0 (Eq. 1: the term is absent) or, when False, keeps its starting value.
+    fit is 0 (Eq. 1: the term is absent) or, when False, keeps its starting value;
+    ``map_step``: a correction map evaluates the model at every pixel (0) or every
+    ``map_step`` px with bicubic splines in between (a costly point function).
     """
 
     name: str
@@ -242,6 +244,7 @@ class ModelFamily:
     fd_step: float = 1e-6
     never_free: tuple[str, ...] = ()
     zero_when_fixed: bool = True
+    map_step: int = 0
 
     @property
     def n_params(self) -> int:
@@ -304,6 +307,7 @@ RELAY = ModelFamily(
     fd_step=1e-3,
     never_free=RELAY_DESIGN_NAMES,
     zero_when_fixed=False,
+    map_step=8,
 )
 
 FAMILIES = {f.name: f for f in (BROWN_CONRADY, BROWN_CONRADY_POSE, RELAY)}

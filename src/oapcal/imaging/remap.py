@@ -237,14 +237,45 @@ def correction_map(
     ys = geometry.y0 + geometry.scale * np.arange(rows, dtype=float)
     out_x = np.empty((rows, cols), np.float32)
     out_y = np.empty((rows, cols), np.float32)
+    family = family_of(params)
+    if family.map_step and min(rows, cols) > 4 * family.map_step:
+        _spline_map(params, xs, ys, family.map_step, out_x, out_y)
+        return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
     # The model's compiled point function over the separable grid, rows in parallel.
     from oapcal import _kernels
     from oapcal.model import kernel_array
 
     block = _kernels.block_size(rows, -(-(1 << 20) // max(cols, 1)))  # threads only for > 1 Mpx
-    _kernels.run_blocks(_kernels.grid_map, rows, block, family_of(params).code,
+    _kernels.run_blocks(_kernels.grid_map, rows, block, family.code,
                         kernel_array(params), xs, ys, out_x, out_y)  # fmt: skip
     return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
+
+
+#: Output rows interpolated at a time by :func:`_spline_map` (bounds its float64 temporaries).
+SPLINE_ROWS = 256
+
+
+def _spline_map(params, xs, ys, step: int, out_x, out_y) -> None:
+    """The map of a family whose point function is costly (the relay traces a chief ray per
+    point, ~2 us): the model exactly on a grid every ``step`` output px (ends included),
+    then bicubic splines (:class:`scipy.interpolate.RectBivariateSpline`) in between.  The
+    field is smooth on that scale: at ``step`` 8 the map equals the per-pixel one to float32
+    rounding (tests/imaging/test_remap_families.py), ~15x faster at 640 x 480."""
+    from scipy.interpolate import RectBivariateSpline
+
+    from oapcal.model import distort
+
+    def nodes(v):
+        return np.linspace(v[0], v[-1], max(4, int(np.ceil(abs(v[-1] - v[0]) / step)) + 1))
+
+    cx, cy = nodes(xs), nodes(ys)
+    gx, gy = np.meshgrid(cx, cy)
+    d = distort(np.stack([gx.ravel(), gy.ravel()], -1), params).reshape(len(cy), len(cx), 2)
+    splines = [RectBivariateSpline(cy, cx, d[..., k], kx=3, ky=3) for k in (0, 1)]
+    for lo in range(0, len(ys), SPLINE_ROWS):
+        hi = min(lo + SPLINE_ROWS, len(ys))
+        out_x[lo:hi] = splines[0](ys[lo:hi], xs)
+        out_y[lo:hi] = splines[1](ys[lo:hi], xs)
 
 
 _CV2_INTERP = {"nearest": 0, "linear": 1, "cubic": 2, "lanczos": 4}  # cv2.INTER_* values
