@@ -16,14 +16,25 @@ best and its time is extrapolated to 4,096 models (stated in the output); ``--fu
 all 4,096.  Checks: the AICc of every model valid in both agrees to 1e-6 relative, and
 both pick the same best model among the models the peer fitted.
 
-    PYTHONPATH=src python benchmarks/bench_select.py [--full] [--sample 256] [--repeats 5]
+``--command N`` also times the whole command, ``oapcal select FILE --normalize grid --top 1``
+on the same 289 points written to a temporary point-pair file, as N fresh processes (after
+one that may compile or load the kernels into the cache), and prints the median wall and
+CPU time, with a bare ``python -c "import numpy"`` process as the reference (the goal of
+the whole command is absolute: 1 s).
+
+    PYTHONPATH=src python benchmarks/bench_select.py [--full] [--sample 256] [--repeats 5] [--command 9]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
+import shutil
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -68,17 +79,57 @@ def scipy_score(u, d, mask):
     return aicc, valid
 
 
+def _timed_process(argv: list[str], env: dict) -> tuple[float, float]:
+    """Wall and CPU time (user + system of the child) of one process."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    subprocess.run(argv, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def time_command(xy_u, xy_d, runs: int) -> None:
+    """The whole ``oapcal select`` command as fresh processes, median of ``runs``."""
+    from oapcal.io.points import write_point_pairs
+
+    exe = shutil.which("oapcal", path=str(Path(sys.executable).parent)) or shutil.which("oapcal")
+    command = [exe] if exe else [sys.executable, "-m", "oapcal"]
+    env = {**os.environ}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = str(Path(tmp) / "grid.csv")
+        write_point_pairs(path, xy_u, xy_d)
+        argv = [*command, "select", path, "--normalize", "grid", "--top", "1"]
+        _timed_process(argv, env)  # compiles or loads the kernels into the cache
+        ours, bare = [], []
+        for _ in range(runs):  # alternating, so both see the same load
+            ours.append(_timed_process(argv, env))
+            bare.append(_timed_process([sys.executable, "-c", "import numpy"], env))
+    walls = [w for w, _ in ours]
+    wall, cpu = statistics.median(walls), statistics.median(c for _, c in ours)
+    print(f"oapcal select as a command (oapcal select grid.csv --normalize grid --top 1), median of {runs}: "
+          f"{wall:.3f} s wall, {cpu:.3f} s CPU (runs {min(walls):.3f}-{max(walls):.3f} s); "
+          f"bare python -c 'import numpy': {statistics.median(w for w, _ in bare):.3f} s; "
+          f"load average {os.getloadavg()[0]:.1f}")  # fmt: skip
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--full", action="store_true", help="run the SciPy loop over all 4,096 models")
     ap.add_argument("--sample", type=int, default=256, help="random models for the SciPy loop")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--command", type=int, default=0, metavar="N", help="also time the whole command N times")
+    ap.add_argument("--command-only", action="store_true", help="time only the whole command")
     args = ap.parse_args()
 
     from oapcal.select import select_models
 
     xy_u, xy_d = grid_data(args.seed)
+    if args.command or args.command_only:
+        time_command(xy_u, xy_d, args.command or 9)
+        if args.command_only:
+            return
     norm = normalize("grid", xy_u, xy_d)
 
     t = time.perf_counter()

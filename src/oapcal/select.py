@@ -42,11 +42,10 @@ from oapcal.errors import DataError
 from oapcal.fitting import STATUS_MESSAGES, fit_batch, initial_params_many
 from oapcal.model import (
     N_OPTIONAL,
+    PARAM_NAMES,
     all_masks,
     bits_from_mask,
     correction_errors,
-    mask_from_bits,
-    names_from_mask,
     parse_model,
     undistort,
 )
@@ -149,7 +148,10 @@ class Selection:
 
 @functools.lru_cache(maxsize=2**N_OPTIONAL)
 def _names_of_bits(bits: int) -> tuple[str, ...]:
-    return names_from_mask(mask_from_bits(bits))
+    """``names_from_mask(mask_from_bits(bits))`` without building the mask: a selection
+    names 4,096 models, and building each mask took 65 ms of a whole ``oapcal select``."""
+    optional = PARAM_NAMES[:N_OPTIONAL]
+    return tuple(name for i, name in enumerate(optional) if bits >> i & 1) + PARAM_NAMES[N_OPTIONAL:]
 
 
 def _starts(init, xy_u, xy_d, masks) -> np.ndarray:

@@ -289,6 +289,14 @@ def test_mask_bits_round_trip_in_selection(grid_selection):
     assert m.free[-1] == "m" and INDEX["m"] == 12
 
 
+def test_selection_names_every_model_as_its_mask_does():
+    from oapcal.model import names_from_mask
+    from oapcal.select import _names_of_bits
+
+    for bits in range(4096):
+        assert _names_of_bits(bits) == names_from_mask(mask_from_bits(bits)), bits
+
+
 def test_hull_grid_equals_matplotlib_point_in_polygon():
     from matplotlib.path import Path
     from scipy.spatial import ConvexHull

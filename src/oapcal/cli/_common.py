@@ -502,17 +502,31 @@ def stderr_is_terminal() -> bool:
         return False
 
 
+class _NoBar(contextlib.nullcontext):
+    """What :func:`progress_bar` gives off a terminal: a context that draws nothing."""
+
+    disable = True
+
+
+def _ignore_progress(done: int, total: int, description: str | None = None) -> None:
+    """The progress callback off a terminal."""
+
+
 def progress_bar(description: str = ""):
     """A Rich progress bar on stderr (drawn only when stderr is a terminal, removed when done) and its
     callback ``update(done, total, description=None)``, which library functions take as
-    their ``progress`` argument.  Use the bar as a context manager around the work."""
+    their ``progress`` argument.  Use the bar as a context manager around the work.
+    Off a terminal nothing is drawn and Rich is not even imported (a null context and a
+    callback that does nothing)."""
+    if not stderr_is_terminal():
+        return _NoBar(), _ignore_progress
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     err = Console(file=sys.stderr)
     bar = Progress(
         TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-        console=err, transient=True, disable=not stderr_is_terminal(),
+        console=err, transient=True,
     )  # fmt: skip
     task = bar.add_task(description, total=None)
 
