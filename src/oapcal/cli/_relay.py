@@ -66,18 +66,20 @@ def relay_design_options(func):
     return wrapper
 
 
-def _parse_centre(text: str | None):
-    if text is None:
-        return None
+def parse_xy(text: str, option: str, example: str) -> tuple[float, float]:
+    """``"0.5,-0.25"`` -> ``(0.5, -0.25)``; a usage error naming ``option`` (with an
+    ``example`` of a good value) for anything else."""
     try:
         x, y = (float(v) for v in text.split(","))
         if not (math.isfinite(x) and math.isfinite(y)):
             raise ValueError
     except ValueError:
-        raise click.BadParameter(
-            f"{text!r} is not a point like 320,240 (px)", param_hint="--relay-centre"
-        ) from None
+        raise click.BadParameter(f"{text!r} is not a point like {example}", param_hint=option) from None
     return (x, y)
+
+
+def _parse_centre(text: str | None):
+    return None if text is None else parse_xy(text, "--relay-centre", "320,240 (px)")
 
 
 def design_from_options(values: dict):

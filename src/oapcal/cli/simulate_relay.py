@@ -270,17 +270,9 @@ def _design_reference(grid):
 
 def _parse_point(text: str) -> tuple[float, float]:
     """``"0.5,-0.25"`` -> ``(0.5, -0.25)`` (a --spot-field value)."""
-    import math
+    from oapcal.cli._relay import parse_xy
 
-    try:
-        x, y = (float(v) for v in text.split(","))
-        if not (math.isfinite(x) and math.isfinite(y)):
-            raise ValueError
-    except ValueError:
-        raise click.BadParameter(
-            f"{text!r} is not a point like 0.5,0.5 (mm)", param_hint="--spot-field"
-        ) from None
-    return (x, y)
+    return parse_xy(text, "--spot-field", "0.5,0.5 (mm)")
 
 
 def print_summary(s: dict) -> None:

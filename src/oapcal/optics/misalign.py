@@ -120,6 +120,13 @@ class Misalignment:
             )
         return cls(**values)
 
+    @classmethod
+    def of(cls, value) -> Misalignment:
+        """``value`` as a :class:`Misalignment`: None (aligned), one already, or a dict."""
+        if value is None:
+            return cls()
+        return value if isinstance(value, Misalignment) else cls.from_dict(value)
+
     def to_dict(self) -> dict[str, float]:
         """``{name: value}`` of every degree of freedom, in :data:`PARAMETERS` order."""
         return {name: getattr(self, name) for name in PARAMETERS}

@@ -201,12 +201,7 @@ def oap_relay(
     key = str(orientation).strip().upper()
     if key not in ORIENTATIONS:
         raise GeometrySpecError(f"unknown orientation {orientation!r}: use U (default) or Z")
-    if misalignment is None:
-        mis = Misalignment()
-    elif isinstance(misalignment, Misalignment):
-        mis = misalignment
-    else:
-        mis = Misalignment.from_dict(misalignment)
+    mis = Misalignment.of(misalignment)
     d1_real = d1 + mis.d1
     if not d1_real > 0:
         raise GeometrySpecError(f"a d1 change of {mis.d1:g} mm leaves no collimated path (d1 = {d1:g} mm)")

@@ -114,12 +114,7 @@ def relay_params(design: RelayDesign, misalignment=None, pose: Mapping | None = 
     ``design``'s constants.  ``design.centre`` must be set (:meth:`RelayDesign.with_centre`)."""
     if design.centre is None:
         raise ModelSpecError("the relay design needs its centre (px): give it or use with_centre(points)")
-    if misalignment is None:
-        mis = Misalignment()
-    elif isinstance(misalignment, Misalignment):
-        mis = misalignment
-    else:
-        mis = Misalignment.from_dict(misalignment)
+    mis = Misalignment.of(misalignment)
     pose = {"scale": 1.0, "rotation": 0.0, "shift_x": 0.0, "shift_y": 0.0, **dict(pose or {})}
     unknown = sorted(set(pose) - set(RELAY_POSE_NAMES))
     if unknown:
