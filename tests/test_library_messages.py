@@ -14,19 +14,8 @@ from paths import SRC
 #: ``--word``, not a CSS custom property (``--ink: #222``, ``var(--ink)``) of the report's style
 FLAG = re.compile(r"(?<![\w-])(?<!var\()--[a-z][a-z0-9-]*(?![\w:-])")
 
-#: Modules whose messages still name flags, with the flags: the landmark readers, whose
-#: messages are written for ``oapcal fit``/``landmarks convert`` (--reference, --pair-by, ...).
-KNOWN = {
-    "io/landmarks/__init__.py": {
-        "--reference",
-        "--reference-image",
-        "--distorted-image",
-        "--pair-by",
-        "--pair-by-order",
-    },
-    "io/landmarks/tables.py": {"--x-column", "--y-column"},
-    "io/landmarks/via.py": {"--distorted-image", "--reference-image"},
-}
+#: Modules whose messages still name flags, with the flags (none left).
+KNOWN: dict[str, set[str]] = {}
 
 
 def _docstrings(tree) -> set[int]:

@@ -109,7 +109,7 @@ def test_plain_tsv_with_mapped_columns_and_corner_origin(tmp_path):
     ls = read_landmarks(tmp_path / "m.tsv", x_column="X", y_column="Y", origin="corner")
     # ImageJ-style: the top-left pixel's centre is (0.5, 0.5), so subtract half a pixel.
     assert [(lm.x, lm.y) for lm in ls.landmarks] == [(10.0, 20.0), (3.0, 4.0)]
-    with pytest.raises(InputFileError, match=r"line 1: no column 'col'.*--x-column"):
+    with pytest.raises(InputFileError, match=r"line 1: no column 'col'.*with x_column"):
         read_landmarks(tmp_path / "m.tsv", x_column="col", y_column="Y")
 
 
@@ -150,7 +150,7 @@ def test_pairing_errors_name_the_file_and_landmark(tmp_path):
         read_landmark_pairs(d, r, pair_by="corner")
     with pytest.raises(InputFileError, match="no attribute 'label' to pair by"):
         read_landmark_pairs(d, r, pair_by="label")
-    with pytest.raises(InputFileError, match=r"pair up: --pair-by ATTR \(attributes on every"):
+    with pytest.raises(InputFileError, match=r"pair up: by an attribute, pair_by \(attributes on every"):
         read_landmark_pairs(d, r)
     d, r = _two_csvs(tmp_path, ["A,1,2", "B,5,1", "C,3,9"], ["A,1,1", "B,5,5"])
     with pytest.raises(DataError, match="has 3 landmarks but .*r.csv has 2; pairing by order"):

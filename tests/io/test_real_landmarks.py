@@ -59,7 +59,8 @@ def test_via1_files_pick_an_image(name):
     names = {lm.attrs.get("name") for lm in ls.landmarks}
     assert 'red "dot"' in names
     with pytest.raises(
-        InputFileError, match=r"point regions on 2 images .*; choose one with --distorted-image"
+        InputFileError,
+        match=r"point regions on 2 images .*; choose one by its name with distorted_image$",
     ):
         read_landmark_pairs(real(name), require=("x_d", "y_d"))
 
@@ -189,9 +190,10 @@ def test_napari_file_alone_gets_no_via_hint(run_cli, tmp_path):
     code, _, err = run_cli(
         "fit", "--distorted", real("napari_points_3d_cells.csv"), "--out", tmp_path / "c.json"
     )
-    assert code == 2 and "give the reference landmarks too (--reference FILE)" in err and "VIA" not in err, (
-        err
+    assert (
+        code == 2 and "give the reference landmarks too: their file as reference (set by --reference)" in err
     )
+    assert "VIA" not in err and "reference_image" not in err, err
 
 
 def test_correct_points_hint_names_only_the_distorted_image(run_cli, tmp_path):
@@ -209,9 +211,8 @@ def test_correct_points_hint_names_only_the_distorted_image(run_cli, tmp_path):
         "--out",
         tmp_path / "p.csv",
     )
-    assert code == 2 and "choose one with --distorted-image NAME" in err and "--reference-image" not in err, (
-        err
-    )
+    assert code == 2 and "choose one by its name with distorted_image (set by --distorted-image)" in err
+    assert "reference_image" not in err and "--reference-image" not in err, err
 
 
 def test_convert_to_stdout_with_json_is_refused(run_cli, tmp_path):

@@ -144,10 +144,12 @@ def read_landmark_pairs(
         reference = distorted
     if reference is None:
         if need_reference:
-            also = ", or --reference-image NAME for a VIA file holding both" if d_fmt == "via" else ""
+            via = d_fmt == "via"
+            also = " (or, for a VIA file holding both, the reference image's name as reference_image)"
             raise InputFileError(
                 f"{distorted}: holds the distorted landmarks only; give the reference landmarks "
-                f"too (--reference FILE{also})"
+                f"too: their file as reference{also if via else ''}",
+                param=("reference", "reference_image") if via else "reference",
             )
         return _distorted_only(dist, pair_by, check_geometry)
     r_text = d_text if str(reference) == str(distorted) else read_text(reference)
@@ -160,15 +162,17 @@ def read_landmark_pairs(
     if str(reference) == str(distorted) and (d_fmt != "via" or distorted_image == reference_image):
         raise InputFileError(
             f"{distorted}: given as both the distorted and the reference landmarks; for a VIA file "
-            "holding both images name them with --distorted-image and --reference-image"
+            "holding both images name them with distorted_image and reference_image",
+            param=("distorted_image", "reference_image"),
         )
     ref = _read_one(reference, r_fmt, r_text, reference_image, opts, "reference")
     if pair_by is None and not pair_by_order:
         common = sorted(set.intersection(*(set(lm.attrs) for lm in dist.landmarks + ref.landmarks)) - {""})
         hint = f" (attributes on every landmark: {', '.join(common[:6])})" if common else ""
         raise InputFileError(
-            f"{dist.source} + {ref.source}: say how landmarks pair up: --pair-by ATTR{hint}, or "
-            "--pair-by-order if both files list them in the same order"
+            f"{dist.source} + {ref.source}: say how landmarks pair up: by an attribute, pair_by{hint}, "
+            "or by order, pair_by_order, if both files list them in the same order",
+            param=("pair_by", "pair_by_order"),
         )
     pairs = pair_landmarks(dist, ref, pair_by) if pair_by else _pair_by_order(dist, ref)
     return _finish(pairs, check_geometry)
@@ -236,7 +240,8 @@ def pair_landmarks(dist: LandmarkSet, ref: LandmarkSet, attr: str) -> PointPairs
         raise DataError(
             f"{dist.source} + {ref.source}: no {attr} value is on both sides (distorted: "
             f"{', '.join(list(d_index)[:3])}...; reference: {', '.join(list(r_index)[:3])}...); "
-            "check --pair-by"
+            "check pair_by",
+            param="pair_by",
         )
     return _make_pairs(dist, ref, [r_index[k] for k in keys], [d_index[k] for k in keys], keys, warnings)
 

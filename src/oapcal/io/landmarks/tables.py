@@ -185,8 +185,8 @@ def read_table(path, *, x_column: str = "x", y_column: str = "y", origin: str = 
     rows = csv_rows(text, name, sniff_delimiter(text))
     _, header = first_row(rows, name)
     header = [h.strip() for h in header]
-    ix = _column(header, x_column, name, "--x-column")
-    iy = _column(header, y_column, name, "--y-column")
+    ix = _column(header, x_column, name, "x_column")
+    iy = _column(header, y_column, name, "y_column")
     offset = 0.5 if origin == "corner" else 0.0
     landmarks = []
     for line, cells in rows:
@@ -205,7 +205,7 @@ def read_table(path, *, x_column: str = "x", y_column: str = "y", origin: str = 
     return LandmarkSet(name, tuple(landmarks))
 
 
-def _column(header: list[str], wanted: str, name: str, option: str) -> int:
+def _column(header: list[str], wanted: str, name: str, param: str) -> int:
     if wanted in header:
         if header.count(wanted) > 1:
             raise InputFileError(f"{name}: line 1: column {wanted!r} appears more than once; keep one")
@@ -218,6 +218,7 @@ def _column(header: list[str], wanted: str, name: str, option: str) -> int:
     from oapcal.io.points import delimiter_hint
 
     raise InputFileError(
-        f"{name}: line 1: no column {wanted!r}{hint}; name the coordinate column with {option} "
-        f"(columns: {', '.join(header[:8])}){delimiter_hint(header)}"
+        f"{name}: line 1: no column {wanted!r}{hint}; name the coordinate column with {param} "
+        f"(columns: {', '.join(header[:8])}){delimiter_hint(header)}",
+        param=param,
     )

@@ -73,7 +73,7 @@ def read_via(
 
     ``image`` picks the image by file name or base name (``IMG.jpg`` matches VIA's
     ``file://C:\\...\\IMG.jpg``) when the file holds point regions on several images;
-    ``role`` (``"distorted"`` or ``"reference"``) names the option to choose one in messages.
+    ``role`` (``"distorted"`` or ``"reference"``) names the parameter that chooses one in messages.
     """
     name = str(path)
     text = read_text(path, "VIA file") if text is None else text
@@ -309,14 +309,14 @@ def _found(images) -> str:
     return ", ".join(parts + counts) if counts else f"{parts[0]}, no regions"
 
 
-_OPTION = {"distorted": "--distorted-image NAME", "reference": "--reference-image NAME"}
+_PARAM = {"distorted": ("distorted_image",), "reference": ("reference_image",)}
 
 
 def _pick_image(images, name: str, image: str | None, role: str | None = None) -> LandmarkSet:
     def has_points(regions):
         return any(isinstance(r, Landmark) for r in regions)
 
-    option = _OPTION.get(role, "--distorted-image / --reference-image")
+    param = _PARAM.get(role, ("distorted_image", "reference_image"))
     if image is not None:
         wanted = image_base_name(image)
         chosen = [im for im in images if image in (im[0], im[2]) or image_base_name(im[0]) == wanted]
@@ -335,7 +335,9 @@ def _pick_image(images, name: str, image: str | None, role: str | None = None) -
         if len(chosen) > 1:
             listed = ", ".join(repr(im[0]) for im in chosen[:5]) + (", ..." if len(chosen) > 5 else "")
             raise InputFileError(
-                f"{name}: has point regions on {len(chosen)} images ({listed}); choose one with {option}"
+                f"{name}: has point regions on {len(chosen)} images ({listed}); choose one by its "
+                f"name with {' or '.join(param)}",
+                param=param,
             )
     fname, regions, _ = chosen[0]
     landmarks = tuple(r for r in regions if isinstance(r, Landmark))
