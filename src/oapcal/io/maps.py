@@ -17,7 +17,7 @@ import numpy as np
 from oapcal.errors import InputFileError
 from oapcal.imaging.remap import MAX_GROWTH, CorrectionMap, OutputGeometry
 from oapcal.io.atomic import atomic_path, atomic_write
-from oapcal.io.images import MAX_PIXELS, MAX_UNPACK_RATIO, check_input_file
+from oapcal.io.images import MAX_PIXELS, MAX_UNPACK_RATIO, check_input_file, read_image
 
 MAP_SUFFIXES = (".npz", ".npy", ".tif", ".tiff")
 
@@ -126,11 +126,9 @@ def load_map(path: str | Path, max_pixels: int | None = None) -> CorrectionMap:
             both = np.load(path, allow_pickle=False, mmap_mode="r")
             _check_map_header(path, both.shape, both.dtype, both.nbytes, both.nbytes, max_pixels)
             both = np.array(both)
-        else:
-            import tifffile
-
+        else:  # decoded by the image reader, which checks the TIFF structure and the pixel count
             _tiff_map_headers(path, max_pixels)
-            both = tifffile.imread(path)
+            both = read_image(path, MAX_GROWTH * max_pixels)
     except InputFileError:
         raise
     except (OSError, ValueError, KeyError) as exc:
