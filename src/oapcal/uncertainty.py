@@ -33,17 +33,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.model import INDEX, jacobian_params, jacobian_point
+from oapcal.model import family_of, jacobian_params, jacobian_point
 
 
 def position_covariance(xy_u, params, covariance, free) -> np.ndarray:
     """Covariance ``(..., N, 2, 2)`` of the corrected position at output points ``(..., N, 2)``.
 
-    ``covariance`` is ``k x k`` over the parameters named in ``free``; see the module
+    ``covariance`` is ``k x k`` over the parameters named in ``free`` (names of the family
+    of ``params``, :func:`oapcal.model.family_of`); see the module
     docstring for the formula.  NaN where the map is singular (folds over).
     """
     xy_u = np.asarray(xy_u, float)
-    idx = [INDEX[name] for name in free]
+    names = family_of(params).param_names
+    idx = [names.index(name) for name in free]
     cov = np.asarray(covariance, float)
     if cov.shape != (len(idx), len(idx)):
         raise DataError(

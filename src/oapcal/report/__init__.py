@@ -46,12 +46,15 @@ Progress = Callable[[int, int, str], None]
 class ReportData:
     """The numbers of a report (``oapcal report --json``): ``residuals`` (Table 1),
     ``uncertainty`` (the map's summary), ``checks`` (``before`` / ``after`` summaries of the
-    target checks) and ``esf`` (the edge spread functions), the last two with an image."""
+    target checks) and ``esf`` (the edge spread functions), the last two with an image;
+    ``model`` the calibration's model (``family``, ``free``, and for the relay
+    ``as_fitted``, its parameters in physical words)."""
 
     residuals: dict
     uncertainty: dict
     checks: dict = field(default_factory=dict)
     esf: dict | None = None
+    model: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -96,11 +99,23 @@ class ReportContent:
     @property
     def data(self) -> ReportData:
         """The numbers of the report."""
-        data = ReportData(residuals=self.residuals, uncertainty=self.uncertainty.summary())
+        data = ReportData(residuals=self.residuals, uncertainty=self.uncertainty.summary(),
+                          model=model_summary(self.calibration))  # fmt: skip
         if self.image is not None:
             data.checks = {"before": self.image.before.summary(), "after": self.image.after.summary()}
             data.esf = self.image.esf.to_dict()
         return data
+
+
+def model_summary(calibration) -> dict:
+    """The calibration's model: ``family`` (its name), ``free`` (the fitted parameters) and,
+    for the relay, ``as_fitted`` (:func:`oapcal.optics.relay_model.describe`)."""
+    out = {"family": calibration.family.name, "free": list(calibration.free)}
+    if calibration.family.name == "relay":
+        from oapcal.optics.relay_model import describe
+
+        out["as_fitted"] = describe(calibration)
+    return out
 
 
 class _Steps:
@@ -186,7 +201,10 @@ def compute_report(
     else:
         residuals = cal.residuals.to_dict()
     step("uncertainty map")
-    umap = uncertainty_map(cal, shape, step=max(1, max(shape) // 320))
+    # a family without analytic parameter columns (the relay) differentiates numerically:
+    # sample it more coarsely (the map is smooth)
+    across = 320 if cal.family.analytic_jacobian else 160
+    umap = uncertainty_map(cal, shape, step=max(1, max(shape) // across))
     analysis = None
     if image is not None:
         analysis = analyse_image(cal, image, shape, tuple(expected_ratios), step)
@@ -359,6 +377,7 @@ def _summary_html(cal, r: dict, from_points: bool) -> str:
     f = cal.fit
     status = "" if f.converged else "NOT converged: "
     stats = [
+        ["model family", _family_text(cal)],
         ["model (free parameters)", ", ".join(cal.free)],
         ["fit", f"{status}{f.message} ({'?' if f.n_iter is None else f.n_iter} iterations)"],
         ["points / residuals", f"{f.n_points} / {f.n_residuals}"],
@@ -370,25 +389,93 @@ def _summary_html(cal, r: dict, from_points: bool) -> str:
     return out + H.table(["quantity", "value"], stats, "Fit")
 
 
-def _params_html(cal) -> str:
-    from oapcal.model import PARAM_NAMES
+#: What each model family is, in the report's words.
+FAMILY_WORDS = {
+    "brown-conrady": "Eq. (1), the Brown-Conrady model",
+    "brown-conrady+rotation": "Eq. (1) after an in-plane rotation of the target (deg)",
+    "relay": "the physical relay: the target's pose and the relay's misalignment, traced through its design",
+}
 
+#: Units and meanings of the relay's pose parameters (its misalignments':
+#: :data:`oapcal.optics.misalign.PARAMETERS`).
+_POSE_WORDS = {
+    "scale": ("", "target scale"),
+    "rotation": ("deg", "target turned (counter-clockwise)"),
+    "shift_x": ("px", "target shifted in x"),
+    "shift_y": ("px", "target shifted in y"),
+}
+
+
+def _family_text(cal) -> str:
+    family = cal.family
+    return f"{family.name} ({FAMILY_WORDS.get(family.name, family.name)})"
+
+
+def _params_html(cal) -> str:
+    """The fitted parameters of the calibration's family (its design constants left out)."""
+    family = cal.family
+    relay = not family.zero_when_fixed
+    if relay:
+        from oapcal.optics.misalign import PARAMETERS
+
+        words = {**_POSE_WORDS, **PARAMETERS}
+    else:
+        words = {"rotation": ("deg", "target turned (counter-clockwise)")}
+    fixed_text = "fixed (design)" if relay else "fixed at 0"
     rows, classes = [], []
-    for i, name in enumerate(PARAM_NAMES):
+    for i, name in enumerate(family.param_names):
+        if name in family.never_free:
+            continue
+        unit, meaning = words.get(name, ("", ""))
+        extra = [unit, meaning] if relay else []
+        value = float(cal.params[i])
         if name in cal.free:
-            value, err = float(cal.params[i]), float(cal.stderr[i])
+            err = float(cal.stderr[i])
             rel = abs(err / value) if value else float("nan")
-            rows.append([name, value, err, rel, "free"])
+            rows.append([name, value, err, rel, *extra, "free"])
             classes.append("")
         else:
-            rows.append([name, 0.0, None, None, "fixed at 0"])
+            rows.append([name, value, None, None, *extra, fixed_text])
             classes.append("dim")
-    out = H.table(["parameter", "value", "std. error", "relative error", ""], rows,
-                  "Parameters of Eq. (1) (px units of the reference points)", classes)  # fmt: skip
-    return out + H.paragraph(
-        "Standard errors from the fit's covariance s^2 (J^T J)^-1 with s^2 = RSS / (n - k); "
-        "fixed parameters are held at 0."
-    )
+    headers = ["parameter", "value", "std. error", "relative error"] + (["unit", "meaning"] if relay else [])
+    if relay:
+        caption = "Parameters of the physical relay (pose of the target, misalignment of the relay)"
+        note = (
+            "Standard errors from the fit's covariance s^2 (J^T J)^-1 with s^2 = RSS / (n - k); "
+            "fixed parameters are held at the design's values (no misalignment, the target's identity "
+            "pose). The design's constants (path length, focal lengths, pixel size, centre) are not "
+            "fitted: see the relay's design below."
+        )
+    else:
+        caption = "Parameters of Eq. (1) (px units of the reference points)"
+        if family.name != "brown-conrady":
+            caption = (
+                "Parameters of Eq. (1) and the target's rotation (px units of the reference points; deg)"
+            )
+        note = (
+            "Standard errors from the fit's covariance s^2 (J^T J)^-1 with s^2 = RSS / (n - k); "
+            "fixed parameters are held at 0."
+        )
+    out = H.table([*headers, ""], rows, caption, classes)
+    out += H.paragraph(note)
+    if relay:
+        out += _relay_html(cal)
+    return out
+
+
+def _relay_html(cal) -> str:
+    """The relay as fitted in physical words, and the design it was fitted from."""
+    from oapcal.optics.relay_model import describe
+
+    lines = describe(cal)
+    out = "<p><strong>The relay as fitted</strong></p><ul>"
+    out += "".join(f"<li>{H.esc(line)}</li>" for line in lines) + "</ul>"
+    design = cal.relay_design or {}
+    if design:
+        rows = [[k, "-" if v is None else (", ".join(H.fmt(c) for c in v) if isinstance(v, list) else v)]
+                for k, v in design.items()]  # fmt: skip
+        out += H.table(["design", "value"], rows, "The nominal relay the fit started from")
+    return out
 
 
 def _uncertainty_html(umap, s: dict, plots) -> str:
