@@ -69,6 +69,9 @@ def test_label_by_hand_then_propose_and_refine(viewer, demo, wait):
         w.corner.value = corner  # what the user picks before clicking
         layer.add(truth[corner][::-1])
     assert w.clicks().keys() == {"G4E2H0C0", "G4E6V2C2", "G5E1V0C0", "G5E6H2C2"}
+    placed = list(layer.features["id"])
+    assert placed == ["G4E2H0C0", "G4E6V2C2", "G5E1V0C0", "G5E6H2C2"]
+    assert w.corner.value not in placed  # after a click the widget offers the next free id
     w.refine.value = True
     w.run()
     wait(w)
@@ -124,6 +127,7 @@ def test_fit_shows_the_residuals_of_oapcals_own_fit(viewer, demo, wait):
     residual = np.hypot(*(oapcal.undistort(xy_d, direct.params).xy - demo["xy_u"]).T)
     vectors = viewer.layers["residuals (x20)"]
     np.testing.assert_allclose(vectors.features["residual_px"], residual, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(vectors.data[:, 0, ::-1], xy_d)  # drawn where the landmarks are
     np.testing.assert_allclose(vectors.data[:, 1, ::-1] / 20, oapcal.undistort(xy_d, direct.params).xy
                                - demo["xy_u"], atol=1e-6)  # fmt: skip
     assert f"{direct.residuals.max_px:8.4g}" in w.table1.value
@@ -248,3 +252,17 @@ def test_detect_and_fit_on_a_real_image(viewer, wait):
     fit.run()
     wait(fit)
     assert fit.calibration.fit.converged and fit.calibration.residuals.mean_px < 1.0
+
+
+@pytest.mark.slow
+def test_fit_selects_the_model_by_aicc(viewer, demo, wait):
+    from oapcal.napari_plugin._widgets import FRAME_TERMS, SELECT, FitWidget
+
+    xy_d = _truth_layers(viewer, demo, noise=0.3, seed=4)
+    w = _add(viewer, FitWidget(viewer), "Fit & inspect")
+    w.model.value = SELECT
+    w.run()
+    wait(w, timeout=600)
+    assert w.last_error is None, w.status
+    best = oapcal.select_models(demo["xy_u"], xy_d, init="pixel").best.free
+    assert w.calibration.free == tuple(n for n in oapcal.PARAM_NAMES if n in best or n in FRAME_TERMS)

@@ -137,15 +137,15 @@ def calibration_layers(calibration, name: str = "calibration") -> list[tuple]:
 
 def residual_vectors(calibration, xy_u, xy_d, ids, *, exaggerate: float = 20.0) -> dict:
     """The correction residual of every pair (the paper's Table 1): ``undistort(xy_d)`` of the
-    calibration against ``xy_u``.  Returns ``residual_px`` ``(N,)``, the vectors layer (from
-    each reference point towards its corrected point, drawn ``exaggerate`` times longer,
-    coloured by size) and the order of the pairs from the worst."""
+    calibration against ``xy_u``.  Returns ``residual_px`` ``(N,)``, the vectors layer (at
+    each landmark in the camera image, ``xy_d``, the residual ``undistort(xy_d) - xy_u`` drawn
+    ``exaggerate`` times longer, coloured by size) and the order of the pairs from the worst."""
     import oapcal
 
     corrected = oapcal.undistort(np.asarray(xy_d, float), calibration.params).xy
     delta = corrected - np.asarray(xy_u, float)
     size = np.hypot(*delta.T)
-    vectors = np.stack([xy_to_rc(xy_u), xy_to_rc(delta * exaggerate)], axis=1)
+    vectors = np.stack([xy_to_rc(xy_d), xy_to_rc(delta * exaggerate)], axis=1)
     features = {"residual_px": size, "id": np.array(ids, object)}
     kwargs = {"name": f"residuals (x{exaggerate:g})", "features": features, "edge_color": "residual_px",
               "edge_colormap": "inferno", "edge_width": 2, "vector_style": "arrow",

@@ -34,6 +34,8 @@ SELECT = "select (AICc)"
 #: In camera px the origin is the image corner, not the distortion centre: selection keeps
 #: these terms free whatever it chooses (as ``oapcal demo`` does).
 FRAME_TERMS = ("x_off", "y_off", "c_x", "c_y")
+#: Widest a docked widget grows (px), so that the canvas keeps most of the window.
+MAX_WIDTH_PX = 460
 #: Step (px) of the uncertainty map the *Correct* widget shows.
 UNCERTAINTY_STEP = 4
 
@@ -81,6 +83,8 @@ class _OapcalWidget(Container):
         self._status = Label(value="")
         self._busy_bar = ProgressBar(min=0, max=0, visible=False, label="working")
         super().__init__(widgets=[*widgets, self._busy_bar, self._status], labels=True)
+        self._status.native.setWordWrap(True)
+        self.native.setMaximumWidth(MAX_WIDTH_PX)
         self.viewer = napari_viewer
         self.busy = False
         self.worker = None
@@ -397,8 +401,8 @@ class FitWidget(_OapcalWidget):
                 chosen = tuple(n for n in oapcal.PARAM_NAMES if n in selection.best.free or n in FRAME_TERMS)
             else:
                 chosen = model
-            return oapcal.calibrate(xy_u, xy_d, chosen, um_per_px=scale, image_size=size, name="napari",
-                                    source=d_layer.name)  # fmt: skip
+            return oapcal.calibrate(xy_u, xy_d, chosen, um_per_px=scale, image_size=size,
+                                    name=f"{model} fit in napari", source=d_layer.name)  # fmt: skip
 
         def done(cal):
             self.show_calibration(cal, xy_u, xy_d, ids)
@@ -420,7 +424,7 @@ class FitWidget(_OapcalWidget):
             _replace_layer(self.viewer, (L.xy_to_rc(xy_d[worst]), {
                 "name": "worst landmarks", "features": {"id": np.array(ids, object)[worst],
                                                         "residual_px": res["residual_px"][worst]},
-                "symbol": "ring", "size": 18, "face_color": "transparent", "border_color": "red",
+                "symbol": "ring", "size": 10, "face_color": "transparent", "border_color": "red",
                 "text": text, "metadata": {L.CALIBRATION: cal}}, "points"))  # fmt: skip
         self.worst_text.value = "\n".join(f"{ids[k]}: {res['residual_px'][k]:.3g} px" for k in worst)
         self.table1.value = L.table1_text(cal.residuals)
@@ -466,7 +470,7 @@ class CorrectWidget(_OapcalWidget):
             cal = layer.metadata.get(L.CALIBRATION)
             if cal is not None and id(cal) not in seen:
                 seen.add(id(cal))
-                out.append((f"{layer.name}", cal))
+                out.append((f"{cal.name or 'calibration'}: {len(cal.free)} parameters ({layer.name})", cal))
         return out
 
     def calibration(self):
