@@ -63,6 +63,19 @@ def test_calibration_opens_as_field_magnitude_and_hull(tmp_path):
     assert kw["metadata"]["oapcal_calibration"].free == loaded.free
 
 
+def test_a_large_calibration_frame_is_sampled(monkeypatch):
+    from oapcal.napari_plugin import _layers
+
+    data = synthetic_pairs(seed=4)
+    cal = oapcal.calibrate(data.xy_u, data.xy_d, "paper", image_size=(640, 480))
+    monkeypatch.setattr(_layers, "MAX_FIELD_PIXELS", 34_200)  # 307,200 px need a step of 3
+    magnitude, kw, _ = _layers.calibration_layers(cal)[0]
+    assert magnitude.shape == (160, 214) and kw["scale"] == (3, 3)
+    x, y = 3 * 100, 3 * 50
+    expected = np.hypot(*(oapcal.distort(np.array([[x, y]], float), cal.params)[0] - (x, y)))
+    assert magnitude[50, 100] == pytest.approx(expected, rel=1e-5)
+
+
 def test_other_files_are_left_to_other_readers(tmp_path):
     from oapcal.napari_plugin._io import napari_get_reader
 

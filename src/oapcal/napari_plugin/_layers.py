@@ -23,6 +23,8 @@ CALIBRATION = "oapcal_calibration"
 SCALE = "oapcal_um_per_px"
 #: Names of the two points layers of point pairs.
 DISTORTED, REFERENCE = "distorted", "reference"
+#: The distortion-magnitude image of a calibration is sampled on at most this many pixels.
+MAX_FIELD_PIXELS = 2**22
 #: Grid spacing of the distortion-field vectors, as a fraction of the longer image side.
 FIELD_STEP_FRACTION = 1.0 / 24.0
 
@@ -112,21 +114,23 @@ def hull_layer(calibration, name: str = "calibration hull") -> tuple | None:
 
 def calibration_layers(calibration, name: str = "calibration") -> list[tuple]:
     """The distortion field of a calibration: a magnitude image ``|distort(x) - x|`` px over its
-    frame, a vectors layer from undistorted grid points to where the relay images them, and
-    the hull of its calibration points."""
+    frame (every pixel, or every ``step`` px with the layer scaled by ``step`` for frames over
+    :data:`MAX_FIELD_PIXELS`), a vectors layer from undistorted grid points to where the relay
+    images them, and the hull of its calibration points."""
     import oapcal
 
     width, height = frame_of(calibration)
-    gx, gy = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    step = max(1, int(np.ceil(np.sqrt(width * height / MAX_FIELD_PIXELS))))  # large frames: sampled
+    gx, gy = np.meshgrid(np.arange(0, width, step, dtype=float), np.arange(0, height, step, dtype=float))
     xy = np.stack([gx.ravel(), gy.ravel()], -1)
-    magnitude = np.hypot(*(oapcal.distort(xy, calibration.params) - xy).T).reshape(height, width)
+    magnitude = np.hypot(*(oapcal.distort(xy, calibration.params) - xy).T).reshape(gx.shape)
     grid = field_grid(width, height)
     shift = oapcal.distort(grid, calibration.params) - grid
     vectors = np.stack([xy_to_rc(grid), xy_to_rc(shift)], axis=1)
     meta = {CALIBRATION: calibration}
     layers = [
         (magnitude.astype(np.float32), {"name": f"{name}: distortion (px)", "colormap": "viridis",
-                                        "metadata": meta}, "image"),
+                                        "scale": (step, step), "metadata": meta}, "image"),
         (vectors, {"name": f"{name}: distortion field", "features": {"shift_px": np.hypot(*shift.T)},
                    "edge_color": "shift_px", "edge_colormap": "plasma", "edge_width": 1.5,
                    "vector_style": "arrow", "metadata": meta}, "vectors"),
