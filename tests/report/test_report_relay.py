@@ -156,3 +156,32 @@ def test_rotation_family_report_lists_the_rotation(run_cli, tmp_path):
     rotation = {r[0]: r for r in rows}["rotation"]
     assert rotation[-1] == "free"
     assert float(rotation[1]) == pytest.approx(-0.5, abs=3 * float(rotation[2]) + 0.02)
+
+
+def test_report_shows_a_cross_family_selection():
+    """A FamilySelection (select --families) is shown as the families compared, with the
+    recommendation and this calibration's model highlighted."""
+    from oapcal.families import Candidate, FamilySelection
+    from oapcal.model import PRESETS
+    from oapcal.report import build_report
+
+    cal = relay_calibration()
+
+    def cand(family, spec, free, aicc, cv, valid=True, reason=""):
+        return Candidate(family, spec, tuple(free), len(free), aicc, aicc + 3000.0, 0.2, valid, reason, cv)
+
+    ours = cand("relay", "relay", cal.free, -3000.0, 0.0631)
+    tilt = cand("relay", "relay:tilt2,camera", [*RELAY_POSE_NAMES, "m2_tilt_x", "m2_tilt_y", "camera_tilt_x",
+                "camera_tilt_y"], -3001.0, 0.0628)  # fmt: skip
+    paper = cand("brown-conrady", "paper", PRESETS["paper"], 1200.0, 0.2084)
+    bad = cand("relay", "relay:object", [*RELAY_POSE_NAMES, "object_tilt_x"], float("nan"), None, False,
+               "not identifiable")  # fmt: skip
+    sel = FamilySelection(441, 5, (tilt, ours, paper, bad), tilt)
+    page, _ = build_report(cal, selection=sel, selection_source="fam.json")
+    rows = _table(page, "Best 5 models of each family by AICc (4 models, 441 points)")
+    assert [r[1] for r in rows] == ["relay:tilt2,camera", "relay", "paper"]
+    assert rows[0][-1] == "recommended" and rows[1][-1] == "this calibration" and rows[2][-1] == ""
+    assert rows[1][2] == str(len(cal.free) + 1) and rows[2][6] == "0.2084"
+    assert '<tr class="best"><td>relay</td><td>relay</td>' in page
+    assert "Recommended by the held-out error: --model relay:tilt2,camera (relay, 0.0628 px)." in page
+    assert "1 models could not be scored" in page and "From fam.json." in page

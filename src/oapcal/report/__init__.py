@@ -35,6 +35,7 @@ import numpy as np
 from oapcal.report import html as H
 
 if TYPE_CHECKING:
+    from oapcal.families import FamilySelection
     from oapcal.select import Selection
     from oapcal.subsampling import Robustness
 
@@ -80,7 +81,8 @@ class ReportContent:
     landmarks when given (``vectors`` their :class:`~oapcal.imaging.checks.ResidualVectors`)
     else the calibration's; ``uncertainty`` the
     :class:`~oapcal.uncertainty.UncertaintyMap`; ``image`` the :class:`ImageAnalysis` or
-    None; ``selection`` / ``robustness`` the :class:`~oapcal.select.Selection` and
+    None; ``selection`` / ``robustness`` the :class:`~oapcal.select.Selection` (or a
+    cross-family :class:`~oapcal.families.FamilySelection`) and
     :class:`~oapcal.subsampling.Robustness` or None, ``selection_source`` /
     ``robustness_source`` where they came from (a file name), shown under their tables.
     """
@@ -91,7 +93,7 @@ class ReportContent:
     vectors: object | None
     uncertainty: object
     image: ImageAnalysis | None = None
-    selection: Selection | None = None
+    selection: Selection | FamilySelection | None = None
     robustness: Robustness | None = None
     selection_source: str | None = None
     robustness_source: str | None = None
@@ -177,7 +179,7 @@ def compute_report(
     *,
     points=None,
     image: np.ndarray | None = None,
-    selection: Selection | None = None,
+    selection: Selection | FamilySelection | None = None,
     robustness: Robustness | None = None,
     selection_source: str | None = None,
     robustness_source: str | None = None,
@@ -290,7 +292,10 @@ def render_report(
         step("edge spread functions")
         sections.append(H.section("Edge spread functions", _esf_html(a.esf, plots), "esf"))
     if content.selection is not None:
-        body = _selection_html(content.selection, cal, content.selection_source)
+        if hasattr(content.selection, "candidates"):  # a cross-family selection
+            body = _family_selection_html(content.selection, cal, content.selection_source)
+        else:
+            body = _selection_html(content.selection, cal, content.selection_source)
         sections.append(H.section("Model selection", body))
     if content.robustness is not None:
         sections.append(
@@ -314,7 +319,7 @@ def build_report(
     points=None,
     image: np.ndarray | None = None,
     image_name: str | None = None,
-    selection: Selection | None = None,
+    selection: Selection | FamilySelection | None = None,
     robustness: Robustness | None = None,
     selection_source: str | None = None,
     robustness_source: str | None = None,
@@ -327,8 +332,9 @@ def build_report(
 
     ``points`` is ``(xy_u, xy_d)`` (``(N, 2)`` each, as given to the fit; the calibration's
     normalization is applied again); ``image`` a grey distorted image of a bar target;
-    ``selection`` / ``robustness`` a :class:`~oapcal.select.Selection` and a
-    :class:`~oapcal.subsampling.Robustness` (of the library, or loaded from their files by
+    ``selection`` / ``robustness`` a :class:`~oapcal.select.Selection` (or the
+    :class:`~oapcal.families.FamilySelection` of ``select_families``: the families compared)
+    and a :class:`~oapcal.subsampling.Robustness` (of the library, or loaded from their files by
     :mod:`oapcal.io.results`), ``selection_source`` / ``robustness_source`` the files they
     came from; ``image_name`` and ``title`` label the page.  ``progress(done, total, label)``
     is called as each step of both phases starts.
@@ -579,6 +585,55 @@ def _selection_html(sel: Selection, cal, source: str | None = None) -> str:
     return out + H.paragraph(
         f"From {source or 'the selection file'}. The highlighted row is this calibration's model."
     )
+
+
+#: Models of each family shown in a cross-family selection's table.
+FAMILY_TOP = 5
+
+
+def _family_selection_html(sel: FamilySelection, cal, source: str | None = None) -> str:
+    """A cross-family selection (``oapcal select --families``): the best models of each
+    family by AICc side by side with their held-out error, the recommendation, this
+    calibration's model highlighted."""
+    ours = (cal.family.name, frozenset(cal.free))
+    families = list(dict.fromkeys(c.family for c in sel.candidates))
+    shown = []
+    for family in families:
+        valid = [c for c in sel.candidates if c.family == family and c.valid]
+        shown += valid[:FAMILY_TOP]
+        if sel.recommended is not None and sel.recommended in valid[FAMILY_TOP:]:
+            shown.append(sel.recommended)
+    rows, classes = [], []
+    for c in shown:
+        mine = (c.family, frozenset(c.free)) == ours
+        notes = [
+            text for flag, text in ((c is sel.recommended, "recommended"), (mine, "this calibration")) if flag
+        ]
+        numbers = [_shown(v) for v in (c.aicc, c.delta_aicc, c.mean_error)]
+        cv = None if c.cv_mean_error is None else _shown(c.cv_mean_error)
+        rows.append([c.family, c.spec, int(c.k) + 1, *numbers, cv, ", ".join(notes)])
+        classes.append("best" if mine else "")
+    n_bad = sum(not c.valid for c in sel.candidates)
+    caption = (f"Best {FAMILY_TOP} models of each family by AICc ({len(sel.candidates)} models, "
+               f"{sel.n_points} points)")  # fmt: skip
+    out = H.table(["family", "model (--model)", "K", "AICc", "delta AICc", "mean error [px]",
+                   f"{sel.cv_folds}-fold held-out error [px]", ""], rows, caption, classes)  # fmt: skip
+    if sel.recommended is not None:
+        r = sel.recommended
+        verdict = (f"Recommended by the held-out error: --model {r.spec} ({r.family}, "
+                   f"{H.fmt(_shown(r.cv_mean_error))} px).")  # fmt: skip
+    else:
+        verdict = "No model could be cross-validated, so none is recommended."
+    text = (
+        f"{verdict} AICc ranks models of all families on the same corrected points (K counts the "
+        "free parameters and the noise); the held-out error is the mean corrected-point error on "
+        f"the folds left out of {sel.cv_folds}-fold cross-validation, computed for the best models "
+        "by AICc."
+        + (f" {n_bad} models could not be scored (not identifiable, or the fit or its inverse failed)."
+           if n_bad else "")
+        + f" From {source or 'the selection'}. The highlighted row is this calibration's model."
+    )  # fmt: skip
+    return out + H.paragraph(text)
 
 
 def _robustness_html(rob: Robustness, source: str | None = None) -> str:
