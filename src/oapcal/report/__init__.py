@@ -592,9 +592,9 @@ FAMILY_TOP = 5
 
 
 def _family_selection_html(sel: FamilySelection, cal, source: str | None = None) -> str:
-    """A cross-family selection (``oapcal select --families``): the best models of each
-    family by AICc side by side with their held-out error, the recommendation, this
-    calibration's model highlighted."""
+    """A cross-family selection (:func:`oapcal.families.select_families`): the best models
+    of each family by AICc (by the spec that fits them again) side by side with their
+    held-out error, the recommendation, this calibration's model highlighted."""
     ours = (cal.family.name, frozenset(cal.free))
     families = list(dict.fromkeys(c.family for c in sel.candidates))
     shown = []
@@ -616,11 +616,11 @@ def _family_selection_html(sel: FamilySelection, cal, source: str | None = None)
     n_bad = sum(not c.valid for c in sel.candidates)
     caption = (f"Best {FAMILY_TOP} models of each family by AICc ({len(sel.candidates)} models, "
                f"{sel.n_points} points)")  # fmt: skip
-    out = H.table(["family", "model (--model)", "K", "AICc", "delta AICc", "mean error [px]",
+    out = H.table(["family", "model", "K", "AICc", "delta AICc", "mean error [px]",
                    f"{sel.cv_folds}-fold held-out error [px]", ""], rows, caption, classes)  # fmt: skip
     if sel.recommended is not None:
         r = sel.recommended
-        verdict = (f"Recommended by the held-out error: --model {r.spec} ({r.family}, "
+        verdict = (f"Recommended by the held-out error: {r.spec} ({r.family}, "
                    f"{H.fmt(_shown(r.cv_mean_error))} px).")  # fmt: skip
     else:
         verdict = "No model could be cross-validated, so none is recommended."
