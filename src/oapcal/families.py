@@ -12,7 +12,8 @@ recommendation is the model with the smallest cross-validated held-out error amo
 held-out error measures what a user needs, the error of correcting new points).
 
 Relay subsets: the target's pose (scale, rotation, shift) always, plus every combination
-of the blocks in :data:`RELAY_BLOCKS` (64 subsets); subsets the points cannot identify
+of the blocks in :data:`RELAY_BLOCKS` (64 subsets; the first mirror's tilts are left out:
+with the stop at that mirror they act like the target's shift); subsets the points cannot identify
 (:func:`oapcal.optics.relay_model.identifiability`) are ranked last with the reason.
 """
 
@@ -34,11 +35,11 @@ from oapcal.select import cross_validate, score_models, select_models
 #: The blocks of misalignment combined into relay subsets (each with the pose).
 RELAY_BLOCKS: dict[str, tuple[str, ...]] = {
     "tilt2": ("m2_tilt_x", "m2_tilt_y"),
+    "decentre2": ("m2_decentre_x", "m2_decentre_y"),
     "d1": ("d1",),
     "camera": ("camera_tilt_x", "camera_tilt_y"),
     "defocus": ("camera_defocus",),
     "object": ("object_tilt_x", "object_tilt_y"),
-    "tilt1": ("m1_tilt_x", "m1_tilt_y"),
 }
 FAMILY_NAMES = {"bc": "brown-conrady", "bc+rotation": "brown-conrady+rotation", "relay": "relay"}
 Progress = Callable[[int, int], None]

@@ -14,7 +14,7 @@ from oapcal.model import RELAY, undistort
 
 @pytest.fixture(scope="module")
 def traced(tmp_path_factory):
-    """A misaligned relay's field (tilted OAP 2 and camera), 13 x 13 points in camera px."""
+    """A misaligned relay's field (tilted second mirror and camera), 13 x 13 points in camera px."""
     from click.testing import CliRunner
 
     from oapcal.cli import cli
@@ -30,7 +30,8 @@ def traced(tmp_path_factory):
 
 def test_fit_relay_recovers_the_misalignment_exactly(run_cli, traced, tmp_path):
     out = tmp_path / "cal.json"
-    code, stdout, err = run_cli("fit", traced, "--model", "relay", "--relay-setup", "1",
+    model = "relay:tilt2,d1,defocus,camera"
+    code, stdout, err = run_cli("fit", traced, "--model", model, "--relay-setup", "1",
                                 "--pixel-size", "4.8", "--image-size", "640x480", "--out", out)  # fmt: skip
     assert code == 0, err
     cal = load_calibration(out)
@@ -39,8 +40,9 @@ def test_fit_relay_recovers_the_misalignment_exactly(run_cli, traced, tmp_path):
     assert values["m2_tilt_x"] == pytest.approx(0.03, abs=1e-9)
     assert values["camera_tilt_y"] == pytest.approx(0.5, abs=1e-8)
     assert abs(values["camera_tilt_x"]) < 1e-8 and abs(values["d1"]) < 1e-6
+    assert abs(values["camera_defocus"]) < 1e-8
     assert cal.residuals.max_px < 1e-6
-    assert "The relay as fitted" in stdout and "m2_tilt_x: OAP 2" in stdout
+    assert "The relay as fitted" in stdout and "m2_tilt_x: second mirror: tip" in stdout
     # correct-points uses the relay calibration: the corrected points are the reference points
     corrected = tmp_path / "corrected.csv"
     code, _, err = run_cli("correct-points", out, traced, "--out", corrected)

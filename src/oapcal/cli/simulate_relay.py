@@ -61,7 +61,8 @@ def misalignment_options(func):
     for name, unit in reversed(MISALIGNMENT_UNITS.items()):
         mirror = name[:2] in ("m1", "m2")
         what = _MISALIGNMENT_HELP[name[3:] if mirror else name]
-        text = f"OAP {name[1]} {what}, {unit}." if mirror else f"{what.capitalize()}, {unit}."
+        which = "First" if name[1] == "1" else "Second"
+        text = f"{which} mirror {what}, {unit}." if mirror else f"{what.capitalize()}, {unit}."
         flag = "--" + name.replace("_", "-")
         kind = click.FloatRange(-MAX_ANGLE_DEG, MAX_ANGLE_DEG) if unit == "deg" else float
         wrapper = click.option(flag, name, type=kind, default=0.0, metavar=unit.upper(), help=text)(wrapper)

@@ -29,10 +29,11 @@ from oapcal.optics.misalign import PARAMETERS, Misalignment
 from oapcal.optics.relay import DEFAULT_FOCAL_LENGTH_MM, oap_relay, paraxial_matrix
 
 #: The parameters fitted by default (``--model relay``): the target's whole pose and the
-#: misalignments that the traced field of a relay with the stop at its first mirror can
-#: tell apart (``docs/models.md``, Identifiability).
-DEFAULT_FREE = ("scale", "rotation", "shift_x", "shift_y", "m2_tilt_x", "m2_tilt_y", "d1", "camera_tilt_x",
-                "camera_tilt_y")  # fmt: skip
+#: six misalignment directions that reproduced fields of relays with all 20 values
+#: perturbed best in ``benchmarks/models.py`` (``docs/models.md``): the second mirror's
+#: decentre (its tilt acts almost the same way), d1, the camera's defocus and tilts.
+DEFAULT_FREE = ("scale", "rotation", "shift_x", "shift_y", "m2_decentre_x", "m2_decentre_y", "d1",
+                "camera_defocus", "camera_tilt_x", "camera_tilt_y")  # fmt: skip
 
 #: Short names accepted in subsets (``relay:d1,tilt2x,camera``): each stands for these
 #: parameters.
