@@ -16,7 +16,7 @@ fi
 stamp=.venv/.oapcal-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     .venv/bin/python -m pip install --quiet --upgrade pip
-    .venv/bin/python -m pip install --quiet -e ".[test,dask,napari]"
+    .venv/bin/python -m pip install --quiet -e ".[test,dask,napari,bench]"
     touch "$stamp"
 fi
 
@@ -37,7 +37,7 @@ case "$task" in
         exit "$rc"
         ;;
     bench)
-        for b in benchmarks/bench_*.py; do
+        for b in benchmarks/bench_*.py benchmarks/models.py; do
             echo "== $b"
             .venv/bin/python "$b" "$@"
         done
