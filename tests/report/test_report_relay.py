@@ -73,7 +73,10 @@ def test_relay_report_shows_the_family_and_its_parameters(relay_report):
     design = dict((r[0], r[1]) for r in _table(text, "The nominal relay the fit started from"))
     assert design["setup"] == "1" and design["pixel_size_um"] == "4.8" and design["centre"] == "319.5, 239.5"
     assert numbers["model"]["family"] == "relay" and numbers["model"]["free"] == list(cal.free)
-    assert any(line.startswith("m2_tilt_x: OAP 2: tip") for line in numbers["model"]["as_fitted"])
+    from oapcal.optics.relay_model import describe
+
+    assert numbers["model"]["as_fitted"] == describe(cal)
+    assert [line.split(":")[0] for line in numbers["model"]["as_fitted"]] == list(cal.free)
 
 
 def test_relay_report_numbers(relay_report):
