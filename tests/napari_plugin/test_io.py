@@ -76,6 +76,17 @@ def test_a_large_calibration_frame_is_sampled(monkeypatch):
     assert magnitude[50, 100] == pytest.approx(expected, rel=1e-5)
 
 
+def test_a_broken_calibration_file_is_refused_with_oapcals_message(tmp_path):
+    from oapcal.napari_plugin._io import napari_get_reader
+
+    path = tmp_path / "broken.json"
+    path.write_text('{"format": "oapcal-calibration", "version": 1, "free": ["k1"]}')
+    reader = napari_get_reader(str(path))
+    assert reader is not None
+    with pytest.raises(oapcal.InputFileError, match="broken.json"):
+        reader(str(path))
+
+
 def test_other_files_are_left_to_other_readers(tmp_path):
     from oapcal.napari_plugin._io import napari_get_reader
 

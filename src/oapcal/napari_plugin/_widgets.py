@@ -110,6 +110,13 @@ class _OapcalWidget(Container):
         self._set_status(f"{self.step_name} failed: {message}")
         show_warning(f"oapcal {self.step_name.lower()}: {message}")
 
+    def _chosen_image(self):
+        """The image layer chosen in the widget, or None (and the reason shown)."""
+        layer = self.image.value
+        if layer is None:
+            self._fail("open an image first (no image layer)")
+        return layer
+
     def _run(self, what: str, func, done) -> None:
         """Run ``func()`` in a thread worker; ``done(result)`` in the main thread after it.
         Exceptions (and ``done``'s own) become :meth:`_fail` messages."""
@@ -172,9 +179,8 @@ class DetectWidget(_OapcalWidget):
         import oapcal
         from oapcal.imaging.usaf import parse_groups
 
-        layer = self.image.value
+        layer = self._chosen_image()
         if layer is None:
-            self._fail("open an image first (no image layer)")
             return
         try:
             groups = parse_groups(self.groups.value)
@@ -286,9 +292,8 @@ class LabelWidget(_OapcalWidget):
         from oapcal.imaging.usaf import parse_groups
         from oapcal.napari_plugin._labelling import propose_corners, refine_with_detection
 
-        layer = self.image.value
+        layer = self._chosen_image()
         if layer is None:
-            self._fail("open an image first (no image layer)")
             return
         image = _plane(layer, self.viewer)
         size = (image.shape[1], image.shape[0])
@@ -490,9 +495,8 @@ class CorrectWidget(_OapcalWidget):
     def run(self, _=None) -> None:
         import oapcal
 
-        layer = self.image.value
+        layer = self._chosen_image()
         if layer is None:
-            self._fail("open an image first (no image layer)")
             return
         try:
             cal = self.calibration()
