@@ -85,13 +85,13 @@ class FamilySelection:
     recommended: Candidate | None
 
     def best_of(self, family: str) -> Candidate | None:
-        """The best candidate of one family by AICc."""
+        """The best candidate of one family by AICc (``family``: ``"brown-conrady"``,
+        ``"brown-conrady+rotation"`` or ``"relay"``)."""
         return next((c for c in self.candidates if c.family == family and c.valid), None)
 
     def to_dict(self) -> dict:
         return {
-            "format": "oapcal-family-selection", "version": 1, "n_points": self.n_points,
-            "cv_folds": self.cv_folds,
+            "n_points": self.n_points, "cv_folds": self.cv_folds,
             "recommended": None if self.recommended is None else self.recommended.spec,
             "candidates": [c.to_dict() for c in self.candidates],
         }  # fmt: skip

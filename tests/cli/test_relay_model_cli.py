@@ -85,3 +85,20 @@ def test_robustness_with_a_relay_model(run_cli, traced, tmp_path):
     relay = data["models"]["relay:tilt2,camera"]
     assert relay["not_converged"] == 0 and relay["heldout_mean_error_px"] < 1e-6
     assert data["models"]["paper"]["heldout_mean_error_px"] > 0.01  # Eq. (1)'s floor on this field
+
+
+def test_report_reads_a_family_selection_file(run_cli, traced, tmp_path):
+    cal = tmp_path / "cal.json"
+    code, _, err = run_cli("fit", traced, "--model", "relay", "--image-size", "640x480", "--out", cal)
+    assert code == 0, err
+    from oapcal.families import Candidate, FamilySelection
+    from oapcal.io.results import save_family_selection
+
+    loaded = load_calibration(cal)
+    mine = Candidate("relay", "relay", loaded.free, len(loaded.free), -10.0, 0.0, 1e-3, True, "", 1e-3, 0)
+    other = Candidate("brown-conrady", "paper", ("k1", "m"), 2, 50.0, 60.0, 0.2, True, "", 0.21, 0)
+    save_family_selection(FamilySelection(169, 5, (mine, other), mine), tmp_path / "fam.json")
+    code, _, err = run_cli("report", cal, "--selection", tmp_path / "fam.json", "--out", tmp_path / "r.html")
+    assert code == 0, err
+    page = (tmp_path / "r.html").read_text()
+    assert "Recommended by the held-out error: relay (relay, 0.001 px)." in page

@@ -25,7 +25,8 @@ from oapcal.cli._common import check_output, load_pairs, print_json, progress_ba
     "--selection",
     type=click.Path(dir_okay=False),
     default=None,
-    help="Model-selection JSON (n_points, models) to tabulate.",
+    help="Model-selection JSON to tabulate: of 'oapcal select --json', or of "
+    "'oapcal select --families ... --json' (the families compared).",
 )
 @click.option(
     "--robustness",
@@ -57,7 +58,7 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
             param_hint="--expected-ratios",
         ) from None
     from oapcal.io.calibration import load_calibration
-    from oapcal.io.results import load_robustness, load_selection
+    from oapcal.io.results import load_any_selection, load_robustness
     from oapcal.report import build_report, write_report
 
     cal = load_calibration(calib)
@@ -79,7 +80,7 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
         from oapcal.io.calibration import check_model_region
 
         check_model_region(cal, (img.shape[1], img.shape[0]), source=calib)
-    sel = load_selection(selection) if selection else None
+    sel = load_any_selection(selection) if selection else None
     rob = load_robustness(robustness) if robustness else None
     bar, update = progress_bar("report")
     with bar:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import click
 
 from oapcal.cli._common import check_output, check_work, console, load_pairs, points_options, progress_bar
@@ -132,15 +130,9 @@ def _select_families(
         sel = select_families(pairs.xy_u, pairs.xy_d, design, keys, cv=cv or 5, cv_top=min(top, 10),
                               init=init, seed=seed, progress=update, image_size=size)  # fmt: skip
     if json_out is not None:
-        from oapcal.io.atomic import atomic_write
-        from oapcal.io.jsonfile import json_safe
+        from oapcal.io.results import save_family_selection
 
-        text = json.dumps(json_safe(sel.to_dict()), indent=1) + "\n"
-        if json_out == "-":
-            click.echo(text, nl=False)
-        else:
-            with atomic_write(json_out) as fh:
-                fh.write(text)
+        save_family_selection(sel, json_out)
     if json_out != "-":
         print_family_selection(sel, top, source=pairs.source)
     return 0 if sel.recommended is not None else 3

@@ -31,7 +31,11 @@ from oapcal.select import ModelRobustness, ModelScore, Robustness, Selection
 
 SELECTION_FORMAT = "oapcal-selection"
 ROBUSTNESS_FORMAT = "oapcal-robustness"
+FAMILY_SELECTION_FORMAT = "oapcal-family-selection"
 VERSION = 1
+#: The schema branch (``results.schema.json``) of each format.
+_BRANCH = {SELECTION_FORMAT: "selection_file", ROBUSTNESS_FORMAT: "robustness_file",
+           FAMILY_SELECTION_FORMAT: "family_selection_file"}  # fmt: skip
 
 
 @cache
@@ -89,7 +93,7 @@ def _validate(data, expected: str, source: str) -> None:
         raise InputFileError(
             f"{source}: field 'version' is {data.get('version')!r}; this oapcal reads version {VERSION}"
         )
-    branch = "selection_file" if expected == SELECTION_FORMAT else "robustness_file"
+    branch = _BRANCH[expected]
     schema = {"$defs": _schema()["$defs"], "$ref": f"#/$defs/{branch}"}
     error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(schema).iter_errors(data))
     if error is not None:
@@ -177,6 +181,58 @@ def robustness_from_dict(data: dict, source: str = "robustness") -> Robustness:
         wrong_minimum_ratio=float(data["wrong_minimum_ratio"]),
         models=models,
     )
+
+
+def family_selection_to_dict(selection) -> dict:
+    """The JSON object of a :class:`~oapcal.families.FamilySelection` (``select --families``)."""
+    return {"format": FAMILY_SELECTION_FORMAT, "version": VERSION, **selection.to_dict()}
+
+
+def save_family_selection(selection, path: str | Path) -> None:
+    """Write a family-selection file atomically (``-``: stdout)."""
+    from oapcal.io.jsonfile import write_json
+
+    write_json(path, family_selection_to_dict(selection))
+
+
+def family_selection_from_dict(data: dict, source: str = "family selection"):
+    """A :class:`~oapcal.families.FamilySelection` from its JSON object (validated)."""
+    from oapcal.families import Candidate, FamilySelection
+
+    _validate(data, FAMILY_SELECTION_FORMAT, source)
+    candidates = tuple(
+        Candidate(
+            family=c["family"],
+            spec=c["spec"],
+            free=tuple(c["free"]),
+            k=int(c["k"]),
+            aicc=_nan(c["aicc"]),
+            delta_aicc=_nan(c["delta_aicc"]),
+            mean_error=_nan(c["mean_error"]),
+            valid=bool(c["valid"]),
+            reason=c["reason"],
+            cv_mean_error=None if c["cv_mean_error"] is None else float(c["cv_mean_error"]),
+            cv_failed=int(c["cv_failed"]),
+        )  # fmt: skip
+        for c in data["candidates"]
+    )
+    recommended = next((c for c in candidates if c.spec == data["recommended"]), None)
+    if data["recommended"] is not None and recommended is None:
+        raise InputFileError(
+            f"{source}: field 'recommended' is {data['recommended']!r}, which is none of the candidates"
+        )
+    return FamilySelection(int(data["n_points"]), int(data["cv_folds"]), candidates, recommended)
+
+
+def load_any_selection(path: str | Path):
+    """A selection file of either kind: ``oapcal select --json`` (a :class:`Selection`) or
+    ``oapcal select --families ... --json`` (a :class:`~oapcal.families.FamilySelection`)."""
+    from oapcal.io.textfile import read_json
+
+    data = read_json(path, "selection file")
+    if isinstance(data, dict) and data.get("format") == FAMILY_SELECTION_FORMAT:
+        return family_selection_from_dict(data, str(path))
+    return selection_from_dict(data, str(path))
 
 
 def load_selection(path: str | Path) -> Selection:
