@@ -215,6 +215,15 @@ def test_open_files_in_the_viewer_through_the_plugin(viewer, demo, tmp_path):
     names = [layer.name for layer in viewer.layers]
     assert names[:2] == ["distorted", "reference"] and "c: distortion field" in names
     assert list(viewer.layers["distorted"].features["id"]) == list(ids)
+    # the Correct widget takes the opened calibration and never saves over its file
+    from oapcal.napari_plugin._widgets import CorrectWidget
+
+    correct = _add(viewer, CorrectWidget(viewer), "Correct")
+    assert correct.source.value.free == cal.free
+    before = (tmp_path / "c.json").read_bytes()
+    correct.save_path.value = str(tmp_path / "c.json")
+    correct.save()
+    assert "read or fitted from" in correct.last_error and (tmp_path / "c.json").read_bytes() == before
     # and save the two points layers back through the plugin's writer
     viewer.layers.selection = {viewer.layers["distorted"], viewer.layers["reference"]}
     viewer.layers.save(str(tmp_path / "back.csv"), selected=True, plugin="oapcal")

@@ -70,7 +70,7 @@ def read_calibration(path) -> list[tuple]:
 
     path = path[0] if isinstance(path, list | tuple) else path
     cal = oapcal.load_calibration(path)
-    return calibration_layers(cal, name=Path(path).stem)
+    return calibration_layers(cal, name=Path(path).stem, source=str(path))
 
 
 def read_point_pairs(path) -> list[tuple]:

@@ -112,11 +112,12 @@ def hull_layer(calibration, name: str = "calibration hull") -> tuple | None:
     return [xy_to_rc(hull)], kwargs, "shapes"
 
 
-def calibration_layers(calibration, name: str = "calibration") -> list[tuple]:
+def calibration_layers(calibration, name: str = "calibration", source: str | None = None) -> list[tuple]:
     """The distortion field of a calibration: a magnitude image ``|distort(x) - x|`` px over its
     frame (every pixel, or every ``step`` px with the layer scaled by ``step`` for frames over
     :data:`MAX_FIELD_PIXELS`), a vectors layer from undistorted grid points to where the relay
-    images them, and the hull of its calibration points."""
+    images them, and the hull of its calibration points.  ``source`` (the file it was read
+    from) goes into the layers' metadata: the *Correct* widget never saves over it."""
     import oapcal
 
     width, height = frame_of(calibration)
@@ -127,7 +128,7 @@ def calibration_layers(calibration, name: str = "calibration") -> list[tuple]:
     grid = field_grid(width, height)
     shift = oapcal.distort(grid, calibration.params) - grid
     vectors = np.stack([xy_to_rc(grid), xy_to_rc(shift)], axis=1)
-    meta = {CALIBRATION: calibration}
+    meta = {CALIBRATION: calibration, "oapcal_source": source}
     layers = [
         (magnitude.astype(np.float32), {"name": f"{name}: distortion (px)", "colormap": "viridis",
                                         "scale": (step, step), "metadata": meta}, "image"),
@@ -136,6 +137,8 @@ def calibration_layers(calibration, name: str = "calibration") -> list[tuple]:
                    "vector_style": "arrow", "metadata": meta}, "vectors"),
     ]  # fmt: skip
     hull = hull_layer(calibration, f"{name}: hull")
+    if hull is not None:
+        hull[1]["metadata"]["oapcal_source"] = source
     return layers + ([hull] if hull is not None else [])
 
 

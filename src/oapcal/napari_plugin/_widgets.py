@@ -554,11 +554,14 @@ class CorrectWidget(_OapcalWidget):
             return
         try:
             cal = self.calibration()
-            if (
-                str(self.file.value or "") not in ("", ".")
-                and Path(path).resolve() == Path(str(self.file.value)).resolve()
-            ):
-                self._fail(f"{path}: is the calibration file it was read from; choose another name")
+            inputs = {str(self.file.value or ""), str(cal.source or "")} | {
+                str(layer.metadata.get("oapcal_source") or "")
+                for layer in self.viewer.layers
+                if layer.metadata.get(L.CALIBRATION) is cal
+            }
+            target = Path(path).resolve()
+            if any(p not in ("", ".") and Path(p).resolve() == target for p in inputs):
+                self._fail(f"{path}: is a file the calibration was read or fitted from; choose another name")
                 return
             oapcal.save_calibration(cal, path)
         except Exception as exc:
