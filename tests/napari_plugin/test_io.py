@@ -139,6 +139,7 @@ def test_the_manifest_is_found_by_napari():
     assert widgets == {"Detect", "Label by hand", "Fit & inspect", "Correct"}
     assert [w.layer_types for w in manifest.contributions.writers] == [["points{2}"]]
     assert manifest.contributions.readers[0].command == "oapcal.get_reader"
+    assert [(s.key, s.command) for s in manifest.contributions.sample_data] == [("demo", "oapcal.demo_image")]
     for command in manifest.contributions.commands:
         module, _, attr = command.python_name.partition(":")
         assert callable(getattr(__import__(module, fromlist=[attr]), attr)), command.python_name
