@@ -91,9 +91,9 @@ def select_command(points, normalization, init, top, cv, seed, json_out, familie
     initial_params(init, pairs.xy_u[:1], pairs.xy_d[:1], [True] * 13)  # a bad --init fails here
     bar, update = progress_bar("fitting 4,096 models")
     with bar:
-        sel = select_models(
+        sel = select_models(  # without a bar drawn, no progress: the models are fitted in one batch
             pairs.xy_u, pairs.xy_d, normalization=normalization, init=init, cv=cv, cv_top=top,
-            seed=seed, progress=update,
+            seed=seed, progress=None if bar.disable else update,
         )  # fmt: skip
     if json_out is not None:
         from oapcal.io.results import save_selection
