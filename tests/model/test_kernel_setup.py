@@ -29,17 +29,14 @@ def _lm_inputs():
     return _kernels, args, truth
 
 
-def test_family_code_is_a_compile_time_constant_with_the_same_results():
+def test_family_code_reaches_the_kernels_as_a_compile_time_constant():
     kernels, args, truth = _lm_inputs()
-    generic = [a.copy() if isinstance(a, np.ndarray) else a for a in args]
     kernels.run_blocks(kernels.lm_batch, 1, 1, 0, *args)  # as fit_batch calls it
-    kernels.lm_batch(0, 1, 0, *generic)  # a plain integer: the generic kernel
     families = {str(sig[2]) for sig in kernels.lm_batch.signatures}
-    assert "Literal[int](0)" in families and "int64" in families
-    p_literal, p_generic = args[6], generic[6]
-    assert args[13][0] > 0 and generic[13][0] > 0  # both converged (status)
-    np.testing.assert_allclose(p_literal[0, 12], truth[12], rtol=1e-9)
-    np.testing.assert_allclose(p_literal, p_generic, rtol=1e-12, atol=1e-15)
+    assert "Literal[int](0)" in families
+    assert args[13][0] > 0  # status: converged
+    # noise-free data: the solution is the truth (k1, c_x, m; the rest fixed at 0)
+    np.testing.assert_allclose(args[6][0], truth, rtol=1e-9, atol=1e-12)
 
 
 def test_kernels_set_up_numba_without_scipy_linalg():
