@@ -29,7 +29,7 @@ import os
 import numba
 import numpy as np
 from numba.core import types as nbtypes
-from numba.extending import typeof_impl
+from numba.extending import overload, typeof_impl
 
 from oapcal._relay_kernel import relay_point
 
@@ -152,32 +152,83 @@ def bc_pose_point(p, x, y, need, jp, j, want):
 
 
 @numba.njit(inline="always", **_JIT)
-def point(family, p, x, y, need, jp, j, want):
-    """The model of ``family`` at one point (see :func:`bc_point` for the contract).
+def bc_pose_inverse_start(p, xd, yd):
+    """The Newton start of Eq. (1) with the rotation: the inverse of the linear part, turned back."""
+    xr, yr = bc_inverse_start(p, xd, yd)
+    th = p[13] * (np.pi / 180.0)
+    return np.cos(th) * xr + np.sin(th) * yr, np.cos(th) * yr - np.sin(th) * xr
 
-    One branch per family: a new family's point function goes here.
+
+@numba.njit(inline="always", **_JIT)
+def relay_point_any(p, x, y, need, jp, j, want):
+    """:func:`relay_point` with the point contract's arguments.  No analytic parameter
+    columns: callers use :func:`fd_param_columns` (the family's ``analytic_jacobian`` is
+    False)."""
+    return relay_point(p, x, y, min(need, POINT_JAC))
+
+
+@numba.njit(inline="always", **_JIT)
+def identity_start(p, xd, yd):
+    return xd, yd
+
+
+#: Each family's point function and Newton start, by code: a new family adds one entry.
+_POINT = {FAMILY_BC: bc_point, FAMILY_BC_POSE: bc_pose_point, FAMILY_RELAY: relay_point_any}
+_START = {FAMILY_BC: bc_inverse_start, FAMILY_BC_POSE: bc_pose_inverse_start, FAMILY_RELAY: identity_start}
+
+
+def point(family, p, x, y, need, jp, j, want):
+    """The model of ``family`` at one point (see :func:`bc_point` for the contract), for
+    the compiled kernels.
+
+    Why an ``overload``: kernels get ``family`` as a compile-time constant
+    (:class:`FamilyCode`), and the overload then compiles that family's point function
+    alone, so a session that fits Eq. (1) never compiles the relay's tracer (which alone
+    takes ~10 s); a plain integer code gets every branch.
     """
+    raise NotImplementedError("point() is compiled into the kernels; call oapcal.model.distort")
+
+
+def inverse_start(family, p, xd, yd):
+    """Where the Newton inverse of ``family`` starts for the distorted point ``(xd, yd)``
+    (an ``overload`` like :func:`point`)."""
+    raise NotImplementedError("inverse_start() is compiled into the kernels; call oapcal.model.undistort")
+
+
+@numba.njit(**_JIT)
+def _point_runtime(family, p, x, y, need, jp, j, want):
+    """:func:`point` for a code known only at run time: the families with analytic columns
+    (the relay's tracer is compiled only for kernels that get its code as a constant)."""
     if family == FAMILY_BC:
         return bc_point(p, x, y, need, jp, j, want)
     if family == FAMILY_BC_POSE:
         return bc_pose_point(p, x, y, need, jp, j, want)
-    if family == FAMILY_RELAY:
-        # no analytic parameter columns: callers use fd_param_columns (the family's
-        # ``analytic_jacobian`` is False)
-        return relay_point(p, x, y, min(need, POINT_JAC))
     return np.nan, np.nan, np.nan, np.nan, np.nan, np.nan
 
 
-@numba.njit(inline="always", **_JIT)
-def inverse_start(family, p, xd, yd):
-    """Where the Newton inverse of ``family`` starts for the distorted point ``(xd, yd)``."""
+@numba.njit(**_JIT)
+def _start_runtime(family, p, xd, yd):
     if family == FAMILY_BC:
         return bc_inverse_start(p, xd, yd)
     if family == FAMILY_BC_POSE:
-        xr, yr = bc_inverse_start(p, xd, yd)
-        th = p[13] * (np.pi / 180.0)
-        return np.cos(th) * xr + np.sin(th) * yr, np.cos(th) * yr - np.sin(th) * xr
+        return bc_pose_inverse_start(p, xd, yd)
     return xd, yd
+
+
+@overload(point, inline="always", prefer_literal=True)
+def _point_overload(family, p, x, y, need, jp, j, want):
+    chosen = _POINT.get(getattr(family, "literal_value", None))
+    if chosen is not None:
+        return lambda family, p, x, y, need, jp, j, want: chosen(p, x, y, need, jp, j, want)
+    return lambda family, p, x, y, need, jp, j, want: _point_runtime(family, p, x, y, need, jp, j, want)
+
+
+@overload(inverse_start, inline="always", prefer_literal=True)
+def _inverse_start_overload(family, p, xd, yd):
+    chosen = _START.get(getattr(family, "literal_value", None))
+    if chosen is not None:
+        return lambda family, p, xd, yd: chosen(p, xd, yd)
+    return lambda family, p, xd, yd: _start_runtime(family, p, xd, yd)
 
 
 @numba.njit(**_JIT)
@@ -185,18 +236,24 @@ def fd_param_columns(family, p, x, y, jp, j, want, step):
     """Central-difference parameter Jacobian ``jp[:, i, j]`` (parameters ``i`` flagged in
     ``want``) of ``family`` at one point, for families without analytic columns:
     ``h_i = step * max(|p_i|, 1)``."""
+    numba.literally(family)  # one compiled version per family (FamilyCode)
     q = p.copy()
     for i in range(p.shape[0]):
         if not want[i]:
             continue
         h = step * max(abs(p[i]), 1.0)
-        q[i] = p[i] + h
-        xp, yp, _, _, _, _ = point(family, q, x, y, VALUE, jp, j, want)
-        q[i] = p[i] - h
-        xm, ym, _, _, _, _ = point(family, q, x, y, VALUE, jp, j, want)
+        # one call site for both sides: Numba's SSA check trips over two inlined copies of
+        # the point function in one loop (NumbaIRAssumptionWarning)
+        for side in range(2):
+            q[i] = p[i] + h if side == 0 else p[i] - h
+            xs, ys, _, _, _, _ = point(family, q, x, y, VALUE, jp, j, want)
+            sign = 1.0 if side == 0 else -1.0
+            if side == 0:
+                jp[0, i, j] = 0.0
+                jp[1, i, j] = 0.0
+            jp[0, i, j] += sign * xs / (2.0 * h)
+            jp[1, i, j] += sign * ys / (2.0 * h)
         q[i] = p[i]
-        jp[0, i, j] = (xp - xm) / (2.0 * h)
-        jp[1, i, j] = (yp - ym) / (2.0 * h)
 
 
 # ------------------------------------------------------------------- forward evaluation
@@ -223,12 +280,11 @@ def evaluate(start, stop, family, params, xy, need, fd_step, out, jpt, jpar):
         bx = b if xy.shape[0] > 1 else 0
         x = xy[bx, j, 0]
         y = xy[bx, j, 1]
-        if fd_step is None:  # pruned at compile time
-            xd, yd, a, bb, c, d = point(family, p, x, y, need, jp, 0, want)
-        else:
-            xd, yd, a, bb, c, d = point(family, p, x, y, min(need, POINT_JAC), jp, 0, want)
-            if need == PARAM_JAC:
-                fd_param_columns(family, p, x, y, jp, 0, want, fd_step)
+        # one call site of the point function (two inlined copies trip Numba's SSA check)
+        xd, yd, a, bb, c, d = point(family, p, x, y, need if fd_step is None else min(need, POINT_JAC), jp, 0,
+                                    want)  # fmt: skip
+        if fd_step is not None and need == PARAM_JAC:
+            fd_param_columns(family, p, x, y, jp, 0, want, fd_step)
         out[b, j, 0] = xd
         out[b, j, 1] = yd
         if need >= POINT_JAC:
@@ -288,49 +344,46 @@ def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp, want):
     stops.  Returns ``(x, y, converged, folded, n_iter)``: converged when the residual is
     ``<= tol`` and the Jacobian determinant there is positive; folded when it is <= 0.
     ``jp``, ``want`` are the scratch of :func:`point`."""
-    fx, fy, a, b, c, d = point(family, p, x, y, POINT_JAC, jp, 0, want)
-    fx -= xd
-    fy -= yd
-    err = np.sqrt(fx * fx + fy * fy)
-    done = err <= tol
+    numba.literally(family)  # one compiled version per family (FamilyCode)
+    # One call site of the point function, for the start and every trial of a step (two
+    # inlined copies trip Numba's SSA check): ``trial`` -1 evaluates the start, k >= 0
+    # the k-th trial (t = 2^-k) of the current Newton step (sx, sy).  (a, b, c, d) is
+    # always the point Jacobian at (x, y): each evaluation returns it too, so an accepted
+    # step needs no second evaluation.
+    fx = fy = a = b = c = d = 0.0
+    err = np.inf
+    sx = sy = t = 0.0
+    trial = -1
+    done = False
     n_iter = 0
-    # (a, b, c, d) is always the point Jacobian at (x, y): each trial evaluation returns
-    # it too, so an accepted step needs no second evaluation.
-    for _ in range(max_iter):
-        if done or not np.isfinite(err):
+    while True:
+        xn = x + t * sx
+        yn = y + t * sy
+        fxn, fyn, an, bn, cn, dn = point(family, p, xn, yn, POINT_JAC, jp, 0, want)
+        fxn -= xd
+        fyn -= yd
+        err_new = np.sqrt(fxn * fxn + fyn * fyn)
+        if trial < 0:  # the start
+            fx, fy, a, b, c, d, err = fxn, fyn, an, bn, cn, dn, err_new
+        else:
+            if not ((err_new < err) or (err_new <= tol)) and trial < 10:
+                t *= 0.5  # the residual grew: halve the step (up to 10 times)
+                trial += 1
+                continue
+            stalled = not (err_new < err)
+            if np.isfinite(err_new):
+                x, y, fx, fy, a, b, c, d, err = xn, yn, fxn, fyn, an, bn, cn, dn, err_new
+            if stalled and not err <= tol:
+                err = np.inf  # no step decreases the residual any more
+        done = err <= tol
+        if done or not np.isfinite(err) or n_iter >= max_iter:
             break
         n_iter += 1
         det = a * d - b * c
         sx = -(d * fx - b * fy) / det
         sy = -(-c * fx + a * fy) / det
         t = 1.0
-        xn = x
-        yn = y
-        fxn = fx
-        fyn = fy
-        an, bn, cn, dn = a, b, c, d
-        err_new = err
-        for _h in range(11):
-            xn = x + t * sx
-            yn = y + t * sy
-            fxn, fyn, an, bn, cn, dn = point(family, p, xn, yn, POINT_JAC, jp, 0, want)
-            fxn -= xd
-            fyn -= yd
-            err_new = np.sqrt(fxn * fxn + fyn * fyn)
-            if (err_new < err) or (err_new <= tol):
-                break
-            t *= 0.5
-        stalled = not (err_new < err)
-        if np.isfinite(err_new):
-            x = xn
-            y = yn
-            fx = fxn
-            fy = fyn
-            a, b, c, d = an, bn, cn, dn
-            err = err_new
-        done = err <= tol
-        if stalled and not done:
-            err = np.inf
+        trial = 0
     det = a * d - b * c
     folded = (not det > 0.0) and np.isfinite(det)
     converged = done and (not folded) and np.isfinite(x) and np.isfinite(y)
@@ -408,6 +461,7 @@ def invert_score(start, stop, family, params, xy_d, xy_u, tol, max_iter, rss, me
 def _residuals(family, p, pts, res, jp, want):
     """``res (2n,)`` = model - data at the item's points ``pts (4, n)`` (rows x_u, y_u,
     x_d, y_d), x residuals first, then y; returns the cost ``0.5 |res|^2``."""
+    numba.literally(family)  # one compiled version per family (FamilyCode)
     n = pts.shape[1]
     # 1-d row views: the loop then vectorises
     xu, yu, xo, yo = pts[0], pts[1], pts[2], pts[3]
@@ -429,6 +483,7 @@ def _jacobian(family, p, pts, fd_step, want, cols):
     """Fill the rows ``i`` with ``want[i]`` of ``cols (2, P, >= n)`` with d(model)/d(p_i)
     at the item's points ``pts (4, n)``: ``cols[0]`` the x rows, ``cols[1]`` the y rows.
     Analytic when ``fd_step`` is None, else central differences with that relative step."""
+    numba.literally(family)  # one compiled version per family (FamilyCode)
     for j in range(pts.shape[1]):
         if fd_step is None:  # pruned at compile time: one specialization per kind
             point(family, p, pts[0, j], pts[1, j], PARAM_JAC, cols, j, want)
@@ -544,6 +599,7 @@ def lm_item(family, u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
     ``jtj_out (P, P)`` receives ``J^T J`` at the final ``p`` (free rows and columns).
     ``scratch`` is :func:`lm_scratch` (reused from item to item).
     """
+    numba.literally(family)  # one compiled version per family (FamilyCode)
     cols, res_all, jp, pts_all = scratch
     # The item's points, gathered once into contiguous rows (the loops over them vectorise).
     pts = pts_all[:, :n]
