@@ -3,7 +3,7 @@
 * :func:`bc_point` -- Eq. (1) at one point: the distorted point, its 2x2 point Jacobian
   and the 13 parameter-Jacobian columns (the Brown-Conrady family).
 * :func:`point` -- the family dispatch: every kernel below calls a model through it, so a
-  new model family (``docs/architecture.md``) adds one branch here and nothing else.
+  new model family (``docs/architecture.md``) adds one entry to ``_POINT`` and nothing else.
 * :func:`lm_batch` -- the one Levenberg-Marquardt solver, one item per thread, each item
   with its own free parameters, start and points; optional ``J^T J`` at the solution for
   the covariance.
