@@ -53,8 +53,11 @@ _MIRROR = (
 
 #: Every degree of freedom: name -> (unit, description).
 PARAMETERS: dict[str, tuple[str, str]] = {
-    **{f"m{i}_{key}": (unit, f"{('first', 'second')[i - 1]} mirror: {text}") for i in (1, 2)
-       for key, unit, text in _MIRROR},  # fmt: skip
+    **{
+        f"m{i}_{key}": (unit, f"{('first', 'second')[i - 1]} mirror: {text}")
+        for i in (1, 2)
+        for key, unit, text in _MIRROR
+    },  # fmt: skip
     "d1": ("mm", "collimated path length change (the second mirror and the camera move together)"),
     "stop_decentre_x": ("mm", "aperture stop moved along its x axis"),
     "stop_decentre_y": ("mm", "aperture stop moved along its y axis"),
