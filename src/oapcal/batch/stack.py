@@ -55,9 +55,9 @@ _GLOB_CHARS = set("*?[")
 @dataclass(frozen=True)
 class FileResult:
     """What happened to one input: ``status`` is ``corrected``, ``skipped`` (its complete
-    output already existed) or ``failed`` (``message`` says why; ``param`` names the
-    parameter of :func:`correct_stack` that the message suggests changing, if any, as
-    :class:`~oapcal.errors.OapcalError` does)."""
+    output already existed) or ``failed`` (``message`` says why, ``reason`` is its code, one
+    of :data:`FAILURE_REASONS`; ``param`` names the parameter of :func:`correct_stack` that
+    the message suggests changing, if any, as :class:`~oapcal.errors.OapcalError` does)."""
 
     input: str
     output: str | None
@@ -65,11 +65,20 @@ class FileResult:
     frames: int = 0
     message: str = ""
     param: str | tuple[str, ...] | None = None
+    reason: str = ""
 
     @property
     def ok(self) -> bool:
         """Whether the input is done (corrected now or before; docs/conventions.md)."""
         return self.status != "failed"
+
+
+#: Codes of a failed input (``FileResult.reason``): not found (no such path, a pattern or
+#: directory without images), not an image oapcal reads (type, a zarr array without Dask),
+#: the file or the correction refused it (an :class:`~oapcal.errors.OapcalError`: bad or
+#: changed file, map or geometry), out of memory, and an error of the operating system
+#: (disk full, permissions).
+FAILURE_REASONS = ("not_found", "unsupported", "refused", "out_of_memory", "os_error")
 
 
 @dataclass(frozen=True)
@@ -141,7 +150,8 @@ def expand_inputs(
                     if is_zarr_array(path)
                     else ("the directory holds no images")
                 )
-                failures.append(FileResult(text, None, "failed", message=f"{text}: {why}"))
+                reason = "unsupported" if is_zarr_array(path) else "not_found"
+                failures.append(FileResult(text, None, "failed", message=f"{text}: {why}", reason=reason))
             for p in found:
                 add(p)
         elif path.exists():
@@ -153,6 +163,7 @@ def expand_inputs(
                         "failed",
                         message=f"{text}: unsupported file type {path.suffix or '(no suffix)'!r}; "
                         f"oapcal reads {', '.join(suffixes)}",
+                        reason="unsupported",
                     )
                 )
             else:
@@ -162,12 +173,19 @@ def expand_inputs(
             found = [p for p in found if usable(p) or (p.is_dir() and p.suffix.lower() in suffixes)]
             if not found:
                 failures.append(
-                    FileResult(text, None, "failed", message=f"{text}: the pattern matches no images")
+                    FileResult(
+                        text,
+                        None,
+                        "failed",
+                        message=f"{text}: the pattern matches no images",
+                        reason="not_found",
+                    )  # fmt: skip
                 )
             for p in found:
                 add(p)
         else:
-            failures.append(FileResult(text, None, "failed", message=f"{text}: no such file or directory"))
+            missing = f"{text}: no such file or directory"
+            failures.append(FileResult(text, None, "failed", message=missing, reason="not_found"))
     return files, failures, dirs
 
 
@@ -385,8 +403,9 @@ def correct_stack(
             record = {"calibration": digest, "input": file_fingerprint(src), "frames": info.n_frames}
         except (OapcalError, OSError) as exc:
             results[i] = FileResult(
-                str(src), str(dst), "failed", message=str(exc), param=getattr(exc, "param", None)
-            )
+                str(src), str(dst), "failed", message=str(exc), param=getattr(exc, "param", None),
+                reason="refused" if isinstance(exc, OapcalError) else "os_error",
+            )  # fmt: skip
             continue
         if dst.exists() and not overwrite and resume_complete(dst, record):
             results[i] = FileResult(str(src), str(dst), "skipped")
@@ -440,13 +459,13 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
         message = str(exc)
         if not message.startswith(str(src)):  # map and geometry errors do not know the file
             message = f"{src}: {message}"
-        return FileResult(str(src), str(dst), "failed", n, message, exc.param)
+        return FileResult(str(src), str(dst), "failed", n, message, exc.param, "refused")
     except MemoryError:
         return FileResult(str(src), str(dst), "failed", n,
                           f"{src}: not enough memory to correct it; free memory or correct fewer files at "
-                          "once (fewer workers)", "workers")  # fmt: skip
+                          "once (fewer workers)", "workers", "out_of_memory")  # fmt: skip
     except OSError as exc:
-        return FileResult(str(src), str(dst), "failed", n, _os_message(src, dst, exc))
+        return FileResult(str(src), str(dst), "failed", n, _os_message(src, dst, exc), reason="os_error")
     return FileResult(str(src), str(dst), "corrected", n)
 
 

@@ -100,7 +100,9 @@ class Detection:
     ``um_per_px`` the scale of ``xy_u`` (given, or found by the pose search), ``pose`` the
     pose search's result (scale, rotation, mirror, scores of the best and rival poses).
     ``param`` names the parameters of :func:`detect_usaf` that the message of a failed
-    detection suggests changing (``um_per_px``, ``groups``, ``orientation``), else ``()``.
+    detection suggests changing (``um_per_px``, ``groups``, ``orientation``), else ``()``;
+    ``reason`` a code for a failure the caller acts on (``"registrations_disagree"``: two
+    registrations put a corner id in different places), else ``""``.
     """
 
     ids: tuple[str, ...]
@@ -124,6 +126,7 @@ class Detection:
     work: dict = field(default_factory=dict)
     debug: dict = field(default_factory=dict, repr=False)
     param: tuple[str, ...] = ()
+    reason: str = ""
 
     @property
     def ok(self) -> bool:
@@ -314,7 +317,7 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
             pose_info = dict(pose_info, method="correlation")
             return _replace(det_d, pose=pose_info)
         det = _combine([det_p, det_d])
-        if um_per_px is not None and "disagree" not in det.message and (small or det.status != 0):
+        if um_per_px is not None and det.reason != "registrations_disagree" and (small or det.status != 0):
             # the pose from few triplets may be poor (a blurred, noisy or strongly
             # distorted image): the correlation search at the given scale, as without a pose
             bar.stage("correlation search")
@@ -357,8 +360,9 @@ def _combine(dets: list) -> Detection:
                     f"two registrations disagree on {int(bad.sum())} of {len(common)} corners "
                     f"(e.g. {example}); nothing was kept"
                 )
-                return _replace(d1, status=1, message=msg, ids=(), xy_u=np.zeros((0, 2)),
-                                xy_d=np.zeros((0, 2)), stderr_px=np.zeros(0))  # fmt: skip
+                empty = np.zeros((0, 2))
+                return _replace(d1, status=1, message=msg, reason="registrations_disagree", ids=(),
+                                xy_u=empty, xy_d=empty.copy(), stderr_px=np.zeros(0))  # fmt: skip
 
     # the most corners; among equals the smoothest (lowest consistency rms)
     def rank(d):
