@@ -30,7 +30,7 @@ from oapcal.fitting import initial_params_many
 from oapcal.model import BROWN_CONRADY_POSE, RELAY_POSE_NAMES, ROTATION_SUFFIX, all_masks, names_from_mask
 from oapcal.optics.relay_model import RelayDesign, default_centre, identifiability, relay_mask, relay_params
 from oapcal.records import finite_or_none
-from oapcal.select import cross_validate, score_models, select_models
+from oapcal.select import cross_validate, invalid_reasons, score_models, select_models
 
 #: The blocks of misalignment combined into relay subsets (each with the pose).
 RELAY_BLOCKS: dict[str, tuple[str, ...]] = {
@@ -131,20 +131,13 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
     ``(B, P)``; ``invalid`` lists ``(spec, mask, reason)`` ranked last.  The ``cv_top`` best
     by AICc are cross-validated."""
     rows = [(spec, mask, np.nan, np.nan, False, reason) for spec, mask, reason in invalid]
-    n = 2 * len(xy_u)
     if subsets:
         masks = np.array([m for _, m in subsets])
         scores = score_models(xy_u, xy_d, masks, p0, progress=progress)
+        codes, reasons = invalid_reasons(scores, masks.sum(axis=1), len(xy_u))
         for i, (spec, mask) in enumerate(subsets):
-            k1 = int(mask.sum()) + 1
-            if scores["status"][i] <= 0:
-                rows.append((spec, mask, np.nan, np.nan, False, "fit did not converge"))
-            elif scores["n_bad"][i]:
-                rows.append(
-                    (spec, mask, np.nan, np.nan, False, f"inverse failed at {scores['n_bad'][i]} points")
-                )
-            elif n - k1 - 1 <= 0 or not np.isfinite(scores["aicc"][i]):
-                rows.append((spec, mask, np.nan, np.nan, False, "too few residuals for AICc"))
+            if codes[i]:
+                rows.append((spec, mask, np.nan, np.nan, False, reasons[i]))
             else:
                 rows.append((spec, mask, float(scores["aicc"][i]), float(scores["mean_error"][i]), True, ""))
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))

@@ -210,6 +210,34 @@ def score_models(xy_u, xy_d, masks, init="zero", *, max_iter: int = 200, progres
     return out
 
 
+def invalid_reasons(scores: dict, k: np.ndarray, n_points: int) -> tuple[list[str], list[str]]:
+    """The code (one of :data:`INVALID_REASONS`, ``""`` for a valid model) and message of
+    each model scored by :func:`score_models` (``k (B,)`` free parameters, ``n_points``
+    point pairs): the first of fit not converged, too few residuals for AICc, inverse
+    failed, AICc not finite that applies."""
+    dofs = (2 * n_points - np.asarray(k) - 2).tolist()  # n - K - 1 with K = k + 1
+    codes, reasons = [], []
+    for i, (status, dof) in enumerate(zip(scores["status"].tolist(), dofs)):
+        if status <= 0:
+            why = STATUS_MESSAGES[status].removeprefix("not converged: ")
+            code, reason = "not_converged", f"fit did not converge ({why})"
+        elif dof <= 0:
+            code, reason = "too_few_residuals", f"too few residuals for AICc: n - K - 1 = {dof} <= 0"
+        elif scores["n_bad"][i]:
+            code = "inverse_failed"
+            reason = (
+                f"inverse failed at {scores['n_bad'][i]} of {n_points} points "
+                f"({scores['n_folded'][i]} where the fitted map folds over)"
+            )
+        elif not np.isfinite(scores["aicc"][i]):
+            code, reason = "aicc_not_finite", f"AICc is not finite (RSS = {scores['rss'][i]:.3g})"
+        else:
+            code, reason = "", ""
+        codes.append(code)
+        reasons.append(reason)
+    return codes, reasons
+
+
 def select_models(
     xy_u,
     xy_d,
@@ -237,31 +265,9 @@ def select_models(
     u, d = norm.xy_u, norm.xy_d
     masks = all_masks() if masks is None else np.atleast_2d(np.asarray(masks, bool))
     n_points = len(u)
-    n = 2 * n_points
     scores = score_models(u, d, masks, init, max_iter=max_iter, progress=progress)
     k = masks.sum(axis=1)
-    big_k = k + 1
-    reasons, codes = [], []
-    for i in range(len(masks)):
-        status = int(scores["status"][i])
-        if status <= 0:
-            why = STATUS_MESSAGES[status].removeprefix("not converged: ")
-            code, reason = "not_converged", f"fit did not converge ({why})"
-        elif n - big_k[i] - 1 <= 0:
-            code = "too_few_residuals"
-            reason = f"too few residuals for AICc: n - K - 1 = {n - big_k[i] - 1} <= 0"
-        elif scores["n_bad"][i]:
-            code = "inverse_failed"
-            reason = (
-                f"inverse failed at {scores['n_bad'][i]} of {n_points} points "
-                f"({scores['n_folded'][i]} where the fitted map folds over)"
-            )
-        elif not np.isfinite(scores["aicc"][i]):
-            code, reason = "aicc_not_finite", f"AICc is not finite (RSS = {scores['rss'][i]:.3g})"
-        else:
-            code, reason = "", ""
-        codes.append(code)
-        reasons.append(reason)
+    codes, reasons = invalid_reasons(scores, k, n_points)
     valid = np.array([c == "" for c in codes])
     aicc = scores["aicc"]
     bits = bits_from_mask(masks)

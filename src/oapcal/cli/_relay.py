@@ -95,6 +95,13 @@ def design_from_options(values: dict):
     )  # fmt: skip
 
 
+def refuse_normalize(normalization: str | None, why: str) -> None:
+    """A usage error for ``--normalize`` with a model that fits the points as given (``why``
+    says which and why)."""
+    if normalization not in (None, "none"):
+        raise click.BadParameter(f"{why}: drop --normalize", param_hint="--normalize")
+
+
 def check_relay_spec(model: str) -> None:
     """Parse a ``relay`` / ``relay:NAMES`` spec early (a bad name fails before files are read)."""
     from oapcal.optics.relay_model import relay_mask

@@ -18,6 +18,7 @@ from oapcal.cli._relay import (
     check_relay_spec,
     design_from_options,
     is_relay,
+    refuse_normalize,
     relay_design_options,
 )
 
@@ -69,11 +70,7 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
     size = parse_size(image_size)
     if is_relay(model):
         check_relay_spec(model)  # a bad spec fails before the file is read
-        if normalization != "none":
-            raise click.BadParameter(
-                "the relay model fits the target's pose itself, in px: drop --normalize",
-                param_hint="--normalize",
-            )
+        refuse_normalize(normalization, "the relay model fits the target's pose itself, in px")
         design = design_from_options(relay_design)
         pairs = load_pairs(points)
         from oapcal.optics.relay_model import calibrate_relay

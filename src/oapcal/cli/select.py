@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from oapcal.cli._common import check_output, check_work, console, load_pairs, points_options, progress_bar
-from oapcal.cli._relay import relay_design_options
+from oapcal.cli._relay import refuse_normalize, relay_design_options
 
 #: Most robustness trials (and the memory per trial, per point and per model: measured about
 #: 10 B per point for 252 points, so these are generous).
@@ -116,11 +116,7 @@ def _select_families(
     from oapcal.families import parse_families, select_families
 
     keys = parse_families(families)
-    if normalization != "none":
-        raise click.BadParameter(
-            "models of different families are compared on the points as given: drop --normalize",
-            param_hint="--normalize",
-        )
+    refuse_normalize(normalization, "models of different families are compared on the points as given")
     size = parse_size(image_size)
     design = design_from_options(relay_design)
     init = "pixel" if init == "zero" else init  # Eq. 1 in px starts from the pixel guesses
@@ -270,10 +266,8 @@ def robustness_command(
     from oapcal.cli._relay import is_relay
 
     specs = [_robustness_spec(s) for s in models.split(",") if s.strip()]
-    if any(is_relay(s) for s in specs) and normalization != "none":
-        raise click.BadParameter(
-            "a relay model fits the points as given: drop --normalize", param_hint="--normalize"
-        )
+    if any(is_relay(s) for s in specs):
+        refuse_normalize(normalization, "a relay model fits the points as given")
     pairs = load_pairs(points)
     from oapcal.fitting import initial_params
     from oapcal.select import robustness
