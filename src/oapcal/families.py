@@ -27,7 +27,15 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.fitting import initial_params_many
-from oapcal.model import BROWN_CONRADY_POSE, RELAY_POSE_NAMES, ROTATION_SUFFIX, all_masks, names_from_mask
+from oapcal.model import (
+    BROWN_CONRADY_POSE,
+    RELAY,
+    RELAY_POSE_NAMES,
+    ROTATION_SUFFIX,
+    all_masks,
+    jacobian_params,
+    names_from_mask,
+)
 from oapcal.optics.relay_model import RelayDesign, default_centre, identifiability, relay_mask, relay_params
 from oapcal.records import finite_or_none
 from oapcal.select import cross_validate, invalid_reasons, score_models, select_models
@@ -159,9 +167,10 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
 
 def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progress):
     p0 = relay_params(design)
+    jac = jacobian_params(xy_u, p0, family=RELAY)  # once for the 64 subsets
     ok, invalid = [], []
     for spec, mask in relay_subset_masks():
-        ident = identifiability(xy_u, p0, mask)
+        ident = identifiability(xy_u, p0, mask, jac)
         if ident.ok:
             ok.append((spec, mask))
         else:

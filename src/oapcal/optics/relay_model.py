@@ -194,14 +194,17 @@ class Identifiability:
         )
 
 
-def identifiability(xy_u, params, mask) -> Identifiability:
+def identifiability(xy_u, params, mask, jac: np.ndarray | None = None) -> Identifiability:
     """The identifiability of the free parameters ``mask`` of the relay model ``params`` at
-    the reference points ``xy_u (N, 2)`` (:class:`Identifiability`)."""
+    the reference points ``xy_u (N, 2)`` (:class:`Identifiability`).  ``jac`` is the
+    parameter Jacobian ``(N, 2, 36)`` there if already known (many subsets of one model)."""
     from oapcal.model import jacobian_params
 
     mask = np.asarray(mask, bool)
     names = tuple(n for n, m in zip(RELAY.param_names, mask) if m)
-    jac = jacobian_params(np.asarray(xy_u, float), np.asarray(params, float), family=RELAY)[..., mask]
+    if jac is None:
+        jac = jacobian_params(np.asarray(xy_u, float), np.asarray(params, float), family=RELAY)
+    jac = jac[..., mask]
     a = jac.reshape(-1, int(mask.sum()))
     norms = np.linalg.norm(a, axis=0)
     dead = tuple((n,) for n, v in zip(names, norms) if not v > 0)
