@@ -102,3 +102,16 @@ def test_report_reads_a_family_selection_file(run_cli, traced, tmp_path):
     assert code == 0, err
     page = (tmp_path / "r.html").read_text()
     assert "Recommended by the held-out error: relay (relay, 0.001 px)." in page
+
+
+@pytest.mark.slow
+def test_select_model_relay_ranks_the_relay_subsets(run_cli, traced, tmp_path):
+    out = tmp_path / "fam.json"
+    code, stdout, err = run_cli("select", traced, "--model", "relay", "--image-size", "640x480", "--cv", "2",
+                                "--top", "2", "--json", out)  # fmt: skip
+    assert code == 0, err
+    data = json.loads(out.read_text())
+    assert {c["family"] for c in data["candidates"]} == {"relay"}
+    assert data["recommended"].startswith("relay:")
+    code, _, err = run_cli("select", traced, "--model", "paper")
+    assert code == 2 and "--model" in err

@@ -74,13 +74,27 @@ def _fmt(value, spec: str) -> str:
     "target's rotation) and relay (the physical relay, from the design options), by AICc and "
     "--cv-fold held-out error (default 5 folds); recommends by the held-out error.",
 )
+@click.option(
+    "--model",
+    "model",
+    default=None,
+    help="'relay': rank the relay's subsets alone (the same as --families relay).",
+)
 @click.option("--image-size", default=None, help="With --families relay: camera image size WxH in px.")
 @relay_design_options
 def select_command(points, normalization, init, top, cv, seed, json_out, families=None, image_size=None,
-                   relay_design=None):  # fmt: skip
+                   relay_design=None, model=None):  # fmt: skip
     """Rank all 4,096 models of Eq. 1 by AICc of the corrected points (with --families: Eq. 1,
     its rotation variant and the physical relay together)."""
     check_output(json_out, points)
+    if model is not None:
+        if model.strip() != "relay" or families is not None:
+            raise click.BadParameter(
+                "select takes --model relay only (Eq. 1 is ranked over all its subsets without it); "
+                "for several families give --families",
+                param_hint="--model",
+            )
+        families = "relay"
     if families is not None:
         return _select_families(points, families, normalization, init, top, cv, seed, json_out, image_size,
                                 relay_design)  # fmt: skip
