@@ -24,12 +24,12 @@ Jacobian took ~14 s for the 4,096 models on 289 points, these kernels ~0.3 s.
 
 from __future__ import annotations
 
+import functools
 import os
+import types
 
 import numba
 import numpy as np
-from numba.core import types as nbtypes
-from numba.extending import overload, typeof_impl
 
 from oapcal._relay_kernel import relay_point
 
@@ -177,66 +177,64 @@ _POINT = {FAMILY_BC: bc_point, FAMILY_BC_POSE: bc_pose_point, FAMILY_RELAY: rela
 _START = {FAMILY_BC: bc_inverse_start, FAMILY_BC_POSE: bc_pose_inverse_start, FAMILY_RELAY: identity_start}
 
 
-def point(family, p, x, y, need, jp, j, want):
-    """The model of ``family`` at one point (see :func:`bc_point` for the contract), for
-    the compiled kernels.
+def point(p, x, y, need, jp, j, want):
+    """The model at one point (see :func:`bc_point` for the contract), as the kernels call
+    it: in each family's copy of the kernels (:func:`family_kernels`) this name is that
+    family's point function (``_POINT``)."""
+    raise NotImplementedError("point() exists only inside the kernels; call oapcal.model.distort")
 
-    Why an ``overload``: kernels get ``family`` as a compile-time constant
-    (:class:`FamilyCode`), and the overload then compiles that family's point function
-    alone, so a session that fits Eq. (1) never compiles the relay's tracer (which alone
-    takes ~10 s); a plain integer code gets every branch.
+
+def inverse_start(p, xd, yd):
+    """Where the Newton inverse starts for the distorted point ``(xd, yd)``; in each
+    family's kernels that family's start (``_START``), like :func:`point`."""
+    raise NotImplementedError("inverse_start() exists only inside the kernels; call oapcal.model.undistort")
+
+
+#: The kernels that call a model, by name, with their compiler options: written once
+#: below, compiled once per family by :func:`family_kernels`.
+_PER_FAMILY: dict[str, tuple] = {}
+
+
+def per_family(**options):
+    """Mark a kernel as written once for all families and compiled once per family."""
+
+    def register(func):
+        _PER_FAMILY[func.__name__] = (func, options)
+        return func
+
+    return register
+
+
+@functools.cache
+def family_kernels(family: int) -> dict:
+    """The compiled kernels of ``family``: each :func:`per_family` kernel compiled with
+    :func:`point` and :func:`inverse_start` bound to that family's functions (and its calls
+    to other kernels to that family's copies).
+
+    Why a copy of each kernel per family, and not a family argument: the point function is
+    then a plain global of the kernel, which Numba inlines before typing, so a session that
+    fits Eq. (1) never compiles the relay's tracer (~10 s), the Brown-Conrady loops
+    vectorise (a run-time family branch made fits 1.4-1.75x slower), and each kernel types
+    the point function once (choosing it by a literal family argument in an ``overload``
+    re-typed it at every call site: 3-5 s more of a first use's compilation).  Each copy is
+    cached under its own name (``<kernel>_family<code>``).
     """
-    raise NotImplementedError("point() is compiled into the kernels; call oapcal.model.distort")
+    namespace = dict(globals(), point=_POINT[family], inverse_start=_START[family])
+    compiled = {}
+    for name, (func, options) in _PER_FAMILY.items():
+        copy = types.FunctionType(func.__code__, namespace, name, func.__defaults__, func.__closure__)
+        copy.__qualname__ = f"{name}_family{family}"
+        copy.__module__ = func.__module__
+        copy.__doc__ = func.__doc__
+        compiled[name] = namespace[name] = numba.njit(**options, **_JIT)(copy)
+    return compiled
 
 
-def inverse_start(family, p, xd, yd):
-    """Where the Newton inverse of ``family`` starts for the distorted point ``(xd, yd)``
-    (an ``overload`` like :func:`point`)."""
-    raise NotImplementedError("inverse_start() is compiled into the kernels; call oapcal.model.undistort")
-
-
-@numba.njit(**_JIT)
-def _point_runtime(family, p, x, y, need, jp, j, want):
-    """:func:`point` for a code known only at run time: the families with analytic columns
-    (the relay's tracer is compiled only for kernels that get its code as a constant)."""
-    if family == FAMILY_BC:
-        return bc_point(p, x, y, need, jp, j, want)
-    if family == FAMILY_BC_POSE:
-        return bc_pose_point(p, x, y, need, jp, j, want)
-    return np.nan, np.nan, np.nan, np.nan, np.nan, np.nan
-
-
-@numba.njit(**_JIT)
-def _start_runtime(family, p, xd, yd):
-    if family == FAMILY_BC:
-        return bc_inverse_start(p, xd, yd)
-    if family == FAMILY_BC_POSE:
-        return bc_pose_inverse_start(p, xd, yd)
-    return xd, yd
-
-
-@overload(point, inline="always", prefer_literal=True)
-def _point_overload(family, p, x, y, need, jp, j, want):
-    chosen = _POINT.get(getattr(family, "literal_value", None))
-    if chosen is not None:
-        return lambda family, p, x, y, need, jp, j, want: chosen(p, x, y, need, jp, j, want)
-    return lambda family, p, x, y, need, jp, j, want: _point_runtime(family, p, x, y, need, jp, j, want)
-
-
-@overload(inverse_start, inline="always", prefer_literal=True)
-def _inverse_start_overload(family, p, xd, yd):
-    chosen = _START.get(getattr(family, "literal_value", None))
-    if chosen is not None:
-        return lambda family, p, xd, yd: chosen(p, xd, yd)
-    return lambda family, p, xd, yd: _start_runtime(family, p, xd, yd)
-
-
-@numba.njit(**_JIT)
-def fd_param_columns(family, p, x, y, jp, j, want, step):
+@per_family()
+def fd_param_columns(p, x, y, jp, j, want, step):
     """Central-difference parameter Jacobian ``jp[:, i, j]`` (parameters ``i`` flagged in
     ``want``) of ``family`` at one point, for families without analytic columns:
     ``h_i = step * max(|p_i|, 1)``."""
-    numba.literally(family)  # one compiled version per family (FamilyCode)
     q = p.copy()
     for i in range(p.shape[0]):
         if not want[i]:
@@ -246,7 +244,7 @@ def fd_param_columns(family, p, x, y, jp, j, want, step):
         # the point function in one loop (NumbaIRAssumptionWarning)
         for side in range(2):
             q[i] = p[i] + h if side == 0 else p[i] - h
-            xs, ys, _, _, _, _ = point(family, q, x, y, VALUE, jp, j, want)
+            xs, ys, _, _, _, _ = point(q, x, y, VALUE, jp, j, want)
             sign = 1.0 if side == 0 else -1.0
             if side == 0:
                 jp[0, i, j] = 0.0
@@ -259,8 +257,8 @@ def fd_param_columns(family, p, x, y, jp, j, want, step):
 # ------------------------------------------------------------------- forward evaluation
 
 
-@numba.njit(**_JIT)
-def evaluate(start, stop, family, params, xy, need, fd_step, out, jpt, jpar):
+@per_family()
+def evaluate(start, stop, params, xy, need, fd_step, out, jpt, jpar):
     """The model at the points ``start <= t < stop`` of the flattened ``(B, N)`` batch:
     ``params (Bp, P)``, ``xy (Bx, N, 2)`` with ``Bp, Bx`` 1 or B; ``out (B, N, 2)``; with
     ``need >= POINT_JAC`` ``jpt (B, N, 2, 2)``; with ``need == PARAM_JAC``
@@ -281,10 +279,10 @@ def evaluate(start, stop, family, params, xy, need, fd_step, out, jpt, jpar):
         x = xy[bx, j, 0]
         y = xy[bx, j, 1]
         # one call site of the point function (two inlined copies trip Numba's SSA check)
-        xd, yd, a, bb, c, d = point(family, p, x, y, need if fd_step is None else min(need, POINT_JAC), jp, 0,
+        xd, yd, a, bb, c, d = point(p, x, y, need if fd_step is None else min(need, POINT_JAC), jp, 0,
                                     want)  # fmt: skip
         if fd_step is not None and need == PARAM_JAC:
-            fd_param_columns(family, p, x, y, jp, 0, want, fd_step)
+            fd_param_columns(p, x, y, jp, 0, want, fd_step)
         out[b, j, 0] = xd
         out[b, j, 1] = yd
         if need >= POINT_JAC:
@@ -298,8 +296,8 @@ def evaluate(start, stop, family, params, xy, need, fd_step, out, jpt, jpar):
                 jpar[b, j, 1, i] = jp[1, i, 0]
 
 
-@numba.njit(fastmath=_FASTMATH, **_JIT)
-def grid_map(start, stop, family, p, xs, ys, out_x, out_y):
+@per_family(fastmath=_FASTMATH)
+def grid_map(start, stop, p, xs, ys, out_x, out_y):
     """The model on the grid ``xs (C,) x ys[start:stop]`` of undistorted points, into the
     rows ``start:stop`` of ``out_x, out_y (R, C)`` (float32): a correction map."""
     jp = np.empty((2, p.shape[0], 1))
@@ -309,13 +307,13 @@ def grid_map(start, stop, family, p, xs, ys, out_x, out_y):
         row_x = out_x[r]
         row_y = out_y[r]
         for col in range(xs.shape[0]):
-            xd, yd, _, _, _, _ = point(family, p, xs[col], y, VALUE, jp, 0, want)
+            xd, yd, _, _, _, _ = point(p, xs[col], y, VALUE, jp, 0, want)
             row_x[col] = xd
             row_y[col] = yd
 
 
-@numba.njit(fastmath=_FASTMATH, **_JIT)
-def min_det(start, stop, family, params, xy, out):
+@per_family(fastmath=_FASTMATH)
+def min_det(start, stop, params, xy, out):
     """The smallest point-Jacobian determinant of the models ``params[start:stop]`` over the
     points ``xy (2, M)`` (rows x, y), into ``out``; NaN when any determinant is NaN."""
     jp = np.empty((2, params.shape[1], 1))
@@ -327,7 +325,7 @@ def min_det(start, stop, family, params, xy, out):
         lo = np.inf
         bad = 0
         for j in range(xs.shape[0]):
-            _, _, a, bb, c, d = point(family, p, xs[j], ys[j], POINT_JAC, jp, 0, want)
+            _, _, a, bb, c, d = point(p, xs[j], ys[j], POINT_JAC, jp, 0, want)
             det = a * d - bb * c
             lo = det if det < lo else lo
             bad += det != det
@@ -337,14 +335,13 @@ def min_det(start, stop, family, params, xy, out):
 # ---------------------------------------------------------------------- Newton inverse
 
 
-@numba.njit(**_JIT)
-def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp, want):
+@per_family()
+def invert_point(p, xd, yd, x, y, tol, max_iter, jp, want):
     """Solve ``model(x, y) = (xd, yd)`` by Newton from ``(x, y)`` with step halving (up to
     10 halvings while the residual grows); a point whose residual cannot decrease any more
     stops.  Returns ``(x, y, converged, folded, n_iter)``: converged when the residual is
     ``<= tol`` and the Jacobian determinant there is positive; folded when it is <= 0.
     ``jp``, ``want`` are the scratch of :func:`point`."""
-    numba.literally(family)  # one compiled version per family (FamilyCode)
     # One call site of the point function, for the start and every trial of a step (two
     # inlined copies trip Numba's SSA check): ``trial`` -1 evaluates the start, k >= 0
     # the k-th trial (t = 2^-k) of the current Newton step (sx, sy).  (a, b, c, d) is
@@ -359,7 +356,7 @@ def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp, want):
     while True:
         xn = x + t * sx
         yn = y + t * sy
-        fxn, fyn, an, bn, cn, dn = point(family, p, xn, yn, POINT_JAC, jp, 0, want)
+        fxn, fyn, an, bn, cn, dn = point(p, xn, yn, POINT_JAC, jp, 0, want)
         fxn -= xd
         fyn -= yd
         err_new = np.sqrt(fxn * fxn + fyn * fyn)
@@ -390,8 +387,8 @@ def invert_point(family, p, xd, yd, x, y, tol, max_iter, jp, want):
     return x, y, converged, folded, n_iter
 
 
-@numba.njit(**_JIT)
-def invert_batch(start, stop, family, params, xy_d, xy_start, tol, max_iter, out, converged, folded, iters):
+@per_family()
+def invert_batch(start, stop, params, xy_d, xy_start, tol, max_iter, out, converged, folded, iters):
     """Invert the points ``start <= t < stop`` of the flattened ``(B, N)`` batch:
     ``params (Bp, P)``, ``xy_d (Bx, N, 2)``, ``xy_start`` like ``xy_d`` or None (the family's
     start); outputs ``(B, N, 2)`` and ``(B, N)`` x3."""
@@ -410,11 +407,11 @@ def invert_batch(start, stop, family, params, xy_d, xy_start, tol, max_iter, out
         xd = xy_d[bx, j, 0]
         yd = xy_d[bx, j, 1]
         if xy_start is None:  # pruned at compile time
-            x0, y0 = inverse_start(family, p, xd, yd)
+            x0, y0 = inverse_start(p, xd, yd)
         else:
             bs = b if xy_start.shape[0] > 1 else 0
             x0, y0 = xy_start[bs, j, 0], xy_start[bs, j, 1]
-        x, y, ok, fold, it = invert_point(family, p, xd, yd, x0, y0, tol, max_iter, jp, want)
+        x, y, ok, fold, it = invert_point(p, xd, yd, x0, y0, tol, max_iter, jp, want)
         out[b, j, 0] = x if ok else np.nan
         out[b, j, 1] = y if ok else np.nan
         converged[b, j] = ok
@@ -422,8 +419,8 @@ def invert_batch(start, stop, family, params, xy_d, xy_start, tol, max_iter, out
         iters[b, j] = it
 
 
-@numba.njit(**_JIT)
-def invert_score(start, stop, family, params, xy_d, xy_u, tol, max_iter, rss, mean_dist, n_bad, n_folded):
+@per_family()
+def invert_score(start, stop, params, xy_d, xy_u, tol, max_iter, rss, mean_dist, n_bad, n_folded):
     """Correct all points ``xy_d (N, 2)`` through the models ``params[start:stop]`` and compare
     with ``xy_u (N, 2)`` without storing the points: per model the sum of squared and the
     mean Euclidean distances over the converged points, the number of points whose
@@ -437,8 +434,8 @@ def invert_score(start, stop, family, params, xy_d, xy_u, tol, max_iter, rss, me
         bad = 0
         fold = 0
         for j in range(xy_d.shape[0]):
-            x0, y0 = inverse_start(family, p, xy_d[j, 0], xy_d[j, 1])
-            x, y, ok, fo, _ = invert_point(family, p, xy_d[j, 0], xy_d[j, 1], x0, y0, tol, max_iter, jp, want)
+            x0, y0 = inverse_start(p, xy_d[j, 0], xy_d[j, 1])
+            x, y, ok, fo, _ = invert_point(p, xy_d[j, 0], xy_d[j, 1], x0, y0, tol, max_iter, jp, want)
             if ok:
                 dx = x - xy_u[j, 0]
                 dy = y - xy_u[j, 1]
@@ -457,11 +454,10 @@ def invert_score(start, stop, family, params, xy_d, xy_u, tol, max_iter, rss, me
 # -------------------------------------------------------------- Levenberg-Marquardt
 
 
-@numba.njit(fastmath=_FASTMATH, **_JIT)
-def _residuals(family, p, pts, res, jp, want):
+@per_family(fastmath=_FASTMATH)
+def _residuals(p, pts, res, jp, want):
     """``res (2n,)`` = model - data at the item's points ``pts (4, n)`` (rows x_u, y_u,
     x_d, y_d), x residuals first, then y; returns the cost ``0.5 |res|^2``."""
-    numba.literally(family)  # one compiled version per family (FamilyCode)
     n = pts.shape[1]
     # 1-d row views: the loop then vectorises
     xu, yu, xo, yo = pts[0], pts[1], pts[2], pts[3]
@@ -469,7 +465,7 @@ def _residuals(family, p, pts, res, jp, want):
     res_y = res[n : 2 * n]
     cost = 0.0
     for j in range(n):
-        xd, yd, _, _, _, _ = point(family, p, xu[j], yu[j], VALUE, jp, 0, want)
+        xd, yd, _, _, _, _ = point(p, xu[j], yu[j], VALUE, jp, 0, want)
         rx = xd - xo[j]
         ry = yd - yo[j]
         res_x[j] = rx
@@ -478,17 +474,16 @@ def _residuals(family, p, pts, res, jp, want):
     return 0.5 * cost
 
 
-@numba.njit(fastmath=_FASTMATH, **_JIT)
-def _jacobian(family, p, pts, fd_step, want, cols):
+@per_family(fastmath=_FASTMATH)
+def _jacobian(p, pts, fd_step, want, cols):
     """Fill the rows ``i`` with ``want[i]`` of ``cols (2, P, >= n)`` with d(model)/d(p_i)
     at the item's points ``pts (4, n)``: ``cols[0]`` the x rows, ``cols[1]`` the y rows.
     Analytic when ``fd_step`` is None, else central differences with that relative step."""
-    numba.literally(family)  # one compiled version per family (FamilyCode)
     for j in range(pts.shape[1]):
         if fd_step is None:  # pruned at compile time: one specialization per kind
-            point(family, p, pts[0, j], pts[1, j], PARAM_JAC, cols, j, want)
+            point(p, pts[0, j], pts[1, j], PARAM_JAC, cols, j, want)
         else:
-            fd_param_columns(family, p, pts[0, j], pts[1, j], cols, j, want, fd_step)
+            fd_param_columns(p, pts[0, j], pts[1, j], cols, j, want, fd_step)
 
 
 @numba.njit(fastmath=_FASTMATH, **_JIT)
@@ -587,8 +582,8 @@ def solve_lu(lhs, rhs, k, out, work):
         out[i] = s / work[i, i]
 
 
-@numba.njit(**_JIT)
-def lm_item(family, u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, want_jtj, jtj_out,
+@per_family()
+def lm_item(u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, want_jtj, jtj_out,
             scratch):  # fmt: skip
     """Levenberg-Marquardt for one item, in place on ``p``; returns (status, n_iter, cost).
 
@@ -599,7 +594,6 @@ def lm_item(family, u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
     ``jtj_out (P, P)`` receives ``J^T J`` at the final ``p`` (free rows and columns).
     ``scratch`` is :func:`lm_scratch` (reused from item to item).
     """
-    numba.literally(family)  # one compiled version per family (FamilyCode)
     cols, res_all, jp, pts_all = scratch
     # The item's points, gathered once into contiguous rows (the loops over them vectorise).
     pts = pts_all[:, :n]
@@ -624,7 +618,7 @@ def lm_item(family, u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
     dcol = np.empty(k)
     p_new = p.copy()
 
-    cost = _residuals(family, p, pts, res, jp, mask)
+    cost = _residuals(p, pts, res, jp, mask)
     status = 0
     n_iter = 0
     if not np.isfinite(cost):
@@ -638,7 +632,7 @@ def lm_item(family, u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
         if need_jac:
             # The residuals hold the values at p: the last evaluation was at p (the start,
             # or an accepted trial step).
-            _jacobian(family, p, pts, fd_step, mask, cols)
+            _jacobian(p, pts, fd_step, mask, cols)
             _normal_equations(cols, res, n, free, half, a, g)
             n_iter += 1
             need_jac = False
@@ -688,7 +682,7 @@ def lm_item(family, u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
             snorm += step_s[i] ** 2
             if not np.isfinite(p_new[q]):
                 finite_new = False
-        cost_new = _residuals(family, p_new, pts, res, jp, mask)
+        cost_new = _residuals(p_new, pts, res, jp, mask)
         actual = cost - cost_new
         rho = actual / predicted if predicted > 0.0 else -1.0
         accept = np.isfinite(cost_new) and actual > 0.0 and rho > 1e-4
@@ -728,8 +722,8 @@ def lm_item(family, u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_
     if want_jtj:
         # J^T J at the final p for the covariance (the residual buffer may hold a
         # rejected trial step, so evaluate again at p).
-        _residuals(family, p, pts, res, jp, mask)
-        _jacobian(family, p, pts, fd_step, mask, cols)
+        _residuals(p, pts, res, jp, mask)
+        _jacobian(p, pts, fd_step, mask, cols)
         _normal_equations(cols, res, n, free, half, a, g)
         for i in range(k):
             for j in range(k):
@@ -748,8 +742,8 @@ def lm_scratch(n_params, n_max):
     )
 
 
-@numba.njit(**_JIT)
-def lm_batch(start, stop, family, u, d, idx, counts, masks, half, p, max_iter, ftol, xtol, gtol, fd_step,
+@per_family()
+def lm_batch(start, stop, u, d, idx, counts, masks, half, p, max_iter, ftol, xtol, gtol, fd_step,
              want_jtj, status, n_iter, cost, jtj):  # fmt: skip
     """:func:`lm_item` for the items ``start <= b < stop``: points ``u (Bu, N, 2)``,
     ``d (Bd, N, 2)`` (each 1 or B), point indices ``idx (Bi, nmax)`` with ``counts (Bi,)``
@@ -762,7 +756,7 @@ def lm_batch(start, stop, family, u, d, idx, counts, masks, half, p, max_iter, f
         bu = i if u.shape[0] > 1 else 0
         bd = i if d.shape[0] > 1 else 0
         bj = i if want_jtj else 0
-        s, it, c = lm_item(family, u[bu], d[bd], idx[bi], counts[bi], masks[i], half, p[i], max_iter,
+        s, it, c = lm_item(u[bu], d[bd], idx[bi], counts[bi], masks[i], half, p[i], max_iter,
                            ftol, xtol, gtol, fd_step, want_jtj, jtj[bj], scratch)  # fmt: skip
         status[i] = s
         n_iter[i] = it
@@ -784,40 +778,15 @@ def n_threads() -> int:
     return max(1, min(cpus, int(os.environ.get("NUMBA_NUM_THREADS", cpus))))
 
 
-class FamilyCode(int):
-    """A family code as :func:`run_blocks` hands it to a kernel: Numba types it as a literal
-    integer (:func:`_typeof_family_code`), so each family gets its own compiled kernels in
-    which :func:`point` is that family's point function alone.
-
-    Why: with the code as a run-time integer, every loop over points carries the branches
-    of all families (a call into the relay's tracer among them), and the compiler no
-    longer vectorises the Brown-Conrady loops: fits took 1.4-1.75x the CPU time.
-    """
-
-    __slots__ = ()
-
-
-_FAMILY_TYPES: dict[int, object] = {}
-
-
-@typeof_impl.register(FamilyCode)
-def _typeof_family_code(val, c):
-    # one type object per code: building it on every kernel call took 8 of its 10 us
-    code = int(val)
-    if code not in _FAMILY_TYPES:
-        _FAMILY_TYPES[code] = nbtypes.literal(code)
-    return _FAMILY_TYPES[code]
-
-
 def run_blocks(kernel, n: int, block: int, family: int, *args) -> None:
-    """Call ``kernel(start, stop, family, *args)`` over ``0 <= start < n`` in blocks of
-    ``block``, the blocks shared out to :func:`n_threads` threads (the kernels release the
-    GIL); ``family`` reaches the kernel as a compile-time constant (:class:`FamilyCode`).
+    """Call ``family``'s copy of ``kernel`` (:func:`family_kernels`) as
+    ``kernel(start, stop, *args)`` over ``0 <= start < n`` in blocks of ``block``, the
+    blocks shared out to :func:`n_threads` threads (the kernels release the GIL).
 
     Why threads and not ``numba.prange``: the same speed, and each kernel compiles in a
     fraction of the time (no parallel-loop lowering), which is what a first call costs.
     """
-    args = (FamilyCode(family), *args)
+    kernel = family_kernels(family)[kernel.__name__]
     blocks = [(s, min(n, s + block)) for s in range(0, n, max(1, block))]
     threads = min(n_threads(), len(blocks))
     if threads <= 1:
