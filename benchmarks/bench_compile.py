@@ -7,7 +7,10 @@ CPU and wall time: first with an empty cache (what a fresh checkout pays once), 
 with the cache it left (what every later process pays).  The peer is a bare
 ``python -c "import numpy"`` process.
 
-    PYTHONPATH=src python benchmarks/bench_compile.py [--repeats 2]
+With ``--session relay`` the session is the physical relay's instead: a relay
+calibration (fit, covariance, residual statistics), an inverse and a correction map.
+
+    PYTHONPATH=src python benchmarks/bench_compile.py [--repeats 2] [--session eq1|relay]
 """
 
 from __future__ import annotations
@@ -38,6 +41,23 @@ uncertainty_map(cal, step=40)
 print(f"{time.process_time() - c0:.2f} {time.perf_counter() - w0:.2f}")
 """
 
+RELAY_SESSION = r"""
+import time
+c0, w0 = time.process_time(), time.perf_counter()
+import numpy as np
+from oapcal.imaging.remap import correction_map
+from oapcal.model import distort, undistort
+from oapcal.optics.relay_model import RelayDesign, calibrate_relay, relay_params
+design = RelayDesign(setup=1, pixel_size_um=4.8, centre=(319.5, 239.5))
+g = np.stack(np.meshgrid(np.linspace(40, 600, 17), np.linspace(40, 440, 13)), -1).reshape(-1, 2)
+truth = relay_params(design, {"m2_decentre_x": 0.2, "d1": 0.5})
+xy_d = distort(g, truth)
+cal = calibrate_relay(g, xy_d, design, image_size=(640, 480))
+undistort(xy_d, cal.params)
+correction_map(cal, (480, 640))
+print(f"{time.process_time() - c0:.2f} {time.perf_counter() - w0:.2f}")
+"""
+
 
 def run(code: str, cache: str) -> tuple[float, float, float]:
     env = {**os.environ, "NUMBA_CACHE_DIR": cache}
@@ -51,11 +71,14 @@ def run(code: str, cache: str) -> tuple[float, float, float]:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--session", choices=("eq1", "relay"), default="eq1",
+                    help="the Brown-Conrady session (default) or the relay's")  # fmt: skip
     args = ap.parse_args()
+    session = SESSION if args.session == "eq1" else RELAY_SESSION
     for i in range(args.repeats):
         with tempfile.TemporaryDirectory() as cache:
-            cold = run(SESSION, cache)
-            warm = run(SESSION, cache)
+            cold = run(session, cache)
+            warm = run(session, cache)
             bare = run("import time, numpy; print(time.process_time(), 0)", cache)
         print(f"run {i + 1}: empty cache (compile): {cold[0]:5.1f} s CPU, {cold[1]:5.1f} s wall; "
               f"warm cache (load): {warm[0]:4.2f} s CPU, {warm[1]:4.2f} s wall; "

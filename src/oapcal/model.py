@@ -219,8 +219,8 @@ def scale_params(params: np.ndarray, factor: float) -> np.ndarray:
 class ModelFamily:
     """A family of distortion models as the solver sees it (``docs/architecture.md``).
 
-    ``code`` selects the family's point function in the compiled core
-    (:func:`oapcal._kernels.point`); ``param_names`` is the flat parameter vector;
+    ``code`` selects the family's point function in the compiled core (the family's copy
+    of the kernels, :func:`oapcal._kernels.family_kernels`); ``param_names`` is the flat parameter vector;
     ``always_free`` the parameters every model of the family fits; ``scale_exponents``
     the exact reparametrization for coordinates divided by ``f`` (``p * f**e``; None when
     there is none: the solver then fits in the data's units); ``moves`` says for each

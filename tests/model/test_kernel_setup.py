@@ -36,7 +36,7 @@ def test_each_family_gets_its_own_compiled_kernels():
     # noise-free data: the solution is the truth (k1, c_x, m; the rest fixed at 0)
     np.testing.assert_allclose(args[6][0], truth, rtol=1e-9, atol=1e-12)
     bc = kernels.family_kernels(kernels.FAMILY_BC)
-    assert bc["lm_batch"].signatures and bc["lm_item"].signatures
+    assert bc["lm_batch"].signatures  # compiled, or loaded from the cache (then without its callees)
     assert bc["lm_batch"] is not kernels.family_kernels(kernels.FAMILY_RELAY)["lm_batch"]
     assert kernels.family_kernels(kernels.FAMILY_BC) is bc  # built once per family
     # each copy is cached under its own name, so families never share a cache entry
