@@ -136,3 +136,38 @@ def test_tests_mirror_the_source_tree():
     modules = {p.stem for p in SRC.glob("*.py")} | {p.name for p in SRC.iterdir() if p.is_dir()}
     folders = {p.name for p in tests.iterdir() if p.is_dir() and any(p.glob("test_*.py"))}
     assert folders and folders <= modules, sorted(folders - modules)
+
+
+#: The modules that read files: ``io.userfile`` opens every user file (text and JSON read
+#: there; binary files checked there by ``check_input_file``), then the binary readers
+#: decode what it let through; ``io.atomic`` writes.
+FILE_READERS = {"io.userfile", "io.images", "io.maps", "io.atomic"}
+#: Calls that read a file: ``open(...)``; ``x.read_text()``/``x.read_bytes()`` on any path;
+#: ``owner.attr(...)`` for the libraries' readers.
+_READ_METHODS = {"read_text", "read_bytes"}
+_READ_CALLS = {("np", "load"), ("json", "load"), ("cv2", "imread"), ("tifffile", "imread"),
+               ("tifffile", "TiffFile"), ("os", "open"), ("os", "fdopen"), ("io", "open")}  # fmt: skip
+
+
+def _reads_files(path: Path) -> bool:
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if not isinstance(node, ast.Call):
+            continue
+        func = node.func
+        if isinstance(func, ast.Name) and func.id == "open":
+            return True
+        if isinstance(func, ast.Attribute):
+            owner = func.value.id if isinstance(func.value, ast.Name) else None
+            # package data (the JSON schemas) is read through importlib.resources: not a user file
+            packaged = "resources.files" in ast.unparse(func.value)
+            if ((owner, func.attr) in _READ_CALLS or func.attr in _READ_METHODS) and not packaged:
+                return True
+    return False
+
+
+def test_only_the_io_file_modules_open_files():
+    """One way in for user files (docs/architecture.md, layer 6): every other module reads
+    through ``io.userfile``, ``io.images`` or ``io.maps``.  The CLI's stream set-up (``os``
+    file descriptors for native libraries' stderr) is not a file read."""
+    readers = {_module_name(p) for p in SRC.rglob("*.py") if _reads_files(p)}
+    assert readers - {"cli"} == FILE_READERS, sorted(readers ^ FILE_READERS)

@@ -113,7 +113,7 @@ def test_devices_are_refused_without_reading_them_whole(device):
 def test_an_endless_text_stream_is_cut_at_the_limit(monkeypatch):
     import io
 
-    import oapcal.io.textfile as textfile
+    import oapcal.io.userfile as userfile
 
     class Endless(io.RawIOBase):
         def readable(self):
@@ -123,7 +123,7 @@ def test_an_endless_text_stream_is_cut_at_the_limit(monkeypatch):
             buf[:] = b"a" * len(buf)
             return len(buf)
 
-    monkeypatch.setattr(textfile, "MAX_FILE_BYTES", 3 * 2**20)
+    monkeypatch.setattr(userfile, "MAX_FILE_BYTES", 3 * 2**20)
     stdin = io.TextIOWrapper(io.BufferedReader(Endless()))
     monkeypatch.setattr("sys.stdin", stdin)
     with pytest.raises(InputFileError, match="-: is over 3 MiB"):

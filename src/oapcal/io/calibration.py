@@ -41,7 +41,7 @@ from oapcal.calibration import CHECK_GRID, Calibration, FitSummary, check_model_
 from oapcal.errors import InputFileError
 from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
-from oapcal.io.textfile import read_json
+from oapcal.io.userfile import read_json
 from oapcal.model import BROWN_CONRADY, FAMILIES
 
 __all__ = [

@@ -1,7 +1,7 @@
 """Reading single images for analysis (edge spread, correction checks, reports).
 
 Files are read by :func:`oapcal.io.images.read_image` (the path checked by
-:func:`~oapcal.io.images.check_input_file`, the pixel-count limit checked before decoding,
+:func:`~oapcal.io.userfile.check_input_file`, the pixel-count limit checked before decoding,
 errors naming the file), TIFF through tifffile and everything else through OpenCV.  Colour
 images are converted to grey (ITU-R BT.601 weights, as OpenCV does); the result is a
 ``float64 (rows, cols)`` array in the file's own intensity units.  Problems raise

@@ -8,11 +8,11 @@
 * **Decompression bombs**: the image size is read from the file's header and checked
   against a pixel-count limit (per frame) *before* any pixel is decoded.
 * Every problem with a file raises :class:`~oapcal.errors.InputFileError` naming the file.
-* **One way in** for the binary files users give (images, stacks, correction maps):
-  :func:`check_input_file` checks the suffix, that the file is there and that it is a
-  file, with the same messages for every kind; the limits are :data:`MAX_PIXELS` per image
-  frame and, for maps (:mod:`oapcal.io.maps`), the same limit times the output's largest
-  growth (:data:`oapcal.imaging.remap.MAX_GROWTH`) and :data:`MAX_UNPACK_RATIO`.
+* **One way in** for the files users give (:mod:`oapcal.io.userfile`): images and stacks
+  pass its :func:`~oapcal.io.userfile.check_input_file` (suffix, there, a file) and its
+  per-frame limit :data:`~oapcal.io.userfile.MAX_PIXELS`; maps (:mod:`oapcal.io.maps`)
+  the same limit times the output's largest growth
+  (:data:`oapcal.imaging.remap.MAX_GROWTH`) and :data:`~oapcal.io.userfile.MAX_UNPACK_RATIO`.
 * TIFF outputs carry metadata: the calibration's name and the pixel size (in the
   ``ImageDescription`` JSON and as the standard ``XResolution``/``YResolution`` tags in
   pixels per cm).
@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from oapcal.errors import InputFileError
+from oapcal.io.userfile import MAX_PIXELS, check_input_file
 
 TIFF_SUFFIXES = (".tif", ".tiff")
 OPENCV_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -37,11 +38,6 @@ IMAGE_SUFFIXES = TIFF_SUFFIXES + OPENCV_SUFFIXES
 LOSSLESS_SUFFIXES = (".png",) + TIFF_SUFFIXES
 #: dtypes that ``cv2.remap`` can correct.
 DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
-#: Default per-frame pixel limit (``max_pixels``): 2**28, e.g. 16384 x 16384.
-MAX_PIXELS = 2**28
-#: A compressed array (a correction map) that unpacks to more than this many times its
-#: stored size, and to more than 64 MiB, is refused as a decompression bomb.
-MAX_UNPACK_RATIO = 50
 #: TIFF outputs with more pixel data than this are written as BigTIFF (as tifffile.imwrite
 #: decides: 4 GiB less 32 MiB for the headers).
 BIGTIFF_BYTES = 2**32 - 2**25
@@ -69,31 +65,6 @@ class ImageInfo:
         """Bytes of one frame (8 per value when the dtype is not known yet)."""
         itemsize = self.dtype.itemsize if self.dtype is not None else 8
         return int(np.prod(self.frame_shape, dtype=np.int64)) * itemsize
-
-
-def check_input_file(path: str | Path, what: str, suffixes, *, missing: str = "check the path") -> Path:
-    """``path`` as a :class:`~pathlib.Path` once it is a file with one of ``suffixes``;
-    else :class:`~oapcal.errors.InputFileError` naming the file: an unsupported suffix
-    (the suffixes a ``what`` may have), a missing file (``missing`` says what to do), a
-    directory.  Every binary input (image, stack, map) comes in through here.
-
-    >>> check_input_file("m.csv", "map file", (".npz", ".npy"))
-    Traceback (most recent call last):
-    oapcal.errors.InputFileError: m.csv: unsupported file type '.csv'; a map file must end in .npz, .npy
-    """
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in suffixes:
-        article = "an" if what[:1] in "aeiou" else "a"
-        raise InputFileError(
-            f"{path}: unsupported file type {suffix or '(no suffix)'!r}; {article} {what} must end in "
-            f"{', '.join(suffixes)}"
-        )
-    if path.is_dir():
-        raise InputFileError(f"{path}: is a directory, not {'an' if what[:1] in 'aeiou' else 'a'} {what}")
-    if not path.is_file():
-        raise InputFileError(f"{path}: no such {what}; {missing}")
-    return path
 
 
 def is_image_path(path: str | Path) -> bool:

@@ -17,7 +17,8 @@ import numpy as np
 from oapcal.errors import InputFileError
 from oapcal.imaging.remap import MAX_GROWTH, CorrectionMap, OutputGeometry
 from oapcal.io.atomic import atomic_path, atomic_write
-from oapcal.io.images import MAX_PIXELS, MAX_UNPACK_RATIO, check_input_file, read_image
+from oapcal.io.images import read_image
+from oapcal.io.userfile import MAX_PIXELS, MAX_UNPACK_RATIO, check_input_file
 
 MAP_SUFFIXES = (".npz", ".npy", ".tif", ".tiff")
 
@@ -102,7 +103,7 @@ def load_map(path: str | Path, max_pixels: int | None = None) -> CorrectionMap:
     """Read a map written by :func:`save_map` (never unpickles anything).
 
     The header is checked before any data are read: a map larger than one for the largest
-    image (``max_pixels`` per input frame, default :data:`oapcal.io.images.MAX_PIXELS`, times
+    image (``max_pixels`` per input frame, default :data:`oapcal.io.userfile.MAX_PIXELS`, times
     :data:`~oapcal.imaging.remap.MAX_GROWTH`) or one
     that decompresses to far more than it stores is refused.
     """

@@ -24,7 +24,7 @@ import numpy as np
 
 from oapcal.errors import DataError, InputFileError
 from oapcal.io.atomic import atomic_write
-from oapcal.io.textfile import read_text
+from oapcal.io.userfile import read_text
 
 PAIR_COLUMNS = ("x_u", "y_u", "x_d", "y_d")
 #: Coordinates beyond this magnitude are refused: no image is that large, and the model's

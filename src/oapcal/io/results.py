@@ -227,7 +227,7 @@ def family_selection_from_dict(data: dict, source: str = "family selection"):
 def load_any_selection(path: str | Path):
     """A selection file of either kind: ``oapcal select --json`` (a :class:`Selection`) or
     ``oapcal select --families ... --json`` (a :class:`~oapcal.families.FamilySelection`)."""
-    from oapcal.io.textfile import read_json
+    from oapcal.io.userfile import read_json
 
     data = read_json(path, "selection file")
     if isinstance(data, dict) and data.get("format") == FAMILY_SELECTION_FORMAT:
@@ -237,13 +237,13 @@ def load_any_selection(path: str | Path):
 
 def load_selection(path: str | Path) -> Selection:
     """Read a selection file (``oapcal select --json``) back into a :class:`Selection`."""
-    from oapcal.io.textfile import read_json
+    from oapcal.io.userfile import read_json
 
     return selection_from_dict(read_json(path, "selection file"), str(path))
 
 
 def load_robustness(path: str | Path) -> Robustness:
     """Read a robustness file (``oapcal robustness --json``) back into a :class:`Robustness`."""
-    from oapcal.io.textfile import read_json
+    from oapcal.io.userfile import read_json
 
     return robustness_from_dict(read_json(path, "robustness file"), str(path))

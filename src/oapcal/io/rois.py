@@ -28,7 +28,7 @@ MAX_INDEX = 10_000_000
 def read_rois(path) -> tuple[list[tuple[int, int, int, int]], list[str]]:
     """Rectangles and labels (``"roi N"`` where the file has no ``label`` column)."""
     name = str(path)
-    from oapcal.io.textfile import read_text
+    from oapcal.io.userfile import read_text
 
     text = read_text(path, "ROI file", missing="no such ROI file; check the path")
     reader = csv.reader(io.StringIO(text))

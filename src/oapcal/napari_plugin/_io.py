@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from oapcal.io.userfile import sniff
 from oapcal.napari_plugin._layers import (
     DISTORTED,
     REFERENCE,
@@ -31,20 +32,11 @@ SNIFF_BYTES = 4096
 
 
 def _is_calibration(path: Path) -> bool:
-    try:
-        with open(path, encoding="utf-8") as fh:
-            head = fh.read(SNIFF_BYTES)
-    except (OSError, UnicodeDecodeError):
-        return False
-    return '"oapcal-calibration"' in head
+    return '"oapcal-calibration"' in sniff(path, SNIFF_BYTES)
 
 
 def _is_point_pairs(path: Path) -> bool:
-    try:
-        with open(path, encoding="utf-8-sig") as fh:
-            header = fh.readline()
-    except (OSError, UnicodeDecodeError):
-        return False
+    header = sniff(path, SNIFF_BYTES).split("\n", 1)[0]
     names = {h.strip() for h in header.replace("\t", ",").split(",")}
     return {"x_u", "y_u", "x_d", "y_d"} <= names
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from oapcal.errors import InputFileError
-from oapcal.io.textfile import read_text as _read_text
+from oapcal.io.userfile import read_text as _read_text
 
 #: Landmark files larger than this are refused before they are read (bytes).
 #: A coordinate whose magnitude exceeds this (px) is certainly not a pixel position.
@@ -51,7 +51,7 @@ class LandmarkSet:
 
 
 def read_text(path: str | Path, what: str = "landmark file") -> str:
-    """The text of ``path`` (``-`` is stdin): :func:`oapcal.io.textfile.read_text`, and
+    """The text of ``path`` (``-`` is stdin): :func:`oapcal.io.userfile.read_text`, and
     an empty file is refused."""
     return _check_text(_read_text(path, what), str(path), what)
 

@@ -31,7 +31,7 @@ from oapcal.io.landmarks._base import (
     first_row,
     read_text,
 )
-from oapcal.io.textfile import parse_json
+from oapcal.io.userfile import parse_json
 
 #: VIA's image coordinates minus this are oapcal's (corner origin -> centre origin).
 PIXEL_OFFSET = 0.5

@@ -1,9 +1,16 @@
-"""Reading the text and JSON files users give: one set of checks and messages.
+"""Opening the files users give: one module, one set of limits, one set of messages.
 
-Every message names the file and says what to do: a missing file, a directory, a file
-over :data:`MAX_FILE_BYTES` (refused unread), UTF-16, binary data (NUL bytes), bytes that
-are not UTF-8 (a BOM is allowed), and for JSON malformed, absurdly nested or unreadable
-numbers.  All raise :class:`~oapcal.errors.InputFileError`.
+* **Text and JSON** (point files, landmark exports, calibrations, ROI lists, result files):
+  :func:`read_text`, :func:`read_json`.  Refused: a missing file, a directory, a file over
+  :data:`MAX_FILE_BYTES` (unread), UTF-16, binary data (NUL bytes), bytes that are not UTF-8
+  (a BOM is allowed), and for JSON malformed, absurdly nested or unreadable numbers.
+* **Binary files** (images, stacks, correction maps): :func:`check_input_file` checks the
+  suffix, that the file is there and that it is a file; their readers
+  (:mod:`oapcal.io.images`, :mod:`oapcal.io.maps`) then apply :data:`MAX_PIXELS` per frame
+  to the header and, for compressed maps, :data:`MAX_UNPACK_RATIO`, before decoding.
+
+Every message names the file and says what to do; all raise
+:class:`~oapcal.errors.InputFileError`.
 """
 
 from __future__ import annotations
@@ -16,6 +23,12 @@ from oapcal.errors import InputFileError
 
 #: Text inputs larger than this are refused without being read (64 MiB).
 MAX_FILE_BYTES = 64 * 1024 * 1024
+#: Default per-frame pixel limit of images and stacks (``max_pixels``): 2**28, e.g.
+#: 16384 x 16384, checked on the header before any pixel is decoded.
+MAX_PIXELS = 2**28
+#: A compressed array (a correction map) that unpacks to more than this many times its
+#: stored size, and to more than 64 MiB, is refused as a decompression bomb.
+MAX_UNPACK_RATIO = 50
 
 
 def _read_bounded(fh, name: str, what: str) -> bytes:
@@ -108,6 +121,57 @@ def parse_json(text: str, name: str, what: str = "file"):
         raise InputFileError(f"{name}: unreadable JSON ({str(exc).splitlines()[0]})") from None
 
 
+def sniff(path: str | Path, n_bytes: int = 4096) -> str:
+    r"""The first ``n_bytes`` (at most) of ``path`` as UTF-8 text (a BOM dropped, a character
+    cut at the end ignored), or ``""`` when the file cannot be read or is not text: for
+    deciding what a file is (a napari reader) without reading a large or binary file.
+
+    >>> import tempfile, pathlib
+    >>> f = pathlib.Path(tempfile.mkdtemp()) / "p.csv"
+    >>> _ = f.write_bytes(b"\xef\xbb\xbfx_u,y_u\n" + b"1,2\n" * 10**5)
+    >>> sniff(f, 12).splitlines()[0], sniff(f.parent / "missing.csv")
+    ('x_u,y_u', '')
+    """
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(n_bytes)
+    except OSError:
+        return ""
+    if b"\x00" in head:
+        return ""
+    try:
+        return head.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 3:  # a bad byte, not a character cut at the end
+            return ""
+        return head[: exc.start].decode("utf-8-sig")
+
+
 def read_json(path: str | Path, what: str = "JSON file", *, missing: str = "no such file; check the path"):
     """:func:`read_text` then :func:`parse_json`."""
     return parse_json(read_text(path, what, missing=missing), str(path), what)
+
+
+def check_input_file(path: str | Path, what: str, suffixes, *, missing: str = "check the path") -> Path:
+    """``path`` as a :class:`~pathlib.Path` once it is a file with one of ``suffixes``;
+    else :class:`~oapcal.errors.InputFileError` naming the file: an unsupported suffix
+    (the suffixes a ``what`` may have), a missing file (``missing`` says what to do), a
+    directory.  Every binary input (image, stack, map) comes in through here.
+
+    >>> check_input_file("m.csv", "map file", (".npz", ".npy"))
+    Traceback (most recent call last):
+    oapcal.errors.InputFileError: m.csv: unsupported file type '.csv'; a map file must end in .npz, .npy
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in suffixes:
+        article = "an" if what[:1] in "aeiou" else "a"
+        raise InputFileError(
+            f"{path}: unsupported file type {suffix or '(no suffix)'!r}; {article} {what} must end in "
+            f"{', '.join(suffixes)}"
+        )
+    if path.is_dir():
+        raise InputFileError(f"{path}: is a directory, not {'an' if what[:1] in 'aeiou' else 'a'} {what}")
+    if not path.is_file():
+        raise InputFileError(f"{path}: no such {what}; {missing}")
+    return path
