@@ -257,6 +257,17 @@ def fd_param_columns(p, x, y, jp, j, want, step):
 # ------------------------------------------------------------------- forward evaluation
 
 
+@numba.njit(inline="always", **_JIT)
+def _batch_item(t, n, params, xy):
+    """Item ``b`` and point ``j`` of the index ``t`` of a flattened ``(B, N)`` batch, with
+    the item's parameters and the point: ``params (Bp, P)``, ``xy (Bx, N, 2)``, ``Bp`` and
+    ``Bx`` 1 (shared by all items) or B."""
+    b = t // n
+    j = t - b * n
+    bx = b if xy.shape[0] > 1 else 0
+    return b, j, params[b if params.shape[0] > 1 else 0], xy[bx, j, 0], xy[bx, j, 1]
+
+
 @per_family()
 def evaluate(start, stop, params, xy, need, fd_step, out, jpt, jpar):
     """The model at the points ``start <= t < stop`` of the flattened ``(B, N)`` batch:
@@ -267,17 +278,8 @@ def evaluate(start, stop, params, xy, need, fd_step, out, jpt, jpar):
     n = out.shape[1]
     jp = np.zeros((2, params.shape[1], 1))
     want = np.ones(params.shape[1], dtype=np.bool_)
-    b = start // n
-    j = start - b * n - 1
-    for _ in range(start, stop):
-        j += 1
-        if j == n:
-            b += 1
-            j = 0
-        p = params[b if params.shape[0] > 1 else 0]
-        bx = b if xy.shape[0] > 1 else 0
-        x = xy[bx, j, 0]
-        y = xy[bx, j, 1]
+    for t in range(start, stop):
+        b, j, p, x, y = _batch_item(t, n, params, xy)
         # one call site of the point function (two inlined copies trip Numba's SSA check)
         xd, yd, a, bb, c, d = point(p, x, y, need if fd_step is None else min(need, POINT_JAC), jp, 0,
                                     want)  # fmt: skip
@@ -395,17 +397,8 @@ def invert_batch(start, stop, params, xy_d, xy_start, tol, max_iter, out, conver
     n = out.shape[1]
     jp = np.empty((2, params.shape[1], 1))
     want = np.zeros(params.shape[1], dtype=np.bool_)
-    b = start // n
-    j = start - b * n - 1
-    for _ in range(start, stop):
-        j += 1
-        if j == n:
-            b += 1
-            j = 0
-        p = params[b if params.shape[0] > 1 else 0]
-        bx = b if xy_d.shape[0] > 1 else 0
-        xd = xy_d[bx, j, 0]
-        yd = xy_d[bx, j, 1]
+    for t in range(start, stop):
+        b, j, p, xd, yd = _batch_item(t, n, params, xy_d)
         if xy_start is None:  # pruned at compile time
             x0, y0 = inverse_start(p, xd, yd)
         else:
