@@ -23,6 +23,17 @@ NORMALIZE_HELP = (
     "points onto the distorted ones; 'none': use the points as given."
 )
 
+#: The options ``select`` and ``robustness`` share.
+normalize_option = click.option(
+    "--normalize",
+    "normalization",
+    type=click.Choice(["none", "grid", "experiment"]),
+    default="none",
+    show_default=True,
+    help=NORMALIZE_HELP,
+)
+init_option = click.option("--init", "init", default="zero", show_default=True, help=SELECT_INIT_HELP)
+
 
 def _wide_console():
     """The shared console, at least 150 columns wide when stdout is not a terminal."""
@@ -42,15 +53,8 @@ def _fmt(value, spec: str) -> str:
 
 @click.command("select")
 @points_options
-@click.option(
-    "--normalize",
-    "normalization",
-    type=click.Choice(["none", "grid", "experiment"]),
-    default="none",
-    show_default=True,
-    help=NORMALIZE_HELP,
-)
-@click.option("--init", "init", default="zero", show_default=True, help=SELECT_INIT_HELP)
+@normalize_option
+@init_option
 @click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help="Rows in the table.")
 @click.option(
     "--cv",
@@ -245,15 +249,8 @@ _INVALID_TEXT = {
     help="Fraction of the points kept in each trial (the rest are held out).",
 )
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--init", "init", default="zero", show_default=True, help=SELECT_INIT_HELP)
-@click.option(
-    "--normalize",
-    "normalization",
-    type=click.Choice(["none", "grid", "experiment"]),
-    default="none",
-    show_default=True,
-    help=NORMALIZE_HELP,
-)
+@init_option
+@normalize_option
 @click.option(
     "--wrong-minimum-ratio",
     type=click.FloatRange(min=1, min_open=True),
