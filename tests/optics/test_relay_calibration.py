@@ -66,3 +66,58 @@ def test_relay_fit_refuses_normalization(relay_points):
     with pytest.raises(DataError, match="normalization 'experiment' cannot be used with the relay model"):
         calibrate(xy_u, xy_d, relay_mask(), init=relay_params(design), relay_design=design.to_dict(),
                   normalization="experiment")  # fmt: skip
+
+
+def _edited(tmp_path, edit):
+    """A saved relay calibration, edited by ``edit(data)`` and written back."""
+    import json
+
+    from relay_helpers import write_relay_calibration
+
+    path = write_relay_calibration(tmp_path / "relay.json")
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+    return path
+
+
+def _set(part, **values):
+    return lambda data: data.update(relay_design=None) if part is None else data[part].update(values)
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        # a design constant changed by hand: the design it came from says otherwise
+        (_set("params", f1_mm=-50.0), r"field 'params.f1_mm' is -50 but the relay_design gives 50.8"),
+        (_set("params", pixel_mm=-0.0048), r"field 'params.pixel_mm' is -0.0048 but .* gives 0.0048"),
+        (_set("params", a22=0.0), r"field 'params.a22' is 0 but the relay_design gives"),
+        # the design itself out of range or unknown
+        (_set("relay_design", focal_length_mm=0), r"'relay_design.focal_length_mm' is 0; .* in \(0, 10000\]"),
+        (_set("relay_design", pixel_size_um="4.8"), r"'relay_design.pixel_size_um' is '4.8'"),
+        (
+            _set("relay_design", orientation="X"),
+            r"'relay_design.orientation' is 'X'; .* \"U\" or \"Z\"",
+        ),
+        (_set("relay_design", setup=3), r"'relay_design.setup' is 3; it must be 1, 2 or null"),
+        (_set("relay_design", centre=[1, None]), r"'relay_design.centre' is \[1, None\]"),
+        (_set("relay_design", wavelength=850), r"'relay_design.wavelength' is not a design field"),
+        (_set(None), r"field 'relay_design' must be an object"),
+    ],
+)
+def test_a_relay_calibration_with_an_impossible_design_is_refused_naming_the_field(tmp_path, edit, message):
+    from oapcal.errors import InputFileError
+    from oapcal.io.calibration import load_calibration
+
+    path = _edited(tmp_path, edit)
+    with pytest.raises(InputFileError, match=message):
+        load_calibration(path)
+
+
+def test_an_unedited_relay_calibration_still_loads_with_its_design(tmp_path):
+    from oapcal.io.calibration import load_calibration
+    from relay_helpers import relay_calibration
+
+    cal = load_calibration(_edited(tmp_path, lambda d: None))
+    np.testing.assert_array_equal(cal.params, relay_calibration().params)
+    assert cal.relay_design == relay_calibration().relay_design

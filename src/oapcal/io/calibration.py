@@ -42,7 +42,7 @@ from oapcal.errors import InputFileError
 from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
 from oapcal.io.userfile import read_json
-from oapcal.model import BROWN_CONRADY, FAMILIES
+from oapcal.model import BROWN_CONRADY, FAMILIES, RELAY
 
 __all__ = [
     "CHECK_GRID",
@@ -162,6 +162,10 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         )
     cov = np.array([[np.nan if v is None else float(v) for v in row] for row in rows], float)
     cov = cov.reshape(k, k)
+    if family is RELAY:
+        from oapcal.optics.relay_model import design_from_record
+
+        design_from_record(data.get("relay_design"), params, source)
     size = data.get("image_size")
     hull = data.get("hull")
     cal = Calibration(

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.errors import ModelSpecError
-from oapcal.model import RELAY, RELAY_MISALIGNMENT_NAMES, RELAY_POSE_NAMES
+from oapcal.errors import InputFileError, ModelSpecError
+from oapcal.model import RELAY, RELAY_DESIGN_NAMES, RELAY_MISALIGNMENT_NAMES, RELAY_POSE_NAMES
 from oapcal.optics.misalign import PARAMETERS, Misalignment
 from oapcal.optics.relay import DEFAULT_FOCAL_LENGTH_MM, oap_relay, paraxial_matrix
 
@@ -132,6 +132,75 @@ def relay_params(design: RelayDesign, misalignment=None, pose: Mapping | None = 
     }  # fmt: skip
     values = {**pose, **mis.to_dict(), **design_values}
     return np.array([float(values[n]) for n in RELAY.param_names])
+
+
+#: What a stored design may hold (the ranges ``oapcal fit --model relay`` accepts):
+#: field -> (lowest, highest, lowest excluded, may be null).
+DESIGN_RANGES = {
+    "d1_mm": (0.0, 100_000.0, True, True),
+    "focal_length_mm": (0.0, 10_000.0, True, False),
+    "focal_length_2_mm": (0.0, 10_000.0, True, True),
+    "stop_distance_mm": (0.0, 100_000.0, False, False),
+    "pixel_size_um": (0.0, 1000.0, True, False),
+}
+
+
+def design_from_record(record, params, source: str = "calibration") -> RelayDesign:
+    """The :class:`RelayDesign` a relay calibration stores (``record``: its
+    ``relay_design``), checked: every field known and in range (:data:`DESIGN_RANGES`,
+    ``setup`` 1, 2 or null, ``orientation`` U or Z, ``centre`` two finite numbers), and the
+    design constants in ``params`` (never fitted) those the design gives.  Raises
+    :class:`~oapcal.errors.InputFileError` naming the field; a hand-edited constant would
+    otherwise show only as a model that folds or is not finite.
+    """
+
+    def bad(field, what):
+        return InputFileError(f"{source}: field '{field}' {what}")
+
+    if not isinstance(record, Mapping):
+        raise bad("relay_design", "must be an object (the design a relay model was fitted from)")
+    unknown = sorted(set(record) - set(RelayDesign.__dataclass_fields__))
+    if unknown:
+        raise bad(
+            f"relay_design.{unknown[0]}",
+            f"is not a design field (fields: {', '.join(RelayDesign.__dataclass_fields__)})",
+        )
+    for name, (lo, hi, lo_open, nullable) in DESIGN_RANGES.items():
+        value = record.get(name, getattr(RelayDesign, name))
+        if value is None and nullable:
+            continue
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int | float)
+            or not ((lo < value if lo_open else lo <= value) and value <= hi)
+        ):
+            raise bad(
+                f"relay_design.{name}",
+                f"is {value!r}; it must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}]",
+            )
+    if record.get("setup", 1) not in (1, 2, None) or isinstance(record.get("setup"), bool):
+        raise bad("relay_design.setup", f"is {record.get('setup')!r}; it must be 1, 2 or null")
+    if record.get("setup", 1) is None and record.get("d1_mm") is None:
+        raise bad("relay_design.d1_mm", "is null and so is 'setup'; give one of them")
+    if record.get("orientation", "U") not in ("U", "Z"):
+        raise bad("relay_design.orientation", f'is {record.get("orientation")!r}; it must be "U" or "Z"')
+    centre = record.get("centre")
+    if not (
+        isinstance(centre, list | tuple) and len(centre) == 2
+        and all(isinstance(c, int | float) and not isinstance(c, bool) and np.isfinite(c) for c in centre)
+    ):  # fmt: skip
+        raise bad("relay_design.centre", f"is {centre!r}; it must be two numbers [x, y] in px")
+    design = RelayDesign.from_dict(record)
+    expected = relay_params(design)
+    for name in RELAY_DESIGN_NAMES:
+        i = RELAY.param_names.index(name)
+        if not abs(params[i] - expected[i]) <= 1e-9 * max(1.0, abs(expected[i])):
+            raise bad(
+                f"params.{name}",
+                f"is {params[i]:.12g} but the relay_design gives {expected[i]:.12g}; design constants "
+                "are never fitted: restore the value or refit",
+            )
+    return design
 
 
 def relay_mask(spec="default") -> np.ndarray:
