@@ -10,7 +10,7 @@ then refines and checks each bar triplet locally (``docs/detection.md``):
    accepted only when clearly better than every different pose, with the one-element and
    two-group slips tested explicitly; every layout of ``oapcal.imaging.usaf.LAYOUTS``.
 3. **Registration**: a polynomial warp through the matched triplets; the dense
-   registration of the whole target (Gauss-Newton on the pixels, coarse to fine) from it,
+   registration of the whole target (Levenberg-Marquardt on the pixels, coarse to fine) from it,
    or, with a given scale and no trusted pose, from a correlation search over the 8
    quarter-turn orientations (:mod:`.registration`).  Several registrations must agree.
 4. **Refine each triplet** (:mod:`.triplet`) and **drop what is not certain**.
@@ -37,10 +37,10 @@ from oapcal.imaging.detect.registration import (
     _camera_sigma,
     _exponents,
     _find_target,
-    _gauss_newton,
     _initial_inverse,
     _initial_warp,
     _invert,
+    _levenberg_marquardt,
     _Reference,
     _region,
     _Warp,
@@ -670,7 +670,7 @@ def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, 
         if len(xs) < 50:
             return _replace(empty, message="the registered target falls outside the image")
         model_sigma = sigma if blur is None else float(np.hypot(blur, sigma))
-        res = _gauss_newton(
+        res = _levenberg_marquardt(
             values_img[xs[:, 1].astype(int), xs[:, 0].astype(int)], np.zeros((len(xs), 2)), warp.basis(xs),
             ref, warp.coef, a, b, model_sigma, fit_sigma=blur is None, sigma_max=max(8.0, 2 * model_sigma),
         )  # fmt: skip

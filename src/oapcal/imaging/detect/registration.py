@@ -1,5 +1,5 @@
 """Registration of the whole target: a polynomial warp camera px -> reference px fitted to
-the pixels (Gauss-Newton / Levenberg-Marquardt on ``a + b R_sigma(W(x))``), its reference
+the pixels (Levenberg-Marquardt on ``a + b R_sigma(W(x))``), its reference
 raster, and the correlation search that places a target of known scale (8 orientations).
 
 Every fitted parameter is bounded: the blur ``sigma`` stays in ``[SIGMA_MIN, sigma_max]``
@@ -158,7 +158,7 @@ class _Reference:
 
 
 @dataclass
-class _GNResult:
+class _LMResult:
     coef: np.ndarray
     a: float
     b: float
@@ -170,7 +170,7 @@ class _GNResult:
     ncc: float
 
 
-def _gauss_newton(
+def _levenberg_marquardt(
     values,
     base_u,
     basis,
@@ -185,7 +185,7 @@ def _gauss_newton(
     tol=1e-3,
     sigma_max=np.inf,
     max_shift=np.inf,
-) -> _GNResult:
+) -> _LMResult:
     """Fit ``values ~ a + b R_sigma(base_u + basis @ coef)`` (Levenberg-Marquardt).
 
     Parameters: ``coef`` ``(nb, 2)``, ``a``, ``b`` and optionally ``sigma``, bounded: a
@@ -268,7 +268,7 @@ def _gauss_newton(
         cov = np.full((len(theta),) * 2, np.nan)
     model = values - cur[0]
     ncc = float(np.corrcoef(values, model)[0, 1]) if np.std(model) > 0 else 0.0
-    return _GNResult(c, float(a_), float(b_), float(s), cost, cov, converged, n_iter, ncc)
+    return _LMResult(c, float(a_), float(b_), float(s), cost, cov, converged, n_iter, ncc)
 
 
 def _find_target(img: np.ndarray, rects: np.ndarray, centre: np.ndarray):

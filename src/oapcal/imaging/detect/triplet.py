@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from oapcal.imaging.detect.registration import _gauss_newton, _invert, _Reference, _region
+from oapcal.imaging.detect.registration import _invert, _levenberg_marquardt, _Reference, _region
 
 #: Largest number of pixels one triplet's fit uses (a regular subsample beyond: a large
 #: triplet has far more pixels than its 8 parameters need).
@@ -64,7 +64,7 @@ def _refine_triplet(
         b = float(b0)
     # Bounds: the blur at most about a bar width (beyond, the bars are not resolved and the
     # corners are meaningless), the local correction at most a bar width anywhere.
-    res = _gauss_newton(
+    res = _levenberg_marquardt(
         values, base_u, basis, ref, np.zeros((3, 2)), a, b, sigma, fit_sigma=True,
         sigma_max=max(1.2 * w_ref, 1.5 * sigma, 1.0), max_shift=max(w_ref, 2.0),
     )  # fmt: skip
