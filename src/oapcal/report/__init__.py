@@ -381,14 +381,15 @@ def _summary_html(cal, r: dict, from_points: bool) -> str:
         "distances)." + ("" if um else " No scale (um per px) is known, so no um columns.")
     )
     f = cal.fit
+    criteria = (f.aic, f.aicc, f.bic)
     status = "" if f.converged else "NOT converged: "
     stats = [
         ["model family", _family_text(cal)],
         ["model (free parameters)", ", ".join(cal.free)],
         ["fit", f"{status}{f.message} ({'?' if f.n_iter is None else f.n_iter} iterations)"],
         ["points / residuals", f"{f.n_points} / {f.n_residuals}"],
-        ["RSS", H.fmt(f.rss, 6)],
-        ["AIC / AICc / BIC", " / ".join(H.fmt(v, 6) for v in (f.aic, f.aicc, f.bic))],
+        ["RSS of the fit (forward residuals: model(reference) - distorted)", H.fmt(f.rss, 6)],
+        ["AIC / AICc / BIC of the fit (forward residuals)", " / ".join(H.fmt(v, 6) for v in criteria)],
         ["normalization", f.normalize],
         ["scale", f"{um:.4g} um per px" if um else "unknown"],
     ]
@@ -580,10 +581,14 @@ def _selection_html(sel: Selection, cal, source: str | None = None) -> str:
         rows.append([i + 1, ", ".join(m.free), int(m.k), *numbers, bool(m.valid), m.reason])
         classes.append("best" if tuple(m.free) == tuple(cal.free) else ("dim" if not m.valid else ""))
     caption = f"Models by AICc ({len(shown)} of {len(models)} shown; {sel.n_points} points)"
-    out = H.table(["rank", "free parameters", "k", "AICc", "delta AICc", "weight", "RSS", "valid", "reason"],
-                  rows, caption, classes)  # fmt: skip
+    header = ["rank", "free parameters", "k", "AICc (corrected)", "delta AICc", "weight", "RSS (corrected)",
+              "valid", "reason"]  # fmt: skip
+    out = H.table(header, rows, caption, classes)
     return out + H.paragraph(
-        f"From {source or 'the selection file'}. The highlighted row is this calibration's model."
+        f"From {source or 'the selection file'}. The highlighted row is this calibration's model. "
+        "The selection scores the corrected points (the distorted points through each model's "
+        "inverse, against the reference), so its AICc and RSS differ from the fit's, which come "
+        "from the forward residuals."
     )
 
 
