@@ -11,7 +11,7 @@ SRC = Path(__file__).resolve().parent.parent / "src" / "oapcal"
 
 #: Layers, lowest first.  Keys are top-level modules or packages of oapcal.
 LAYERS = [
-    {"errors", "extras", "records"},
+    {"errors", "extras", "records", "progress"},
     {"model", "_kernels", "_relay_kernel"},
     {"stats", "normalize", "synthetic", "uncertainty"},
     {"fitting"},
@@ -171,3 +171,22 @@ def test_only_the_io_file_modules_open_files():
     file descriptors for native libraries' stderr) is not a file read."""
     readers = {_module_name(p) for p in SRC.rglob("*.py") if _reads_files(p)}
     assert readers - {"cli"} == FILE_READERS, sorted(readers ^ FILE_READERS)
+
+
+def test_no_library_module_draws_progress():
+    """Progress goes through callbacks (``oapcal.progress``): only the command line and the
+    napari plugin draw (Rich bars, napari's own)."""
+    drawers = {
+        _module_name(p)
+        for p in SRC.rglob("*.py")
+        if any(t == "rich" or t.startswith("rich.") for t in _all_imports(p))
+    }
+    assert {m for m in drawers if m.split(".")[0] not in ("cli", "napari_plugin")} == set(), sorted(drawers)
+
+
+def _all_imports(path: Path):
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            yield node.module
+        elif isinstance(node, ast.Import):
+            yield from (a.name for a in node.names)

@@ -51,3 +51,23 @@ def test_disagreeing_registrations_are_a_reason_not_a_message_text():
     det = _combine([one, other])
     assert det.status == 1 and det.reason == "registrations_disagree" and det.ids == ()
     assert _combine([one, one]).reason == ""
+
+
+def test_progress_is_reported_through_a_callback_for_every_frame_of_every_file(tmp_path):
+    import numpy as np
+
+    from oapcal.calibration import calibrate
+    from oapcal.io.images import write_image
+    from oapcal.synthetic import synthetic_pairs
+
+    data = synthetic_pairs(seed=1)
+    cal = calibrate(data.xy_u, data.xy_d, "paper", image_size=(40, 30))
+    write_image(tmp_path / "a.png", np.zeros((30, 40), np.uint8))
+    write_image(tmp_path / "b.tif", np.zeros((3, 30, 40), np.uint16), stack=True)
+    calls = []
+    report = correct_stack(cal, [tmp_path / "a.png", tmp_path / "b.tif"], tmp_path / "o", workers=2,
+                           progress=lambda *a: calls.append(a))  # fmt: skip
+    assert [r.status for r in report.results] == ["corrected", "corrected"]
+    assert calls[0] == (0, 4, "files 0/2") and calls[-1] == (4, 4, "files 2/2")
+    assert [c[0] for c in calls] == sorted(c[0] for c in calls)  # frames done never go back
+    assert {c[2] for c in calls} == {"files 0/2", "files 1/2", "files 2/2"}

@@ -9,12 +9,37 @@ from oapcal.imaging.detect import Detection, detect_usaf, evaluate_detection
 from oapcal.imaging.field import ModelDistortionField, setup1_like_field
 from oapcal.imaging.simulate import simulate_image
 
+#: Progress reported by the fixture's simulation and detection, by step.
+PROGRESS = {"simulate": [], "detect": []}
+
 
 @pytest.fixture(scope="module")
 def paper_like():
     """The paper's conditions: sigma 0.8 px, SNR 50, ~40 px setup-1-like distortion, groups 4-5."""
-    sim = simulate_image((4, 5), setup1_like_field(), sigma_px=0.8, snr=50, seed=7)
-    return sim, detect_usaf(sim.image, (4, 5), sim.um_per_px)
+    sim = simulate_image((4, 5), setup1_like_field(), sigma_px=0.8, snr=50, seed=7,
+                         progress=lambda *a: PROGRESS["simulate"].append(a))  # fmt: skip
+    det = detect_usaf(sim.image, (4, 5), sim.um_per_px, progress=lambda *a: PROGRESS["detect"].append(a))
+    return sim, det
+
+
+def test_simulation_and_detection_report_progress_through_callbacks(paper_like):
+    sim = PROGRESS["simulate"]
+    assert [c[0] for c in sim] == [0, 1, 2, 3, 4, 5] and {c[1] for c in sim} == {5}
+    assert sim[-1][2] == "added noise"
+    det = PROGRESS["detect"]
+    total = det[0][1]
+    assert det[0] == (0, total, "detecting corners") and det[-1][0] <= total
+    assert [c[0] for c in det] == sorted(c[0] for c in det)
+    stages = list(dict.fromkeys(c[2] for c in det))
+    assert stages[:4] == ["detecting corners", "finding bar triplets", "pose search", "refining triplets"]
+    # each of the 24 bar triplets of groups 4-5 (2 groups x 6 elements x H, V) counts once
+    from oapcal.imaging.usaf import usaf_target
+
+    n_trip = len(usaf_target((4, 5)).triplets())
+    assert n_trip == 24 and total == 3 + n_trip
+    assert sum(1 for a, b in zip(det, det[1:]) if b[0] > a[0] and b[2] == "refining triplets") == n_trip
+    with pytest.raises(TypeError, match="give a callback"):
+        detect_usaf(paper_like[0].image, (4, 5), progress=True)
 
 
 def test_detection_goal_at_paper_like_conditions(paper_like):

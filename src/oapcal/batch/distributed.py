@@ -43,6 +43,7 @@ from oapcal.io.images import (
     read_tiff_frames,
 )
 from oapcal.io.maps import load_map
+from oapcal.progress import Stages
 
 ZARR_SUFFIX = ".zarr"
 LOCAL_SCHEDULERS = ("threads", "synchronous", "processes")
@@ -307,7 +308,8 @@ class DaskSettings:
     workers: int | None = None
     calibration_name: str | None = None
     overwrite: bool = False
-    progress: bool = False
+    #: ``progress(done, total, description)`` over the frames written (:mod:`oapcal.progress`).
+    progress: object = None
 
 
 @dataclass(frozen=True)
@@ -450,7 +452,7 @@ def _run_and_write(corrected, out_path: Path, geometry, name, label, settings: D
     remove_stale_temps(out_dir, [out_path])
     if settings.output_format == "tiff":
         check_free_space(out_dir, out_bytes, out_path)
-    bar = _bar(settings.progress, n_chunks, out_shape[0], label)
+    bar = _Frames(settings.progress, out_shape[0], f"{label} frames")
     own = (
         contextlib.nullcontext(session)
         if session is not None
@@ -549,41 +551,19 @@ def _settle(sched) -> None:
             time.sleep(0.1)
 
 
-class _NoBar:
+class _Frames:
+    """Frames written, of all frames of a stack, as the writers count them (chunks and
+    frames; the chunks are not reported)."""
+
+    def __init__(self, progress, n_frames: int, description: str):
+        self.stages = Stages(progress, n_frames, description)
+
     def __enter__(self):
+        self.stages.__enter__()
         return self
 
     def __exit__(self, *exc):
         return False
 
-    def advance(self, chunks, frames):
-        pass
-
-
-class _RichBar(_NoBar):
-    def __init__(self, n_chunks, n_frames, label):
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-        self.bar = Progress(
-            TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-            console=Console(stderr=True),
-        )  # fmt: skip
-        self.frames = self.bar.add_task(f"{label} frames", total=n_frames)
-
-    def __enter__(self):
-        self.bar.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.bar.stop()
-        return False
-
-    def advance(self, chunks, frames):
-        self.bar.advance(self.frames, frames)
-
-
-def _bar(enabled, n_chunks, n_frames, label):
-    import sys
-
-    return _RichBar(n_chunks, n_frames, label) if enabled and sys.stderr.isatty() else _NoBar()
+    def advance(self, chunks: int, frames: int) -> None:
+        self.stages.advance(frames)

@@ -26,7 +26,6 @@ from __future__ import annotations
 import glob
 import hashlib
 import json
-import sys
 import threading
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -48,6 +47,7 @@ from oapcal.io.atomic import (
     write_resume_record,
 )
 from oapcal.io.images import IMAGE_SUFFIXES, MAX_PIXELS, FrameWriter, count_frames, open_frames, probe
+from oapcal.progress import Stages
 
 _GLOB_CHARS = set("*?[")
 
@@ -307,42 +307,26 @@ class MapCache:
             return self._maps[(rows, cols)]
 
 
-class _Progress:
-    """A Rich progress bar over files and frames on stderr (or nothing)."""
+class _FilesAndFrames:
+    """The progress of :func:`correct_stack`: frames done of all frames, and which file."""
 
-    def __init__(self, enabled: bool, n_files: int, n_frames: int):
-        self.bar = None
-        if not enabled or not sys.stderr.isatty():  # no bar drawn into logs and pipes
-            return
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-        self.bar = Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeRemainingColumn(),
-            console=Console(stderr=True),
-        )
-        self.files = self.bar.add_task("files ", total=n_files)
-        self.frames = self.bar.add_task("frames", total=n_frames)
+    def __init__(self, progress, n_files: int, n_frames: int):
+        self.stages = Stages(progress, n_frames, f"files 0/{n_files}")
+        self.n_files, self.files = n_files, 0
 
     def __enter__(self):
-        if self.bar:
-            self.bar.start()
+        self.stages.__enter__()
         return self
 
     def __exit__(self, *exc):
-        if self.bar:
-            self.bar.stop()
+        return False
 
     def frame(self, n: int = 1):
-        if self.bar:
-            self.bar.advance(self.frames, n)
+        self.stages.advance(n)
 
     def file(self):
-        if self.bar:
-            self.bar.advance(self.files)
+        self.files += 1  # under the GIL; the description is only a label
+        self.stages.stage(f"files {self.files}/{self.n_files}")
 
 
 def correct_stack(
@@ -363,7 +347,7 @@ def correct_stack(
     calibration_name: str | None = None,
     protect: Sequence[str | Path] = (),
     reserved: Sequence[tuple[str | Path, str]] = (),
-    progress: bool = False,
+    progress=None,
 ) -> StackReport:
     """Correct every image and stack of ``inputs`` into ``out_dir`` (see the module doc).
 
@@ -372,8 +356,10 @@ def correct_stack(
     or ``cmap`` is a prebuilt map.  ``workers`` files are corrected at once (threads;
     OpenCV's remap is itself multi-threaded).  ``protect`` lists further files that no
     output may overwrite, ``reserved`` further outputs ``(path, description)`` no image
-    output may coincide with.  Raises :class:`~oapcal.errors.OutputError` before writing
-    anything when the output directory is not allowed; per-file problems are results.
+    output may coincide with.  ``progress(done, total, description)`` (optional) hears of
+    every frame corrected (:mod:`oapcal.progress`).  Raises
+    :class:`~oapcal.errors.OutputError` before writing anything when the output directory
+    is not allowed; per-file problems are results.
     """
     files, failures, dirs = expand_inputs([str(p) for p in inputs])
     outputs = plan_outputs(files, out_dir, dirs, protect, reserved=reserved)
@@ -418,7 +404,7 @@ def correct_stack(
         results[i] = _correct_file(src, dst, info, record, cache, interp, border, name, bar)
         bar.file()
 
-    with _Progress(progress and bool(jobs), len(jobs), n_frames) as bar:
+    with _FilesAndFrames(progress if jobs else None, len(jobs), n_frames) as bar:
         if workers > 1 and len(jobs) > 1:
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 list(pool.map(run, jobs))

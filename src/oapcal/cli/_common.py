@@ -512,13 +512,13 @@ def _ignore_progress(done: int, total: int, description: str | None = None) -> N
     """The progress callback off a terminal."""
 
 
-def progress_bar(description: str = ""):
+def progress_bar(description: str = "", enabled: bool = True):
     """A Rich progress bar on stderr (drawn only when stderr is a terminal, removed when done) and its
     callback ``update(done, total, description=None)``, which library functions take as
     their ``progress`` argument.  Use the bar as a context manager around the work.
-    Off a terminal nothing is drawn and Rich is not even imported (a null context and a
-    callback that does nothing)."""
-    if not stderr_is_terminal():
+    Off a terminal, or not ``enabled`` (``--quiet``, ``--json``), nothing is drawn and Rich
+    is not even imported (a null context and a callback that does nothing)."""
+    if not enabled or not stderr_is_terminal():
         return _NoBar(), _ignore_progress
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn

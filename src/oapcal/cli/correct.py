@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, parse_size, print_json, with_flag_hint
+from oapcal.cli._common import check_output, console, parse_size, print_json, progress_bar, with_flag_hint
 
 GEOMETRY_HELP = (
     "Output region: 'input' (default: the input's size and undistorted coordinates), 'full' "
@@ -152,22 +152,26 @@ def correct_command(
     if use_dask:
         from oapcal.batch.distributed import DaskSettings
 
+        bar, update = progress_bar("correcting", enabled=not (quiet or as_json))
         settings = DaskSettings(
             output_format=dask_format, chunk_frames=chunk_frames, interp=interp, border=border,
             allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, scheduler=scheduler,
-            workers=workers, calibration_name=name, overwrite=overwrite, progress=not quiet and not as_json,
-            **({} if map_file else geometry),
+            workers=workers, calibration_name=name, overwrite=overwrite,
+            progress=update, **({} if map_file else geometry),
         )  # fmt: skip
-        return _correct_dask(cal, plan, out_dir, cmap if map_file else None, map_file, settings, as_json)
+        with bar:
+            return _correct_dask(cal, plan, out_dir, cmap if map_file else None, map_file, settings, as_json)
     from oapcal.batch.stack import correct_stack
 
-    report = correct_stack(
-        cal, inputs, out_dir, interp=interp, border=border, workers=workers, cmap=cmap,
-        allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, overwrite=overwrite,
-        calibration_name=name, protect=[calib] + ([map_file] if map_file else []),
-        reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
-        progress=not quiet and not as_json, **({} if cmap else geometry),
-    )  # fmt: skip
+    bar, update = progress_bar("correcting", enabled=not (quiet or as_json))
+    with bar:
+        report = correct_stack(
+            cal, inputs, out_dir, interp=interp, border=border, workers=workers, cmap=cmap,
+            allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, overwrite=overwrite,
+            calibration_name=name, protect=[calib] + ([map_file] if map_file else []),
+            reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
+            progress=update, **({} if cmap else geometry),
+        )  # fmt: skip
     results = [_result(r) for r in report.results]
     return _finish(results, report.summary(), report.count("failed"), as_json)
 

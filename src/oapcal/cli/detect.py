@@ -101,10 +101,14 @@ def detect_command(
             raise DataError(
                 f"{truth}: has no row with id {missing[0]!r}; is it the truth of this image and these groups?"
             )
-    det = detect_usaf(
-        img, group_list, um_per_px, orientation=orientation, mirror=mirror, max_stderr_px=max_stderr_px,
-        progress=not as_json,
-    )  # fmt: skip
+    from oapcal.cli._common import progress_bar
+
+    bar, update = progress_bar("detecting corners", enabled=not as_json)
+    with bar:
+        det = detect_usaf(
+            img, group_list, um_per_px, orientation=orientation, mirror=mirror, max_stderr_px=max_stderr_px,
+            progress=update,
+        )  # fmt: skip
     summary = det.summary()
     if score is not None:
         summary["truth"] = evaluate_detection(det, *score)

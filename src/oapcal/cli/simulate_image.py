@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-
 import click
 
 from oapcal.cli._common import (
@@ -12,8 +10,8 @@ from oapcal.cli._common import (
     check_output,
     check_work,
     parse_size,
+    progress_bar,
     sanitize,
-    stderr_is_terminal,
 )
 
 #: Largest Gaussian PSF sigma (camera px): wider blurs every bar of the target into grey.
@@ -194,13 +192,14 @@ def simulate_image_command(
         field = identity_field(pixel_size_um, size)
     else:
         field = setup1_like_field(pixel_size_um, size)
-    sim = simulate_image(
-        group_list, field, sigma_px=sigma_px, na=na, wavelength_um=wavelength_um,
-        snr=None if no_noise else snr, read_noise_e=read_noise_e, bits=int(bits), polarity=polarity,
-        oversample=oversample, um_per_px=um_per_px, seed=seed,
-        squares=not bars_only, digits=not bars_only, layout_name=layout,
-        progress=stderr_is_terminal() and sys.stdout.isatty(),  # its bar draws on stdout
-    )  # fmt: skip
+    bar, update = progress_bar("simulating")
+    with bar:
+        sim = simulate_image(
+            group_list, field, sigma_px=sigma_px, na=na, wavelength_um=wavelength_um,
+            snr=None if no_noise else snr, read_noise_e=read_noise_e, bits=int(bits), polarity=polarity,
+            oversample=oversample, um_per_px=um_per_px, seed=seed,
+            squares=not bars_only, digits=not bars_only, layout_name=layout, progress=update,
+        )  # fmt: skip
     with OutputSet() as outputs:  # both or neither
         write_image(outputs.stage(out), sim.image)
         if truth is not None:

@@ -40,6 +40,7 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.usaf import intensity, nearest_orientation, target_coverage, usaf_target
+from oapcal.progress import Stages
 
 #: A corner is *fully visible* when it is at least this far (px) inside the image.
 VISIBLE_MARGIN_PX = 3.0
@@ -181,7 +182,7 @@ def simulate_image(
     settings: ImageSettings | None = None,
     um_per_px: float | None = None,
     seed: int = 0,
-    progress: bool = False,
+    progress=None,
     **options,
 ) -> SimulatedImage:
     """Simulate a camera image of USAF ``groups`` through ``field`` (module docstring).
@@ -192,6 +193,8 @@ def simulate_image(
     ``settings``.  ``um_per_px`` is the scale of the reference positions ``xy_u``
     (default: the field's paraxial scale, so that ``xy_u`` is the paraxial image of each
     corner); ``seed`` seeds the noise.  Only bar corners are landmarks.
+    ``progress(done, total, description)`` (optional) hears of each of the 5 steps
+    (:mod:`oapcal.progress`).
     """
     from dataclasses import fields, replace
 
@@ -211,17 +214,17 @@ def simulate_image(
     orientation = nearest_orientation(mat)
     ref_scale = float(um_per_px) if um_per_px is not None else 1.0 / paraxial_scale
 
-    with _Stages(progress, 5) as stages:
+    with Stages(progress, 5, "simulating") as stages:
         obj = _object_positions(field, target, q)
-        stages.advance("mapped pixels through the field")
+        stages.advance(description="mapped pixels through the field")
         sub = _sample_target(target, obj, field, settings)
-        stages.advance("sampled the target")
+        stages.advance(description="sampled the target")
         sub = _blur(sub, q, settings.sigma_px, settings.na, settings.wavelength_um, field.pixel_size_um)
-        stages.advance("blurred")
+        stages.advance(description="blurred")
         clean = sub.reshape(h, q, w, q).mean(axis=(1, 3), dtype=np.float64)  # over each camera pixel
-        stages.advance("integrated over pixels")
+        stages.advance(description="integrated over pixels")
         image, peak = _expose(clean, settings, seed)
-        stages.advance("added noise")
+        stages.advance(description="added noise")
 
     xy_d, visible = _true_corners(target, field)
     return SimulatedImage(
@@ -322,29 +325,3 @@ def _blur(sub, q, sigma_px, na, wavelength_um, pixel_size_um):
     if sigma_px > 0:
         return cv2.GaussianBlur(sub, (0, 0), sigmaX=sigma_px * q, borderType=cv2.BORDER_REPLICATE)
     return sub
-
-
-class _Stages:
-    """A Rich progress bar over a fixed number of stages (or nothing)."""
-
-    def __init__(self, enabled: bool, total: int):
-        self.enabled = enabled
-        self.total = total
-
-    def __enter__(self):
-        if self.enabled:
-            from rich.progress import Progress
-
-            self._progress = Progress(transient=True)
-            self._progress.__enter__()
-            self._task = self._progress.add_task("simulating", total=self.total)
-        return self
-
-    def advance(self, label: str) -> None:
-        if self.enabled:
-            self._progress.update(self._task, advance=1, description=label)
-
-    def __exit__(self, *exc):
-        if self.enabled:
-            self._progress.__exit__(*exc)
-        return False

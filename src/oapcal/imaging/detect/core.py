@@ -53,6 +53,7 @@ from oapcal.imaging.usaf import (
     parse_groups,
     usaf_target,
 )
+from oapcal.progress import Stages
 
 #: (Gaussian blur of both images in px, polynomial degree) of the registration levels;
 #: the last level (blur None) uses the image as it is and fits the blur.
@@ -189,7 +190,7 @@ def detect_usaf(
     ambiguity_ratio: float = 1.5,
     orientation_ratio: float = ORIENTATION_RATIO,
     consistency_model: str | None = "auto",
-    progress: bool = False,
+    progress=None,
 ) -> Detection:
     """Find, match and refine the bar corners of USAF ``groups`` in ``image`` (module docstring).
 
@@ -207,6 +208,9 @@ def detect_usaf(
     ``consistency_model`` is the model (``"full"``, ``"paper"``, ...) fitted to the matched
     pairs to check the global alignment (:func:`check_consistency`); ``"auto"`` uses
     ``full`` from 40 corners, ``paper`` from 16, and skips the check below; ``None`` skips it.
+
+    ``progress(done, total, description)`` (optional) hears of each stage and refined
+    triplet (:mod:`oapcal.progress`).
 
     Returns a :class:`Detection`; a target that cannot be found, an ambiguous pose or an
     inconsistent alignment is a ``status != 0`` result with the reason, not an exception.
@@ -261,7 +265,7 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
     empty = Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1, "",
                       um_per_px=float(um_per_px) if um_per_px else float("nan"), work=work)  # fmt: skip
     n_trip = len(target.triplets())
-    with _Progress(progress, 3 + n_trip) as bar:
+    with Stages(progress, 3 + n_trip, "detecting corners") as bar:
         bar.stage("finding bar triplets")
         trips = find_triplets(img)
         bar.advance()
@@ -724,33 +728,3 @@ def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, 
         predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
     )
     return _finish(empty, target, corners_u, keep_idx, keep_xy, keep_se, dropped, check, common)
-
-
-class _Progress:
-    """A progress bar (rich, on stderr) with a stage name; silent when not enabled."""
-
-    def __init__(self, enabled: bool, total: int):
-        self.enabled, self.total = enabled, total
-
-    def __enter__(self):
-        if self.enabled:
-            from rich.console import Console
-            from rich.progress import Progress
-
-            self._p = Progress(transient=True, console=Console(stderr=True))
-            self._p.__enter__()
-            self._t = self._p.add_task("detecting corners", total=self.total)
-        return self
-
-    def stage(self, text: str):
-        if self.enabled:
-            self._p.update(self._t, description=text)
-
-    def advance(self):
-        if self.enabled:
-            self._p.update(self._t, advance=1)
-
-    def __exit__(self, *exc):
-        if self.enabled:
-            self._p.__exit__(*exc)
-        return False
