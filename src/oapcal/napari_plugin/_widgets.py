@@ -88,6 +88,10 @@ class _OapcalWidget(Container):
         self.viewer = napari_viewer
         self.busy = False
         self.worker = None
+        #: The progress a running step reported last, and all it reported (``(done, total,
+        #: stage)``; written by the worker thread, shown by a timer in the main thread).
+        self.progress_log: list[tuple] = []
+        self._timer = None
         self.last_error: str | None = None
         napari_viewer.layers.events.inserted.connect(self._refresh)
         napari_viewer.layers.events.removed.connect(self._refresh)
@@ -117,18 +121,22 @@ class _OapcalWidget(Container):
             self._fail("open an image first (no image layer)")
         return layer
 
-    def _run(self, what: str, func, done) -> None:
+    def _run(self, what: str, func, done, *, steps: bool = False) -> None:
         """Run ``func()`` in a thread worker; ``done(result)`` in the main thread after it.
-        Exceptions (and ``done``'s own) become :meth:`_fail` messages."""
+        Exceptions (and ``done``'s own) become :meth:`_fail` messages.  With ``steps``,
+        ``func(progress)`` gets a progress callback (:mod:`oapcal.progress`) and the busy bar
+        shows its count and stage."""
         from napari.qt.threading import create_worker
 
         if self.busy:
             self._set_status(f"busy: {what} waits until the running step ends")
             return
 
+        self.progress_log = log = []
+
         def safe():
             try:
-                return True, func()
+                return True, func(lambda *report: log.append(report)) if steps else func()
             except Exception as exc:  # shown to the user, not raised into Qt
                 return False, _message(exc)
 
@@ -142,16 +150,39 @@ class _OapcalWidget(Container):
             except Exception as exc:
                 self._fail(_message(exc))
             finally:
+                if self._timer is not None:
+                    self._timer.stop()
                 self.busy = False
                 self._busy_bar.visible = False
 
         self.busy = True
         self.last_error = None
+        self._busy_bar.max = 0  # busy until a step reports a count
         self._busy_bar.visible = True
         self._set_status(f"{what}...")
+        if steps:
+            self._start_timer(what)
         self.worker = create_worker(safe, _progress={"desc": f"oapcal: {what}"})
         self.worker.returned.connect(finish)
         self.worker.start()
+
+    def _start_timer(self, what: str) -> None:
+        """Show the worker's progress every 100 ms (Qt widgets change in the main thread only)."""
+        from qtpy.QtCore import QTimer
+
+        self._timer = QTimer()
+        self._timer.setInterval(100)
+        self._timer.timeout.connect(lambda: self._show_progress(what))
+        self._timer.start()
+
+    def _show_progress(self, what: str) -> None:
+        """The last reported ``(done, total, stage)`` on the busy bar and status line."""
+        if not self.progress_log:
+            return
+        done, total, stage = (tuple(self.progress_log[-1]) + ("",))[:3]
+        self._busy_bar.max = max(int(total), 1)
+        self._busy_bar.value = min(int(done), int(total))
+        self._set_status(f"{what}: {stage}..." if stage else f"{what}...")
 
 
 class DetectWidget(_OapcalWidget):
@@ -205,7 +236,10 @@ class DetectWidget(_OapcalWidget):
                 f"orientation {det.orientation}, blur {det.sigma_px:.2f} px"
             )
 
-        self._run("detect", lambda: oapcal.detect_usaf(image, groups, **kwargs), done)
+        def work(progress):
+            return oapcal.detect_usaf(image, groups, progress=progress, **kwargs)
+
+        self._run("detect", work, done, steps=True)
 
 
 class LabelWidget(_OapcalWidget):
