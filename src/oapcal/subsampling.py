@@ -254,12 +254,16 @@ def _reference_rms(u: np.ndarray, d: np.ndarray, specs, masks, init, max_iter: i
     """Reference RMS of each model: all points, best of the pixel, zero and requested starts
     (a :class:`StartedModel`: its own start)."""
     starts = ["pixel", "zero"] + ([init] if not (isinstance(init, str) and init in ("pixel", "zero")) else [])
-    out = np.empty(len(masks))
-    for j, (spec, mask) in enumerate(zip(specs, masks)):
-        tries = [spec] if isinstance(spec, StartedModel) else starts
-        p0 = np.stack([_starts_of(spec, s, u, d, mask) for s in tries])
-        ref = fit_batch(u, d, np.repeat(mask[None], len(p0), 0), p0, covariance=False, max_iter=max_iter)
-        out[j] = np.where(ref.converged, ref.rss, np.inf).min()
+    out = np.full(len(masks), np.inf)
+    # one batch per family (parameter-vector length): every model with each of its starts
+    for size in sorted({len(m) for m in masks}):
+        rows = [(j, _starts_of(spec, s, u, d, masks[j]))
+                for j, spec in enumerate(specs) if len(masks[j]) == size
+                for s in ([spec] if isinstance(spec, StartedModel) else starts)]  # fmt: skip
+        owner = np.array([j for j, _ in rows])
+        ref = fit_batch(u, d, np.stack([masks[j] for j in owner]), np.stack([p for _, p in rows]),
+                        covariance=False, max_iter=max_iter)  # fmt: skip
+        np.minimum.at(out, owner, np.where(ref.converged, ref.rss, np.inf))
     return np.sqrt(out / len(u))
 
 
