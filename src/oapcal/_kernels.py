@@ -25,8 +25,11 @@ Jacobian took ~14 s for the 4,096 models on 289 points, these kernels ~0.3 s.
 from __future__ import annotations
 
 import functools
+import hashlib
+import inspect
 import os
 import types
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -175,6 +178,9 @@ def identity_start(p, xd, yd):
 #: Each family's point function and Newton start, by code: a new family adds one entry.
 _POINT = {FAMILY_BC: bc_point, FAMILY_BC_POSE: bc_pose_point, FAMILY_RELAY: relay_point_any}
 _START = {FAMILY_BC: bc_inverse_start, FAMILY_BC_POSE: bc_pose_inverse_start, FAMILY_RELAY: identity_start}
+#: Compiled functions from other modules that a family's kernels contain (their source
+#: files name the kernels' cache entries: :func:`_source_tag`).
+_DEPENDS = {FAMILY_RELAY: (relay_point,)}
 
 
 def point(p, x, y, need, jp, j, want):
@@ -205,6 +211,22 @@ def per_family(**options):
     return register
 
 
+def _source_tag(*funcs) -> str:
+    """``_<digest>`` of the source files, other than this one, that define ``funcs`` (the
+    relay's tracer in :mod:`oapcal._relay_kernel`: ``_DEPENDS``), or ``""``.
+
+    Why: Numba's cache checks only the source file of the function it caches, and a cached
+    kernel holds the code of the point function compiled into it, so editing
+    ``_relay_kernel.py`` would leave the relay's cached kernels running the old tracer.  The
+    digest in the kernels' names makes an edited tracer a cache miss (compiled afresh).
+    """
+    digest = hashlib.sha256()
+    files = sorted({inspect.getsourcefile(getattr(f, "py_func", f)) or "" for f in funcs} - {__file__, ""})
+    for path in files:
+        digest.update(Path(path).read_bytes())
+    return f"_{digest.hexdigest()[:10]}" if files else ""
+
+
 @functools.cache
 def family_kernels(family: int) -> dict:
     """The compiled kernels of ``family``: each :func:`per_family` kernel compiled with
@@ -217,13 +239,14 @@ def family_kernels(family: int) -> dict:
     vectorise (a run-time family branch made fits 1.4-1.75x slower), and each kernel types
     the point function once (choosing it by a literal family argument in an ``overload``
     re-typed it at every call site: 3-5 s more of a first use's compilation).  Each copy is
-    cached under its own name (``<kernel>_family<code>``).
+    cached under its own name (``<kernel>_family<code>``, see :func:`_source_tag`).
     """
     namespace = dict(globals(), point=_POINT[family], inverse_start=_START[family])
+    tag = _source_tag(*_DEPENDS.get(family, ()))
     compiled = {}
     for name, (func, options) in _PER_FAMILY.items():
         copy = types.FunctionType(func.__code__, namespace, name, func.__defaults__, func.__closure__)
-        copy.__qualname__ = f"{name}_family{family}"
+        copy.__qualname__ = f"{name}_family{family}{tag}"
         copy.__module__ = func.__module__
         copy.__doc__ = func.__doc__
         compiled[name] = namespace[name] = numba.njit(**options, **_JIT)(copy)

@@ -74,3 +74,18 @@ def test_kernels_set_up_numba_without_scipy_linalg():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)
     # converged; scipy.linalg never imported (and no None left in sys.modules); BLAS flag as Numba sets it
     assert out.stdout.split() == ["True", "False", "False", "True"], out.stdout + out.stderr
+
+
+def test_the_relay_kernels_cache_names_follow_the_tracers_source():
+    """Numba's cache sees edits of the cached function's own file only; the relay's kernels
+    contain the tracer of ``_relay_kernel.py``, so its content names their cache entries."""
+    import hashlib
+    from pathlib import Path
+
+    from oapcal import _kernels, _relay_kernel
+
+    digest = hashlib.sha256(Path(_relay_kernel.__file__).read_bytes()).hexdigest()[:10]
+    relay = _kernels.family_kernels(_kernels.FAMILY_RELAY)
+    assert relay["lm_item"].py_func.__qualname__ == f"lm_item_family2_{digest}"
+    # Eq. (1)'s point functions live in _kernels.py itself, which Numba's cache does check
+    assert _kernels.family_kernels(_kernels.FAMILY_BC)["lm_item"].py_func.__qualname__ == "lm_item_family0"
