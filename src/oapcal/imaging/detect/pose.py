@@ -36,6 +36,12 @@ WIDTH_TOL = 1.4
 #: The best pose must find at least this fraction of the named groups' triplets that it
 #: expects in the image (resolvable, inside); below, its evidence is too thin to trust.
 MIN_FOUND_FRACTION = 0.5
+#: Matched triplets from which the pose's correction is quadratic (else affine).  Why 8,
+#: not 12: under a setup-1-like field (~40 px) the rows of triplets bend by 5-10 px between
+#: neighbours, which an affine correction leaves, so the pose stalled at 8 of 20 triplets
+#: and was refused without a given scale; 8 matches are 16 equations for the 12
+#: coefficients, and the correction is trusted only near the matches.
+QUADRATIC_MATCHES = 8
 #: A different pose scoring more than this fraction of the best makes the answer ambiguous.
 AMBIGUITY_RATIO = 0.9
 #: ... or within this many triplets of it.
@@ -204,8 +210,9 @@ def _score(
 
 def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np.ndarray | None:
     """Centres of all reference triplets predicted by the similarity plus a smooth
-    correction fitted to the matched pairs (affine from 6 matches, quadratic from 12), so
-    that a distorted image (tens of px) is followed; None when too few matches."""
+    correction fitted to the matched pairs (affine from 6 matches, quadratic from
+    :data:`QUADRATIC_MATCHES`), so that a distorted image (tens of px) is followed; None
+    when too few matches."""
     n = len(pairs)
     if n < 6:
         return None
@@ -220,7 +227,7 @@ def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np
     def design(p):
         z = (p - c) / sc
         cols = [np.ones(len(z)), z[:, 0], z[:, 1]]
-        if n >= 12:
+        if n >= QUADRATIC_MATCHES:
             cols += [z[:, 0] ** 2, z[:, 0] * z[:, 1], z[:, 1] ** 2]
         return np.column_stack(cols)
 
