@@ -7,17 +7,13 @@ set -euo pipefail
 if [ -x /usr/bin/chromium ]; then
     exit 0
 fi
-if [ "$(id -u)" != "0" ]; then
-    echo "ensure-chromium: /usr/bin/chromium is missing and we are not root; install Debian's" \
-        "'chromium' package to run the report's browser test" >&2
+source "$(dirname "$0")/apt-install.sh"
+status=0
+apt_install ensure-chromium /usr/bin/chromium chromium || status=$?
+if [ "$status" -eq 2 ]; then  # cannot install here: the test skips with the reason
     exit 0
+elif [ "$status" -ne 0 ]; then  # apt-get itself failed
+    exit "$status"
 fi
-if ! command -v apt-get >/dev/null 2>&1; then
-    echo "ensure-chromium: /usr/bin/chromium is missing and apt-get is not available" >&2
-    exit 0
-fi
-export DEBIAN_FRONTEND=noninteractive
-apt-get update -qq
-apt-get install -y -qq --no-install-recommends chromium >/dev/null
 test -x /usr/bin/chromium
 echo "ensure-chromium: installed $(/usr/bin/chromium --version 2>/dev/null || echo chromium)"

@@ -20,18 +20,11 @@ done
 if [ "${#missing[@]}" -eq 0 ]; then
     exit 0
 fi
-if [ "$(id -u)" != "0" ]; then
-    echo "ensure-qt-libs: missing ${missing[*]} and we are not root; install Debian's" \
-        "${packages[*]} to run the napari plugin's tests" >&2
-    exit 0
-fi
-if ! command -v apt-get >/dev/null 2>&1; then
-    echo "ensure-qt-libs: missing ${missing[*]} and apt-get is not available" >&2
-    exit 0
-fi
-export DEBIAN_FRONTEND=noninteractive
-if ! { apt-get update -qq && apt-get install -y -qq --no-install-recommends "${packages[@]}" >/dev/null; }; then
-    echo "ensure-qt-libs: apt-get could not install ${packages[*]}; the napari tests will skip" >&2
+source "$(dirname "$0")/apt-install.sh"
+status=0
+apt_install ensure-qt-libs "${missing[*]}" "${packages[@]}" || status=$?
+if [ "$status" -ne 0 ]; then  # cannot install here, or apt-get failed: the tests skip
+    [ "$status" -eq 2 ] || echo "ensure-qt-libs: apt-get could not install ${packages[*]}; the napari tests will skip" >&2
     exit 0
 fi
 echo "ensure-qt-libs: installed ${packages[*]}"
