@@ -21,12 +21,12 @@ import argparse
 import shutil
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import tifffile
+from _timing import median_time
 
 from oapcal.calibration import Calibration, FitSummary
 from oapcal.cli import main
@@ -36,15 +36,6 @@ from oapcal.io.opencv_export import opencv_parameters
 from oapcal.model import PRESETS, scale_params
 from oapcal.stats import ResidualStats
 from oapcal.synthetic import EXAMPLE_TRUTH
-
-
-def median_time(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def params_for(width, height):

@@ -16,24 +16,14 @@ misalignment are skipped, so the aligned rows can be compared before and after.
 from __future__ import annotations
 
 import os
-import statistics
 import subprocess
 import sys
-import time
 
 import numpy as np
+from _timing import median_time
 
 from oapcal.optics.field import relay_distortion
 from oapcal.optics.relay import chief_rays, grid_distortion, oap_relay, object_grid
-
-
-def median_time(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def loop_chief_rays(relay, xy_obj):

@@ -47,6 +47,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _timing import median_time
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import Delaunay
 
@@ -333,15 +334,6 @@ def identifiability(grid_u: np.ndarray, sigma: float = 0.3):
 
 
 # ---------------------------------------------------------------------- speed, demo
-
-
-def median_time(fn, repeats=7):
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def speed(grid_u):
