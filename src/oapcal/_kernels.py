@@ -212,19 +212,20 @@ def per_family(**options):
 
 
 def _source_tag(*funcs) -> str:
-    """``_<digest>`` of the source files, other than this one, that define ``funcs`` (the
-    relay's tracer in :mod:`oapcal._relay_kernel`: ``_DEPENDS``), or ``""``.
+    """``_<digest>`` of the source files that define ``funcs`` (``_DEPENDS``: the relay's
+    tracer in :mod:`oapcal._relay_kernel`), or ``""`` for none.
 
     Why: Numba's cache checks only the source file of the function it caches, and a cached
     kernel holds the code of the point function compiled into it, so editing
     ``_relay_kernel.py`` would leave the relay's cached kernels running the old tracer.  The
     digest in the kernels' names makes an edited tracer a cache miss (compiled afresh).
     """
+    if not funcs:
+        return ""
     digest = hashlib.sha256()
-    files = sorted({inspect.getsourcefile(getattr(f, "py_func", f)) or "" for f in funcs} - {__file__, ""})
-    for path in files:
+    for path in sorted({inspect.getsourcefile(f.py_func) for f in funcs}):
         digest.update(Path(path).read_bytes())
-    return f"_{digest.hexdigest()[:10]}" if files else ""
+    return f"_{digest.hexdigest()[:10]}"
 
 
 @functools.cache
@@ -256,7 +257,7 @@ def family_kernels(family: int) -> dict:
 @per_family()
 def fd_param_columns(p, x, y, jp, j, want, step):
     """Central-difference parameter Jacobian ``jp[:, i, j]`` (parameters ``i`` flagged in
-    ``want``) of ``family`` at one point, for families without analytic columns:
+    ``want``) of the family's model at one point, for families without analytic columns:
     ``h_i = step * max(|p_i|, 1)``."""
     q = p.copy()
     for i in range(p.shape[0]):
