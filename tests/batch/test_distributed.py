@@ -118,3 +118,16 @@ def test_a_prebuilt_map_is_the_one_applied_from_its_file_or_from_memory(run_cli,
         correct_stack_dask(no_size, tmp_path / "small.tif", tmp_path / "d", cmap, settings)
     loose = replace(settings, allow_size_mismatch=True)
     assert correct_stack_dask(no_size, tmp_path / "small.tif", tmp_path / "d", cmap, loose).frames == 5
+
+
+@pytest.mark.parametrize("fmt", ["zarr", "tiff"])
+def test_progress_is_reported_through_a_callback_per_window_of_frames(tmp_path, fmt):
+    cal = known_calibration(params=SMALL, image_size=(256, 256))
+    tifffile.imwrite(tmp_path / "s.tif", np.zeros((5, 256, 256), np.uint8))
+    calls = []
+    settings = DaskSettings(scheduler="synchronous", chunk_frames=2, output_format=fmt,
+                            progress=lambda *a: calls.append(a))  # fmt: skip
+    result = correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / "o", settings=settings)
+    assert result.frames == 5 and result.chunks == 3
+    assert calls[0] == (0, 5, "s.tif frames") and calls[-1] == (5, 5, "s.tif frames")
+    assert [c[0] for c in calls] == sorted(c[0] for c in calls)

@@ -452,7 +452,7 @@ def _run_and_write(corrected, out_path: Path, geometry, name, label, settings: D
     remove_stale_temps(out_dir, [out_path])
     if settings.output_format == "tiff":
         check_free_space(out_dir, out_bytes, out_path)
-    bar = _Frames(settings.progress, out_shape[0], f"{label} frames")
+    bar = Stages(settings.progress, out_shape[0], f"{label} frames")
     own = (
         contextlib.nullcontext(session)
         if session is not None
@@ -498,7 +498,7 @@ def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, b
             for j in range(0, n_chunks, window):
                 counts = written[j : j + window].compute(scheduler=sched)
                 total += int(counts.sum())
-                bar.advance(len(counts), int(counts.sum()))
+                bar.advance(int(counts.sum()))
         except BaseException:
             _settle(sched)
             raise
@@ -524,7 +524,7 @@ def _write_tiff(corrected, out_path: Path, geometry, name, out_bytes: int, sched
             block = corrected[lo:hi].compute(scheduler=sched)
             for frame in block:
                 writer.write(frame)
-            bar.advance(min(window, n_chunks - j), len(block))
+            bar.advance(len(block))
             del block
         if writer.n != n_frames:
             raise OutputError(f"{out_path}: {writer.n} of {n_frames} frames were written")
@@ -549,21 +549,3 @@ def _settle(sched) -> None:
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline and any(sched.processing().values()):
             time.sleep(0.1)
-
-
-class _Frames:
-    """Frames written, of all frames of a stack, as the writers count them (chunks and
-    frames; the chunks are not reported)."""
-
-    def __init__(self, progress, n_frames: int, description: str):
-        self.stages = Stages(progress, n_frames, description)
-
-    def __enter__(self):
-        self.stages.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def advance(self, chunks: int, frames: int) -> None:
-        self.stages.advance(frames)

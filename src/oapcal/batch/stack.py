@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import glob
 import hashlib
+import itertools
 import json
 import threading
 from collections.abc import Iterable, Sequence
@@ -307,28 +308,6 @@ class MapCache:
             return self._maps[(rows, cols)]
 
 
-class _FilesAndFrames:
-    """The progress of :func:`correct_stack`: frames done of all frames, and which file."""
-
-    def __init__(self, progress, n_files: int, n_frames: int):
-        self.stages = Stages(progress, n_frames, f"files 0/{n_files}")
-        self.n_files, self.files = n_files, 0
-
-    def __enter__(self):
-        self.stages.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def frame(self, n: int = 1):
-        self.stages.advance(n)
-
-    def file(self):
-        self.files += 1  # under the GIL; the description is only a label
-        self.stages.stage(f"files {self.files}/{self.n_files}")
-
-
 def correct_stack(
     calibration,
     inputs: Iterable[str | Path],
@@ -402,9 +381,10 @@ def correct_stack(
     def run(job):
         i, src, dst, info, record = job
         results[i] = _correct_file(src, dst, info, record, cache, interp, border, name, bar)
-        bar.file()
+        bar.stage(f"files {next(finished)}/{len(jobs)}")  # next() of a count: atomic under the GIL
 
-    with _FilesAndFrames(progress if jobs else None, len(jobs), n_frames) as bar:
+    finished = itertools.count(1)
+    with Stages(progress if jobs else None, n_frames, f"files 0/{len(jobs)}") as bar:
         if workers > 1 and len(jobs) > 1:
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 list(pool.map(run, jobs))
@@ -433,7 +413,7 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
                         out = correct_image(frame, cmap, interp, border, out=out)
                         writer.write(out.reshape(cmap.shape + frame.shape[2:]))
                         n += 1
-                        bar.frame()
+                        bar.advance()
                 written = count_frames(tmp)
                 if n != info.n_frames or written != info.n_frames:
                     raise InputFileError(
