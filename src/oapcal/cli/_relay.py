@@ -32,28 +32,22 @@ def is_relay(model: str | None) -> bool:
 def relay_design_options(func):
     """Add the design options of a relay model to a command (passed as ``relay_design``, a
     dict of their values, to keep the command's signature short)."""
-    from oapcal.optics.relay_model import DESIGN_RANGES
-
-    def ranged(field):  # the ranges a stored design is checked against on load
-        lo, hi, lo_open, _ = DESIGN_RANGES[field]
-        return Finite(min=lo, max=hi, min_open=lo_open)
-
+    length = Finite(min=0, max=10_000, min_open=True)
     w = "With --model relay: "
     options = [
         click.option("--relay-setup", type=click.Choice(["1", "2"]), default="1", show_default=True,
                      help=w + "the paper's setup 1 (d1 = 860 mm) or 2 (660 mm)."),
-        click.option("--d1", "relay_d1", type=ranged("d1_mm"), default=None,
+        click.option("--d1", "relay_d1", type=Finite(min=0, max=100_000, min_open=True), default=None,
                      help=w + "collimated path length, mm (overrides --relay-setup)."),
-        click.option("--focal-length", "relay_focal_length", type=ranged("focal_length_mm"),
-                     default=DEFAULT_FOCAL_LENGTH_MM, show_default=True,
-                     help=w + "reflected focal length of the mirrors, mm."),
-        click.option("--focal-length-2", "relay_focal_length_2", type=ranged("focal_length_2_mm"),
-                     default=None, help=w + "the second mirror's, mm (default: --focal-length)."),
+        click.option("--focal-length", "relay_focal_length", type=length, default=DEFAULT_FOCAL_LENGTH_MM,
+                     show_default=True, help=w + "reflected focal length of the mirrors, mm."),
+        click.option("--focal-length-2", "relay_focal_length_2", type=length, default=None,
+                     help=w + "the second mirror's, mm (default: --focal-length)."),
         click.option("--orientation", "relay_orientation", default="U", show_default=True,
                      type=click.Choice(["U", "Z"], case_sensitive=False), help=w + "U or Z."),
-        click.option("--stop-distance", "relay_stop", type=ranged("stop_distance_mm"), default=0.0,
+        click.option("--stop-distance", "relay_stop", type=Finite(min=0, max=100_000), default=0.0,
                      show_default=True, help=w + "aperture stop, mm after the first mirror."),
-        click.option("--pixel-size", "relay_pixel_size", type=ranged("pixel_size_um"),
+        click.option("--pixel-size", "relay_pixel_size", type=Finite(min=0, max=1000, min_open=True),
                      default=DEFAULT_PIXEL_SIZE_UM, show_default=True, help=w + "camera pixel size, um."),
         click.option("--relay-centre", "relay_centre", default=None, metavar="X,Y",
                      help=w + "the point (px) on the relay's axis (default: the image centre with "

@@ -135,14 +135,13 @@ def relay_params(design: RelayDesign, misalignment=None, pose: Mapping | None = 
 
 
 #: What a stored design may hold (the ranges ``oapcal fit --model relay`` accepts):
-#: field -> (lowest, highest, lowest excluded, may be null); the command's options take
-#: their ranges from here.
+#: field -> (lowest, highest, lowest excluded, may be null).
 DESIGN_RANGES = {
-    "d1_mm": (0, 100_000, True, True),
-    "focal_length_mm": (0, 10_000, True, False),
-    "focal_length_2_mm": (0, 10_000, True, True),
-    "stop_distance_mm": (0, 100_000, False, False),
-    "pixel_size_um": (0, 1000, True, False),
+    "d1_mm": (0.0, 100_000.0, True, True),
+    "focal_length_mm": (0.0, 10_000.0, True, False),
+    "focal_length_2_mm": (0.0, 10_000.0, True, True),
+    "stop_distance_mm": (0.0, 100_000.0, False, False),
+    "pixel_size_um": (0.0, 1000.0, True, False),
 }
 
 
