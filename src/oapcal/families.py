@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.fitting import initial_params_many
+from oapcal.fitting import DEFAULT_INIT, initial_params_many
 from oapcal.model import (
     BROWN_CONRADY_POSE,
     RELAY,
@@ -183,8 +183,8 @@ def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progres
 def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress):
     """Every Eq. (1) subset with the target's rotation free as well."""
     masks = all_masks()
-    p0 = np.pad(initial_params_many(init, xy_u, xy_d, masks), ((0, 0), (0, 1)))
     masks = np.pad(masks, ((0, 0), (0, 1)), constant_values=True)
+    p0 = initial_params_many(init, xy_u, xy_d, masks)
     subsets = [(",".join(names_from_mask(m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
     return _score(BROWN_CONRADY_POSE.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress)
 
@@ -197,7 +197,7 @@ def select_families(
     *,
     cv: int = 5,
     cv_top: int = 5,
-    init="pixel",
+    init=DEFAULT_INIT,
     seed: int = 0,
     progress: Progress | None = None,
     image_size: tuple[int, int] | None = None,
