@@ -182,6 +182,13 @@ def _check_fit_usable(cal, source: str) -> None:
             f"{source}: the fit gave non-finite parameters (the points do not "
             "determine the model); nothing written. Check the points, or fit a smaller --model"
         )
+    names = cal.family.param_names
+    if "m" in names and cal.params[names.index("m")] <= 0:
+        raise FitFailed(
+            f"{source}: the fit gave m = {cal.params[names.index('m')]:.4g} <= 0: the reference points "
+            "are turned by about 180 deg against the distorted ones, which a calibration expresses as "
+            "a rotation; nothing written. Fit the rotation (--rotation auto, the default, or fit)"
+        )
     try:
         check_model_region(cal, source=source)
     except InputFileError as exc:
