@@ -209,7 +209,11 @@ _START = {FAMILY_BC: bc_inverse_start, FAMILY_BC_POSE: bc_pose_inverse_start, FA
 #: The magnitudes (distorted units) each family's evaluation rounds at, beyond the point's
 #: own (:func:`rounding_level`); a family without an entry has none
 #: (:func:`no_rounding_scale`).
-_ROUNDING = {FAMILY_BC: bc_rounding_scale, FAMILY_BC_POSE: bc_rounding_scale, FAMILY_RELAY: relay_rounding_scale}
+_ROUNDING = {
+    FAMILY_BC: bc_rounding_scale,
+    FAMILY_BC_POSE: bc_rounding_scale,
+    FAMILY_RELAY: relay_rounding_scale,
+}
 #: Compiled functions from other modules that a family's kernels contain (their source
 #: files name the kernels' cache entries: :func:`_source_tag`).
 _DEPENDS = {FAMILY_RELAY: (relay_point,)}
@@ -270,8 +274,8 @@ def _source_tag(*funcs) -> str:
 @functools.cache
 def family_kernels(family: int) -> dict:
     """The compiled kernels of ``family``: each :func:`per_family` kernel compiled with
-    :func:`point`, :func:`inverse_start` and :func:`rounding_scale` bound to that family's functions (and its calls
-    to other kernels to that family's copies).
+    :func:`point`, :func:`inverse_start` and :func:`rounding_scale` bound to that family's
+    functions (and its calls to other kernels to that family's copies).
 
     Why a copy of each kernel per family, and not a family argument: the point function is
     then a plain global of the kernel, which Numba inlines before typing, so a session that
