@@ -439,8 +439,9 @@ class InverseResult:
     Attributes
     ----------
     xy : (..., N, 2) undistorted points; NaN where ``converged`` is False.
-    converged : (..., N) bool, the residual ``|distort(xy) - xy_d|`` reached ``tol``
-        and the map is locally one-to-one there.
+    converged : (..., N) bool, the residual ``|distort(xy) - xy_d|`` reached ``tol``, or
+        the model's own rounding level where that is coarser (:func:`undistort`), and the
+        map is locally one-to-one there.
     folded : (..., N) bool, Newton stopped where the Jacobian determinant is <= 0: the
         fitted map folds over near this point, so no trustworthy inverse exists.
     n_iter : the largest number of Newton iterations any point took.
@@ -469,9 +470,16 @@ def undistort(
 
     A point converges when ``|distort(xy_u) - xy_d| <= tol`` (Euclidean, in the units of
     the points) within ``max_iter`` iterations *and* the Jacobian determinant there is
-    positive.  Where the determinant is <= 0 the map folds over: the point is reported as
+    positive.  Where the model's evaluation cannot be that exact, the point also converges
+    when its residual is within the evaluation's rounding level and a full Newton step no
+    longer reduces it (or the iteration cap is reached there): ``16 eps`` times the
+    magnitudes the evaluation adds up, the points' own and the family's (the relay's
+    mm-scale ray geometry in px, ``(d1 + f1 + f2 + stop) / pixel``; Eq. (1)'s centre and
+    offsets); ``docs/models.md`` has the numbers.  Where ``tol`` is met first (Eq. 1 in px
+    coordinates, the relay at 4.8 um pixels) the result is the one of the absolute test
+    alone.  Where the determinant is <= 0 the map folds over: the point is reported as
     ``folded`` and not converged.  Points that do not converge come back as NaN.  A point
-    whose residual stops decreasing is stopped (not converged).
+    whose residual stops decreasing above the rounding level is stopped (not converged).
 
     Shapes follow :func:`distort`: ``xy_d`` ``(..., N, 2)`` with ``params`` ``(..., 13)``;
     each point is solved independently (compiled, in parallel).
@@ -506,7 +514,8 @@ def correction_errors(params: np.ndarray, xy_d: np.ndarray, xy_u: np.ndarray, *,
 
     Returns ``(rss, mean_dist, n_bad, n_folded)``, each ``(B,)``: the sum of squared and
     the mean Euclidean corrected-minus-reference distances over the points whose inverse
-    converged, the number of points whose inverse failed, and how many of those fold.
+    converged (the test of :func:`undistort`, with its allowance for the model's rounding),
+    the number of points whose inverse failed, and how many of those fold.
     """
     k = _kernels()
     params = kernel_array(np.atleast_2d(params))
