@@ -105,8 +105,8 @@ def undistort(
 
     A point converges when ``|distort(xy_u) - xy_d| <= tol`` (Euclidean, in the units of
     the points) within ``max_iter`` iterations, or when the residual is within
-    :func:`rounding_level` and a full Newton step no longer reduces it (or the cap is
-    reached there), *and* the Jacobian determinant there is positive.  Where the
+    :func:`rounding_level` and a full Newton step no longer reduces it, *and* the Jacobian
+    determinant there is positive.  Where the
     determinant is <= 0 the map folds over: the point is reported as ``folded`` and not
     converged.  Points that do not converge come back as NaN.
 
@@ -178,8 +178,6 @@ def undistort(
             err = np.where(stalled & ~done, np.inf, err)
         jac = jacobian_point(u, params)
         det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
-        # at the iteration cap: converged when the residual is at the rounding level
-        done = done | (np.isfinite(err) & (err <= rounding_level(u, xy_d, params, jac)))
     folded = ~(det > 0) & np.isfinite(det)
     converged = done & ~folded & np.isfinite(u).all(axis=-1)
     xy = np.where(converged[..., None], u, np.nan)

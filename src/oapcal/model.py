@@ -472,7 +472,7 @@ def undistort(
     the points) within ``max_iter`` iterations *and* the Jacobian determinant there is
     positive.  Where the model's evaluation cannot be that exact, the point also converges
     when its residual is within the evaluation's rounding level and a full Newton step no
-    longer reduces it (or the iteration cap is reached there): ``16 eps`` times the
+    longer reduces it: ``16 eps`` times the
     magnitudes the evaluation adds up, the points' own and the family's (the relay's
     mm-scale ray geometry in px, ``(d1 + f1 + f2 + stop) / pixel``; Eq. (1)'s centre and
     offsets); ``docs/models.md`` has the numbers.  Where ``tol`` is met first (Eq. 1 in px
