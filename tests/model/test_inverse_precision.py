@@ -4,7 +4,7 @@ A point's inverse is accepted when its residual is below the absolute ``tol`` or
 the model's evaluation cannot be that exact, when the residual is at the evaluation's
 rounding level and a full Newton step no longer reduces it (``docs/models.md``, "Point
 correction").  These tests take the relay at 4.8, 0.96 and 0.1 um pixels, where its
-rounding is ~4e-11, ~2e-10 and ~2e-9 px (an absolute 1e-10 px test left 3.5 % and 3.9 % of
+rounding is ~4e-11, ~2e-10 and ~2e-9 px (an absolute 1e-10 px test left 3.7 % and 3.8 % of
 the 1 mm field uncorrected at the two small pitches), and Eq. (1) in coordinates large
 enough that its rounding exceeds 1e-10, and check every valid point against the truth and
 against SciPy's solver; points without a preimage, or where the map folds, or cut off by
@@ -63,10 +63,10 @@ def smallest_singular_value(jac):
 
 
 def error_bound(allowed, jac):
-    """How far from the truth a point may be whose residual is within ``allowed``: the
-    truth's own value carries rounding up to the same level, so the two differ by at most
-    ``2 allowed`` in distorted units (bounded by ``allowed``), divided by the map's smallest
-    stretch."""
+    """How far from the truth a point may be whose computed residual is within ``allowed``:
+    the computed values of the point and of the truth (which is ``xy_d`` itself) are each
+    within rounding (<= ``allowed``) of the exact ones, so the exact values differ by at
+    most ``3 allowed``; divided by the map's smallest stretch."""
     return 3 * allowed / smallest_singular_value(jac)
 
 
