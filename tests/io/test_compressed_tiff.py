@@ -20,8 +20,8 @@ def _frames(dtype=np.uint8, n=3):
 def test_compressed_stack_reads_back_exactly(tmp_path, codec):
     frames = _frames()
     path = tmp_path / f"stack_{codec}.tif"
-    tifffile.imwrite(path, np.stack(frames), photometric="minisblack", compression=codec, **({"compressionargs": {"level": 100}}
-                     if codec == "jpeg" else {}))  # fmt: skip
+    options = {"compressionargs": {"level": 100}} if codec == "jpeg" else {}
+    tifffile.imwrite(path, np.stack(frames), photometric="minisblack", compression=codec, **options)
     info = probe(path)
     assert info.n_frames == 3 and info.frame_shape[:2] == (48, 64)
     with open_frames(path) as (_, stream):
