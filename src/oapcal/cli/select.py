@@ -331,7 +331,7 @@ def _started_relay(spec: str, pairs, image_size, relay_design):
     from oapcal.subsampling import StartedModel
 
     design = default_centre(design_from_options(relay_design), pairs.xy_u, parse_size(image_size))
-    return StartedModel(spec, relay_mask(spec), relay_params(design))
+    return StartedModel(spec, relay_mask(spec, design.family), relay_params(design))
 
 
 def print_robustness(result, source: str = "") -> None:
@@ -369,9 +369,9 @@ def print_robustness(result, source: str = "") -> None:
     spread.add_column("parameter")
     for m in result.models:
         spread.add_column(m.name, justify="right")
-    from oapcal.model import BROWN_CONRADY_POSE, RELAY
+    from oapcal.model import BROWN_CONRADY_POSE, RELAY_MICROSCOPE
 
-    order = list(dict.fromkeys(BROWN_CONRADY_POSE.param_names + RELAY.param_names))
+    order = list(dict.fromkeys(BROWN_CONRADY_POSE.param_names + RELAY_MICROSCOPE.param_names))
     names = [n for n in order if any(n in m.free for m in result.models)]
     for name in names:
         cells = (_fmt(m.param_std.get(name), ".3g") if name in m.free else "" for m in result.models)
