@@ -102,10 +102,10 @@ def main(argv=None):
     design = RelayDesign(setup=1, pixel_size_um=PIXEL_UM, microscope_magnification=MAG)
     models = {
         "relay+microscope (default)": lambda u, d: calibrate_relay(u, d, design, image_size=SIZE),
-        "relay+microscope, no radial term": lambda u, d: calibrate_relay(
-            u, d, design, "relay:decentre2,d1,defocus,camera", image_size=SIZE
+        "relay+microscope + radial term": lambda u, d: calibrate_relay(
+            u, d, design, "relay:decentre2,d1,defocus,camera,microscope", image_size=SIZE
         ),
-        "relay+microscope, magnification free": lambda u, d: calibrate_relay(
+        "relay+microscope + radial term + magnification": lambda u, d: calibrate_relay(
             u, d, design, "relay:decentre2,d1,defocus,camera,microscope,magnification", image_size=SIZE
         ),
         "relay, --pixel-size 4.8 (no microscope)": lambda u, d: calibrate_relay(
@@ -140,13 +140,15 @@ def main(argv=None):
             extra = ""
             if cal.family.name == "relay+microscope":
                 p = cal.params_dict
-                extra = f" M {p['microscope_magnification'] * p['scale']:.4f}, k1 {p['microscope_k1']:.2g}"
+                sm = p["microscope_magnification"] * p["scale"]
+                extra = f" scale x M {sm:.4f}, k1 {p['microscope_k1']:.2g}"
             print(f"  {name}: {cal.fit.message}, {dt:.2f} s; field {fe[0]:.3f} / {fe[1]:.3f} px, "
                   f"frame {fr[0]:.3f} / {fr[1]:.3f} px ({100 * fr[2]:.1f} % uncorrected){extra}")  # fmt: skip
             rows[name].append((*fe[:2], *fr, dt, ok, ""))
     w, h = field[2] - field[0], field[3] - field[1]
     print(f"\nmeans over {args.seeds} seeds (px of 0.96 um; field: the landmarks' {w:.0f} x {h:.0f} px; "
           "frame: 640 x 480)")  # fmt: skip
+    print("(each model's means over the seeds whose fit converged)")
     print("| model | converged | field mean | field max | frame mean | frame max | frame uncorrected |")
     print("|---|---|---|---|---|---|---|")
     for name, r in rows.items():

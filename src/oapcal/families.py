@@ -66,6 +66,8 @@ MICROSCOPE_BLOCKS: dict[str, tuple[str, ...]] = {"microscope": ("microscope_k1",
 #: with a microscope, ``relay+microscope``).
 FAMILY_NAMES = {"bc": "brown-conrady", "bc+rotation": "brown-conrady+rotation", "relay": "relay"}
 Progress = Callable[[int, int], None]
+#: The start of the reason of a model that ``oapcal fit`` would refuse to write.
+REFUSED_PREFIX = "fit would refuse it"
 
 
 @dataclass(frozen=True)
@@ -199,7 +201,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
             break
         problem = region_problem(fitted[row[0]], xy_u, image_size)
         if problem:
-            rows[i] = (row[0], row[1], np.nan, np.nan, False, f"fit would refuse it: {problem}")
+            rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
         else:
             top.append(row)
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))

@@ -219,7 +219,7 @@ def test_fit_command_with_a_microscope(tmp_path, run_cli):
     code, stdout, err = run_cli("fit", points, "--model", "relay", "--microscope-magnification", "-5",
                                 "--image-size", "640x480", "--out", out)  # fmt: skip
     assert code == 0, err
-    assert "relay+microscope model" in stdout and "inverted" in stdout
+    assert "relay+microscope model" in stdout and "magnification -5 (inverting" in stdout
     assert json.loads(out.read_text())["model_family"] == "relay+microscope"
     # a magnification of 0 and the microscope's names without a microscope: one line, no traceback
     code, _, err = run_cli("fit", points, "--model", "relay", "--microscope-magnification", "0")

@@ -459,10 +459,10 @@ def describe(calibration) -> list[str]:
         lines.append(f"{n}: {text}: {value:.4g} +/- {err:.2g} {unit}".rstrip())
     if calibration.family is RELAY_MICROSCOPE:
         p = dict(zip(names, np.asarray(calibration.params, float)))
-        m0, m = p["microscope_design_magnification"], p["microscope_magnification"]
+        m = p["microscope_magnification"]
         lines.append(
-            f"microscope: design magnification {m0:.4g}; with the target's scale the camera sees the relay's "
-            f"image at {p['scale'] * m:.5g} ({'inverted' if m < 0 else 'upright'})"
+            f"microscope: magnification {m:.6g} ({'inverting' if m < 0 else 'upright'}; design "
+            f"{p['microscope_design_magnification']:.6g})"
         )
     return lines
 
