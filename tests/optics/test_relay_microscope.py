@@ -125,7 +125,7 @@ def test_subsets_of_the_microscope_family():
     mask = relay_mask("relay:d1,microscope,magnification", RELAY_MICROSCOPE)
     names = {n for n, m in zip(RELAY_MICROSCOPE.param_names, mask) if m}
     assert {"d1", "microscope_k1", "microscope_magnification", "scale"} <= names
-    with pytest.raises(ModelSpecError, match="microscope_k1.*microscope's.*--microscope-magnification"):
+    with pytest.raises(ModelSpecError, match="microscope_k1.*microscope's.*microscope_magnification"):
         relay_mask("relay:d1,microscope")  # a design without a microscope
 
 

@@ -56,7 +56,7 @@ def relay_design_options(func):
         click.option("--relay-centre", "relay_centre", default=None, metavar="X,Y",
                      help=w + "the point (px) on the relay's axis (default: the image centre with "
                      "--image-size, else the middle of the reference points)."),
-        click.option("--microscope-magnification", "relay_microscope", default=None, metavar="M",
+        click.option("--microscope-magnification", "microscope_magnification", default=None, metavar="M",
                      type=Finite(min=-MAX_MICROSCOPE_MAGNIFICATION, max=MAX_MICROSCOPE_MAGNIFICATION),
                      help=w + "a finite-conjugate microscope between the relay and the camera, its "
                      "magnification; negative when it inverts the image (-5: a 5x objective forming a "
@@ -66,7 +66,7 @@ def relay_design_options(func):
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         keys = ("relay_setup", "relay_d1", "relay_focal_length", "relay_focal_length_2", "relay_orientation",
-                "relay_stop", "relay_pixel_size", "relay_centre", "relay_microscope")  # fmt: skip
+                "relay_stop", "relay_pixel_size", "relay_centre", "microscope_magnification")  # fmt: skip
         kwargs["relay_design"] = {k: kwargs.pop(k) for k in keys}
         return func(*args, **kwargs)
 
@@ -101,7 +101,7 @@ def design_from_options(values: dict):
         orientation=values["relay_orientation"].upper(),
         stop_distance_mm=values["relay_stop"], pixel_size_um=values["relay_pixel_size"],
         centre=_parse_centre(values["relay_centre"]),
-        microscope_magnification=_microscope(values.get("relay_microscope")),
+        microscope_magnification=_microscope(values.get("microscope_magnification")),
     )  # fmt: skip
 
 

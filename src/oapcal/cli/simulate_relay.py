@@ -191,7 +191,7 @@ def misalignment_options(func):
     help="Figure of the relay in its fold plane with the frames of the misalignment conventions.",
 )  # fmt: skip
 @click.option(
-    "--microscope-magnification", "microscope", metavar="M", default=None,
+    "--microscope-magnification", "microscope_magnification", metavar="M", default=None,
     type=Finite(min=-MAX_MICROSCOPE_MAGNIFICATION, max=MAX_MICROSCOPE_MAGNIFICATION),
     help="The grid CSV's image points (x_u..y_d) behind an ideal microscope of this magnification "
     "(negative: it inverts the image, -5 for a 5x objective), as 'oapcal fit --model relay "
@@ -200,9 +200,11 @@ def misalignment_options(func):
 def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,
                   image_size, beam_diameter, wavelength, spot_fields, rings, out, plot, spots,
                   as_json, focal_length_2=None, misalignment=None, layout=None,
-                  reference="paraxial", microscope=None):  # fmt: skip
+                  reference="paraxial", microscope_magnification=None):  # fmt: skip
     """Trace the OAP relay: grid distortion (paraxial vs real chief rays), spots, limits."""
     from oapcal.errors import GeometrySpecError
+
+    microscope = microscope_magnification
 
     size = parse_size(image_size)
     points = [_parse_point(text) for text in spot_fields] or None

@@ -317,7 +317,8 @@ def relay_mask(spec="default", family=RELAY) -> np.ndarray:
         name = sorted(names & set(MICROSCOPE_NAMES))[0]
         raise ModelSpecError(
             f"the relay parameter {name!r} is the microscope's: give the design a microscope "
-            "(--microscope-magnification, e.g. -5 for a 5x objective that inverts the image)"
+            "(its microscope_magnification, e.g. -5 for a 5x objective that inverts the image)",
+            param="microscope_magnification",
         )
     return np.array([n in names for n in family.param_names])
 
