@@ -19,12 +19,21 @@ import numpy as np
 
 from oapcal import __version__
 from oapcal.errors import DataError, InputFileError
-from oapcal.model import ModelFamily, family_of
+from oapcal.model import N_PARAMS, ROTATION_SUFFIX, ModelFamily, family_of
 from oapcal.normalize import normalize
 from oapcal.stats import ResidualStats, correction_residuals
 
 #: Points per side of the grid on which :func:`check_model_region` evaluates the model.
 CHECK_GRID = 65
+
+#: ``rotation="auto"``: the target's rotation is fitted as well when Eq. (1) alone does
+#: not converge and Eq. (1) with the rotation does, or when the rotation lowers AICc by
+#: more than this (Burnham & Anderson: a difference above 10 leaves the model without it
+#: "essentially no support").
+ROTATION_EVIDENCE_AICC = 10.0
+
+#: The choices of ``calibrate(rotation=...)`` and ``oapcal fit --rotation``.
+ROTATION_CHOICES = ("auto", "fit", "none")
 
 
 @dataclass(frozen=True)
@@ -66,6 +75,8 @@ class Calibration:
     from (:class:`oapcal.optics.relay_model.RelayDesign` as a dict; None for Eq. 1).  ``fit`` says
     how it was fitted (:class:`FitSummary`); ``residuals`` are the paper's Table-1
     statistics of the corrected calibration points (:class:`oapcal.stats.ResidualStats`).
+    ``notes`` are what :func:`calibrate` decided for the user (e.g. that it fitted the
+    target's rotation too); they are printed, not stored in the file.
     """
 
     free: tuple[str, ...]
@@ -83,6 +94,7 @@ class Calibration:
     oapcal_version: str = __version__
     created_utc: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     relay_design: dict | None = None
+    notes: tuple[str, ...] = ()
 
     @property
     def family(self) -> ModelFamily:
@@ -157,6 +169,7 @@ def calibrate(
     name: str | None = None,
     source: str | None = None,
     relay_design: dict | None = None,
+    rotation: str = "auto",
     **fit_options,
 ) -> Calibration:
     """Fit ``model`` to reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``.
@@ -168,6 +181,15 @@ def calibrate(
     ``um_per_px`` is the object-space size of one unit of the reference points *as given*;
     with ``normalization="experiment"`` it is converted through the normalization scale.
     The residual statistics are those of :func:`oapcal.stats.correction_residuals`.
+
+    ``rotation`` applies to an Eq. (1) model given without ``+rotation``: ``"auto"`` (the
+    default) fits it both without and with the target's in-plane rotation and keeps the
+    rotation when Eq. (1) alone does not converge or needs ``m < 0`` (a target turned by
+    180 deg) and the rotation converges, or when the
+    rotation lowers AICc by more than :data:`ROTATION_EVIDENCE_AICC` (a turned target is
+    otherwise absorbed into a distortion centre that runs away, x_off ~ 1e4 px, and the fit
+    hits the iteration cap); the record's ``notes`` say so.  ``"fit"`` always adds the
+    rotation, ``"none"`` never.
     """
     from scipy.spatial import ConvexHull, QhullError
 
@@ -178,8 +200,14 @@ def calibrate(
             f"normalization {normalization!r} cannot be used with the relay model: it fits the "
             "target's pose itself, in px (use normalization 'none')"
         )
+    if rotation not in ROTATION_CHOICES:
+        choices = ", ".join(ROTATION_CHOICES)
+        raise DataError(f"rotation must be one of {choices}, got {rotation!r}", param="rotation")
     norm = normalize(normalization, xy_u, xy_d)
     result = fit(norm.xy_u, norm.xy_d, model, init=init, **fit_options)
+    notes: tuple[str, ...] = ()
+    if rotation != "none" and relay_design is None and len(result.params) == N_PARAMS:
+        result, notes = _with_rotation(result, norm, model, init, rotation, fit_options)
     scale = None if um_per_px is None else float(um_per_px) / norm.scale_u
     residuals = correction_residuals(result.params, norm.xy_u, norm.xy_d, scale)
     try:
@@ -217,4 +245,33 @@ def calibrate(
         name=name,
         source=source,
         relay_design=relay_design,
+        notes=notes,
     )
+
+
+def _with_rotation(plain, norm, model, init, rotation: str, fit_options):
+    """``calibrate``'s choice between Eq. (1) ``plain`` and Eq. (1) with the rotation."""
+    from oapcal.fitting import fit
+    from oapcal.model import names_from_mask, parse_any_model
+
+    mask = np.append(parse_any_model(model), True)
+    turned = fit(norm.xy_u, norm.xy_d, mask, init=init, **fit_options)
+    base = model.strip() if isinstance(model, str) else ",".join(names_from_mask(mask)[:-1])
+    spec = base + ROTATION_SUFFIX
+    angle = f"{turned.params[N_PARAMS]:+.3g} deg"
+    if rotation == "fit":
+        return turned, (f"fitted {spec} (the target's rotation, {angle})",)
+    if not turned.converged:
+        return plain, ()
+    if plain.converged and plain.params[N_PARAMS - 1] <= 0:
+        # m < 0 is Eq. (1) with the target turned by 180 deg (m -> -m, x_off -> -x_off and
+        # the reference points -> -reference points give the same map): the sign belongs
+        # to the rotation, and a calibration keeps m > 0
+        why = f"Eq. (1) alone needs m = {plain.params[N_PARAMS - 1]:.4g} < 0"
+    elif not plain.converged:
+        why = f"Eq. (1) alone did not converge ({plain.message.removeprefix('not converged: ')})"
+    elif turned.aicc < plain.aicc - ROTATION_EVIDENCE_AICC:
+        why = f"it lowers AICc by {plain.aicc - turned.aicc:.1f}"
+    else:
+        return plain, ()
+    return turned, (f"the target is turned by {angle}: fitted {spec}, because {why}",)

@@ -129,7 +129,7 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
 
     # 2. model selection on the grid, as the paper did on its simulated data
     start("select")
-    selection = select_models(grid_u, grid_d, normalization="grid", init="zero")
+    selection = select_models(grid_u, grid_d, normalization="grid")
     files["model selection"] = out / "selection.json"
     save_selection(selection, files["model selection"])
     # In camera px the origin is the image corner, not the distortion centre, so the centre
@@ -174,9 +174,12 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
     if trials > 0:
         start("robustness")
         rob = robustness(
-            detection.xy_u, detection.xy_d, (",".join(chosen), "full"), trials=trials, seed=seed,
-            init="pixel",
-        )  # fmt: skip
+            detection.xy_u,
+            detection.xy_d,
+            (",".join(chosen), "full"),
+            trials=trials,
+            seed=seed,
+        )  # the shared default start (fitting.DEFAULT_INIT), as in `oapcal robustness`
         files["robustness"] = out / "robustness.json"
         save_robustness(rob, files["robustness"])
 

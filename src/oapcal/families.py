@@ -36,7 +36,7 @@ import numpy as np
 
 from oapcal.calibration import check_model_region
 from oapcal.errors import DataError, InputFileError
-from oapcal.fitting import initial_params_many
+from oapcal.fitting import DEFAULT_INIT, initial_params_many
 from oapcal.model import (
     BROWN_CONRADY,
     BROWN_CONRADY_POSE,
@@ -246,8 +246,8 @@ def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None
 def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None):
     """Every Eq. (1) subset with the target's rotation free as well."""
     masks = all_masks()
-    p0 = np.pad(initial_params_many(init, xy_u, xy_d, masks), ((0, 0), (0, 1)))
     masks = np.pad(masks, ((0, 0), (0, 1)), constant_values=True)
+    p0 = initial_params_many(init, xy_u, xy_d, masks)
     subsets = [(",".join(names_from_mask(m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
     return _score(BROWN_CONRADY_POSE.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress,
                   image_size)  # fmt: skip
@@ -261,7 +261,7 @@ def select_families(
     *,
     cv: int = 5,
     cv_top: int = 5,
-    init="pixel",
+    init=DEFAULT_INIT,
     seed: int = 0,
     progress: Progress | None = None,
     image_size: tuple[int, int] | None = None,

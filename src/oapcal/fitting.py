@@ -177,17 +177,75 @@ class BatchFit:
         )
 
 
-def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Starting values ``(13,)`` for a fit; fixed parameters are always 0 (``m`` is free).
+#: The start every fit, selection and robustness test uses unless told otherwise
+#: (``oapcal fit``, ``select``, ``robustness``, the demo and napari): :func:`centre_start`.
+DEFAULT_INIT = "auto"
 
-    ``init`` is ``"zero"`` (the paper's default: all 0, m = 1), ``"pixel"`` (the paper's
+#: The named starts of :func:`initial_params`.
+NAMED_STARTS = ("auto", "centre", "pixel", "zero")
+
+
+def centre_start(xy_u: np.ndarray, xy_d: np.ndarray, rotation: bool = False) -> np.ndarray:
+    """The data's own start: Eq. (1) with no distortion, its centre at the centroid of the
+    points and the scale (and, with ``rotation``, the turn) of the best similarity.
+
+    ``m = |s|`` (or ``Re s`` without the rotation) and ``theta = arg s`` from the complex
+    least-squares similarity ``s = sum conj(u') d' / sum |u'|^2`` of the centred points
+    (``u' = u - c_u``, ``d' = d - c_d``, ``c`` each set's centroid, where the least-squares
+    similarity maps one onto the other);
+    ``x_off, y_off = -R(theta) c_u`` and ``c_x, c_y = c_d`` so that the start maps
+    ``c_u`` onto ``c_d``.  Returns ``(13,)``, or ``(14,)`` with the rotation (deg) last.
+    On points already centred at 0 with equal scales it is the zero start; on pixel data
+    it puts the distortion centre where the paper's pixel guesses do, the middle of the
+    points, and never needs the data's units.
+
+    >>> u = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    >>> d = 2.0 * u[:, ::-1] * [-1, 1] + 5.0          # turned by 90 deg, scaled by 2
+    >>> np.round(centre_start(u, d, rotation=True)[[8, 9, 10, 11, 12, 13]], 6)
+    array([ 5., -5., -5., 15.,  2., 90.])
+    """
+    xy_u = np.asarray(xy_u, float)
+    xy_d = np.asarray(xy_d, float)
+    c_u = xy_u.mean(axis=0)
+    c_d = xy_d.mean(axis=0)
+    zu = (xy_u[:, 0] - c_u[0]) + 1j * (xy_u[:, 1] - c_u[1])
+    zd = (xy_d[:, 0] - c_d[0]) + 1j * (xy_d[:, 1] - c_d[1])
+    norm = float(np.vdot(zu, zu).real)
+    s = complex(np.vdot(zu, zd)) / norm if norm > 0 else 1.0 + 0.0j
+    if not np.isfinite(s) or s == 0:
+        s = 1.0 + 0.0j
+    theta = float(np.angle(s)) if rotation else 0.0
+    m = abs(s) if rotation else s.real
+    if not m > 0:  # a reflection or a turn beyond 90 deg that Eq. (1) alone cannot start from
+        m = abs(s)
+    cos, sin = np.cos(theta), np.sin(theta)
+    off = -np.array([cos * c_u[0] - sin * c_u[1], sin * c_u[0] + cos * c_u[1]])
+    p = params_from_dict({"x_off": off[0], "y_off": off[1], "c_x": c_d[0], "c_y": c_d[1], "m": m})
+    return np.append(p, np.degrees(theta)) if rotation else p
+
+
+def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Starting values ``(13,)`` for a fit (``(14,)`` when ``mask`` is the rotation
+    family's); fixed parameters are always 0 (``m`` is free).
+
+    ``init`` is ``"auto"`` (:data:`DEFAULT_INIT`) or ``"centre"``: :func:`centre_start`,
+    the data's own centre, scale and turn; ``"zero"`` (the paper's start for normalized
+    data: all 0, m = 1), ``"pixel"`` (the paper's
     pixel-scale guesses: k1 = 1e-6, p1 = 1e-4, s3 = 1e-4, x_off = -W/2, y_off = -H/2,
     c_x = W/2, c_y = H/2, m = 1, where W/2 and H/2 are the middle of the x and y range
     spanned by all points, i.e. W = x_min + x_max), a mapping of name -> value over the
-    zero start, a string ``"k1=1e-6,m=1"`` of the same, or a ``(13,)`` array.
+    zero start, a string ``"k1=1e-6,m=1"`` of the same, or a ``(13,)`` array.  The
+    rotation starts from the similarity's turn with ``auto``/``centre``, else at 0 (or
+    its ``rotation=`` value).
     """
     mask = np.asarray(mask, bool)
-    if isinstance(init, str) and init == "zero":
+    rotation = mask.shape == (N_PARAMS + 1,)
+    extra = 0.0
+    if isinstance(init, str) and init in ("auto", "centre"):
+        p = centre_start(xy_u, xy_d, rotation=rotation)
+        if rotation:
+            p, extra = p[:N_PARAMS], float(p[N_PARAMS])
+    elif isinstance(init, str) and init == "zero":
         p = identity_params()
     elif isinstance(init, str) and init == "pixel":
         pts = np.concatenate([np.asarray(xy_u, float), np.asarray(xy_d, float)])
@@ -197,22 +255,27 @@ def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray) -
             {"k1": 1e-6, "p1": 1e-4, "s3": 1e-4, "x_off": -half_w, "y_off": -half_h,
              "c_x": half_w, "c_y": half_h, "m": 1.0}
         )  # fmt: skip
-    elif isinstance(init, str):
-        p = params_from_dict(_parse_assignments(init))
-    elif isinstance(init, Mapping):
-        p = params_from_dict(init)
     else:
-        p = np.array(init, dtype=float)
-        if p.shape != (N_PARAMS,):
-            raise ModelSpecError(f"initial values must have {N_PARAMS} entries, got shape {p.shape}")
-    return np.where(mask, p, 0.0)
+        values = _parse_assignments(init) if isinstance(init, str) else init
+        if isinstance(values, Mapping):
+            values = dict(values)
+            extra = float(values.pop("rotation", 0.0))
+            p = params_from_dict(values)
+        else:
+            p = np.array(values, dtype=float)
+            if p.shape != (N_PARAMS,):
+                raise ModelSpecError(f"initial values must have {N_PARAMS} entries, got shape {p.shape}")
+    p = np.where(mask[:N_PARAMS], p, 0.0)
+    return np.append(p, extra) if rotation else p
 
 
 def initial_params_many(init, xy_u: np.ndarray, xy_d: np.ndarray, masks: np.ndarray) -> np.ndarray:
-    """Starting values ``(B, 13)`` for the models ``masks (B, 13)`` from one ``init`` (as in
-    :func:`initial_params`, evaluated once for the full model, fixed entries 0)."""
-    full = initial_params(init, xy_u, xy_d, np.ones(N_PARAMS, bool))
-    return np.where(np.atleast_2d(np.asarray(masks, bool)), full, 0.0)
+    """Starting values ``(B, 13)`` (or ``(B, 14)`` for the rotation family) for the models
+    ``masks`` from one ``init`` (as in :func:`initial_params`, evaluated once for the full
+    model, fixed entries 0)."""
+    masks = np.atleast_2d(np.asarray(masks, bool))
+    full = initial_params(init, xy_u, xy_d, np.ones(masks.shape[1], bool))
+    return np.where(masks, full, 0.0)  # the rotation, when there, is always free
 
 
 def _parse_assignments(text: str) -> dict[str, float]:
@@ -223,8 +286,8 @@ def _parse_assignments(text: str) -> dict[str, float]:
         name, sep, value = item.partition("=")
         if not sep:
             raise ModelSpecError(
-                f"bad initial value {item.strip()!r}: use 'zero', 'pixel' or name=value pairs "
-                "such as 'k1=1e-6,m=1'"
+                f"bad initial value {item.strip()!r}: use 'auto', 'centre', 'zero', 'pixel' or "
+                "name=value pairs such as 'k1=1e-6,m=1'"
             )
         try:
             values[name.strip()] = float(value)
@@ -397,11 +460,12 @@ def fit(
     ``+rotation`` the target's rotation too, or a mask of another family) to point pairs
     ``(N, 2)``.  A relay model (mask ``(36,)``) needs ``init``, its design's vector.
 
-    ``init`` is as in :func:`initial_params`, or ``"auto"`` (the default): fit from both
-    the ``pixel`` and the ``zero`` start and keep the converged fit with the lower RSS
-    (the pixel start on a tie).
-    On pixel-scale data the zero start can stop in a wrong local minimum, and on
-    normalized data the pixel start is far off; trying both costs one more fit.
+    ``init`` is as in :func:`initial_params`.  With ``"auto"`` (:data:`DEFAULT_INIT`) the
+    fit starts from :func:`centre_start` and also from the paper's ``pixel`` and ``zero``
+    starts, and keeps the converged fit with the lowest RSS (the centre start on a tie:
+    the paper model has an exact two-fold ambiguity, docs/models.md, and the centre start
+    puts the distortion centre in the middle of the points).  Trying all three costs two
+    more fits; model selection and the robustness test use the centre start alone.
     ``options`` go to :func:`fit_batch`.
     Raises :class:`~oapcal.errors.DataError` when there are fewer points than the free
     parameters + 2; otherwise returns a :class:`FitResult` whether or not it converged.
@@ -412,9 +476,8 @@ def fit(
     xy_d = np.asarray(xy_d, float)
     check_enough_points(len(xy_u), int(mask.sum()))
     if family.zero_when_fixed:  # Eq. (1), with or without the rotation (which starts at 0)
-        starts = ["pixel", "zero"] if isinstance(init, str) and init == "auto" else [init]
-        p0 = np.stack([initial_params(s, xy_u, xy_d, mask[:N_PARAMS]) for s in starts])
-        p0 = np.pad(p0, ((0, 0), (0, family.n_params - N_PARAMS)))
+        starts = ["auto", "pixel", "zero"] if isinstance(init, str) and init == "auto" else [init]
+        p0 = np.stack([initial_params(s, xy_u, xy_d, mask) for s in starts])
     else:  # a design-based family starts from its design's vector
         p0 = np.asarray(init, float)
         if isinstance(init, str) or p0.shape != (family.n_params,):
@@ -428,7 +491,7 @@ def fit(
     if not np.isfinite(rss).any():
         return batch.item(0)
     # Equivalent minima (same RSS to 1e-9 relative; the paper model has an exact two-fold
-    # ambiguity, docs/models.md) go to the first start: the pixel start, whose
+    # ambiguity, docs/models.md) go to the first start: the centre start, whose
     # distortion centre is the middle of the points.
     best = int(np.flatnonzero(rss <= rss.min() * (1 + 1e-9) + 1e-300)[0])
     return batch.item(best)

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.fitting import STATUS_MESSAGES, fit_batch, initial_params_many
+from oapcal.fitting import DEFAULT_INIT, STATUS_MESSAGES, fit_batch, initial_params_many
 from oapcal.model import (
     N_OPTIONAL,
     PARAM_NAMES,
@@ -170,7 +170,9 @@ def _starts(init, xy_u, xy_d, masks) -> np.ndarray:
     return initial_params_many(init, xy_u, xy_d, masks)
 
 
-def score_models(xy_u, xy_d, masks, init="zero", *, max_iter: int = 200, progress: Progress | None = None):
+def score_models(
+    xy_u, xy_d, masks, init=DEFAULT_INIT, *, max_iter: int = 200, progress: Progress | None = None
+):
     """Fit and score the models ``masks (B, P)`` (any family: ``P`` names it, and ``init``
     is then its ``(B, P)`` starts) on points already normalized.
 
@@ -243,7 +245,7 @@ def select_models(
     xy_d,
     *,
     normalization: str = "none",
-    init="zero",
+    init=DEFAULT_INIT,
     masks: np.ndarray | None = None,
     cv: int | None = None,
     cv_top: int = 10,
@@ -256,9 +258,10 @@ def select_models(
     ``xy_u``, ``xy_d`` are the reference and distorted points ``(N, 2)`` as given;
     ``normalization`` is applied first (``none``, ``experiment`` or ``grid``, see
     :mod:`oapcal.normalize`).  ``masks`` defaults to all 4,096 models.  ``init`` is the
-    start of every fit (:func:`oapcal.fitting.initial_params`; default ``zero``, the paper's
-    choice).  With ``cv = K``, the best ``cv_top`` models also get the K-fold
-    cross-validated mean corrected error (:func:`cross_validate`, folds drawn with
+    start of every fit (:func:`oapcal.fitting.initial_params`; default
+    :data:`~oapcal.fitting.DEFAULT_INIT`, the data's own centre and scale, which on the
+    paper's normalized grids is its zero start).  With ``cv = K``, the best ``cv_top``
+    models also get the K-fold cross-validated mean corrected error (:func:`cross_validate`, folds drawn with
     ``seed``).
     """
     norm = normalize(normalization, xy_u, xy_d)
@@ -317,7 +320,9 @@ def select_models(
     return Selection(n_points, normalization or "none", init_name, models, cv)
 
 
-def cross_validate(xy_u, xy_d, masks, *, folds: int = 5, init="zero", seed: int = 0, max_iter: int = 200):
+def cross_validate(
+    xy_u, xy_d, masks, *, folds: int = 5, init=DEFAULT_INIT, seed: int = 0, max_iter: int = 200
+):
     """K-fold cross-validated mean corrected error of each model ``masks (B, P)`` (``init``
     as in :func:`score_models`).
 

@@ -39,9 +39,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError, ModelSpecError
-from oapcal.fitting import fit_batch, initial_params_many
+from oapcal.fitting import DEFAULT_INIT, fit_batch, initial_params_many
 from oapcal.model import (
-    N_PARAMS,
     family_of,
     min_jacobian_determinant,
     names_from_mask,
@@ -167,8 +166,7 @@ def _starts_of(spec, init, u, d, mask) -> np.ndarray:
     for Eq. (1) (the rotation, if any, starting at 0)."""
     if isinstance(spec, StartedModel):
         return np.asarray(spec.p0, float)
-    p = initial_params_many(init, u, d, mask[None, :N_PARAMS])[0]
-    return np.pad(p, (0, len(mask) - N_PARAMS))
+    return initial_params_many(init, u, d, mask[None])[0]
 
 
 def robustness(
@@ -179,7 +177,7 @@ def robustness(
     trials: int = 10000,
     fraction: float = 0.9,
     seed: int = 0,
-    init="zero",
+    init=DEFAULT_INIT,
     normalization: str = "none",
     wrong_minimum_ratio: float = 1.5,
     max_iter: int = 200,
@@ -251,9 +249,10 @@ def _check_robustness(n_points: int, trials: int, fraction: float, specs: list) 
 
 
 def _reference_rms(u: np.ndarray, d: np.ndarray, specs, masks, init, max_iter: int) -> np.ndarray:
-    """Reference RMS of each model: all points, best of the pixel, zero and requested starts
+    """Reference RMS of each model: all points, best of the centre, pixel, zero and requested starts
     (a :class:`StartedModel`: its own start)."""
-    starts = ["pixel", "zero"] + ([init] if not (isinstance(init, str) and init in ("pixel", "zero")) else [])
+    named = ("auto", "pixel", "zero")
+    starts = list(named) + ([init] if not (isinstance(init, str) and init in named) else [])
     out = np.full(len(masks), np.inf)
     # one batch per family (parameter-vector length): every model with each of its starts
     for size in sorted({len(m) for m in masks}):

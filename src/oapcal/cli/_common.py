@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import click
 
 INIT_HELP = (
-    "Starting values: 'auto' (default: both of the next two, the better fit is kept), "
-    "'zero' (all 0, m = 1; the paper's choice for normalized data), 'pixel' (the paper's "
-    "pixel-scale guesses), or name=value pairs such as 'k1=1e-6,m=1'."
+    "Starting values: 'auto' (default: the data's own centre, scale and turn; a fit also "
+    "tries the next two and keeps the best), 'zero' (all 0, m = 1; the paper's choice for "
+    "normalized data), 'pixel' (the paper's pixel-scale guesses), or name=value pairs such "
+    "as 'k1=1e-6,m=1'."
 )
 
 
@@ -79,6 +80,30 @@ class PointsUsageError(click.ClickException):
 
     def show(self, file=None):
         click.echo(f"oapcal: error: {sanitize(self.format_message())}", err=True)
+
+
+#: ``correct``, ``correct-points`` and ``export-opencv``: use a calibration whose fit did not
+#: converge (written by ``oapcal fit --keep-unconverged``).
+allow_unconverged_option = click.option(
+    "--allow-unconverged",
+    is_flag=True,
+    help="Use the calibration even though its fit did not converge (refused by default).",
+)
+
+
+def load_usable_calibration(path: str, allow_unconverged: bool = False):
+    """The calibration in ``path`` (:func:`oapcal.io.calibration.load_calibration`), refused
+    (exit 2, one line) when its fit did not converge unless ``allow_unconverged``."""
+    from oapcal.io.calibration import load_calibration
+
+    cal = load_calibration(path)
+    if not cal.fit.converged and not allow_unconverged:
+        why = cal.fit.message.removeprefix("not converged: ") or "not converged"
+        raise PointsUsageError(
+            f"{path}: the calibration's fit did not converge ({why}), so its correction is not "
+            "reliable; refit it (oapcal fit), or give --allow-unconverged to use it anyway"
+        )
+    return cal
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, parse_size, print_json, progress_bar, with_flag_hint
+from oapcal.cli._common import (
+    allow_unconverged_option,
+    check_output,
+    console,
+    load_usable_calibration,
+    parse_size,
+    print_json,
+    progress_bar,
+    with_flag_hint,
+)
 
 GEOMETRY_HELP = (
     "Output region: 'input' (default: the input's size and undistorted coordinates), 'full' "
@@ -110,10 +119,11 @@ def geometry_options(func):
 )
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @click.option("--json", "as_json", is_flag=True, help="Print the per-file results as one JSON object.")
+@allow_unconverged_option
 def correct_command(
     calib, inputs, out_dir, interp, border, workers, extent, um_per_px, out_size, save_map, map_file,
     allow_size_mismatch, max_pixels, overwrite, use_dask, scheduler, chunk_frames, dask_format, quiet,
-    as_json,
+    as_json, allow_unconverged,
 ):  # fmt: skip
     """Correct images with a calibration: files, multi-page TIFF stacks, directories, globs.
 
@@ -123,7 +133,6 @@ def correct_command(
     """
     from pathlib import Path
 
-    from oapcal.io.calibration import load_calibration
     from oapcal.io.images import MAX_PIXELS
 
     if not inputs and save_map is None:
@@ -142,7 +151,7 @@ def correct_command(
     max_pixels = max_pixels or MAX_PIXELS
     check_output(save_map, calib, map_file, *inputs)
     plan = _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map) if inputs else None
-    cal = load_calibration(calib)
+    cal = load_usable_calibration(calib, allow_unconverged)
     name = cal.name or Path(calib).name
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
     cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, parse_size
+from oapcal.cli._common import allow_unconverged_option, check_output, load_usable_calibration, parse_size
 from oapcal.cli.correct import geometry_options
 
 
@@ -40,7 +40,8 @@ MAX_SIDE = 2**20
     help="Input image size WxH in px (default: the calibration's image_size).",
 )
 @geometry_options
-def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size):
+@allow_unconverged_option
+def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, allow_unconverged):
     """Write camera_matrix, dist_coeffs and new_camera_matrix for cv2.initUndistortRectifyMap.
 
     A relay calibration has no exact OpenCV coefficients: the export then also holds the
@@ -52,14 +53,13 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size):
 
     from oapcal.errors import DataError
     from oapcal.imaging.remap import output_geometry
-    from oapcal.io.calibration import load_calibration
     from oapcal.io.opencv_export import maps_path, opencv_export, save_opencv
     from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE
 
     check_output(out, calib)
     size = parse_size(image_size) or None
     fit_size = parse_size(out_size, "--out-size")
-    cal = load_calibration(calib)
+    cal = load_usable_calibration(calib, allow_unconverged)
     family = cal.family
     side = None
     if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE) and Path(out).suffix.lower() == ".json":

@@ -6,9 +6,11 @@ import click
 
 from oapcal.cli._common import (
     INIT_HELP,
+    allow_unconverged_option,
     check_output,
     console,
     load_pairs,
+    load_usable_calibration,
     parse_size,
     points_options,
     print_json,
@@ -58,8 +60,24 @@ from oapcal.cli._relay import (
     help="Write the calibration file (JSON) here.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+@click.option(
+    "--rotation",
+    type=click.Choice(["auto", "fit", "none"]),
+    default="auto",
+    show_default=True,
+    help="The target's in-plane rotation with an Eq. (1) model: 'auto' fits it too when the "
+    "points need it (Eq. 1 alone does not converge, or AICc drops by > 10) and says so; "
+    "'fit' always; 'none' never.",
+)
+@click.option(
+    "--keep-unconverged",
+    is_flag=True,
+    help="Write the calibration even when the fit did not converge (exit 3 still); "
+    "'oapcal correct' then needs --allow-unconverged to use it.",
+)
 @relay_design_options
-def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json, relay_design):
+def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json, rotation,
+                keep_unconverged, relay_design):  # fmt: skip
     """Fit a distortion model to point pairs: a CSV with x_u,y_u,x_d,y_d (POINTS), or
     landmark files --distorted FILE --reference FILE (VIA, napari, BigWarp, CSV)."""
     from oapcal.calibration import calibrate
@@ -83,21 +101,61 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
         from oapcal.fitting import check_enough_points
 
         check_enough_points(len(pairs), int(parse_any_model(model).sum()), source=pairs.source)
+        if rotation != "auto" and model.strip().endswith("+rotation"):
+            raise click.UsageError(f"--model {model} fits the rotation already: drop --rotation {rotation}")
         cal = calibrate(
             pairs.xy_u, pairs.xy_d, model, init=init, normalization=normalization,
-            um_per_px=um_per_px, image_size=size, source=pairs.source,
+            um_per_px=um_per_px, image_size=size, source=pairs.source, rotation=rotation,
         )  # fmt: skip
+    for note in cal.notes:
+        click.echo(f"oapcal: note: {note} (--rotation none fits the model as given)", err=True)
     _check_fit_usable(cal, pairs.source)
-    if out is not None:
+    write = out is not None and (cal.fit.converged or keep_unconverged)
+    if write:
         save_calibration(cal, out)
     if as_json:
         print_json(fit_summary(cal))
-    elif out != "-":
+    elif out != "-" or not write:
         print_fit(cal)
     if not cal.fit.converged:
-        click.echo(f"oapcal: warning: the fit did not converge: {cal.fit.message}", err=True)
+        what = "written anyway (--keep-unconverged)" if write else "nothing written"
+        keep = "" if write else ", or give --keep-unconverged to write it anyway"
+        click.echo(
+            f"oapcal: error: {pairs.source}: the fit did not converge "
+            f"({cal.fit.message.removeprefix('not converged: ')}{_runaway(cal)}); {what}. Try another "
+            f"--model (e.g. {_suggestion(cal)}) or --init{keep}",
+            err=True,
+        )
         return 3
     return 0
+
+
+def _runaway(cal) -> str:
+    """Why an Eq. (1) fit did not converge, when the distortion centre ran away."""
+    import numpy as np
+
+    if cal.relay_design is not None or cal.bounds is None:
+        return ""
+    x0, y0, x1, y1 = cal.bounds
+    span = max(x1 - x0, y1 - y0, 1e-300)
+    names = cal.family.param_names
+    limit = 10 * span + abs(x1) + abs(y1)
+    far = [n for n in ("x_off", "y_off", "c_x", "c_y") if abs(cal.params[names.index(n)]) > limit]
+    if not far:
+        return ""
+    values = ", ".join(f"{n} = {cal.params[names.index(n)]:.3g}" for n in far)
+    return (
+        (
+            f"; the distortion centre runs away: {values}, over 10 times the points' span, as when the "
+            "points hold a turn, shear or aspect change that the model cannot represent"
+        )
+        if np.isfinite(span)
+        else ""
+    )
+
+
+def _suggestion(cal) -> str:
+    return "radial+rotation" if len(cal.params) > 13 else "paper+rotation"
 
 
 class FitFailed(click.ClickException):
@@ -123,6 +181,13 @@ def _check_fit_usable(cal, source: str) -> None:
         raise FitFailed(
             f"{source}: the fit gave non-finite parameters (the points do not "
             "determine the model); nothing written. Check the points, or fit a smaller --model"
+        )
+    names = cal.family.param_names
+    if "m" in names and cal.params[names.index("m")] <= 0:
+        raise FitFailed(
+            f"{source}: the fit gave m = {cal.params[names.index('m')]:.4g} <= 0: the reference points "
+            "are turned by about 180 deg against the distorted ones, which a calibration expresses as "
+            "a rotation; nothing written. Fit the rotation (--rotation auto, the default, or fit)"
         )
     try:
         check_model_region(cal, source=source)
@@ -207,15 +272,15 @@ def print_fit(cal) -> None:
     required=True,
     help="Output CSV: the input columns plus x_c,y_c,converged.",
 )
-def correct_points_command(calib, points, out):
+@allow_unconverged_option
+def correct_points_command(calib, points, out, allow_unconverged):
     """Correct distorted points (columns x_d,y_d of POINTS, or the landmarks of --distorted
     FILE) with a calibration."""
-    from oapcal.io.calibration import load_calibration
     from oapcal.io.points import write_points
     from oapcal.model import undistort
 
     check_output(out, calib, points)
-    cal = load_calibration(calib)
+    cal = load_usable_calibration(calib, allow_unconverged)
     pairs = load_pairs(points, require=("x_d", "y_d"))
     inverse = undistort(pairs.xy_d, cal.params)
     fields = [f for f in pairs.fieldnames if f not in ("x_c", "y_c", "converged")]

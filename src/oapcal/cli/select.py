@@ -14,8 +14,9 @@ BYTES_PER_TRIAL_POINT = 16
 BYTES_PER_TRIAL_MODEL = 512
 
 SELECT_INIT_HELP = (
-    "Starting values of every fit: 'zero' (all 0, m = 1; the paper's choice for normalized "
-    "data), 'pixel' (the paper's pixel-scale guesses) or name=value pairs such as 'k1=1e-6,m=1'."
+    "Starting values of every fit: 'auto' (the data's own centre, scale and turn: the start "
+    "'oapcal fit' uses too), 'zero' (all 0, m = 1; the paper's choice for normalized data), "
+    "'pixel' (the paper's pixel-scale guesses) or name=value pairs such as 'k1=1e-6,m=1'."
 )
 NORMALIZE_HELP = (
     "'grid': centre each point set on the middle of its x and y ranges and scale it to span "
@@ -32,7 +33,7 @@ normalize_option = click.option(
     show_default=True,
     help=NORMALIZE_HELP,
 )
-init_option = click.option("--init", "init", default="zero", show_default=True, help=SELECT_INIT_HELP)
+init_option = click.option("--init", "init", default="auto", show_default=True, help=SELECT_INIT_HELP)
 
 
 def _wide_console():
@@ -142,7 +143,6 @@ def _select_families(
     refuse_normalize(normalization, "models of different families are compared on the points as given")
     size = parse_size(image_size)
     design = design_from_options(relay_design)
-    init = "pixel" if init == "zero" else init  # Eq. 1 in px starts from the pixel guesses
     pairs = load_pairs(points)
     bar, update = progress_bar("fitting the models of " + ", ".join(keys))
     with bar:

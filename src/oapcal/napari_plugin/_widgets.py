@@ -383,7 +383,8 @@ class FitWidget(_OapcalWidget):
         points = lambda _w: _layers_of(napari_viewer, "points")  # noqa: E731
         self.distorted = ComboBox(label="distorted", choices=points)
         self.reference = ComboBox(label="reference", choices=points)
-        self.model = ComboBox(label="model", choices=[*oapcal.PRESETS, SELECT], value="paper")
+        turned = [f"{name}+rotation" for name in oapcal.PRESETS]  # the target's rotation fitted too
+        self.model = ComboBox(label="model", choices=[*oapcal.PRESETS, *turned, SELECT], value="paper")
         self.um_per_px = FloatSpinBox(
             label="um per px (0: from layers)", value=0.0, min=0.0, max=1e6, step=0.1
         )
@@ -436,7 +437,7 @@ class FitWidget(_OapcalWidget):
 
         def work():
             if model == SELECT:
-                selection = oapcal.select_models(xy_u, xy_d, init="pixel")
+                selection = oapcal.select_models(xy_u, xy_d)  # the shared default start
                 chosen = tuple(n for n in oapcal.PARAM_NAMES if n in selection.best.free or n in FRAME_TERMS)
             else:
                 chosen = model
@@ -474,8 +475,9 @@ class FitWidget(_OapcalWidget):
             "stderr": [f"{s:.3g}" for s in cal.stderr[list(cal.mask.nonzero()[0])]],
         }
         state = "converged" if cal.fit.converged else f"did NOT converge ({cal.fit.message})"
+        notes = "".join(f"; {note}" for note in cal.notes)
         self._set_status(f"{cal.fit.n_points} pairs, model {', '.join(cal.free)}: {state}; "
-                         f"mean residual {cal.residuals.mean_px:.3g} px")  # fmt: skip
+                         f"mean residual {cal.residuals.mean_px:.3g} px{notes}")  # fmt: skip
 
 
 class CorrectWidget(_OapcalWidget):
@@ -494,13 +496,14 @@ class CorrectWidget(_OapcalWidget):
         self.interp = ComboBox(label="interpolation", choices=list(INTERPOLATIONS), value="cubic")
         self.show_uncertainty = CheckBox(label="uncertainty map", value=True)
         self.show_hull = CheckBox(label="calibration hull", value=True)
+        self.allow_unconverged = CheckBox(label="allow an unconverged fit", value=False)
         self.button = PushButton(text="Correct")
         self.save_path = FileEdit(label="save as", mode="w", filter="*.json", value="")
         self.save_button = PushButton(text="Save calibration")
         self.button.changed.connect(self.run)
         self.save_button.changed.connect(self.save)
         widgets = [self.image, self.source, self.file, self.interp, self.show_uncertainty, self.show_hull,
-                   self.button, self.save_path, self.save_button]  # fmt: skip
+                   self.allow_unconverged, self.button, self.save_path, self.save_button]  # fmt: skip
         super().__init__(napari_viewer, widgets)
 
     def _calibrations(self, _w=None):
@@ -536,6 +539,10 @@ class CorrectWidget(_OapcalWidget):
             cal = self.calibration()
         except Exception as exc:
             self._fail(_message(exc))
+            return
+        if not cal.fit.converged and not self.allow_unconverged.value:
+            self._fail(f"the calibration's fit did not converge ({cal.fit.message}): refit it, or tick "
+                       "'allow an unconverged fit' to use it anyway")  # fmt: skip
             return
         data = layer.data
         spatial = 3 if layer.rgb else 2
