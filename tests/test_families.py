@@ -117,7 +117,11 @@ def _frame_min_det(params):
     """The smallest Jacobian determinant of an Eq. (1) model over the 640 x 480 frame, by
     the NumPy reference (tests/reference_model.py), not the compiled model."""
     gx, gy = np.meshgrid(np.linspace(0, 639, 81), np.linspace(0, 479, 61))
-    return reference_model.jacobian_determinant(np.column_stack([gx.ravel(), gy.ravel()]), params).min()
+    xy = np.column_stack([gx.ravel(), gy.ravel()])
+    if len(params) == 14:  # Eq. (1) after turning the points (determinant 1) by `rotation` deg
+        t = np.radians(params[13])
+        xy = xy @ np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]).T
+    return reference_model.jacobian_determinant(xy, np.asarray(params[:13])).min()
 
 
 def test_a_recommendation_never_folds_over_the_output_region():
@@ -156,3 +160,15 @@ def test_select_families_recommends_what_fit_writes(tmp_path, run_cli):
     code, _, err = run_cli("fit", points, "--model", spec, "--image-size", "640x480", "--out", calib)
     assert code == 0, err
     assert calib.exists()
+
+
+def test_the_rotation_family_is_checked_over_the_image_too():
+    """issue 20: a bc+rotation subset that folds inside the image was recommended."""
+    from oapcal.calibration import calibrate
+
+    _, xy_u, xy_d = _folding_case()
+    sel = select_families(xy_u, xy_d, RelayDesign(), ("bc+rotation",), cv=3, cv_top=2, image_size=(640, 480))
+    assert any(c.reason.startswith("fit would refuse it") for c in sel.candidates)
+    assert sel.recommended is not None and sel.recommended.spec.endswith("+rotation")
+    cal = calibrate(xy_u, xy_d, sel.recommended.spec, image_size=(640, 480))
+    assert cal.fit.converged and _frame_min_det(cal.params) > 0
