@@ -310,13 +310,39 @@ RELAY = ModelFamily(
     map_step=8,
 )
 
-FAMILIES = {f.name: f for f in (BROWN_CONRADY, BROWN_CONRADY_POSE, RELAY)}
+#: The microscope behind the relay (``relay+microscope``): its magnification (signed,
+#: negative inverts) and radial term, fitted; the design's magnification, a constant.
+MICROSCOPE_NAMES = ("microscope_magnification", "microscope_k1")
+MICROSCOPE_DESIGN_NAMES = ("microscope_design_magnification",)
+
+#: The physical relay with a finite-conjugate microscope behind it (``docs/models.md``):
+#: the relay's 36 values in the same order, then the microscope's.  It shares the relay's
+#: point function (``code``): the vector's length tells it that there is a microscope.
+RELAY_MICROSCOPE = ModelFamily(
+    name="relay+microscope",
+    code=RELAY.code,
+    param_names=RELAY.param_names + MICROSCOPE_NAMES + MICROSCOPE_DESIGN_NAMES,
+    always_free=(),
+    scale_exponents=None,
+    moves=RELAY.moves + ("xy",) * (len(MICROSCOPE_NAMES) + len(MICROSCOPE_DESIGN_NAMES)),
+    analytic_jacobian=False,
+    fd_step=RELAY.fd_step,
+    never_free=RELAY_DESIGN_NAMES + MICROSCOPE_DESIGN_NAMES,
+    zero_when_fixed=False,
+    map_step=RELAY.map_step,
+)
+
+#: The relay families (the physical relay, with or without a microscope behind it).
+RELAY_FAMILIES = (RELAY, RELAY_MICROSCOPE)
+
+FAMILIES = {f.name: f for f in (BROWN_CONRADY, BROWN_CONRADY_POSE, RELAY, RELAY_MICROSCOPE)}
 _BY_SIZE = {f.n_params: f for f in FAMILIES.values()}
 
 
 def family_of(params, family: ModelFamily | None = None) -> ModelFamily:
     """The family of a parameter vector ``(..., P)``: ``family`` if given, else the one
-    whose vector has ``P`` entries (13 Eq. 1, 14 Eq. 1 with rotation, 36 the relay; the
+    whose vector has ``P`` entries (13 Eq. 1, 14 Eq. 1 with rotation, 36 the relay, 39 the
+    relay with a microscope; the
     sizes are distinct, so a vector names its family).  Unknown sizes give Eq. (1), whose
     shape check then reports them."""
     if family is not None:
