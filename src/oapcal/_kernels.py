@@ -194,6 +194,8 @@ def relay_rounding_scale(p, jmax):
     ``eps * (d1 + f1 + f2) / pixel`` about a smooth curve, at 4.8, 0.96 and 0.1 um pixels."""
     d1 = abs(p[RELAY_DESIGN] + p[RELAY_MISALIGNMENT + 12])
     length = d1 + abs(p[RELAY_DESIGN + 1]) + abs(p[RELAY_DESIGN + 2]) + abs(p[RELAY_DESIGN + 4])
+    if p.shape[0] > RELAY_DESIGN + 12:  # relay+microscope: the relay's image magnified |M| times
+        length *= max(1.0, abs(p[RELAY_DESIGN + 12]))
     return length / abs(p[RELAY_DESIGN + 5])
 
 

@@ -107,9 +107,9 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
             pairs.xy_u, pairs.xy_d, model, init=init, normalization=normalization,
             um_per_px=um_per_px, image_size=size, source=pairs.source, rotation=rotation,
         )  # fmt: skip
+    _check_fit_usable(cal, pairs.source)
     for note in cal.notes:
         click.echo(f"oapcal: note: {note} (--rotation none fits the model as given)", err=True)
-    _check_fit_usable(cal, pairs.source)
     write = out is not None and (cal.fit.converged or keep_unconverged)
     if write:
         save_calibration(cal, out)
