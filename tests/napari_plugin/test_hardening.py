@@ -86,3 +86,16 @@ def test_the_reader_declines_fifos_devices_and_directories_without_opening_them(
         os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
         pytest.fail("the reader blocked on a FIFO")
     assert out["r"] == [None] * len(names)
+
+
+def test_the_detect_widget_says_what_is_wrong_with_a_group_text(viewer):
+    from oapcal.napari_plugin._widgets import DetectWidget
+
+    viewer.add_image(np.zeros((40, 50), np.uint8), name="img")
+    w = DetectWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Detect")
+    for text, why in (("4-99999999999999999999", "-2 to 9"), ("9-3", "reversed")):
+        w.groups.value = text
+        w.run()
+        assert not w.busy and w.last_error is not None and why in w.last_error, w.last_error
+        assert "OverflowError" not in w.last_error
