@@ -19,6 +19,7 @@ def one_error(code, err, expect_code=2):
 # -- item 14 and 24: group texts --------------------------------------------------------------------
 
 GROUP = st.integers(LOWEST_GROUP, HIGHEST_GROUP)
+GROUPS_TILT = ("m1_tilt_x", "m1_tilt_y", "m2_tilt_x", "m2_tilt_y")
 
 
 @settings(max_examples=200, deadline=None)
@@ -71,3 +72,100 @@ def test_detect_refuses_such_groups_in_one_line_before_reading_the_image(run_cli
     code, _, err = run_cli("detect", tmp_path / "missing.png", *args)
     one_error(code, err)
     assert "--groups" in err and not out.exists()
+
+
+# -- item 8 and 21: the Monte Carlo of tolerance, checked before work and streamed -------------------
+
+
+@pytest.fixture(scope="module")
+def small_tolerancing():
+    from oapcal.optics.relay import oap_relay
+    from oapcal.optics.tolerance import Tolerancing
+
+    return Tolerancing(oap_relay(1), n=41)
+
+
+def test_the_monte_carlo_is_streamed_in_blocks_with_the_same_numbers(small_tolerancing, monkeypatch):
+    import tracemalloc
+
+    from oapcal.optics import tolerance
+
+    tol = {"m1_tilt_x": 0.02, "m2_decentre_y": 0.05}
+    whole = small_tolerancing.monte_carlo(tol, 40, seed=3)
+    monkeypatch.setattr(tolerance, "monte_carlo_block", lambda n: 7)  # 40 = 5 x 7 + 5
+    blocks = small_tolerancing.monte_carlo(tol, 40, seed=3)
+    assert blocks == whole
+
+    def peak(trials):
+        tracemalloc.start()
+        small_tolerancing.monte_carlo(tol, trials, seed=1)
+        top = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        return top
+
+    # 100 more trials keep their samples (~5 kB each) but not their traced grids (41 x 41 points,
+    # 4 coordinates, 54 kB each: 5.4 MB if they were kept)
+    growth = peak(150) - peak(50)
+    assert growth < 2.5e6, growth
+
+
+@pytest.mark.parametrize(
+    "kwargs,param,words",
+    [
+        ({"trials": 0}, "trials", ["from 1 to 500,000"]),
+        ({"trials": 1.5}, "trials", ["whole number"]),
+        ({"trials": 10**7}, "trials", ["500,000"]),
+        (
+            {"trials": 500_000, "n": 201, "tolerances": dict.fromkeys(GROUPS_TILT, 0.01)},
+            ("trials", "n"),
+            ["GiB", "fewer trials or a smaller grid"],
+        ),  # fmt: skip
+        ({"tolerances": {"d1": 1e12}}, ("tolerances", "d1"), ["reaches -1e+12", "collimated path"]),
+        ({"tolerances": {"d1": 500.0}, "distribution": "normal"}, ("tolerances", "d1"), ["reaches -1250"]),
+    ],
+)
+def test_check_monte_carlo_refuses_before_any_tracing(kwargs, param, words):
+    from oapcal.errors import GeometrySpecError
+    from oapcal.optics.relay import oap_relay
+    from oapcal.optics.tolerance import check_monte_carlo
+
+    args = {"tolerances": {"m1_tilt_x": 0.01}, "trials": 100, "distribution": "uniform", "n": 17, **kwargs}
+    with pytest.raises(GeometrySpecError) as info:
+        check_monte_carlo(oap_relay(1), **args)
+    assert info.value.param == param
+    for w in words:
+        assert w in str(info.value)
+
+
+def test_check_monte_carlo_accepts_what_the_monte_carlo_runs():
+    from oapcal.optics.relay import oap_relay
+    from oapcal.optics.tolerance import MAX_TRIALS, check_monte_carlo, monte_carlo_bytes
+
+    check_monte_carlo(oap_relay(1), {"d1": 500.0, "m1_tilt_x": 0.05}, 500)  # uniform: +-500 of 860 mm
+    assert monte_carlo_bytes(MAX_TRIALS, 17, 1) < 4 * 2**30  # the limit is reachable
+
+
+@pytest.mark.parametrize(
+    "args,words",
+    [
+        (["--tol", "d1=1e12"], ["d1", "collimated path", "(set by --d1-error, --tol)"]),
+        (["--focal-length-error", "1e5"], ["m1_focal_length", "(set by --focal-length-error, --tol)"]),
+        (["--tilt", "0.1", "--trials", "2000000"], ["at most 500,000"]),
+        (["--tilt", "0.1", "--trials", "500000", "--grid", "201"], ["GiB", "(set by --trials, --grid)"]),
+        (["--pixel-size", "1e300"], ["--pixel-size"]),
+        (["--pixel-size", "0"], ["--pixel-size"]),
+        (["--field", "1e6"], ["--field"]),
+    ],
+)
+def test_tolerance_refuses_in_one_line_before_tracing(run_cli, monkeypatch, args, words):
+    from oapcal.optics import tolerance
+
+    def no_work(*a, **k):
+        raise AssertionError("the aligned relay was traced before the options were checked")
+
+    monkeypatch.setattr(tolerance.Tolerancing, "__init__", no_work)
+    code, out, err = run_cli("tolerance", *args)
+    one_error(code, err)
+    assert out == ""
+    for w in words:
+        assert w in err, err
