@@ -2,6 +2,7 @@
 any work, and messages that say what is wrong.  Every failure is one line on stderr, exit 2,
 nothing written."""
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -169,3 +170,46 @@ def test_tolerance_refuses_in_one_line_before_tracing(run_cli, monkeypatch, args
     assert out == ""
     for w in words:
         assert w in err, err
+
+
+# -- item 12: esf with many ROIs -----------------------------------------------------------------------
+
+
+def _edge_image(rows=64, cols=64):
+    from scipy.special import ndtr
+
+    x = np.arange(cols)
+    return (ndtr((x - cols / 2) / 1.5) * 200 + 20)[None, :].repeat(rows, 0).astype(np.uint8)
+
+
+def test_analyse_edges_reports_progress_and_refuses_too_many_or_too_large_rois():
+    from oapcal.imaging.esf import MAX_EDGES, MAX_ROI_PIXELS, analyse_edges
+
+    img = _edge_image()
+    calls = []
+    summary = analyse_edges(img, [(22, 5, 42, 25), (22, 30, 42, 50)], progress=lambda *a: calls.append(a))
+    assert calls == [(1, 2), (2, 2)] and len(summary.good) == 2
+    with pytest.raises(DataError, match="more than 10,000 edges") as info:
+        analyse_edges(img, [(22, 5, 42, 25)] * (MAX_EDGES + 1), progress=lambda *a: calls.append(a))
+    assert info.value.param == "rois" and len(calls) == 2  # refused before any fit
+    side = int(MAX_ROI_PIXELS**0.5) + 1
+    with pytest.raises(DataError, match="more than 1,048,576"):
+        analyse_edges(np.zeros((side + 1, side + 1), np.uint8), [(0, 0, side, side)])
+    with pytest.raises(TypeError):
+        analyse_edges(img, [(22, 5, 42, 25)], progress=True)
+
+
+def test_esf_refuses_an_roi_file_over_the_limit_while_reading_it(run_cli, tmp_path):
+    import cv2
+
+    from oapcal.imaging.esf import MAX_EDGES
+
+    cv2.imwrite(str(tmp_path / "edge.png"), _edge_image())
+    rois = tmp_path / "rois.csv"
+    rois.write_text("x0,y0,x1,y1\n" + "22,5,42,25\n" * 200_000)
+    code, out, err = run_cli("esf", tmp_path / "edge.png", "--rois", rois)
+    one_error(code, err)
+    assert f"line {MAX_EDGES + 2}: more than 10,000 rectangles" in err and out == ""
+    rois.write_text("x0,y0,x1,y1\n" + "22,5,42,25\n" * 3)  # and under it, the fits run
+    code, out, err = run_cli("esf", tmp_path / "edge.png", "--rois", rois, "--json")
+    assert code == 0 and '"n_ok": 3' in out, err
