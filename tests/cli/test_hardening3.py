@@ -213,3 +213,21 @@ def test_esf_refuses_an_roi_file_over_the_limit_while_reading_it(run_cli, tmp_pa
     rois.write_text("x0,y0,x1,y1\n" + "22,5,42,25\n" * 3)  # and under it, the fits run
     code, out, err = run_cli("esf", tmp_path / "edge.png", "--rois", rois, "--json")
     assert code == 0 and '"n_ok": 3' in out, err
+
+
+# -- item 24: Ctrl-C and termination are one line ----------------------------------------------------
+
+
+@pytest.mark.parametrize("signum", [None, 15, 1])
+def test_an_interrupt_is_one_line_and_its_exit_code(run_cli, monkeypatch, signum):
+    from oapcal.cli import Terminated
+    from oapcal.optics import tolerance
+
+    def interrupt(*a, **k):
+        raise KeyboardInterrupt if signum is None else Terminated(signum)
+
+    monkeypatch.setattr(tolerance.Tolerancing, "__init__", interrupt)
+    code, out, err = run_cli("tolerance", "--tilt", "0.01", "--trials", "10")
+    assert code == (130 if signum is None else 128 + signum) and out == ""
+    assert err.count("\n") == 1 and err.startswith("oapcal: "), repr(err)
+    assert ("interrupted" if signum is None else f"signal {signum}") in err
