@@ -231,3 +231,84 @@ def test_an_interrupt_is_one_line_and_its_exit_code(run_cli, monkeypatch, signum
     assert code == (130 if signum is None else 128 + signum) and out == ""
     assert err.count("\n") == 1 and err.startswith("oapcal: "), repr(err)
     assert ("interrupted" if signum is None else f"signal {signum}") in err
+
+
+# -- item 24: misleading texts -------------------------------------------------------------------------
+
+
+def _pairs():
+    from oapcal.synthetic import synthetic_pairs
+
+    return synthetic_pairs(n_x=6, n_y=5, seed=3)
+
+
+@pytest.mark.parametrize("bad", ["NaN", "Infinity", "-Infinity"])
+@pytest.mark.parametrize("which", [2, 4, 7])  # moving x, moving z, fixed z of a 3-D row
+def test_a_bigwarp_row_with_one_coordinate_missing_is_named(run_cli, tmp_path, bad, which):
+    d = _pairs()
+    rows = []
+    for i, (u, dd) in enumerate(zip(d.xy_u.tolist(), d.xy_d.tolist())):
+        cells = [f"Pt-{i}", "true", repr(dd[0]), repr(dd[1]), "3.0", repr(u[0]), repr(u[1]), "5.0"]
+        if i >= 1:  # every row but the first: one coordinate missing, the others numbers
+            cells[which] = bad
+        rows.append(",".join(f'"{c}"' for c in cells))
+    path = tmp_path / "bw.csv"
+    path.write_text("\n".join(rows) + "\n")
+    code, _, err = run_cli("fit", "--distorted", path)
+    one_error(code, err)
+    side, ax = ("moving", "xyz"[which - 2]) if which < 5 else ("fixed", "xyz"[which - 5])
+    assert f"line 2: landmark 'Pt-1' has {side} {ax} = '{bad}'" in err
+    assert "spread over only" not in err
+
+
+def test_a_single_usable_pair_says_so_not_zero_spread(run_cli, tmp_path):
+    rows = ['"Pt-0","true","NaN","NaN","Infinity","Infinity"', '"Pt-1","true","3","4","6","7"']
+    path = tmp_path / "bw.csv"
+    path.write_text("\n".join(rows) + "\n")
+    code, _, err = run_cli("fit", "--distorted", path)
+    one_error(code, err)
+    assert "only one paired reference landmark point" in err and "0 x 0" not in err
+
+
+@pytest.mark.parametrize("value", [{"a": {"b": 1}}, None, [1, 2]])
+def test_a_via_attribute_that_is_not_text_is_named(run_cli, tmp_path, value):
+    from landmark_writers import via2_json
+
+    d = _pairs()
+    cam = [(float(x), float(y), {"corner": str(i)}) for i, (x, y) in enumerate(d.xy_d)]
+    cam[3] = (cam[3][0], cam[3][1], {"corner": value})
+    ref = [(float(x), float(y), {"corner": str(i)}) for i, (x, y) in enumerate(d.xy_u)]
+    via2_json(tmp_path / "cam.json", {"cam.png": cam})
+    via2_json(tmp_path / "ref.json", {"ref.png": ref})
+    args = ("--distorted", tmp_path / "cam.json", "--reference", tmp_path / "ref.json", "--pair-by", "corner")
+    code, _, err = run_cli("fit", *args)
+    one_error(code, err)
+    kind = {dict: "an object", type(None): "null", list: "a list"}[type(value)]
+    assert f"region 3: attribute 'corner' is {kind}" in err and "it has: none" not in err
+
+
+@pytest.mark.parametrize("shape", [(2, 0, 0), (2, 5, 0), (2, 0, 5)])
+def test_an_empty_correction_map_is_refused_on_load(tmp_path, shape):
+    from oapcal.errors import InputFileError
+    from oapcal.io.maps import load_map
+
+    np.save(tmp_path / "m.npy", np.zeros(shape, np.float32))
+    np.savez(tmp_path / "m.npz", map_x=np.zeros(shape[1:], np.float32), map_y=np.zeros(shape[1:], np.float32))
+    for name in ("m.npy", "m.npz"):
+        with pytest.raises(InputFileError, match="it has no pixels") as info:
+            load_map(tmp_path / name)
+        assert "Assertion" not in str(info.value)
+
+
+def test_export_opencv_of_a_relay_estimates_its_memory_and_names_the_image_size(run_cli, tmp_path):
+    from relay_helpers import write_relay_calibration
+
+    calib = write_relay_calibration(tmp_path / "relay.json")
+    out = tmp_path / "cv.json"
+    code, _, err = run_cli("export-opencv", calib, "--image-size", "16384x16384", "--out", out)
+    one_error(code, err)
+    assert "12 GiB" in err and "(set by --image-size" in err and not out.exists()
+    # an image far larger than the relay's field, under the memory limit: the image size, not the extent
+    code, _, err = run_cli("export-opencv", calib, "--image-size", "100000x40", "--out", out)
+    one_error(code, err)
+    assert "made for 640x480 px" in err and "extent" not in err and not out.exists()

@@ -221,6 +221,11 @@ def check_spread(xy: np.ndarray, label: str, source: str) -> None:
     xy = np.asarray(xy, float)
     if len(xy) == 0 or not np.isfinite(xy).all():
         return
+    if len(xy) == 1:  # no spread to speak of: say how many there are
+        raise DataError(
+            f"{source}: there is only one {label} point; a fit needs several, spread over the field in "
+            "both x and y"
+        )
     size = float(np.abs(xy).max())
     spread = xy.max(axis=0) - xy.min(axis=0)
     if spread.min() < max(MIN_SPREAD, MIN_RELATIVE_SPREAD * size):
