@@ -27,6 +27,7 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.model import family_of, undistort
+from oapcal.validate import image as check_image
 
 INTERPOLATIONS = ("nearest", "linear", "cubic", "lanczos")
 EXTENTS = ("input", "full", "calibrated")
@@ -303,6 +304,7 @@ def correct_image(
     """
     import cv2
 
+    image = check_image(image)
     if interp not in _CV2_INTERP:
         raise DataError(f"unknown interpolation {interp!r}: use one of {', '.join(INTERPOLATIONS)}")
     map_x, map_y = maps
