@@ -180,3 +180,23 @@ def test_the_command_line_keeps_the_librarys_trial_limits():
     assert cli_select.MAX_TRIALS == subsampling.MAX_TRIALS
     assert cli_select.BYTES_PER_TRIAL_POINT == subsampling.BYTES_PER_TRIAL_POINT
     assert cli_select.BYTES_PER_TRIAL_MODEL == subsampling.BYTES_PER_TRIAL_MODEL
+
+
+@pytest.mark.parametrize("spec", [5, 1.5, None, object()])
+def test_parse_model_of_a_non_spec_is_a_named_error(spec):
+    from oapcal.errors import ModelSpecError
+    from oapcal.model import parse_model
+
+    with pytest.raises(ModelSpecError, match="a model specification is a preset"):
+        parse_model(spec)
+
+
+def test_fit_refuses_non_finite_points_by_name():
+    from oapcal.errors import DataError
+    from oapcal.fitting import fit
+
+    xy = np.random.default_rng(0).uniform(0, 100, (30, 2))
+    bad = xy.copy()
+    bad[3, 1] = np.inf
+    with pytest.raises(DataError, match="not finite"):
+        fit(xy, bad, "paper")

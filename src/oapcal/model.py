@@ -94,8 +94,14 @@ def parse_model(spec: str | Mapping | np.ndarray | tuple | list) -> np.ndarray:
                         "empty model specification: give a preset "
                         f"({', '.join(PRESETS)}) or a comma list of parameter names"
                     )
-        else:
+        elif isinstance(spec, np.ndarray | tuple | list | Mapping):
             names = tuple(spec)
+        else:
+            raise ModelSpecError(
+                f"a model specification is a preset ({', '.join(PRESETS)}), a comma list of parameter "
+                f"names, a sequence of names or a ({N_PARAMS},) boolean mask, not {type(spec).__name__}",
+                param="model",
+            )
         mask = np.zeros(N_PARAMS, dtype=bool)
         for name in names:
             if name not in INDEX:
