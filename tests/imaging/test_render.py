@@ -105,8 +105,8 @@ def test_microscope_behind_the_model_magnifies_and_inverts():
     r = render_scene(src, scene)
     c = np.array([29.5, 19.5])
     np.testing.assert_allclose(r.object_um, -(grid(60, 40) - c) * 0.96, atol=1e-9)
-    np.testing.assert_allclose(scene.camera_from_source(r.source_px.reshape(-1, 2)), grid(60, 40).reshape(-1, 2),
-                               atol=1e-9)  # fmt: skip
+    back = scene.camera_from_source(r.source_px.reshape(-1, 2))
+    np.testing.assert_allclose(back, grid(60, 40).reshape(-1, 2), atol=1e-9)
     upright = Scene(
         identity_params(), Placement(1.0, (100.0, 75.0)), cam, microscope=Microscope(5.0, inverted=False)
     )

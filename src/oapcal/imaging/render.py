@@ -38,7 +38,8 @@ object point (um) and source pixel, and whether the model's inverse converged th
 >>> import numpy as np
 >>> from oapcal.model import identity_params
 >>> src = np.tile(np.linspace(0.0, 1.0, 64), (48, 1))
->>> scene = Scene(identity_params(), Placement(4.8, (31.5, 23.5)), Camera(size=(64, 48), snr=None, sigma_px=0))
+>>> cam = Camera(size=(64, 48), snr=None, sigma_px=0)
+>>> scene = Scene(identity_params(), Placement(4.8, (31.5, 23.5)), cam)
 >>> r = render_scene(src, scene)
 >>> r.image.shape, r.image.dtype.name, bool(r.valid.all())
 ((48, 64), 'uint8', True)
