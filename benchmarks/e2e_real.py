@@ -194,7 +194,8 @@ def run_cli_subprocess(args: list[str]) -> tuple[dict, str, str]:
 
 def last_line(text: str) -> str:
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    return lines[-1] if lines else ""
+    line = lines[-1] if lines else ""
+    return line.removeprefix("oapcal: error: ").removeprefix("oapcal: warning: ")
 
 
 def read_csv_rows(path: Path) -> list[dict]:
@@ -456,7 +457,7 @@ def run_fit(model, pts, scale, scene, rendering, image_path, grid, stem: Path, s
         "fit_s": time.perf_counter() - t0,
         "written": cal.exists(),
         "converged": None,
-        "message": last_line(err),
+        "message": last_line(err).replace(f"{stem.parent}/", ""),
     }
     try:
         fit["converged"] = bool(json.loads(out)["converged"]) if out.strip() else None
@@ -515,6 +516,13 @@ def run_fit(model, pts, scale, scene, rendering, image_path, grid, stem: Path, s
     gy, gx = np.mgrid[0:h, 0:w]
     obj = np.stack([gx, gy], -1).reshape(-1, 2) @ mat.T + t
     inside = (np.abs(obj) <= FIELD_HALF_UM).all(axis=1).reshape(h, w)
+    # ... and where the corrected image has content (its map samples the input, not the border)
+    from oapcal import correction_map
+    from oapcal.io.calibration import load_calibration
+
+    mx, my = (np.asarray(a) for a in correction_map(load_calibration(cal), (h, w)))
+    with np.errstate(invalid="ignore"):
+        inside &= (mx >= 1) & (mx <= w - 2) & (my >= 1) & (my <= h - 2)
     inside[:3], inside[-3:], inside[:, :3], inside[:, -3:] = False, False, False, False
     if inside.sum() < 100:
         return fit
@@ -537,7 +545,7 @@ def fit_status(f: dict) -> str:
         return "converged"
     if f["written"]:
         return "NOT converged (written)"
-    return f"refused: {f['message'][:70]}" if f["message"] else f"exit {f['code']}"
+    return f"refused: {f['message'][:90]}" if f["message"] else f"exit {f['code']}"
 
 
 def tables(results: list[dict]) -> str:
