@@ -701,6 +701,8 @@ def main(argv=None) -> int:
                 res = {"case": asdict(case), "error": f"{type(exc).__name__}: {exc}", "detections": []}
             res["case_s"] = time.perf_counter() - t0
             results.append(res)
+            if args.json is not None:  # the rows so far (a long run can be read while it runs)
+                write_rows(args.json, results, time.perf_counter() - t_start)
             print(
                 f"{case.name}: {res['case_s']:.0f} s" + (f" ({res['error']})" if "error" in res else ""),
                 file=sys.stderr,
@@ -713,10 +715,14 @@ def main(argv=None) -> int:
         print(f"- **{'met' if met else 'NOT met'}**: {goal}. {evidence.removesuffix('; failing: ')}")
     print(f"\n{len(results)} cases in {total / 60:.1f} min.")
     if args.json is not None:
-        from oapcal.io.jsonfile import json_safe
-
-        args.json.write_text(json.dumps(json_safe({"results": results, "total_s": total}), indent=1))
+        write_rows(args.json, results, total)
     return 0
+
+
+def write_rows(path: Path, results: list[dict], total_s: float) -> None:
+    from oapcal.io.jsonfile import json_safe
+
+    path.write_text(json.dumps(json_safe({"results": results, "total_s": total_s}), indent=1))
 
 
 if __name__ == "__main__":
