@@ -673,6 +673,13 @@ def goals(results: list[dict]) -> list[tuple[str, bool, str]]:
     return out
 
 
+def print_report(results: list[dict]) -> None:
+    print(tables(results))
+    print("\n### Goals\n")
+    for goal, met, evidence in goals(results):
+        print(f"- **{'met' if met else 'NOT met'}**: {goal}. {evidence.removesuffix('; failing: ')}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="a few seeded cases (< 10 min on one core)")
@@ -682,7 +689,14 @@ def main(argv=None) -> int:
         "--models", default=",".join(MODELS), help="families fitted (names of oapcal fit --model)"
     )
     ap.add_argument("--no-images", action="store_true", help="skip the corrected-image comparison")
+    ap.add_argument(
+        "--report", type=Path, default=None, help="print the tables of the rows of an earlier --json"
+    )
     args = ap.parse_args(argv)
+    if args.report is not None:
+        results = json.loads(args.report.read_text())["results"]
+        print_report(results)
+        return 0
     if not REAL.is_dir():
         print(f"{REAL}: not found (the real images are kept beside the repository)", file=sys.stderr)
         return 2
@@ -709,10 +723,7 @@ def main(argv=None) -> int:
                 flush=True,
             )
     total = time.perf_counter() - t_start
-    print(tables(results))
-    print("\n### Goals\n")
-    for goal, met, evidence in goals(results):
-        print(f"- **{'met' if met else 'NOT met'}**: {goal}. {evidence.removesuffix('; failing: ')}")
+    print_report(results)
     print(f"\n{len(results)} cases in {total / 60:.1f} min.")
     if args.json is not None:
         write_rows(args.json, results, total)
