@@ -65,7 +65,9 @@ import numpy as np
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "real" / "usaf"
 
 #: source file -> (object um per source px (SOURCES.md), groups detected on the source)
-SOURCES = {"fpm_brightfield.png": (1.02, "4-7")}
+#: (whole_target.png, 130 um/px, shows groups -2 to 1, 66 mm across: not the relay's 1 mm
+#: field; highmag_g7e1.jpg, 0.115 um/px, one element: too small for either camera)
+SOURCES = {"fpm_brightfield.png": (1.02, "4-7"), "labumk_negative.tif": (3.7, "4-7")}
 #: the families fitted (names of ``oapcal fit --model``)
 MODELS = ("paper", "paper+rotation", "full", "relay")
 #: goals of the issue
@@ -156,6 +158,11 @@ def cases(quick: bool, seeds: int | None) -> list[Case]:
         ]
     out.append(Case("aligned, 5x microscope", groups="5-7", centre_groups="6-7", microscope=True, seed=2))
     if not quick:
+        # the second real image that fits the field: 3.7 um/px, groups 4-5 with their top rows cut
+        out.append(Case("labumk, aligned", source="labumk_negative.tif", seed=3))
+        out += [
+            misaligned(s, name=f"labumk, misaligned s{s}", source="labumk_negative.tif") for s in range(n)
+        ]
         out += [
             misaligned(
                 s, name=f"misaligned s{s}, 5x microscope", groups="5-7", centre_groups="6-7", microscope=True
