@@ -696,6 +696,7 @@ def main(argv=None) -> int:
         "--models", default=",".join(MODELS), help="families fitted (names of oapcal fit --model)"
     )
     ap.add_argument("--no-images", action="store_true", help="skip the corrected-image comparison")
+    ap.add_argument("--only", default=None, help="run only the cases whose name contains this text")
     ap.add_argument(
         "--report", type=Path, default=None, help="print the tables of the rows of an earlier --json"
     )
@@ -713,6 +714,8 @@ def main(argv=None) -> int:
     results = []
     with tempfile.TemporaryDirectory(prefix="e2e_real_") as tmp:
         for case in cases(args.quick, args.seeds):
+            if args.only is not None and args.only not in case.name:
+                continue
             if case.source not in sources:
                 sources[case.source] = source_truth(case.source)
             t0 = time.perf_counter()
