@@ -1,5 +1,5 @@
 """Camera images of a real picture of a target through a distortion model, with the exact
-truth of every pixel (``docs/detection.md``, End-to-end benchmark on real content).
+truth of every pixel (``docs/detection.md``, "End to end on real content").
 
 Where :mod:`oapcal.imaging.simulate` draws the USAF target from its geometry, this module
 takes a real image of a target (a 2-D array and its own um per pixel, the *source*) and
