@@ -655,11 +655,16 @@ def goals(results: list[dict]) -> list[tuple[str, bool, str]]:
         for r, d, f in fits
         if f["code"] != 0
     ]
+    unfitted = [
+        r["case"]["name"] + (" (hint)" if d["hint"] else " (no hint)") for r, d in dets if not d["fits"]
+    ]
+    nc += [f"{name}: no points to fit" for name in unfitted]
     out.append(
         (
             "every default fit converges",
             not nc,
-            f"{len(fits) - len(nc)} of {len(fits)}; failing: " + "; ".join(nc),
+            f"{len(fits) + len(unfitted) - len(nc)} of {len(fits)} fits converged, "
+            f"{len(unfitted)} detections gave none to fit; failing: " + "; ".join(nc),
         )
     )
     slow = [
