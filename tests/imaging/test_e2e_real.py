@@ -145,3 +145,27 @@ def test_every_default_fit_converges(results):
         for d in result["detections"]:
             for f in d["fits"]:
                 assert f["code"] == 0, (result["case"]["name"], f["model"], f["message"])
+
+
+def test_fully_visible_elements_are_whole_inside_and_resolved():
+    from oapcal.imaging.render import Camera, Placement, Scene
+    from oapcal.imaging.usaf import usaf_target
+    from oapcal.model import identity_params
+
+    target = usaf_target((4, 5))
+    corners = dict(zip(target.corner_ids, target.corners_um / 1.0))  # a source at 1 um/px
+    src = bench.SourceTruth(np.zeros((10, 10)), 1.0, corners, None)
+    case = bench.Case("synthetic", groups="4-5")
+    centre = target.corners_um.mean(axis=0)
+    centred = Scene(identity_params(), Placement(1.0, tuple(centre)), Camera())
+    truth, visible = bench.corner_truth(case, src, centred)
+    # every element but G5E6, whose bars are 8.77 um = 1.83 px < 2 px at 4.8 um/px
+    assert len(visible) == 11 * 24 and not any(c.startswith("G5E6") for c in visible)
+    # moved by 1.4 mm (292 px) so that the target crosses the image's right edge: whole elements drop out
+    shifted = Scene(identity_params(), Placement(1.0, tuple(centre + [-1400.0, 0.0])), Camera())
+    truth, visible = bench.corner_truth(case, src, shifted)
+    assert 0 < len(visible) < 11 * 24 and len(visible) % 24 == 0
+    xy = np.array([truth[c] for c in visible])
+    assert (xy >= 3).all() and (xy[:, 0] <= 636).all() and (xy[:, 1] <= 476).all()
+    outside = [c for c in truth if c not in visible and not c.startswith("G5E6")]
+    assert any(truth[c][0] > 636 for c in outside)
