@@ -685,8 +685,43 @@ def goals(results: list[dict]) -> list[tuple[str, bool, str]]:
     return out
 
 
-def print_report(results: list[dict]) -> None:
-    print(tables(results))
+def summary_table(results: list[dict]) -> str:
+    """One row per case: detection (without ; with the scale) and each family's mean / max
+    over the field (without ; with); '-' for a step that gave nothing, '*' after a fit that
+    did not converge (exit 3, written)."""
+
+    def det(d):
+        return (
+            f"{fmt(100 * d['coverage'], '.0f')} % / {d['wrong_ids']}"
+            if d["code"] == 0
+            else f"exit {d['code']}"
+        )
+
+    def fit(d, model):
+        f = next((f for f in d["fits"] if f["model"] == model), None)
+        if f is None or "mean_px" not in f:
+            return "-"
+        return f"{fmt(f['mean_px'], '.2f')} / {fmt(f['max_px'], '.2f')}" + ("" if f["code"] == 0 else "*")
+
+    models = list(dict.fromkeys(f["model"] for r in results for d in r["detections"] for f in d["fits"]))
+    head = (
+        "| case | detection: coverage / wrong ids | "
+        + " | ".join(f"{m}: mean / max (px)" for m in models)
+        + " |"
+    )
+    lines = [head, "|---" * (2 + len(models)) + "|"]
+    for r in results:
+        ds = r["detections"]
+        if not ds:
+            lines.append(f"| {r['case']['name']} | {r.get('error', 'no result')} |" + " |" * len(models))
+            continue
+        cells = [" ; ".join(det(d) for d in ds)] + [" ; ".join(fit(d, m) for d in ds) for m in models]
+        lines.append(f"| {r['case']['name']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def print_report(results: list[dict], summary: bool = False) -> None:
+    print(summary_table(results) if summary else tables(results))
     print("\n### Goals\n")
     for goal, met, evidence in goals(results):
         print(f"- **{'met' if met else 'NOT met'}**: {goal}. {evidence.removesuffix('; failing: ')}")
@@ -705,10 +740,11 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--report", type=Path, default=None, help="print the tables of the rows of an earlier --json"
     )
+    ap.add_argument("--summary", action="store_true", help="one row per case instead of the full tables")
     args = ap.parse_args(argv)
     if args.report is not None:
         results = json.loads(args.report.read_text())["results"]
-        print_report(results)
+        print_report(results, args.summary)
         return 0
     if not REAL.is_dir():
         print(f"{REAL}: not found (the real images are kept beside the repository)", file=sys.stderr)
@@ -738,7 +774,7 @@ def main(argv=None) -> int:
                 flush=True,
             )
     total = time.perf_counter() - t_start
-    print_report(results)
+    print_report(results, args.summary)
     print(f"\n{len(results)} cases in {total / 60:.1f} min.")
     if args.json is not None:
         write_rows(args.json, results, total)
