@@ -93,6 +93,7 @@ def test_detection_gives_no_wrong_id_with_or_without_the_scale(results, name):
     for d in dets:
         assert d["code"] == 0 and d["checked"] == d["found"] > 200
         assert d["wrong_ids"] == 0
+        assert d["reference_rms_px"] < bench.MAX_REFERENCE_RMS_PX  # the layout and scale are right
         assert d["peak_mb"] < bench.MEMORY_GOAL_MB
 
 
