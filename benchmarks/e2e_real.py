@@ -28,9 +28,9 @@ What it does, per case (``cases``):
    the nearest other corner) from the source's corner of the same id.
 3. **Fit** each family with ``oapcal fit POINTS --model M --um-per-px S --image-size 640x480
    --out calib.json --json`` from the default start (``paper``, ``paper+rotation``, ``full``,
-   and ``relay`` with ``--relay-setup 1 --pixel-size P``, P the object-space pixel: 4.8, or 0.96
-   behind the microscope), run in-process through :func:`oapcal.cli.main`.  Exit 3 (not
-   converged, or refused) is a row, not a crash.
+   and ``relay`` with ``--relay-setup 1 --pixel-size 4.8``; behind the microscope the
+   ``relay+microscope`` family, ``--microscope-magnification -5``), run in-process through
+   :func:`oapcal.cli.main`.  Exit 3 (not converged, or refused) is a row, not a crash.
 4. **Correct the points**: ``oapcal correct-points calib.json grid.csv`` on every 4th camera
    pixel whose true object point lies in the 1 mm x 1 mm field round the axis (>= 3 px inside
    the image).  The error is the distance of each corrected point to its true object point
@@ -475,7 +475,13 @@ def run_fit(model, pts, scale, scene, rendering, image_path, grid, stem: Path, s
         cal,
         "--json",
     ]
-    if model.startswith("relay"):
+    if model.startswith("relay") and scene.microscope is not None:
+        # the relay+microscope family: the camera's own pitch and the microscope's signed
+        # magnification (negative: it inverts), as docs/models.md fits the paper's third setup
+        mag = scene.microscope.magnification * (-1 if scene.microscope.inverted else 1)
+        args += ["--relay-setup", "1", "--pixel-size", f"{scene.camera.pixel_size_um:.6g}",
+                 "--microscope-magnification", f"{mag:.6g}"]  # fmt: skip
+    elif model.startswith("relay"):
         args += ["--relay-setup", "1", "--pixel-size", f"{scene.camera_um_per_px:.6g}"]
     t0 = time.perf_counter()
     code, out, err = run_cli(args)
