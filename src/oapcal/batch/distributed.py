@@ -378,6 +378,9 @@ def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
             f"{out_path}: the output would overwrite the input {input_path}; choose another out_dir",
             param="out_dir",
         )
+    from oapcal.io.atomic import check_output_target
+
+    check_output_target(out_path, directory=output_format == "zarr")
     return out_path
 
 

@@ -40,6 +40,7 @@ from oapcal.imaging.remap import CorrectionMap, correct_image, correction_map
 from oapcal.io.atomic import (
     atomic_path,
     check_free_space,
+    check_output_target,
     ensure_not_input,
     file_fingerprint,
     remove_stale_temps,
@@ -237,6 +238,7 @@ def plan_outputs(
                 "choose another path for it"
             )
         ensure_not_input(out, [*files, *protect])
+        check_output_target(out)
         outputs.append(out)
     return outputs
 
