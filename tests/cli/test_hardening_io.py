@@ -165,3 +165,314 @@ def test_a_write_that_does_not_fit_names_the_output(run_cli, files, tmp_path, mo
     assert err.startswith(f"oapcal: error: {tmp_path / out}: {os.strerror(code_)}"), err
     assert "standard output" not in err and "a file" not in err
     assert list(tmp_path.iterdir()) == []
+
+
+# -- A2: a calibration whose map samples no pixel of the image --------------------------------
+
+
+def _edited(base, **changes):
+    """``base`` (a Calibration) with parameters changed by name (Eq. 1) or a relay design
+    misalignment (relay)."""
+    import dataclasses
+
+    from oapcal.model import params_from_dict, params_to_dict
+
+    if "relay" in changes:
+        from oapcal.optics.relay_model import RelayDesign, relay_params
+
+        design = RelayDesign(setup=1, pixel_size_um=4.8, centre=(319.5, 239.5))
+        return dataclasses.replace(base, params=relay_params(design, changes["relay"], {}))
+    return dataclasses.replace(base, params=params_from_dict({**params_to_dict(base.params), **changes}))
+
+
+EMPTY_MAPS = {
+    "x_off=1e29": {"x_off": 1e29},
+    "m=1e12": {"m": 1e12},
+    "m=1e3": {"m": 1e3},
+    "relay mirror 1 tilted 44 deg": {"relay": {"m1_tilt_x": 44.0}},
+    "relay mirror 2 tilted 2 deg": {"relay": {"m2_tilt_x": 2.0}},
+    "relay camera defocus 1e20": {"relay": {"camera_defocus": 1e20}},
+}
+
+
+@pytest.fixture(scope="module")
+def empty_calibrations(files, tmp_path_factory):
+    from oapcal.io.calibration import load_calibration
+
+    d = tmp_path_factory.mktemp("empty")
+    base = load_calibration(files["calib"])
+    relay_base = None
+    out = {}
+    for label, changes in EMPTY_MAPS.items():
+        if "relay" in changes:
+            if relay_base is None:
+                import sys
+
+                sys.path.insert(0, str(Path(__file__).parents[1]))
+                from relay_helpers import relay_calibration
+
+                relay_base = relay_calibration()
+            cal = _edited(relay_base, **changes)
+        else:
+            cal = _edited(base, **changes)
+        path = d / f"{len(out)}.json"
+        save_calibration(cal, path)
+        out[label] = path
+    return out
+
+
+@pytest.mark.parametrize("label", list(EMPTY_MAPS))
+@pytest.mark.parametrize("command", ["correct", "correct --save-map", "export-opencv"])
+def test_a_map_that_samples_nothing_is_refused_before_writing(run_cli, files, empty_calibrations, tmp_path,
+                                                               label, command):  # fmt: skip
+    import cv2
+
+    calib = empty_calibrations[label]
+    size = (640, 480) if "relay" in label else (64, 48)
+    cv2.imwrite(str(tmp_path / "img.png"), np.full(size[::-1], 100, np.uint8))
+    out = tmp_path / "out"
+    argv = {
+        "correct": ["correct", calib, tmp_path / "img.png", "--out-dir", out],
+        "correct --save-map": ["correct", calib, "--save-map", tmp_path / "m.npz"],
+        "export-opencv": ["export-opencv", calib, "--out", tmp_path / "cv.yml"],
+    }[command]
+    code, stdout, err = run_cli(*argv)
+    one_error(code, err)
+    assert "the map samples no pixel of the image" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["img.png"]
+
+
+def test_dask_correct_of_a_map_that_samples_nothing_is_refused(run_cli, empty_calibrations, tmp_path):
+    pytest.importorskip("dask", reason="the dask extra is not installed")
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "s.tif", np.full((5, 48, 64), 100, np.uint8))
+    code, _, err = run_cli("correct", empty_calibrations["x_off=1e29"], tmp_path / "s.tif", "--out-dir",
+                           tmp_path / "out", "--dask", "--scheduler", "synchronous")  # fmt: skip
+    one_error(code, err)
+    assert "the map samples no pixel of the image" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.tif"]
+
+
+def test_a_map_file_made_for_another_camera_is_refused(run_cli, files, tmp_path):
+    import cv2
+
+    from oapcal.imaging.remap import CorrectionMap, OutputGeometry
+    from oapcal.io.maps import save_map
+
+    far = np.full((48, 64), 5000.0, np.float32)  # every source 5000 px away
+    save_map(CorrectionMap(far, far, OutputGeometry((48, 64))), tmp_path / "m.npy")
+    cv2.imwrite(str(tmp_path / "img.png"), np.full((48, 64), 100, np.uint8))
+    code, _, err = run_cli("correct", files["calib"], tmp_path / "img.png", "--map", tmp_path / "m.npy",
+                           "--out-dir", tmp_path / "out")  # fmt: skip
+    one_error(code, err)
+    assert "the map samples no pixel of the image" in err
+    assert not (tmp_path / "out").exists() or list((tmp_path / "out").iterdir()) == []
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=60, deadline=None)
+@given(dx=st.integers(-90, 90), dy=st.integers(-70, 70))
+def test_the_refusal_follows_the_overlap_of_a_shifted_map(dx, dy):
+    """A pure shift by (dx, dy) px samples exactly (40 - |dx|)(30 - |dy|) of the 40 x 30
+    output pixels: the map is refused exactly when that is under 0.1 % (here: none)."""
+    from oapcal.imaging.remap import MIN_SAMPLED_FRACTION, EmptyMapError, correction_map, sampled_fraction
+    from oapcal.model import params_from_dict
+
+    rows, cols = 30, 40
+    expected = max(0, cols - abs(dx)) * max(0, rows - abs(dy)) / (rows * cols)
+    params = params_from_dict({"c_x": float(dx), "c_y": float(dy)})
+    if expected < MIN_SAMPLED_FRACTION:
+        with pytest.raises(EmptyMapError, match="samples no pixel of the image"):
+            correction_map(params, (rows, cols))
+    else:
+        assert sampled_fraction(correction_map(params, (rows, cols)), (rows, cols)) == expected
+
+
+# -- A5: correct_image refuses what the command refuses -----------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small_map(files):
+    from oapcal.imaging.remap import correction_map
+    from oapcal.io.calibration import load_calibration
+
+    return correction_map(load_calibration(files["calib"]), (48, 64))
+
+
+@pytest.mark.parametrize(
+    "shape,dtype",
+    [((5, 48, 64), "uint8"), ((48, 64, 256), "uint8"), ((48, 64, 300), "float32"), ((48, 64, 2), "uint8"),
+     ((2, 48, 64, 3), "uint8"), ((64,), "uint8"), ((48, 64), "int64"), ((48, 64), "bool"),
+     ((0, 64), "uint8")],
+)  # fmt: skip
+def test_correct_image_refuses_stacks_many_channels_and_odd_types(small_map, shape, dtype):
+    from oapcal.errors import DataError
+    from oapcal.imaging.remap import correct_image
+
+    with pytest.raises(DataError, match="cannot be corrected"):
+        correct_image(np.ones(shape, dtype), small_map)
+
+
+@pytest.mark.parametrize("channels", [(), (1,), (3,), (4,)])
+def test_correct_image_writes_into_out_and_refuses_a_wrong_one(small_map, channels):
+    from oapcal.errors import DataError
+    from oapcal.imaging.remap import correct_image
+
+    image = (np.arange(48 * 64 * int(np.prod(channels))) % 200).astype(np.uint8).reshape((48, 64, *channels))
+    expected = correct_image(image, small_map)
+    out = np.full((48, 64, *channels), 7, np.uint8)
+    assert correct_image(image, small_map, out=out) is out
+    np.testing.assert_array_equal(out.reshape(expected.shape), expected)
+    for wrong in (np.empty((48, 63, *channels), np.uint8), np.empty((48, 64, *channels), np.float32),
+                  np.empty((64, 48, *channels), np.uint8)[::-1], [[0] * 64] * 48):  # fmt: skip
+        with pytest.raises(DataError, match="out must be"):
+            correct_image(image, small_map, out=wrong)
+
+
+def test_correct_image_refuses_an_image_of_another_size_unless_allowed(small_map):
+    from oapcal.errors import DataError
+    from oapcal.imaging.remap import correct_image
+
+    with pytest.raises(DataError, match="the image is 80x60 px but the map was built for 64x48 px") as info:
+        correct_image(np.ones((60, 80), np.uint8), small_map)
+    assert info.value.param == "allow_size_mismatch"
+    assert correct_image(np.ones((60, 80), np.uint8), small_map, allow_size_mismatch=True).shape == (48, 64)
+    # a bare (map_x, map_y) pair does not know its input size: nothing to compare
+    assert correct_image(np.ones((60, 80), np.uint8), tuple(small_map)).shape == (48, 64)
+
+
+# -- A7: collapsing output geometries, a NaN border, numbers that only Python reads -------------
+
+
+@pytest.mark.parametrize("um", ["1e300", "1000", "500"])
+def test_an_output_scale_that_collapses_the_output_is_refused(run_cli, files, tmp_path, um):
+    out = tmp_path / "out"
+    code, _, err = run_cli("correct", files["calib"], files["img"], "--out-dir", out, "--um-per-px", um)
+    one_error(code, err)
+    assert "under 2 px on a side: the output region collapses" in err and "--um-per-px" in err, err
+    assert not out.exists() or list(out.iterdir()) == []
+
+
+def test_the_coarsest_output_scale_named_in_the_refusal_is_accepted(files):
+    import re
+
+    from oapcal.errors import DataError
+    from oapcal.imaging.remap import output_geometry
+    from oapcal.io.calibration import load_calibration
+
+    cal = load_calibration(files["calib"])
+    with pytest.raises(DataError) as info:
+        output_geometry(cal, (48, 64), um_per_px=1e300)
+    limit = float(re.search(r"at most ([0-9.e+-]+) um per px", str(info.value))[1])
+    assert min(output_geometry(cal, (48, 64), um_per_px=limit * 0.999).shape) == 2
+    with pytest.raises(DataError, match="collapses"):
+        output_geometry(cal, (48, 64), um_per_px=limit * 1.01)
+    with pytest.raises(DataError, match="more than 16 times"):  # the other end, a tiny scale
+        output_geometry(cal, (48, 64), um_per_px=1e-300)
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "NaN"])
+def test_border_refuses_non_finite_values_like_every_float_option(run_cli, files, tmp_path, value):
+    out = tmp_path / "o"
+    code, _, err = run_cli("correct", files["calib"], files["img"], "--out-dir", out, "--border", value)
+    assert code == 2 and "--border" in err and "is not a finite number" in err, err
+    assert not (tmp_path / "o").exists()
+
+
+#: Text Python's float reads as 47.5 (or 47) but no point file means.
+NOT_ASCII_NUMBERS = [
+    "4_7.5", "\u0664\u0667.\u0665", "\uff14\uff17.\uff15", "4\u00b7\u0037", "\u09ea\u09ed", "47.5\u200b"
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("bad", NOT_ASCII_NUMBERS)
+def test_point_files_read_only_ascii_numbers(run_cli, tmp_path, bad):
+    from oapcal.synthetic import synthetic_pairs
+
+    data = synthetic_pairs(n_x=5, n_y=4, seed=1)
+    write_point_pairs(tmp_path / "p.csv", data.xy_u, data.xy_d)
+    lines = (tmp_path / "p.csv").read_text().splitlines()
+    cells = lines[3].split(",")
+    col = lines[0].split(",").index("x_d")
+    cells[col] = bad
+    lines[3] = ",".join(cells)
+    (tmp_path / "p.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    code, _, err = run_cli("fit", tmp_path / "p.csv", "--out", tmp_path / "c.json")
+    one_error(code, err)
+    assert f"p.csv: line 4, column 'x_d': {bad!r}"[:30] in err and "is not a number" in err, err
+    assert not (tmp_path / "c.json").exists()
+
+
+@pytest.mark.parametrize("bad", NOT_ASCII_NUMBERS)
+def test_landmark_and_roi_readers_read_only_ascii_numbers(tmp_path, bad):
+    from oapcal.errors import InputFileError
+    from oapcal.io.landmarks import read_landmarks
+    from oapcal.io.rois import read_rois
+
+    (tmp_path / "l.csv").write_text(f"name,x,y\nA,10,12\nB,{bad},11\nC,31,40\n", encoding="utf-8")
+    with pytest.raises(InputFileError, match=r"l\.csv: line 3: column 'x' is .* not a number"):
+        read_landmarks(tmp_path / "l.csv")
+    (tmp_path / "r.csv").write_text(f"label,x0,y0,x1,y1\na,1,2,{bad},60\n", encoding="utf-8")
+    with pytest.raises(InputFileError, match=r"r\.csv: line 2, column 'x1': .* is not a number"):
+        read_rois(tmp_path / "r.csv")
+
+
+from hypothesis import HealthCheck  # noqa: E402
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(text=st.text(min_size=1, max_size=12))
+def test_parse_number_reads_exactly_ascii_notation(text):
+    """Whatever the text, parse_number gives float's value when the text is ASCII decimal
+    or scientific notation (or nan/inf), and refuses it otherwise."""
+    import re
+
+    from oapcal.io.userfile import parse_number
+
+    ascii_number = re.fullmatch(
+        r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?|[+-]?(nan|inf|infinity)",
+        text.strip(),
+        re.IGNORECASE | re.ASCII,
+    )
+    if ascii_number:
+        value = parse_number(text)
+        assert value == float(text.strip()) or (np.isnan(value) and np.isnan(float(text.strip())))
+    else:
+        with pytest.raises(ValueError):
+            parse_number(text)
+
+
+# -- B9: a multi-page TIFF where one image is expected is refused from its header ------------
+
+
+@pytest.fixture(scope="module")
+def tall_stack(tmp_path_factory):
+    """64 zlib-compressed pages of 1024 x 1024 px: 0.2 MB on disk, 64 MiB decoded."""
+    import tifffile
+
+    path = tmp_path_factory.mktemp("stack") / "stack.tif"
+    with tifffile.TiffWriter(path) as tif:
+        page = np.zeros((1024, 1024), np.uint8)
+        for _ in range(64):
+            tif.write(page, compression="zlib", photometric="minisblack")
+    return path
+
+
+@pytest.mark.parametrize(
+    "argv", ["esf {s}", "report {calib} --image {s} --out {d}/r.html", "detect {s} --out {d}/p.csv"]
+)
+def test_one_image_commands_refuse_a_stack_without_decoding_it(run_cli, files, tmp_path, tall_stack, argv):
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        code, _, err = run_cli(*argv.format(s=tall_stack, calib=files["calib"], d=tmp_path).split())
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert code == 2 and f"{tall_stack}: is a stack of 64 frames (pages)" in err, err
+    assert peak < 16 * 2**20, f"{peak / 2**20:.0f} MiB allocated: pages were decoded"  # 64 MiB if decoded

@@ -159,11 +159,11 @@ def _worker_map(source: tuple) -> CorrectionMap:
     return correction_map(np.array(params), shape, geometry=geometry)
 
 
-def _correct_block(block: np.ndarray, source, interp: str, border: float) -> np.ndarray:
+def _correct_block(block: np.ndarray, source, interp: str, border: float, allow: bool = False) -> np.ndarray:
     cmap = source if isinstance(source, CorrectionMap) else _worker_map(source)
     out = np.empty((block.shape[0], *cmap.shape, *block.shape[3:]), block.dtype)
     for i, frame in enumerate(block):
-        out[i] = correct_image(frame, cmap, interp, border).reshape(out.shape[1:])
+        out[i] = correct_image(frame, cmap, interp, border, allow_size_mismatch=allow).reshape(out.shape[1:])
     return out
 
 
@@ -411,6 +411,9 @@ def _plan_map(calibration, input_path: Path, frame_shape, cmap, map_path, settin
                 f"{input_path}: frames are {cols}x{rows} px but the map{where} was built for "
                 f"{cmap.input_shape[1]}x{cmap.input_shape[0]} px input"
             )
+        from oapcal.imaging.remap import check_map_samples
+
+        check_map_samples(cmap, (rows, cols))
         source = ("file", str(Path(map_path).resolve())) if map_path is not None else None
         if source is None:
             import dask
@@ -437,6 +440,7 @@ def _build_graph(stack, plan: _MapPlan, settings: DaskSettings):
         plan.source,
         settings.interp,
         settings.border,
+        settings.allow_size_mismatch,
         dtype=stack.dtype,
         chunks=(stack.chunks[0], (shape[0],), (shape[1],), *stack.chunks[3:]),
     )

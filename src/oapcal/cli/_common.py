@@ -457,9 +457,9 @@ class Finite(click.FloatRange):
         return super()._describe_range()
 
 
-#: Float options that may be NaN or infinite on purpose (correct's fill value for pixels
-#: outside the input).
-NON_FINITE_OK = frozenset({"border"})
+#: Float options that may be NaN or infinite on purpose: none (correct's --border, the fill
+#: value of pixels outside the input, is a finite number like every other float option).
+NON_FINITE_OK: frozenset[str] = frozenset()
 #: Largest seed (NumPy takes any non-negative integer; this keeps it one 64-bit word).
 MAX_SEED = 2**63 - 1
 

@@ -155,6 +155,8 @@ def correct_command(
     name = cal.name or Path(calib).name
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
     cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels)
+    if inputs:
+        _check_samples(cal, cmap, plan[0], geometry, max_pixels)
     if not inputs:
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
         return 0
@@ -252,6 +254,31 @@ def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels):
     if save_map:
         write_map(cmap, save_map)
     return cmap
+
+
+def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
+    """Refuse, before any work, a calibration (or --map) whose map samples no pixel of the
+    images (:class:`~oapcal.imaging.remap.EmptyMapError`), for the calibration's image size
+    or else the first input's; every other size is checked as its map is built."""
+    from oapcal.imaging.remap import check_map_samples, check_model_samples, output_geometry
+
+    shape = (cal.image_size[1], cal.image_size[0]) if cal.image_size else None
+    if cmap is not None:
+        shape = cmap.input_shape or shape
+    if shape is None and files:
+        from oapcal.errors import OapcalError
+        from oapcal.io.images import probe
+
+        try:
+            shape = probe(files[0], max_pixels).frame_shape[:2]
+        except (OapcalError, OSError):  # reported with that file
+            return
+    if shape is None:
+        return
+    if cmap is not None:
+        check_map_samples(cmap, shape)
+    else:
+        check_model_samples(cal, shape, output_geometry(cal, shape, **geometry))
 
 
 def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json):

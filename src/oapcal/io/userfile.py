@@ -16,6 +16,7 @@ Every message names the file and says what to do; all raise
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -175,3 +176,35 @@ def check_input_file(path: str | Path, what: str, suffixes, *, missing: str = "c
     if not path.is_file():
         raise InputFileError(f"{path}: no such {what}; {missing}")
     return path
+
+
+#: A number as oapcal reads it from a text file: ASCII decimal or scientific notation
+#: (``47.5``, ``-1e-3``, ``.5``, ``3.``), or nan / inf (refused later as not finite).
+_NUMBER = re.compile(
+    r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf|infinity)", re.I | re.ASCII
+)
+
+
+def parse_number(text: str) -> float:
+    """A number from a text cell, surrounding whitespace ignored: ASCII decimal or scientific
+    notation only.  Python's ``float`` also reads ``4_7.5`` (47.5), Arabic-Indic and
+    full-width digits; a file holding those is more likely wrong than meant, so they raise
+    :class:`ValueError`, like any text that is not a number.
+
+    >>> parse_number(" -1.5e3 "), parse_number(".5")
+    (-1500.0, 0.5)
+    >>> for bad in ("4_7.5", "\u0664\u0667.\u0665", "\uff14\uff17.\uff15", "0x1p3", ""):
+    ...     try:
+    ...         parse_number(bad)
+    ...     except ValueError:
+    ...         print("refused", ascii(bad))
+    refused '4_7.5'
+    refused '\u0664\u0667.\u0665'
+    refused '\uff14\uff17.\uff15'
+    refused '0x1p3'
+    refused ''
+    """
+    stripped = text.strip()
+    if not _NUMBER.fullmatch(stripped):
+        raise ValueError(f"not a number in ASCII decimal notation: {text!r}")
+    return float(stripped)
