@@ -90,7 +90,7 @@ def test_dask_correct_to_a_fifo_output_is_refused(run_cli, files, tmp_path):
     pytest.importorskip("dask", reason="the dask extra is not installed")
     import tifffile
 
-    tifffile.imwrite(tmp_path / "s.tif", np.zeros((2, 48, 64), np.uint8))
+    tifffile.imwrite(tmp_path / "s.tif", np.zeros((2, 48, 64), np.uint8), photometric="minisblack")
     out = tmp_path / "out"
     out.mkdir()
     os.mkfifo(out / "s.tif")
@@ -352,7 +352,8 @@ def test_correct_image_refuses_an_image_of_another_size_unless_allowed(small_map
 def test_an_output_scale_that_collapses_the_output_is_refused(run_cli, files, tmp_path, um):
     out = tmp_path / "out"
     code, _, err = run_cli("correct", files["calib"], files["img"], "--out-dir", out, "--um-per-px", um)
-    one_error(code, err)
+    one_error(code, err, expect_code=4)  # a geometry error, reported with the file as the others are
+    assert f"{files['img']}: the output would be" in err, err
     assert "under 2 px on a side: the output region collapses" in err and "--um-per-px" in err, err
     assert not out.exists() or list(out.iterdir()) == []
 
@@ -476,3 +477,152 @@ def test_one_image_commands_refuse_a_stack_without_decoding_it(run_cli, files, t
         tracemalloc.stop()
     assert code == 2 and f"{tall_stack}: is a stack of 64 frames (pages)" in err, err
     assert peak < 16 * 2**20, f"{peak / 2**20:.0f} MiB allocated: pages were decoded"  # 64 MiB if decoded
+
+
+# -- B10, D20: Dask schedulers ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "address,why",
+    [("THREADS", "not a scheduler name"), ("sync", "not a scheduler name"),
+     ("tcp://127.0.0.1", "has no port"), ("http://127.0.0.1:8786", "protocol http://"),
+     ("127.0.0.1:70000", "port 70000"),
+     ("tcp://", "is not HOST:PORT"), ("a b:1", "not a scheduler name or address")],
+)  # fmt: skip
+def test_a_malformed_scheduler_address_is_refused_before_connecting(run_cli, files, tmp_path, address, why):
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "s.tif", np.zeros((4, 48, 64), np.uint8), photometric="minisblack")
+    out = tmp_path / "o"
+    code, _, err = run_cli("correct", files["calib"], tmp_path / "s.tif", "--out-dir", out, "--dask",
+                           "--scheduler", address)  # fmt: skip
+    one_error(code, err)
+    assert f"scheduler {address!r}: {why}" in err and "--scheduler" in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_malformed_address_prints_one_line_and_nothing_at_exit(files, tmp_path):
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    import subprocess
+    import sys
+
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "s.tif", np.zeros((4, 48, 64), np.uint8), photometric="minisblack")
+    run = subprocess.run([sys.executable, "-m", "oapcal", "correct", str(files["calib"]),
+                          str(tmp_path / "s.tif"), "--out-dir", str(tmp_path / "o"), "--dask", "--scheduler",
+                          "THREADS"],
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
+    assert "Traceback" not in run.stderr and "Exception ignored" not in run.stderr
+
+
+def test_a_scheduler_without_workers_is_refused_after_the_timeout():
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    from distributed import LocalCluster
+
+    from oapcal.batch.distributed import dask_scheduler
+    from oapcal.errors import InputFileError
+
+    with LocalCluster(
+        n_workers=0, processes=False, protocol="tcp", host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        address = cluster.scheduler_address
+        with pytest.raises(InputFileError, match=f"scheduler {address}: has no workers after 1 s"):
+            with dask_scheduler(address, worker_timeout=1):
+                pytest.fail("a scheduler without workers must be refused")
+
+
+@pytest.mark.slow  # ~17 s: a worker process starts and compiles the model
+def test_distributed_workers_get_absolute_paths(files, tmp_path, monkeypatch):
+    """Workers in another directory than the client (as on a cluster) still find the input
+    and write the output where the client asked."""
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    import tifffile
+    import zarr
+    from distributed import Client, LocalCluster
+
+    from oapcal.batch.distributed import DaskSettings, correct_stack_dask
+    from oapcal.io.calibration import load_calibration
+
+    stack = (np.arange(4 * 48 * 64) % 200).astype(np.uint8).reshape(4, 48, 64)
+    (tmp_path / "work").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    tifffile.imwrite(tmp_path / "work" / "s.tif", stack, photometric="minisblack")
+    monkeypatch.chdir(tmp_path / "work")
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
+        client.run(os.chdir, str(tmp_path / "elsewhere"))
+        settings = DaskSettings(scheduler=cluster.scheduler_address, chunk_frames=2)
+        result = correct_stack_dask(load_calibration(files["calib"]), "s.tif", "out", settings=settings)
+    assert result.frames == 4 and result.output == "out/s.zarr"
+    assert list((tmp_path / "elsewhere").iterdir()) == []
+    z = zarr.open_array(str(tmp_path / "work" / "out" / "s.zarr"), mode="r")
+    assert z.shape == (4, 48, 64) and np.asarray(z).any()
+
+
+# -- D19: correct into a directory where nothing can be written is refused before the work -----
+
+
+@pytest.mark.parametrize("dask", [False, True])
+@pytest.mark.parametrize("sub", ["", "new/dir"])
+def test_correct_into_an_unwritable_out_dir_is_refused_up_front(
+    run_cli, files, tmp_path, monkeypatch, dask, sub
+):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_hardening2 import _unwritable_dir
+
+    if dask:
+        pytest.importorskip("dask", reason="the dask extra is not installed")
+    import oapcal.batch.stack as stack_module
+
+    def never(*args, **kwargs):
+        pytest.fail("an input was corrected before the output directory was checked")
+
+    monkeypatch.setattr(stack_module, "_correct_file", never)
+    target = _unwritable_dir() / sub if sub else _unwritable_dir()
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "s.tif", np.zeros((2, 48, 64), np.uint8), photometric="minisblack")
+    extra = ["--dask", "--scheduler", "synchronous"] if dask else []
+    code, _, err = run_cli("correct", files["calib"], tmp_path / "s.tif", "--out-dir", target, *extra)
+    one_error(code, err)
+    assert f"{target}: cannot create files in /sys" in err, err
+
+
+# -- D22: CR-only line endings ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ending", ["\r", "\r\n"])
+def test_text_inputs_with_cr_line_endings_read_like_lf(tmp_path, ending, files):
+    from oapcal.io.landmarks import read_landmarks
+    from oapcal.io.points import read_points
+    from oapcal.io.rois import read_rois
+
+    def written(name, text):
+        (tmp_path / name).write_bytes(text.replace("\n", ending).encode())
+        (tmp_path / f"lf-{name}").write_bytes(text.encode())
+        return tmp_path / name, tmp_path / f"lf-{name}"
+
+    points = files["points"].read_text()
+    cr, lf = written("p.csv", points)
+    np.testing.assert_array_equal(read_points(cr).xy_d, read_points(lf).xy_d)
+    cr, lf = written("l.csv", "name,x,y\nA,10,12\nB,50,11\nC,31,40\n")
+    assert [(p.x, p.y, p.attrs) for p in read_landmarks(cr).landmarks] == [
+        (p.x, p.y, p.attrs) for p in read_landmarks(lf).landmarks
+    ]
+    cr, lf = written("r.csv", "label,x0,y0,x1,y1\na,1,2,30,60\n")
+    assert read_rois(cr) == read_rois(lf)
+
+
+def test_fit_reads_a_cr_only_point_file(run_cli, files, tmp_path):
+    (tmp_path / "p.csv").write_bytes(
+        files["points"].read_bytes().replace(b"\r\n", b"\n").replace(b"\n", b"\r")
+    )
+    code, _, err = run_cli("fit", tmp_path / "p.csv", "--out", tmp_path / "c.json")
+    assert code == 0 and "universal-newline" not in err, err

@@ -39,6 +39,7 @@ from oapcal.errors import InputFileError, OapcalError, OutputError
 from oapcal.imaging.remap import CorrectionMap, check_map_samples, correct_image, correction_map
 from oapcal.io.atomic import (
     atomic_path,
+    check_directory_writable,
     check_free_space,
     check_output_target,
     ensure_not_input,
@@ -349,6 +350,7 @@ def correct_stack(
     """
     files, failures, dirs = expand_inputs([str(p) for p in inputs])
     outputs = plan_outputs(files, out_dir, dirs, protect, reserved=reserved)
+    check_directory_writable(out_dir)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     remove_stale_temps(out_dir, outputs)
     name = calibration_name or getattr(calibration, "name", None)

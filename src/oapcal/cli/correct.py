@@ -148,9 +148,18 @@ def correct_command(
                 flag = "--" + option.replace("_", "-")
                 raise click.UsageError(f"{flag} applies to --dask only: add --dask or drop {flag}")
     size = parse_size(out_size, "--out-size")
+    if use_dask and scheduler is not None:  # an address is checked before anything else
+        from oapcal.batch.distributed import LOCAL_SCHEDULERS, parse_scheduler_address
+
+        if scheduler not in LOCAL_SCHEDULERS:
+            parse_scheduler_address(scheduler)
     max_pixels = max_pixels or MAX_PIXELS
     check_output(save_map, calib, map_file, *inputs)
     plan = _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map) if inputs else None
+    if inputs:
+        from oapcal.io.atomic import check_directory_writable
+
+        check_directory_writable(out_dir)  # before any work, as every command probes its outputs
     cal = load_usable_calibration(calib, allow_unconverged)
     name = cal.name or Path(calib).name
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
@@ -277,8 +286,14 @@ def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
         return
     if cmap is not None:
         check_map_samples(cmap, shape)
-    else:
-        check_model_samples(cal, shape, output_geometry(cal, shape, **geometry))
+        return
+    from oapcal.errors import DataError
+
+    try:
+        geometry = output_geometry(cal, shape, **geometry)
+    except DataError:  # a geometry refused for this size is reported with each file
+        return
+    check_model_samples(cal, shape, geometry)
 
 
 def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json):

@@ -353,6 +353,28 @@ def check_free_space(directory: str | os.PathLike, n_bytes: int, what: str | os.
         )
 
 
+def check_directory_writable(directory: str | os.PathLike) -> None:
+    """Refuse (:class:`OutputError`), before any work, an output directory in which no file
+    can be created: tried by creating and removing an empty temporary file in it, or, when
+    it does not exist yet, in its nearest existing parent (where it will be made)."""
+    directory = Path(directory)
+    probe = directory
+    while not probe.is_dir() and probe != probe.parent:
+        probe = probe.parent
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".oapcal-", suffix=".probe", dir=probe)
+    except OSError as exc:
+        hint = "the file system is read-only" if exc.errno == errno.EROFS else "check its permissions"
+        where = "" if probe == directory else f" (it would be made in {probe})"
+        raise OutputError(
+            f"{directory}: cannot create files in {probe}{where} ({exc.strerror}); {hint} or choose "
+            "another output directory",
+            param="out_dir",
+        ) from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
 def ensure_not_input(output: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> None:
     """Raise :class:`OutputError` if ``output`` is the same file as one of ``inputs``."""
     out = Path(output)

@@ -70,7 +70,8 @@ def read_text(path: str | Path, what: str = "file", *, missing: str = "no such f
     """The text of ``path`` (``-`` is stdin) decoded as UTF-8.
 
     ``what`` names the kind of file in messages ("point file", "calibration file", ...);
-    ``missing`` is the message for a missing file (after the file name).  At most
+    ``missing`` is the message for a missing file (after the file name).  Line endings
+    come back as ``\\n`` whatever the file used (``\\r\\n``, CR only).  At most
     :data:`MAX_FILE_BYTES` are read, whatever the file is (a device or pipe included).
     """
     name = str(path)
@@ -81,7 +82,7 @@ def read_text(path: str | Path, what: str = "file", *, missing: str = "no such f
             _check_start(text.encode("utf-8", "surrogatepass")[:_CHUNK], name, what)
             if len(text) > MAX_FILE_BYTES:
                 raise InputFileError(f"{name}: is over {MAX_FILE_BYTES // 2**20} MiB; not read")
-            return text
+            return _unix_newlines(text)
         data = _read_bounded(stream, name, what)
     else:
         p = Path(path)
@@ -102,11 +103,24 @@ def read_text(path: str | Path, what: str = "file", *, missing: str = "no such f
             raise InputFileError(f"{name}: cannot be read ({exc.strerror}); check its permissions") from None
     _check_start(data, name, what)
     try:
-        return data.decode("utf-8-sig")
+        return _unix_newlines(data.decode("utf-8-sig"))
     except UnicodeDecodeError as exc:
         raise InputFileError(
             f"{name}: is not UTF-8 text (bad byte at offset {exc.start}); save it as UTF-8"
         ) from None
+
+
+def _unix_newlines(text: str) -> str:
+    r"""Line endings as ``\n``: Windows ``\r\n`` and old Mac ``\r`` (CR only) files read like
+    any other (Python's csv module would otherwise refuse a lone CR with advice about
+    'universal-newline mode').
+
+    >>> _unix_newlines("a,b\r1,2\r\n3,4\n")
+    'a,b\n1,2\n3,4\n'
+    """
+    if "\r" not in text:
+        return text
+    return text.replace("\r\n", "\n").replace("\r", "\n")
 
 
 def parse_json(text: str, name: str, what: str = "file"):
