@@ -626,3 +626,43 @@ def test_fit_reads_a_cr_only_point_file(run_cli, files, tmp_path):
     )
     code, _, err = run_cli("fit", tmp_path / "p.csv", "--out", tmp_path / "c.json")
     assert code == 0 and "universal-newline" not in err, err
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    shape=st.lists(st.integers(0, 6), min_size=0, max_size=4),
+    dtype=st.sampled_from(["uint8", "uint16", "int16", "float32", "float64", "int8", "int64", "bool"]),
+)
+def test_correct_image_accepts_exactly_one_grey_or_colour_image(shape, dtype):
+    """Whatever the array, correct_image corrects it when it is one grey or colour image of a
+    supported type (the output has the map's shape and the image's channels and dtype) and
+    refuses it with DataError otherwise."""
+    from oapcal.errors import DataError
+    from oapcal.imaging.remap import correct_image
+
+    mx, my = np.meshgrid(np.arange(5, dtype=np.float32), np.arange(4, dtype=np.float32))
+    image = np.ones(shape, dtype)
+    ok = (
+        (len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3, 4)))
+        and 0 not in shape
+        and dtype in ("uint8", "uint16", "int16", "float32", "float64")
+    )
+    if ok:
+        out = correct_image(image, (mx, my))
+        assert out.dtype == image.dtype and out.shape[:2] == (4, 5)
+        assert out.size == 20 * int(np.prod(shape[2:]))
+    else:
+        with pytest.raises(DataError):
+            correct_image(image, (mx, my))
+
+
+def test_correct_frames_refuses_a_single_image_and_corrects_a_stack(small_map):
+    from oapcal.batch.stack import correct_frames
+    from oapcal.errors import DataError
+    from oapcal.imaging.remap import correct_image
+
+    stack = (np.arange(3 * 48 * 64) % 250).astype(np.uint8).reshape(3, 48, 64)
+    with pytest.raises(DataError, match="a stack must be"):
+        correct_frames(stack[0], small_map)
+    out = correct_frames(stack, small_map)
+    np.testing.assert_array_equal(out[2], correct_image(stack[2], small_map))

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from oapcal.errors import InputFileError, OapcalError, OutputError
+from oapcal.errors import DataError, InputFileError, OapcalError, OutputError
 from oapcal.imaging.remap import CorrectionMap, check_map_samples, correct_image, correction_map
 from oapcal.io.atomic import (
     atomic_path,
@@ -470,7 +470,7 @@ def correct_frames(
     checked as :func:`~oapcal.imaging.remap.correct_image` checks an image)."""
     frames = np.asarray(frames)
     if frames.ndim not in (3, 4):
-        raise OapcalError(f"a stack must be (frames, rows, cols[, ch]), got shape {frames.shape}")
+        raise DataError(f"a stack must be (frames, rows, cols[, ch]), got shape {frames.shape}")
     out = np.empty((len(frames), *cmap.shape, *frames.shape[3:]), frames.dtype)
     for i, frame in enumerate(frames):
         corrected = correct_image(frame, cmap, interp, border, allow_size_mismatch=allow_size_mismatch)
