@@ -51,6 +51,8 @@ OUTPUT_COMMANDS = [
     ("detect {img} --out {o}", ".csv"),
     ("esf {img} --plot {o}", ".png"),
     ("tolerance --trials 2 --grid 3 --plot {o}", ".png"),
+    ("correct-points {calib} {points} --out {o}", ".csv"),
+    ("robustness {points} --models paper --trials 5 --json {o}", ".json"),
 ]
 
 
@@ -76,6 +78,16 @@ def test_an_output_that_is_a_fifo_is_refused_and_kept(run_cli, files, tmp_path, 
     assert f"{out}: is {'a link to ' if kind != 'fifo' else ''}a named pipe (FIFO)" in err, err
     assert stat.S_ISFIFO(os.stat(fifo).st_mode) and (kind == "fifo" or out.is_symlink())
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+@pytest.mark.slow  # the demo runs whole before its files are moved into place
+def test_demo_into_a_directory_holding_a_fifo_is_refused_and_leaves_nothing(run_cli, tmp_path):
+    os.mkfifo(tmp_path / "grid.csv")
+    code, _, err = run_cli("demo", "--out-dir", tmp_path, "--trials", "0", "--no-report")
+    one_error(code, err)
+    assert f"{tmp_path / 'grid.csv'}: is a named pipe (FIFO)" in err, err
+    assert [p.name for p in tmp_path.iterdir()] == ["grid.csv"]
+    assert stat.S_ISFIFO(os.stat(tmp_path / "grid.csv").st_mode)
 
 
 def test_correct_into_a_directory_holding_a_fifo_output_is_refused(run_cli, files, tmp_path):
@@ -666,3 +678,20 @@ def test_correct_frames_refuses_a_single_image_and_corrects_a_stack(small_map):
         correct_frames(stack[0], small_map)
     out = correct_frames(stack, small_map)
     np.testing.assert_array_equal(out[2], correct_image(stack[2], small_map))
+
+
+@pytest.mark.parametrize("writer", ["atomic_path", "atomic_dir"])
+@pytest.mark.parametrize("code_", [errno.ENOSPC, errno.EFBIG, errno.EDQUOT])
+def test_writers_by_name_name_the_output_of_a_write_that_does_not_fit(tmp_path, writer, code_):
+    """A library writing by file name (tifffile, OpenCV, zarr) that hits a full disk raises
+    an OSError without a file name: it comes out naming the output."""
+    import oapcal.io.atomic as atomic
+
+    with pytest.raises(OSError) as info, getattr(atomic, writer)(tmp_path / "out.tif"):
+        raise OSError(code_, os.strerror(code_))
+    assert info.value.filename == str(tmp_path / "out.tif") and info.value.errno == code_
+    assert list(tmp_path.iterdir()) == []
+    # an error of reading an input (not a write that did not fit) is left as it is
+    with pytest.raises(OSError) as info, getattr(atomic, writer)(tmp_path / "out.tif"):
+        raise OSError(errno.EIO, os.strerror(errno.EIO))
+    assert info.value.filename is None
