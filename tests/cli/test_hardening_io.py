@@ -695,3 +695,27 @@ def test_writers_by_name_name_the_output_of_a_write_that_does_not_fit(tmp_path, 
     with pytest.raises(OSError) as info, getattr(atomic, writer)(tmp_path / "out.tif"):
         raise OSError(errno.EIO, os.strerror(errno.EIO))
     assert info.value.filename is None
+
+
+def test_correction_map_refuses_an_image_of_another_size_than_the_calibrations(files):
+    from oapcal.errors import DataError
+    from oapcal.imaging.remap import correction_map
+    from oapcal.io.calibration import load_calibration
+
+    cal = load_calibration(files["calib"])  # image_size 64 x 48
+    with pytest.raises(DataError, match="the image is 80x60 px but the calibration is for 64x48 px") as info:
+        correction_map(cal, (60, 80))
+    assert info.value.param == "allow_size_mismatch"
+    assert correction_map(cal, (60, 80), allow_size_mismatch=True).shape == (60, 80)
+    assert correction_map(cal.params, (60, 80)).shape == (60, 80)  # bare parameters know no size
+
+
+def test_report_refuses_an_image_of_another_size(run_cli, files, tmp_path):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "big.png"), np.zeros((60, 80), np.uint8))
+    big, out = tmp_path / "big.png", tmp_path / "r.html"
+    code, _, err = run_cli("report", files["calib"], "--image", big, "--out", out)
+    one_error(code, err)
+    assert f"{tmp_path / 'big.png'}: is 80x60 px but the calibration is for 64x48 px" in err, err
+    assert not (tmp_path / "r.html").exists()

@@ -491,8 +491,9 @@ def _plan_map(calibration, input_path: Path, frame_shape, cmap, map_path, settin
         digest = correction_digest(calibration, cmap, interp=interp, border=border)
         return _MapPlan(source, cmap.geometry, digest)
     params = np.asarray(getattr(calibration, "params", calibration), float)
+    # the frame size was checked against the calibration's when the stack was opened
     geometry = correction_map(calibration, (rows, cols), extent=settings.extent, um_per_px=settings.um_per_px,
-                              out_size=settings.out_size, geometry=None).geometry  # fmt: skip
+                              out_size=settings.out_size, allow_size_mismatch=True).geometry  # fmt: skip
     source = ("params", tuple(float(v) for v in params), geometry.shape, geometry.x0, geometry.y0,
               geometry.scale, geometry.um_per_px)  # fmt: skip
     fit_size = None if settings.out_size is None else list(settings.out_size)

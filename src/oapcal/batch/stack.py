@@ -312,7 +312,9 @@ class MapCache:
             return self.cmap
         with self._lock:
             if (rows, cols) not in self._maps:
-                self._maps[(rows, cols)] = correction_map(self.calibration, (rows, cols), **self.options)
+                self._maps[(rows, cols)] = correction_map(
+                    self.calibration, (rows, cols), allow_size_mismatch=True, **self.options
+                )  # the size was checked above
             return self._maps[(rows, cols)]
 
 

@@ -105,7 +105,7 @@ def check_model_samples(
     coarse = OutputGeometry(
         ((rows - 1) // k + 1, (cols - 1) // k + 1), geometry.x0, geometry.y0, geometry.scale * k
     )
-    correction_map(calibration_or_params, input_shape, geometry=coarse)
+    correction_map(calibration_or_params, input_shape, geometry=coarse, allow_size_mismatch=True)
 
 
 def _params_of(calibration_or_params) -> np.ndarray:
@@ -300,6 +300,7 @@ def correction_map(
     out_size: tuple[int, int] | None = None,
     geometry: OutputGeometry | None = None,
     check: bool = True,
+    allow_size_mismatch: bool = False,
 ) -> CorrectionMap:
     """The correction map for distorted images of ``shape = (rows, cols)``.
 
@@ -311,9 +312,20 @@ def correction_map(
     ``(col, row)``.
 
     A map that samples no pixel of the input (:func:`check_map_samples`) raises
-    :class:`EmptyMapError`, unless ``check`` is False.
+    :class:`EmptyMapError`, unless ``check`` is False.  A calibration with an
+    ``image_size`` other than ``shape`` raises :class:`DataError` unless
+    ``allow_size_mismatch`` (as ``oapcal correct`` refuses it without
+    ``--allow-size-mismatch``).
     """
     params = _params_of(calibration_or_params)
+    cal_size = getattr(calibration_or_params, "image_size", None)
+    rows_in, cols_in = int(shape[0]), int(shape[1])
+    if cal_size and tuple(int(v) for v in cal_size) != (cols_in, rows_in) and not allow_size_mismatch:
+        raise DataError(
+            f"the image is {cols_in}x{rows_in} px but the calibration is for {cal_size[0]}x{cal_size[1]} px "
+            "images; give images of that camera, or allow_size_mismatch=True to correct it anyway",
+            param="allow_size_mismatch",
+        )
     if geometry is None:
         geometry = output_geometry(
             calibration_or_params, shape, extent=extent, um_per_px=um_per_px, out_size=out_size
