@@ -73,6 +73,22 @@ def jacobian_params(xy_u: np.ndarray, params: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------- the inverse
 
 
+#: The inverse's allowance for rounding, in units of ``eps`` times the magnitudes Eq. (1)
+#: adds up (``docs/models.md``, "Point correction").
+ROUNDING_ULPS = 16.0
+
+
+def rounding_level(xy_u, xy_d, params, jac):
+    """``16 eps (|c_x| + |c_y| + |x_d| + |y_d| + max|J| (|x_off| + |y_off| + |x_u| + |y_u|))``:
+    how far Eq. (1)'s value may be from ``xy_d`` through rounding alone."""
+    p = np.asarray(params, float)[..., None, :]
+    jmax = np.abs(jac).max(axis=(-1, -2))
+    centre = np.abs(p[..., INDEX["c_x"]]) + np.abs(p[..., INDEX["c_y"]])
+    offset = np.abs(p[..., INDEX["x_off"]]) + np.abs(p[..., INDEX["y_off"]])
+    scale = centre + np.abs(xy_d).sum(-1) + jmax * (offset + np.abs(xy_u).sum(-1))
+    return ROUNDING_ULPS * np.finfo(float).eps * scale
+
+
 def undistort(
     xy_d: np.ndarray,
     params: np.ndarray,
@@ -88,9 +104,11 @@ def undistort(
     of the model, ``xy_u = (xy_d - c) / m - off``, unless ``xy_start`` is given.
 
     A point converges when ``|distort(xy_u) - xy_d| <= tol`` (Euclidean, in the units of
-    the points) within ``max_iter`` iterations *and* the Jacobian determinant there is
-    positive.  Where the determinant is <= 0 the map folds over: the point is reported as
-    ``folded`` and not converged.  Points that do not converge come back as NaN.
+    the points) within ``max_iter`` iterations, or when the residual is within
+    :func:`rounding_level` and a full Newton step no longer reduces it, *and* the Jacobian
+    determinant there is positive.  Where the
+    determinant is <= 0 the map folds over: the point is reported as ``folded`` and not
+    converged.  Points that do not converge come back as NaN.
 
     Shapes follow :func:`distort`: ``xy_d`` ``(..., N, 2)`` with ``params`` ``(..., 13)``.
     """
@@ -135,11 +153,18 @@ def undistort(
             )
             step = np.where(active[..., None], step, 0.0)
             t = np.ones(err.shape)
-            for _ in range(11):
+            for trial in range(11):
                 u_new = u + t[..., None] * step
                 f_new = distort(u_new, params) - xy_d
                 err_new = np.hypot(f_new[..., 0], f_new[..., 1])
                 worse = active & ~(err_new < err) & ~(err_new <= tol)
+                if trial == 0:
+                    # a full step that does not reduce a residual already at the model's
+                    # rounding level: converged where it is
+                    floor = worse & (err <= rounding_level(u, xy_d, params, jac))
+                    done = done | floor
+                    active = active & ~floor
+                    worse = worse & ~floor
                 if not worse.any():
                     break
                 t = np.where(worse, 0.5 * t, t)

@@ -11,7 +11,7 @@ SRC = Path(__file__).resolve().parent.parent / "src" / "oapcal"
 
 #: Layers, lowest first.  Keys are top-level modules or packages of oapcal.
 LAYERS = [
-    {"errors", "extras", "records", "progress"},
+    {"errors", "extras", "records", "progress", "validate"},
     {"model", "_kernels", "_relay_kernel"},
     {"stats", "normalize", "synthetic", "uncertainty"},
     {"fitting"},

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+import reference_model
 from oapcal.cli import cli
 from oapcal.errors import DataError
 from oapcal.families import relay_subset_masks, select_families
@@ -96,3 +97,78 @@ def test_select_families_command_ranks_all_three_and_recommends_the_relay(tmp_pa
     # the turned target raises Eq. (1)'s floor; its rotation term removes part of it; the relay none
     assert best["relay"] < best["brown-conrady+rotation"] < best["brown-conrady"]
     assert "Recommended by held-out error: --model relay:" in result.output
+
+
+def _folding_case():
+    """Eq. (1) with a negative k2 whose map folds over at 260 px from the centre, inside the
+    640 x 480 frame but outside the points (within 170 px of the centre): the models with k2
+    fit the points best and fold inside the image."""
+    from oapcal.model import params_from_dict
+
+    rf = 260.0
+    truth = params_from_dict({"k1": 2e-7, "k2": -1 / (5 * rf**4), "x_off": -319.5, "y_off": -239.5,
+                              "c_x": 319.5, "c_y": 239.5, "m": 1.0})  # fmt: skip
+    rng = np.random.default_rng(4)
+    xy_u = rng.uniform([200, 120], [440, 360], (150, 2))
+    return truth, xy_u, reference_model.distort(xy_u, truth) + rng.normal(0, 0.05, xy_u.shape)
+
+
+def _frame_min_det(params):
+    """The smallest Jacobian determinant of an Eq. (1) model over the 640 x 480 frame, by
+    the NumPy reference (tests/reference_model.py), not the compiled model."""
+    gx, gy = np.meshgrid(np.linspace(0, 639, 81), np.linspace(0, 479, 61))
+    xy = np.column_stack([gx.ravel(), gy.ravel()])
+    if len(params) == 14:  # Eq. (1) after turning the points (determinant 1) by `rotation` deg
+        t = np.radians(params[13])
+        xy = xy @ np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]).T
+    return reference_model.jacobian_determinant(xy, np.asarray(params[:13])).min()
+
+
+def test_a_recommendation_never_folds_over_the_output_region():
+    from oapcal.calibration import calibrate
+
+    truth, xy_u, xy_d = _folding_case()
+    assert _frame_min_det(truth) < 0  # the truth itself folds inside the frame
+    # without an image the output region is the points' bounds: a k2 model wins, folding in the frame
+    free = select_families(xy_u, xy_d, RelayDesign(), ("bc",), cv=3, cv_top=3)
+    assert "k2" in free.recommended.free
+    assert _frame_min_det(calibrate(xy_u, xy_d, free.recommended.spec).params) < 0
+    # with the image it is disqualified with fit's reason, and the recommendation fits and corrects there
+    sel = select_families(xy_u, xy_d, RelayDesign(), ("bc",), cv=3, cv_top=3, image_size=(640, 480))
+    refused = [c for c in sel.candidates if c.reason.startswith("fit would refuse it")]
+    assert refused and all("folds over" in c.reason and "640x480 px image" in c.reason for c in refused)
+    assert free.recommended.spec in {c.spec for c in refused}
+    assert sel.recommended is not None and sel.recommended.valid
+    cal = calibrate(xy_u, xy_d, sel.recommended.spec, image_size=(640, 480))
+    assert cal.fit.converged and _frame_min_det(cal.params) > 0
+    # the ranking keeps the disqualified models after the valid ones
+    valid = [c.valid for c in sel.candidates]
+    assert valid == sorted(valid, reverse=True)
+
+
+def test_select_families_recommends_what_fit_writes(tmp_path, run_cli):
+    _, xy_u, xy_d = _folding_case()
+    points = tmp_path / "points.csv"
+    rows = ["x_u,y_u,x_d,y_d"] + [f"{a},{b},{c},{d}" for (a, b), (c, d) in zip(xy_u, xy_d)]
+    points.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "fam.json"
+    code, _, err = run_cli("select", points, "--families", "bc", "--image-size", "640x480", "--cv", "3",
+                           "--top", "3", "--json", out)  # fmt: skip
+    assert code == 0, err
+    spec = json.loads(out.read_text())["recommended"]
+    calib = tmp_path / "calib.json"
+    code, _, err = run_cli("fit", points, "--model", spec, "--image-size", "640x480", "--out", calib)
+    assert code == 0, err
+    assert calib.exists()
+
+
+def test_the_rotation_family_is_checked_over_the_image_too():
+    """issue 20: a bc+rotation subset that folds inside the image was recommended."""
+    from oapcal.calibration import calibrate
+
+    _, xy_u, xy_d = _folding_case()
+    sel = select_families(xy_u, xy_d, RelayDesign(), ("bc+rotation",), cv=3, cv_top=2, image_size=(640, 480))
+    assert any(c.reason.startswith("fit would refuse it") for c in sel.candidates)
+    assert sel.recommended is not None and sel.recommended.spec.endswith("+rotation")
+    cal = calibrate(xy_u, xy_d, sel.recommended.spec, image_size=(640, 480))
+    assert cal.fit.converged and _frame_min_det(cal.params) > 0

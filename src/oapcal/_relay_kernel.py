@@ -13,13 +13,26 @@ The parameter vector (its names: ``oapcal.model.RELAY.param_names``) has three p
 * the design, never fitted: ``d1_mm``, ``f1_mm``, ``f2_mm``, ``orientation`` (+1 for U,
   -1 for Z), ``stop_mm``, ``pixel_mm``, the reference centre ``cx``, ``cy`` (px) and
   ``a11 .. a22``, the inverse of the aligned relay's paraxial matrix (image mm -> object
-  mm).
+  mm);
+* with a microscope behind the relay (the family ``relay+microscope``, whose vector is
+  three values longer), the microscope's ``microscope_magnification`` (signed:
+  negative inverts the image, i.e. turns it by 180 degrees), ``microscope_k1`` (its own
+  radial term, 1/mm^2 at the sensor, about the reference centre) and the design's
+  magnification ``microscope_design_magnification`` (never fitted).
 
 A reference point ``r`` (px, the ideal image of the target) is posed,
 ``r' = c + scale R(rotation) (r - c) + shift``, taken to the object plane through the
 aligned relay's paraxial inverse, ``o = A (r' - c) pixel``, and its chief ray (through the
 centre of the aperture stop) traced through the misaligned relay onto the (tilted,
-defocused) sensor: the distorted point is ``c + image / pixel``.  The geometry is exactly
+defocused) sensor: the distorted point is ``c + image / pixel``.
+
+With a microscope the relay's image plane (tilted and defocused as above) is the
+microscope's object plane, and the camera sees it magnified: a reference point is taken
+to that plane through the design's magnification ``M0``, ``o = A (r' - c) pixel / M0``,
+and the traced point ``h`` (mm on that plane) to the sensor as ``s = M h (1 + k1 |M h|^2)``
+(``M`` the fitted magnification, ``k1`` the radial term): the distorted point is
+``c + s / pixel``.  The branch is chosen by the vector's length, so the plain relay's
+values are computed exactly as without it.  The geometry is exactly
 that of :func:`oapcal.optics.relay.oap_relay` (``docs/optics.md``); the tests check this
 function against that NumPy tracer.
 
@@ -40,6 +53,7 @@ _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 #: Where the parts of the parameter vector start (names: :data:`oapcal.model.RELAY`).
 _M = 4  # the first misalignment value (after the 4 pose values)
 _D = 24  # the first design value (after the 20 misalignment values)
+_S = 36  # the first microscope value (after the 12 design values), when there is one
 
 #: Newton steps of the ray aiming at most; it stops earlier when a step changes the hit
 #: point by less than :data:`AIM_TOL` mm (then the miss is at rounding level).
@@ -176,7 +190,9 @@ def relay_point_value(p, x, y):
     pix = p[_D + 5]
     cx = p[_D + 6]
     cy = p[_D + 7]
-    # the pose, then the aligned relay's paraxial inverse to the object plane
+    scope = p.shape[0] > _S  # a microscope behind the relay
+    # the pose, then the aligned relay's paraxial inverse to the object plane (through the
+    # microscope's design magnification first, if there is one)
     th = math.radians(p[1])
     c = math.cos(th)
     s = math.sin(th)
@@ -184,6 +200,9 @@ def relay_point_value(p, x, y):
     ry = y - cy
     ix = (p[0] * (c * rx - s * ry) + p[2]) * pix
     iy = (p[0] * (s * rx + c * ry) + p[3]) * pix
+    if scope:
+        ix /= p[_S + 2]
+        iy /= p[_S + 2]
     ox = p[_D + 8] * ix + p[_D + 9] * iy
     oy = p[_D + 10] * ix + p[_D + 11] * iy
     # the object plane (tilted about its own x, then y axis through the field centre)
@@ -269,7 +288,16 @@ def relay_point_value(p, x, y):
     jn = _rotate(_rotate(i_n, i_ex, ctx), i_ey, cty)
     t = _dot(_sub(ip, q2), jn) / _dot(d2, jn)
     hit = _sub(_add(q2, _mul(t, d2)), ip)
-    return cx + _dot(hit, jx) / pix, cy + _dot(hit, jy) / pix
+    hx = _dot(hit, jx)
+    hy = _dot(hit, jy)
+    if scope:
+        # the microscope: magnification (signed) and its own radial term at the sensor
+        hx *= p[_S]
+        hy *= p[_S]
+        g = 1.0 + p[_S + 1] * (hx * hx + hy * hy)
+        hx *= g
+        hy *= g
+    return cx + hx / pix, cy + hy / pix
 
 
 @numba.njit(**_JIT)

@@ -184,7 +184,8 @@ def calibrate(
 
     ``rotation`` applies to an Eq. (1) model given without ``+rotation``: ``"auto"`` (the
     default) fits it both without and with the target's in-plane rotation and keeps the
-    rotation when Eq. (1) alone does not converge and the rotation does, or when the
+    rotation when Eq. (1) alone does not converge or needs ``m < 0`` (a target turned by
+    180 deg) and the rotation converges, or when the
     rotation lowers AICc by more than :data:`ROTATION_EVIDENCE_AICC` (a turned target is
     otherwise absorbed into a distortion centre that runs away, x_off ~ 1e4 px, and the fit
     hits the iteration cap); the record's ``notes`` say so.  ``"fit"`` always adds the
@@ -262,7 +263,12 @@ def _with_rotation(plain, norm, model, init, rotation: str, fit_options):
         return turned, (f"fitted {spec} (the target's rotation, {angle})",)
     if not turned.converged:
         return plain, ()
-    if not plain.converged:
+    if plain.converged and plain.params[N_PARAMS - 1] <= 0:
+        # m < 0 is Eq. (1) with the target turned by 180 deg (m -> -m, x_off -> -x_off and
+        # the reference points -> -reference points give the same map): the sign belongs
+        # to the rotation, and a calibration keeps m > 0
+        why = f"Eq. (1) alone needs m = {plain.params[N_PARAMS - 1]:.4g} < 0"
+    elif not plain.converged:
         why = f"Eq. (1) alone did not converge ({plain.message.removeprefix('not converged: ')})"
     elif turned.aicc < plain.aicc - ROTATION_EVIDENCE_AICC:
         why = f"it lowers AICc by {plain.aicc - turned.aicc:.1f}"

@@ -13,8 +13,17 @@ held-out error measures what a user needs, the error of correcting new points).
 
 Relay subsets: the target's pose (scale, rotation, shift) always, plus every combination
 of the blocks in :data:`RELAY_BLOCKS` (64 subsets; the first mirror's tilts are left out:
-with the stop at that mirror they act like the target's shift); subsets the points cannot identify
-(:func:`oapcal.optics.relay_model.identifiability`) are ranked last with the reason.
+with the stop at that mirror they act like the target's shift; with a microscope in the
+design, family ``relay+microscope``, also :data:`MICROSCOPE_BLOCKS`: 128); subsets the
+points cannot identify (:func:`oapcal.optics.relay_model.identifiability`) are ranked last
+with the reason.
+
+Only a model that ``oapcal fit`` would write can be recommended: before cross-validation
+each family's models are checked in AICc order with the check ``fit`` applies before
+writing (:func:`oapcal.calibration.check_model_region`: finite and not folding over on the
+reference points' bounds and, with ``image_size``, the image frame, the output region of
+``correct``) until ``cv_top`` pass; those that fail are ranked with the invalid ones, with
+the check's reason.
 """
 
 from __future__ import annotations
@@ -25,9 +34,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.errors import DataError
+from oapcal.calibration import check_model_region
+from oapcal.errors import DataError, InputFileError
 from oapcal.fitting import DEFAULT_INIT, initial_params_many
 from oapcal.model import (
+    BROWN_CONRADY,
     BROWN_CONRADY_POSE,
     RELAY,
     RELAY_POSE_NAMES,
@@ -38,7 +49,7 @@ from oapcal.model import (
 )
 from oapcal.optics.relay_model import RelayDesign, default_centre, identifiability, relay_mask, relay_params
 from oapcal.records import finite_or_none
-from oapcal.select import cross_validate, invalid_reasons, score_models, select_models
+from oapcal.select import cross_validate, invalid_reasons, score_models
 
 #: The blocks of misalignment combined into relay subsets (each with the pose).
 RELAY_BLOCKS: dict[str, tuple[str, ...]] = {
@@ -49,16 +60,23 @@ RELAY_BLOCKS: dict[str, tuple[str, ...]] = {
     "defocus": ("camera_defocus",),
     "object": ("object_tilt_x", "object_tilt_y"),
 }
+#: With a microscope behind the relay, also its radial term.
+MICROSCOPE_BLOCKS: dict[str, tuple[str, ...]] = {"microscope": ("microscope_k1",)}
+#: The ``--families`` keys; ``relay`` is the relay family of the design (``relay`` or,
+#: with a microscope, ``relay+microscope``).
 FAMILY_NAMES = {"bc": "brown-conrady", "bc+rotation": "brown-conrady+rotation", "relay": "relay"}
 Progress = Callable[[int, int], None]
+#: The start of the reason of a model that ``oapcal fit`` would refuse to write.
+REFUSED_PREFIX = "fit would refuse it"
 
 
 @dataclass(frozen=True)
 class Candidate:
-    """One model of a cross-family selection: its ``family`` (``"brown-conrady"`` or
-    ``"relay"``), ``spec`` (what ``--model`` takes to fit it again), ``free`` parameters,
-    ``k`` (free count), ``aicc`` and ``delta_aicc`` over all families, ``mean_error`` (px)
-    of the corrected calibration points, ``cv_mean_error`` (px, the K-fold held-out error;
+    """One model of a cross-family selection: its ``family`` (``"brown-conrady"``,
+    ``"brown-conrady+rotation"``, ``"relay"`` or ``"relay+microscope"``), ``spec`` (what
+    ``--model`` takes to fit it again), ``free`` parameters, ``k`` (free count), ``aicc``
+    and ``delta_aicc`` over all families, ``mean_error`` (px) of the corrected calibration
+    points, ``cv_mean_error`` (px, the K-fold held-out error;
     None when not cross-validated), ``valid`` and ``reason``."""
 
     family: str
@@ -94,7 +112,7 @@ class FamilySelection:
 
     def best_of(self, family: str) -> Candidate | None:
         """The best candidate of one family by AICc (``family``: ``"brown-conrady"``,
-        ``"brown-conrady+rotation"`` or ``"relay"``)."""
+        ``"brown-conrady+rotation"``, ``"relay"`` or ``"relay+microscope"``)."""
         return next((c for c in self.candidates if c.family == family and c.valid), None)
 
     def to_dict(self) -> dict:
@@ -105,20 +123,19 @@ class FamilySelection:
         }  # fmt: skip
 
 
-def relay_subset_masks() -> list[tuple[str, np.ndarray]]:
-    """``(spec, mask)`` of every relay subset of :data:`RELAY_BLOCKS` (with the pose)."""
+def relay_subset_masks(family=RELAY) -> list[tuple[str, np.ndarray]]:
+    """``(spec, mask)`` of every relay subset of :data:`RELAY_BLOCKS` (with the pose); of
+    ``family`` ``relay+microscope`` (a design with a microscope) with
+    :data:`MICROSCOPE_BLOCKS` too."""
     out = []
-    blocks = list(RELAY_BLOCKS)
+    table = RELAY_BLOCKS if family is RELAY else {**RELAY_BLOCKS, **MICROSCOPE_BLOCKS}
+    blocks = list(table)
     for r in range(len(blocks) + 1):
         for combo in itertools.combinations(blocks, r):
-            names = RELAY_POSE_NAMES + tuple(n for b in combo for n in RELAY_BLOCKS[b])
+            names = RELAY_POSE_NAMES + tuple(n for b in combo for n in table[b])
             spec = "relay:" + (",".join(combo) if combo else "pose")
-            out.append((spec, relay_mask(names)))
+            out.append((spec, relay_mask(names, family)))
     return out
-
-
-def _bc_spec(free: tuple[str, ...]) -> str:
-    return ",".join(free)
 
 
 def parse_families(text: str) -> tuple[str, ...]:
@@ -134,11 +151,39 @@ def parse_families(text: str) -> tuple[str, ...]:
     return tuple(dict.fromkeys(keys))
 
 
-def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, seed: int, progress):
+class _Region:
+    """What :func:`~oapcal.calibration.check_model_region` reads of a calibration: the
+    model, the reference points' bounds and the image frame."""
+
+    def __init__(self, params, bounds, image_size):
+        self.params = params
+        self.bounds = bounds
+        self.image_size = image_size
+
+
+def region_problem(params, xy_u, image_size=None) -> str:
+    """Why ``oapcal fit`` would refuse to write the model ``params`` fitted to the reference
+    points ``xy_u`` (its check :func:`~oapcal.calibration.check_model_region` over the
+    points' bounds and the ``image_size`` frame), or ``""`` when it would write it."""
+    xy_u = np.asarray(xy_u, float)
+    bounds = (*xy_u.min(axis=0).tolist(), *xy_u.max(axis=0).tolist())
+    if not np.isfinite(params).all():
+        return "the fit gave non-finite parameters"
+    try:
+        check_model_region(_Region(np.asarray(params, float), bounds, image_size), source="the fitted model")
+    except InputFileError as exc:
+        return str(exc).removeprefix("the fitted model: ").split(";")[0]
+    return ""
+
+
+def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, seed: int, progress,
+           image_size=None):  # fmt: skip
     """Score the models ``subsets`` (``[(spec, mask)]``) of one family from the starts ``p0``
-    ``(B, P)``; ``invalid`` lists ``(spec, mask, reason)`` ranked last.  The ``cv_top`` best
-    by AICc are cross-validated."""
+    ``(B, P)``; ``invalid`` lists ``(spec, mask, reason)`` ranked last.  The valid ones are
+    checked in AICc order over the output region (:func:`region_problem`) until ``cv_top``
+    pass, and those are cross-validated."""
     rows = [(spec, mask, np.nan, np.nan, False, reason) for spec, mask, reason in invalid]
+    fitted = {}
     if subsets:
         masks = np.array([m for _, m in subsets])
         scores = score_models(xy_u, xy_d, masks, p0, progress=progress)
@@ -147,10 +192,20 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
             if codes[i]:
                 rows.append((spec, mask, np.nan, np.nan, False, reasons[i]))
             else:
+                fitted[spec] = scores["params"][i]
                 rows.append((spec, mask, float(scores["aicc"][i]), float(scores["mean_error"][i]), True, ""))
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))
+    top = []
+    for i, row in enumerate(rows):
+        if len(top) >= max(0, cv_top) or not row[4]:
+            break
+        problem = region_problem(fitted[row[0]], xy_u, image_size)
+        if problem:
+            rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
+        else:
+            top.append(row)
+    rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))
     cv_err = {}
-    top = [r for r in rows if r[4]][: max(0, cv_top)]
     if top and cv:
         index = {spec: i for i, (spec, _) in enumerate(subsets)}
         masks_top = np.array([r[1] for r in top])
@@ -165,11 +220,11 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
     return out
 
 
-def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progress):
+def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progress, image_size=None):
     p0 = relay_params(design)
-    jac = jacobian_params(xy_u, p0, family=RELAY)  # once for the 64 subsets
+    jac = jacobian_params(xy_u, p0)  # once for the 64 (128) subsets
     ok, invalid = [], []
-    for spec, mask in relay_subset_masks():
+    for spec, mask in relay_subset_masks(design.family):
         ident = identifiability(xy_u, p0, mask, jac)
         if ident.ok:
             ok.append((spec, mask))
@@ -177,16 +232,25 @@ def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progres
             groups = "; ".join(" ~ ".join(g) for g in ident.degenerate)
             invalid.append((spec, mask, f"not identifiable: {groups}"))
     starts = np.repeat(p0[None], len(ok), 0)
-    return _score("relay", xy_u, xy_d, ok, starts, invalid, cv, cv_top, seed, progress)
+    return _score(design.family.name, xy_u, xy_d, ok, starts, invalid, cv, cv_top, seed, progress, image_size)
 
 
-def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress):
+def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None):
+    """Every Eq. (1) subset (all 4,096), fitted from ``init`` on the points as given."""
+    masks = all_masks()
+    p0 = initial_params_many(init, xy_u, xy_d, masks)
+    subsets = [(",".join(names_from_mask(m)), m) for m in masks]
+    return _score(BROWN_CONRADY.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress, image_size)
+
+
+def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None):
     """Every Eq. (1) subset with the target's rotation free as well."""
     masks = all_masks()
     masks = np.pad(masks, ((0, 0), (0, 1)), constant_values=True)
     p0 = initial_params_many(init, xy_u, xy_d, masks)
     subsets = [(",".join(names_from_mask(m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
-    return _score(BROWN_CONRADY_POSE.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress)
+    return _score(BROWN_CONRADY_POSE.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress,
+                  image_size)  # fmt: skip
 
 
 def select_families(
@@ -204,7 +268,8 @@ def select_families(
 ) -> FamilySelection:
     """Rank Brown-Conrady subsets (all 4,096, fitted from ``init``) and relay subsets (from
     ``design``) together (module docstring).  ``cv`` folds for the ``cv_top`` best of each
-    family by AICc; ``progress(done, total)`` over the fits."""
+    family by AICc that ``oapcal fit`` would write (finite and not folding over on the
+    points' bounds and the ``image_size`` frame); ``progress(done, total)`` over the fits."""
     families = parse_families(",".join(families) if not isinstance(families, str) else families)
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
@@ -213,18 +278,12 @@ def select_families(
                         param="cv")  # fmt: skip
     candidates: list[Candidate] = []
     if "bc" in families:
-        sel = select_models(xy_u, xy_d, normalization="none", init=init, cv=cv, cv_top=cv_top, seed=seed,
-                            progress=progress)  # fmt: skip
-        for m in sel.models:
-            candidates.append(Candidate(
-                FAMILY_NAMES["bc"], _bc_spec(m.free), m.free, m.k, m.aicc, np.nan, m.mean_error, m.valid,
-                m.reason, m.cv_mean_error, m.cv_failed,
-            ))  # fmt: skip
+        candidates.extend(_bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size))
     if "relay" in families:
         design = default_centre(design, xy_u, image_size)
-        candidates.extend(_relay_candidates(xy_u, xy_d, design, cv, cv_top, seed, progress))
+        candidates.extend(_relay_candidates(xy_u, xy_d, design, cv, cv_top, seed, progress, image_size))
     if "bc+rotation" in families:
-        candidates.extend(_rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress))
+        candidates.extend(_rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size))
     valid_aicc = [c.aicc for c in candidates if c.valid and np.isfinite(c.aicc)]
     best = min(valid_aicc) if valid_aicc else np.nan
     candidates = [

@@ -46,6 +46,7 @@ from oapcal.model import (
     parse_any_model,
 )
 from oapcal.stats import information_criteria
+from oapcal.validate import point_pairs
 
 # Status codes of a fit (positive = converged).
 STATUS_MESSAGES: dict[int, str] = {
@@ -472,8 +473,7 @@ def fit(
     """
     mask = parse_any_model(model)
     family = family_of(mask)
-    xy_u = np.asarray(xy_u, float)
-    xy_d = np.asarray(xy_d, float)
+    xy_u, xy_d = point_pairs(xy_u, xy_d)  # finite (N, 2) pairs, or a named DataError
     check_enough_points(len(xy_u), int(mask.sum()))
     if family.zero_when_fixed:  # Eq. (1), with or without the rotation (which starts at 0)
         starts = ["auto", "pixel", "zero"] if isinstance(init, str) and init == "auto" else [init]

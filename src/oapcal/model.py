@@ -94,8 +94,14 @@ def parse_model(spec: str | Mapping | np.ndarray | tuple | list) -> np.ndarray:
                         "empty model specification: give a preset "
                         f"({', '.join(PRESETS)}) or a comma list of parameter names"
                     )
-        else:
+        elif isinstance(spec, np.ndarray | tuple | list | Mapping):
             names = tuple(spec)
+        else:
+            raise ModelSpecError(
+                f"a model specification is a preset ({', '.join(PRESETS)}), a comma list of parameter "
+                f"names, a sequence of names or a ({N_PARAMS},) boolean mask, not {type(spec).__name__}",
+                param="model",
+            )
         mask = np.zeros(N_PARAMS, dtype=bool)
         for name in names:
             if name not in INDEX:
@@ -310,13 +316,39 @@ RELAY = ModelFamily(
     map_step=8,
 )
 
-FAMILIES = {f.name: f for f in (BROWN_CONRADY, BROWN_CONRADY_POSE, RELAY)}
+#: The microscope behind the relay (``relay+microscope``): its magnification (signed,
+#: negative inverts) and radial term, fitted; the design's magnification, a constant.
+MICROSCOPE_NAMES = ("microscope_magnification", "microscope_k1")
+MICROSCOPE_DESIGN_NAMES = ("microscope_design_magnification",)
+
+#: The physical relay with a finite-conjugate microscope behind it (``docs/models.md``):
+#: the relay's 36 values in the same order, then the microscope's.  It shares the relay's
+#: point function (``code``): the vector's length tells it that there is a microscope.
+RELAY_MICROSCOPE = ModelFamily(
+    name="relay+microscope",
+    code=RELAY.code,
+    param_names=RELAY.param_names + MICROSCOPE_NAMES + MICROSCOPE_DESIGN_NAMES,
+    always_free=(),
+    scale_exponents=None,
+    moves=RELAY.moves + ("xy",) * (len(MICROSCOPE_NAMES) + len(MICROSCOPE_DESIGN_NAMES)),
+    analytic_jacobian=False,
+    fd_step=RELAY.fd_step,
+    never_free=RELAY_DESIGN_NAMES + MICROSCOPE_DESIGN_NAMES,
+    zero_when_fixed=False,
+    map_step=RELAY.map_step,
+)
+
+#: The relay families (the physical relay, with or without a microscope behind it).
+RELAY_FAMILIES = (RELAY, RELAY_MICROSCOPE)
+
+FAMILIES = {f.name: f for f in (BROWN_CONRADY, BROWN_CONRADY_POSE, RELAY, RELAY_MICROSCOPE)}
 _BY_SIZE = {f.n_params: f for f in FAMILIES.values()}
 
 
 def family_of(params, family: ModelFamily | None = None) -> ModelFamily:
     """The family of a parameter vector ``(..., P)``: ``family`` if given, else the one
-    whose vector has ``P`` entries (13 Eq. 1, 14 Eq. 1 with rotation, 36 the relay; the
+    whose vector has ``P`` entries (13 Eq. 1, 14 Eq. 1 with rotation, 36 the relay, 39 the
+    relay with a microscope; the
     sizes are distinct, so a vector names its family).  Unknown sizes give Eq. (1), whose
     shape check then reports them."""
     if family is not None:
@@ -439,8 +471,9 @@ class InverseResult:
     Attributes
     ----------
     xy : (..., N, 2) undistorted points; NaN where ``converged`` is False.
-    converged : (..., N) bool, the residual ``|distort(xy) - xy_d|`` reached ``tol``
-        and the map is locally one-to-one there.
+    converged : (..., N) bool, the residual ``|distort(xy) - xy_d|`` reached ``tol``, or
+        the model's own rounding level where that is coarser (:func:`undistort`), and the
+        map is locally one-to-one there.
     folded : (..., N) bool, Newton stopped where the Jacobian determinant is <= 0: the
         fitted map folds over near this point, so no trustworthy inverse exists.
     n_iter : the largest number of Newton iterations any point took.
@@ -469,9 +502,16 @@ def undistort(
 
     A point converges when ``|distort(xy_u) - xy_d| <= tol`` (Euclidean, in the units of
     the points) within ``max_iter`` iterations *and* the Jacobian determinant there is
-    positive.  Where the determinant is <= 0 the map folds over: the point is reported as
+    positive.  Where the model's evaluation cannot be that exact, the point also converges
+    when its residual is within the evaluation's rounding level and a full Newton step no
+    longer reduces it: ``16 eps`` times the
+    magnitudes the evaluation adds up, the points' own and the family's (the relay's
+    mm-scale ray geometry in px, ``(d1 + f1 + f2 + stop) / pixel``; Eq. (1)'s centre and
+    offsets); ``docs/models.md`` has the numbers.  Where ``tol`` is met first (Eq. 1 in px
+    coordinates, the relay at 4.8 um pixels) the result is the one of the absolute test
+    alone.  Where the determinant is <= 0 the map folds over: the point is reported as
     ``folded`` and not converged.  Points that do not converge come back as NaN.  A point
-    whose residual stops decreasing is stopped (not converged).
+    whose residual stops decreasing above the rounding level is stopped (not converged).
 
     Shapes follow :func:`distort`: ``xy_d`` ``(..., N, 2)`` with ``params`` ``(..., 13)``;
     each point is solved independently (compiled, in parallel).
@@ -506,7 +546,8 @@ def correction_errors(params: np.ndarray, xy_d: np.ndarray, xy_u: np.ndarray, *,
 
     Returns ``(rss, mean_dist, n_bad, n_folded)``, each ``(B,)``: the sum of squared and
     the mean Euclidean corrected-minus-reference distances over the points whose inverse
-    converged, the number of points whose inverse failed, and how many of those fold.
+    converged (the test of :func:`undistort`, with its allowance for the model's rounding),
+    the number of points whose inverse failed, and how many of those fold.
     """
     k = _kernels()
     params = kernel_array(np.atleast_2d(params))

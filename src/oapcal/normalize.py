@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
+from oapcal.validate import point_pairs
 
 NORMALIZATIONS = ("none", "experiment", "grid")
 
@@ -77,7 +78,13 @@ def normalize_grid(xy_u, xy_d) -> Normalized:
 
 
 def normalize(kind: str, xy_u, xy_d) -> Normalized:
-    """Apply the normalization named ``kind`` (``none``, ``experiment`` or ``grid``)."""
+    """Apply the normalization named ``kind`` (``none``, ``experiment`` or ``grid``).
+
+    The points enter the fits here (:func:`oapcal.calibrate`, :func:`oapcal.select_models`,
+    :func:`oapcal.robustness`): both must be ``(N, 2)`` arrays of finite numbers of one
+    length (:func:`oapcal.validate.point_pairs`), else :class:`DataError` naming ``xy_u`` or
+    ``xy_d``."""
+    xy_u, xy_d = point_pairs(xy_u, xy_d)
     if kind in (None, "none"):
         return Normalized(np.asarray(xy_u, float), np.asarray(xy_d, float), 1.0, 1.0)
     if kind == "experiment":

@@ -38,10 +38,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.errors import DataError
+from oapcal import validate
+from oapcal.errors import DataError, ModelSpecError
 from oapcal.fitting import DEFAULT_INIT, STATUS_MESSAGES, fit_batch, initial_params_many
 from oapcal.model import (
     N_OPTIONAL,
+    N_PARAMS,
     PARAM_NAMES,
     all_masks,
     bits_from_mask,
@@ -240,6 +242,28 @@ def invalid_reasons(scores: dict, k: np.ndarray, n_points: int) -> tuple[list[st
     return codes, reasons
 
 
+def check_masks(masks) -> np.ndarray:
+    """Models given as masks: a ``(13,)`` mask or a ``(B, 13)`` array of them (B >= 1) of
+    booleans or 0/1, each with ``m`` (the last entry) free; as a ``(B, 13)`` bool array.
+    Anything else raises :class:`~oapcal.errors.ModelSpecError` naming ``masks``."""
+    how = "give a (B, 13) array of booleans (or 0/1), one row per model, m (the last) always True"
+    try:
+        arr = np.atleast_2d(np.asarray(masks))
+    except (TypeError, ValueError):
+        raise ModelSpecError(f"masks must be an array of booleans; {how}", param="masks") from None
+    if arr.ndim != 2 or arr.shape[1] != N_PARAMS or arr.shape[0] == 0:
+        raise ModelSpecError(
+            f"masks has shape {np.shape(masks)}, not (B, {N_PARAMS}) with B >= 1; {how}", param="masks"
+        )
+    if arr.dtype.kind not in "biu" or not np.isin(arr, (0, 1)).all():
+        raise ModelSpecError(f"masks holds values other than True/False (or 1/0); {how}", param="masks")
+    arr = arr.astype(bool)
+    if not arr[:, -1].all():
+        row = int(np.flatnonzero(~arr[:, -1])[0])
+        raise ModelSpecError(f"masks row {row} fixes m; m is free in every model: {how}", param="masks")
+    return arr
+
+
 def select_models(
     xy_u,
     xy_d,
@@ -266,7 +290,8 @@ def select_models(
     """
     norm = normalize(normalization, xy_u, xy_d)
     u, d = norm.xy_u, norm.xy_d
-    masks = all_masks() if masks is None else np.atleast_2d(np.asarray(masks, bool))
+    masks = all_masks() if masks is None else check_masks(masks)
+    seed = validate.seed(seed)
     n_points = len(u)
     scores = score_models(u, d, masks, init, max_iter=max_iter, progress=progress)
     k = masks.sum(axis=1)
@@ -347,7 +372,7 @@ def cross_validate(
             f"{folds}-fold cross-validation leaves {n_train_min} training points, too few for a model "
             f"with {k_max} free parameters; use fewer folds"
         )
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(validate.seed(seed))
     parts = np.array_split(rng.permutation(n_points), folds)
     p0 = _starts(init, xy_u, xy_d, masks)
     total = np.zeros(len(masks))

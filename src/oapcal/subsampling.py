@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from oapcal import validate
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.fitting import DEFAULT_INIT, fit_batch, initial_params_many
 from oapcal.model import (
@@ -169,6 +170,20 @@ def _starts_of(spec, init, u, d, mask) -> np.ndarray:
     return initial_params_many(init, u, d, mask[None])[0]
 
 
+#: Most trials of :func:`robustness`.
+MAX_TRIALS = 10_000_000
+#: Memory of one trial, per point and per model (the subsets drawn: a float and an index per
+#: point, the kept and held-out indices; the parameters, codes and errors per model), with
+#: room: measured about 10 B per point for 252 points.
+BYTES_PER_TRIAL_POINT = 16
+BYTES_PER_TRIAL_MODEL = 512
+
+
+def robustness_bytes(trials: int, n_points: int, n_models: int) -> int:
+    """The memory estimate of :func:`robustness` (bytes), checked before any work."""
+    return trials * (BYTES_PER_TRIAL_POINT * n_points + BYTES_PER_TRIAL_MODEL * n_models)
+
+
 def robustness(
     xy_u,
     xy_d,
@@ -196,6 +211,13 @@ def robustness(
     norm = normalize(normalization, xy_u, xy_d)
     u, d = norm.xy_u, norm.xy_d
     specs = list(models)
+    trials = validate.whole_number(trials, "trials", 1, MAX_TRIALS)
+    seed = validate.seed(seed)
+    chunk = validate.whole_number(chunk, "chunk", 1)
+    validate.memory(
+        robustness_bytes(trials, len(u), len(specs)),
+        f"{trials:,} trials of {len(u)} points x {len(specs)} models", "give fewer trials", param="trials",
+    )  # fmt: skip
     n_keep, masks = _check_robustness(len(u), trials, fraction, specs)
     ref_rms = _reference_rms(u, d, specs, masks, init, max_iter)
     keep, held = _draw_subsets(seed, trials, len(u), n_keep)

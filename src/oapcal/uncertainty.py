@@ -73,14 +73,22 @@ def position_covariance(xy_u, params, covariance, free) -> np.ndarray:
 def inside_hull(xy, hull) -> np.ndarray:
     """Whether points ``(..., 2)`` lie inside (or on) the convex polygon ``hull`` ``(M, 2)``.
 
+    A hull without area (collinear or repeated vertices, as a hand-edited calibration file
+    may hold) contains no point: everything is outside.
+
     >>> square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
     >>> inside_hull(np.array([[0.5, 0.5], [1.5, 0.5], [1.0, 0.2]]), square).tolist()
     [True, False, True]
+    >>> inside_hull(np.array([[0.5, 0.5], [1.5, 1.5]]), [[0, 0], [1, 1], [2, 2]]).tolist()
+    [False, False]
     """
-    from scipy.spatial import Delaunay
+    from scipy.spatial import Delaunay, QhullError
 
     xy = np.asarray(xy, float)
-    tri = Delaunay(np.asarray(hull, float))
+    try:
+        tri = Delaunay(np.asarray(hull, float))
+    except QhullError:  # a flat hull (Qhull cannot build a simplex)
+        return np.zeros(xy.shape[:-1], bool)
     flat = xy.reshape(-1, 2)
     return (tri.find_simplex(flat, tol=1e-9) >= 0).reshape(xy.shape[:-1])
 

@@ -82,3 +82,18 @@ def test_unconverged_calibration_is_kept_only_when_asked_and_refused_by_users(
 def test_rotation_option_conflicts_with_a_rotation_model(run_cli, turned_points):
     code, _, err = run_cli("fit", turned_points, "--model", "paper+rotation", "--rotation", "none")
     assert code == 2 and "fits the rotation already" in err
+
+
+def test_a_fit_with_negative_m_is_refused_and_the_default_fits_the_turn(run_cli, tmp_path):
+    data = synthetic_pairs(seed=3)
+    points = tmp_path / "upside_down.csv"
+    write_point_pairs(points, -(data.xy_u - [320, 240]) + [320, 240], data.xy_d)
+    out = tmp_path / "c.json"
+    code, _, err = run_cli("fit", points, "--rotation", "none", "--out", out)
+    assert code == 3 and not out.exists()
+    assert "m = -1.01 <= 0" in err and "turned by about 180 deg" in err and "Traceback" not in err
+    code, _, err = run_cli("fit", points, "--out", out)
+    assert code == 0 and "turned by -180 deg" in err
+    assert json.loads(out.read_text())["params"]["m"] > 0
+    code, _, err = run_cli("correct-points", out, points, "--out", tmp_path / "cp.csv")
+    assert code == 0, err

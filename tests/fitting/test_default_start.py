@@ -90,8 +90,8 @@ def test_commands_default_to_the_one_start():
 
 #: A well-corrected microscope (like the real fpm_brightfield.png): barely any distortion,
 #: so a turn of the target is most of what separates the point sets.
-WEAK = params_from_dict({"k1": 2e-10, "s3": 1e-7, "x_off": -320.0, "y_off": -240.0, "c_x": 320.0, "c_y": 240.0,
-                         "m": 1.0})  # fmt: skip
+WEAK = params_from_dict({"k1": 2e-10, "s3": 1e-7, "x_off": -320.0, "y_off": -240.0, "c_x": 320.0,
+                         "c_y": 240.0, "m": 1.0})  # fmt: skip
 
 
 def test_turned_target_runs_away_without_the_rotation_and_converges_with_it():
@@ -106,9 +106,7 @@ def test_turned_target_runs_away_without_the_rotation_and_converges_with_it():
     # (the turn trades off a little against s3 about a centre near the field's edge)
     assert cal.params[-1] == pytest.approx(-0.46, abs=0.1)
     assert cal.residuals.mean_px < 0.5
-    assert (
-        len(cal.notes) == 1 and "turned by -0.3" in cal.notes[0] and "did not converge" in cal.notes[0]
-    )
+    assert len(cal.notes) == 1 and "turned by -0.3" in cal.notes[0] and "did not converge" in cal.notes[0]
     kept = calibrate(u, data.xy_d, "paper", rotation="none")
     assert len(kept.params) == 13 and not kept.fit.converged and kept.notes == ()
 
@@ -139,3 +137,19 @@ def test_robustness_from_the_default_start_converges_where_the_zero_start_does_n
     zero = robustness(u, d, ["paper", "full"], trials=100, seed=1, init="zero")
     assert [m.not_converged for m in default.models] == [0, 0]
     assert [m.not_converged for m in zero.models] == [100, 100]
+
+
+def test_target_turned_by_180_degrees_keeps_m_positive_and_fits_the_turn():
+    # Eq. (1) with m < 0 is the same map as m > 0 with the reference turned by 180 deg: a
+    # calibration keeps m > 0 (the loader refuses m <= 0) and puts the sign in the rotation.
+    data = synthetic_pairs(seed=3)
+    u = -(data.xy_u - [320, 240]) + [320, 240]
+    plain = calibrate(u, data.xy_d, "paper", rotation="none")
+    assert plain.params[INDEX["m"]] < 0  # what the data alone give
+    cal = calibrate(u, data.xy_d, "paper")
+    assert cal.family is BROWN_CONRADY_POSE and cal.fit.converged
+    assert cal.params[INDEX["m"]] == pytest.approx(-plain.params[INDEX["m"]], rel=1e-4)
+    assert abs(abs(cal.params[-1]) - 180.0) < 0.05
+    assert "m = -1.01 < 0" in cal.notes[0]
+    # the same correction either way
+    assert cal.residuals.mean_px == pytest.approx(plain.residuals.mean_px, rel=0.01)

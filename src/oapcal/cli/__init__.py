@@ -61,6 +61,18 @@ class LazyGroup(click.Group):
             return harden(getattr(importlib.import_module(module), attr))
         return super().get_command(ctx, name)
 
+    def invoke(self, ctx):
+        # Click answers a KeyboardInterrupt with a blank line on stderr and Abort ("two
+        # lines" with ours): carry it past Click instead; main() prints the one line.
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as exc:  # Ctrl-C, and SIGTERM/SIGHUP as Terminated
+            raise _Interrupted(exc) from None
+
+
+class _Interrupted(Exception):
+    """A KeyboardInterrupt (``args[0]``) carried through Click's main loop."""
+
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="oapcal")
@@ -206,6 +218,11 @@ def _main(argv: list[str] | None) -> int:
         if isinstance(exc.__cause__, Terminated):
             return _terminated(exc.__cause__)
         click.echo("oapcal: aborted", err=True)
+        return 130
+    except _Interrupted as exc:
+        if isinstance(exc.args[0], Terminated):
+            return _terminated(exc.args[0])
+        click.echo("oapcal: interrupted", err=True)
         return 130
     except OapcalError as exc:
         click.echo(f"oapcal: error: {sanitize(exc)}{_flag_hint(exc, args)}", err=True)

@@ -16,6 +16,10 @@ from oapcal.cli._common import Finite
 #: Defaults of the design options (the paper's OAPs and camera, as ``simulate relay``).
 DEFAULT_FOCAL_LENGTH_MM = 50.8
 DEFAULT_PIXEL_SIZE_UM = 4.8
+#: |M| of --microscope-magnification at most, and at least (a copy of
+#: ``relay_model.MICROSCOPE_MAGNIFICATION_RANGE``: importing it would load NumPy for --help).
+MAX_MICROSCOPE_MAGNIFICATION = 1000.0
+MIN_MICROSCOPE_MAGNIFICATION = 0.01
 
 RELAY_MODEL_HELP = (
     " Or 'relay' (the physical relay: its misalignment and the target's pose, from the "
@@ -52,12 +56,17 @@ def relay_design_options(func):
         click.option("--relay-centre", "relay_centre", default=None, metavar="X,Y",
                      help=w + "the point (px) on the relay's axis (default: the image centre with "
                      "--image-size, else the middle of the reference points)."),
+        click.option("--microscope-magnification", "microscope_magnification", default=None, metavar="M",
+                     type=Finite(min=-MAX_MICROSCOPE_MAGNIFICATION, max=MAX_MICROSCOPE_MAGNIFICATION),
+                     help=w + "a finite-conjugate microscope between the relay and the camera, its "
+                     "magnification; negative when it inverts the image (-5: a 5x objective forming a "
+                     "real image). The model is then relay+microscope (docs/models.md)."),
     ]  # fmt: skip
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         keys = ("relay_setup", "relay_d1", "relay_focal_length", "relay_focal_length_2", "relay_orientation",
-                "relay_stop", "relay_pixel_size", "relay_centre")  # fmt: skip
+                "relay_stop", "relay_pixel_size", "relay_centre", "microscope_magnification")  # fmt: skip
         kwargs["relay_design"] = {k: kwargs.pop(k) for k in keys}
         return func(*args, **kwargs)
 
@@ -92,7 +101,18 @@ def design_from_options(values: dict):
         orientation=values["relay_orientation"].upper(),
         stop_distance_mm=values["relay_stop"], pixel_size_um=values["relay_pixel_size"],
         centre=_parse_centre(values["relay_centre"]),
+        microscope_magnification=_microscope(values.get("microscope_magnification")),
     )  # fmt: skip
+
+
+def _microscope(value):
+    if value is not None and abs(value) < MIN_MICROSCOPE_MAGNIFICATION:
+        raise click.BadParameter(
+            f"{value:g} is not a magnification: give |M| >= {MIN_MICROSCOPE_MAGNIFICATION:g} (e.g. -5 for "
+            "a 5x objective that inverts the image), or leave the option out when there is no microscope",
+            param_hint="--microscope-magnification",
+        )
+    return value
 
 
 def refuse_normalize(normalization: str | None, why: str) -> None:
@@ -103,7 +123,9 @@ def refuse_normalize(normalization: str | None, why: str) -> None:
 
 
 def check_relay_spec(model: str) -> None:
-    """Parse a ``relay`` / ``relay:NAMES`` spec early (a bad name fails before files are read)."""
+    """Parse a ``relay`` / ``relay:NAMES`` spec early (a bad name fails before files are read;
+    the microscope's names are checked against the design by the fit)."""
+    from oapcal.model import RELAY_MICROSCOPE
     from oapcal.optics.relay_model import relay_mask
 
-    relay_mask(model)
+    relay_mask(model, RELAY_MICROSCOPE)

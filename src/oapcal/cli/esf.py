@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, print_json, stderr_is_terminal
+from oapcal.cli._common import check_output, console, print_json, progress_bar
 
 
 @click.command("esf")
@@ -56,12 +56,11 @@ def esf_command(image, rois_file, auto, um_per_px, half_width, plot, as_json):
         raise click.BadParameter(f"{plot!r} must end in .png", param_hint="--plot")
     img = read_image_grey(image)
     if rois_file is not None:
-        from oapcal.imaging.esf import check_roi
+        from oapcal.imaging.esf import check_rois
         from oapcal.io.rois import read_rois
 
-        rois, labels = read_rois(rois_file)
-        for roi, label in zip(rois, labels):
-            check_roi(roi, img.shape, f"{rois_file}: {label}")
+        rois, labels = read_rois(rois_file)  # at most MAX_EDGES rows are read
+        check_rois(rois, img.shape, [f"{rois_file}: {label}" for label in labels])  # before any fit
     else:
         try:
             rois, labels = find_edge_rois(img, half_width=half_width)
@@ -92,18 +91,9 @@ def esf_command(image, rois_file, auto, um_per_px, half_width, plot, as_json):
 
 
 def _fit_with_progress(analyse_edges, img, rois, labels, um_per_px):
-    import sys
-
-    from rich.console import Console
-    from rich.progress import Progress
-
-    err = Console(file=sys.stderr)
-    # isatty, not Console.is_terminal: FORCE_COLOR (set by many CI systems) makes Rich draw
-    # the bar into a log file.
-    with Progress(console=err, transient=True, disable=not stderr_is_terminal()) as progress:
-        task = progress.add_task("fitting edges", total=len(rois))
-        return analyse_edges(img, rois, labels=labels, um_per_px=um_per_px,
-                             progress=lambda: progress.advance(task))  # fmt: skip
+    bar, update = progress_bar(f"fitting {len(rois):,} edges")
+    with bar:
+        return analyse_edges(img, rois, labels=labels, um_per_px=um_per_px, progress=update)
 
 
 def _print_table(summary) -> None:

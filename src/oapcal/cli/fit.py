@@ -107,9 +107,9 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
             pairs.xy_u, pairs.xy_d, model, init=init, normalization=normalization,
             um_per_px=um_per_px, image_size=size, source=pairs.source, rotation=rotation,
         )  # fmt: skip
+    _check_fit_usable(cal, pairs.source)
     for note in cal.notes:
         click.echo(f"oapcal: note: {note} (--rotation none fits the model as given)", err=True)
-    _check_fit_usable(cal, pairs.source)
     write = out is not None and (cal.fit.converged or keep_unconverged)
     if write:
         save_calibration(cal, out)
@@ -181,6 +181,13 @@ def _check_fit_usable(cal, source: str) -> None:
         raise FitFailed(
             f"{source}: the fit gave non-finite parameters (the points do not "
             "determine the model); nothing written. Check the points, or fit a smaller --model"
+        )
+    names = cal.family.param_names
+    if "m" in names and cal.params[names.index("m")] <= 0:
+        raise FitFailed(
+            f"{source}: the fit gave m = {cal.params[names.index('m')]:.4g} <= 0: the reference points "
+            "are turned by about 180 deg against the distorted ones, which a calibration expresses as "
+            "a rotation; nothing written. Fit the rotation (--rotation auto, the default, or fit)"
         )
     try:
         check_model_region(cal, source=source)

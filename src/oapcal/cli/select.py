@@ -85,7 +85,12 @@ def _fmt(value, spec: str) -> str:
     default=None,
     help="'relay': rank the relay's subsets alone (the same as --families relay).",
 )
-@click.option("--image-size", default=None, help="With --families relay: camera image size WxH in px.")
+@click.option(
+    "--image-size",
+    default=None,
+    help="With --families: camera image size WxH in px (the relay's centre, and the region every "
+    "recommended model must correct without folding over, as fit checks it).",
+)
 @relay_design_options
 def select_command(points, normalization, init, top, cv, seed, json_out, families=None, image_size=None,
                    relay_design=None, model=None):  # fmt: skip
@@ -156,6 +161,8 @@ def print_family_selection(sel, top: int, source: str = "") -> None:
     """The best ``top`` models of each family by AICc, and the recommendation."""
     from rich.table import Table
 
+    from oapcal.families import REFUSED_PREFIX
+
     out = _wide_console()
     table = Table(
         title=f"Best models of each family by AICc ({source}, {sel.n_points} points)", title_justify="left"
@@ -171,8 +178,14 @@ def print_family_selection(sel, top: int, source: str = "") -> None:
                           _fmt(c.cv_mean_error, ".4g"))  # fmt: skip
     out.print(table)
     n_bad = sum(not c.valid for c in sel.candidates)
+    n_region = sum(c.reason.startswith(REFUSED_PREFIX) for c in sel.candidates)
     if n_bad:
         out.print(f"{n_bad} models could not be scored (not identifiable, or the fit or its inverse failed).")
+    if n_region:
+        out.print(
+            f"{n_region} of them fold over or are not finite on the points' bounds or the image "
+            "(fit would refuse to write them)."
+        )
     if sel.recommended is not None:
         r = sel.recommended
         out.print(f"Recommended by held-out error: --model {r.spec} ({r.family}, {r.cv_mean_error:.4g} px).")
@@ -331,7 +344,7 @@ def _started_relay(spec: str, pairs, image_size, relay_design):
     from oapcal.subsampling import StartedModel
 
     design = default_centre(design_from_options(relay_design), pairs.xy_u, parse_size(image_size))
-    return StartedModel(spec, relay_mask(spec), relay_params(design))
+    return StartedModel(spec, relay_mask(spec, design.family), relay_params(design))
 
 
 def print_robustness(result, source: str = "") -> None:
@@ -369,9 +382,9 @@ def print_robustness(result, source: str = "") -> None:
     spread.add_column("parameter")
     for m in result.models:
         spread.add_column(m.name, justify="right")
-    from oapcal.model import BROWN_CONRADY_POSE, RELAY
+    from oapcal.model import BROWN_CONRADY_POSE, RELAY_MICROSCOPE
 
-    order = list(dict.fromkeys(BROWN_CONRADY_POSE.param_names + RELAY.param_names))
+    order = list(dict.fromkeys(BROWN_CONRADY_POSE.param_names + RELAY_MICROSCOPE.param_names))
     names = [n for n in order if any(n in m.free for m in result.models)]
     for name in names:
         cells = (_fmt(m.param_std.get(name), ".3g") if name in m.free else "" for m in result.models)

@@ -14,6 +14,7 @@ from oapcal.cli._common import (
     print_json,
     progress_bar,
 )
+from oapcal.cli._relay import MAX_MICROSCOPE_MAGNIFICATION, MIN_MICROSCOPE_MAGNIFICATION
 
 #: Largest grid (points per side) and number of hexapolar rings: beyond them tracing takes
 #: minutes and gigabytes and shows nothing new.
@@ -189,12 +190,21 @@ def misalignment_options(func):
     "--layout", type=click.Path(dir_okay=False), default=None,
     help="Figure of the relay in its fold plane with the frames of the misalignment conventions.",
 )  # fmt: skip
+@click.option(
+    "--microscope-magnification", "microscope_magnification", metavar="M", default=None,
+    type=Finite(min=-MAX_MICROSCOPE_MAGNIFICATION, max=MAX_MICROSCOPE_MAGNIFICATION),
+    help="The grid CSV's image points (x_u..y_d) behind an ideal microscope of this magnification "
+    "(negative: it inverts the image, -5 for a 5x objective), as 'oapcal fit --model relay "
+    "--microscope-magnification' takes them; the tables and figures stay at the relay's image.",
+)  # fmt: skip
 def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,
                   image_size, beam_diameter, wavelength, spot_fields, rings, out, plot, spots,
                   as_json, focal_length_2=None, misalignment=None, layout=None,
-                  reference="paraxial"):  # fmt: skip
+                  reference="paraxial", microscope_magnification=None):  # fmt: skip
     """Trace the OAP relay: grid distortion (paraxial vs real chief rays), spots, limits."""
     from oapcal.errors import GeometrySpecError
+
+    microscope = microscope_magnification
 
     size = parse_size(image_size)
     points = [_parse_point(text) for text in spot_fields] or None
@@ -205,6 +215,12 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
         )
     if rings < 1:
         raise GeometrySpecError(f"--rings must be at least 1, got {rings}")
+    if microscope is not None and abs(microscope) < MIN_MICROSCOPE_MAGNIFICATION:
+        raise click.BadParameter(
+            f"{microscope:g} is not a magnification: give |M| >= {MIN_MICROSCOPE_MAGNIFICATION:g} (e.g. -5), "
+            "or leave the option out",
+            param_hint="--microscope-magnification",
+        )
     if size is not None and units != "px":
         raise GeometrySpecError("--image-size needs --units px (camera px); drop it or add --units px")
     for value, name in ((pixel_size, "--pixel-size"), (beam_diameter, "--beam-diameter"),
@@ -236,6 +252,8 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
             if out is not None:
                 update(0, 1, "writing the grid CSV")
                 grid = sim.grid if reference == "paraxial" else _design_reference(sim.grid)
+                if microscope is not None:
+                    grid = _behind_microscope(grid, microscope)
                 write_grid_csv(grid, outputs.stage(out), units, pixel_size, size, progress=update)
             if plot is not None:
                 from oapcal.report.optics_plots import plot_grid
@@ -267,6 +285,14 @@ def _design_reference(grid):
 
     design = grid.relay.with_misalignment(None)
     return dataclasses.replace(grid, xy_u=apply_matrix(paraxial_matrix(design), grid.xy_obj))
+
+
+def _behind_microscope(grid, magnification: float):
+    """``grid`` with its image points (paraxial and real, mm) magnified by an ideal
+    microscope: the relay's image plane imaged onto the camera, ``M`` times."""
+    import dataclasses
+
+    return dataclasses.replace(grid, xy_u=grid.xy_u * magnification, xy_d=grid.xy_d * magnification)
 
 
 def _parse_point(text: str) -> tuple[float, float]:

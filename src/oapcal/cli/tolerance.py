@@ -6,6 +6,7 @@ from __future__ import annotations
 import click
 
 from oapcal.cli._common import (
+    Finite,
     PointsUsageError,
     check_output,
     check_plot_suffix,
@@ -13,6 +14,13 @@ from oapcal.cli._common import (
     print_json,
     progress_bar,
 )
+
+#: Smallest camera pixel (um): below it a grid of a mm spans over 1e7 px and the aligned
+#: calibration cannot be fitted in px.
+MIN_PIXEL_UM = 1e-3
+#: Most Monte Carlo trials (``oapcal.optics.tolerance.MAX_TRIALS``; a copy, so that ``--help``
+#: imports nothing heavy).
+MAX_TRIALS = 500_000
 
 #: Tolerance options: group (``oapcal.optics.tolerance.GROUPS``) -> (flag, unit, help).
 TOLERANCE_OPTIONS = {
@@ -78,12 +86,18 @@ def _relay_design_options(func):
 @click.option(
     "--field",
     "field_mm",
-    type=float,
+    type=Finite(min=0, max=1000, min_open=True),
     default=1.0,
     show_default=True,
-    help="Full width of the square object field, mm.",
+    help="Full width of the square object field, mm (as simulate relay).",
 )
-@click.option("--pixel-size", type=float, default=4.8, show_default=True, help="Camera pixel size, um.")
+@click.option(
+    "--pixel-size",
+    type=Finite(min=MIN_PIXEL_UM, max=1000),
+    default=4.8,
+    show_default=True,
+    help="Camera pixel size, um.",
+)
 @click.option(
     "--model",
     default="paper",
@@ -98,7 +112,9 @@ def _relay_design_options(func):
     metavar="NAME=VALUE",
     help="Tolerance of one parameter (e.g. m2_tilt_x=0.02), overriding its group; repeatable.",
 )
-@click.option("--trials", type=int, default=500, show_default=True, help="Monte Carlo trials.")
+@click.option(
+    "--trials", type=int, default=500, show_default=True, help=f"Monte Carlo trials (at most {MAX_TRIALS:,})."
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the Monte Carlo.")
 @click.option(
     "--distribution",
@@ -136,6 +152,8 @@ def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal
         raise GeometrySpecError(f"--grid {n} is more than tolerancing needs: give at most 201")
     if trials < 1:
         raise GeometrySpecError(f"--trials must be at least 1, got {trials}")
+    if trials > MAX_TRIALS:
+        raise GeometrySpecError(f"--trials must be at most {MAX_TRIALS:,}, got {trials:,}")
     for value, name in ((pixel_size, "--pixel-size"), (field_mm, "--field")):
         if not value > 0:
             raise GeometrySpecError(f"{name} must be positive, got {value:g}")
@@ -150,7 +168,8 @@ def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal
 
     from oapcal.model import parse_model
     from oapcal.optics.relay import oap_relay
-    from oapcal.optics.tolerance import Tolerancing, expand_tolerances
+    from oapcal.optics.tolerance import GROUPS as _GROUP_MEMBERS
+    from oapcal.optics.tolerance import Tolerancing, check_monte_carlo, expand_tolerances
 
     parse_model(model)  # a bad model is a usage error before any work
     tolerances = expand_tolerances(groups, per_parameter)
@@ -158,6 +177,17 @@ def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal
         int(setup), d1_mm=d1, orientation=orientation, stop_distance_mm=stop_distance,
         focal_length_mm=focal_length, focal_length_2_mm=focal_length_2,
     )  # fmt: skip
+    if tolerances:  # the trials, their memory and each tolerance's extremes, before any tracing
+        try:
+            check_monte_carlo(relay, tolerances, trials, distribution, n)
+        except GeometrySpecError as exc:
+            if not (isinstance(exc.param, tuple) and exc.param[0] == "tolerances"):
+                raise
+            name = exc.param[1]
+            flags = [
+                flag for group, (flag, _, _) in TOLERANCE_OPTIONS.items() if name in _GROUP_MEMBERS[group]
+            ]
+            raise GeometrySpecError(f"{exc} (set by {', '.join(flags + ['--tol'])})") from None
     bar, update = progress_bar("tolerancing")
     with bar:
         update(0, 1, "calibrating the aligned relay")

@@ -41,6 +41,14 @@ import numpy as np
 from oapcal.errors import DataError
 from oapcal.records import finite_or_none
 
+#: Most edges one :func:`analyse_edges` call fits (an ROI file longer than this is refused
+#: while it is read, before any fit): about 1-30 ms an edge, so minutes at most.
+MAX_EDGES = 10_000
+#: Largest ROI (px): a fit holds about 10 float arrays of its size.
+MAX_ROI_PIXELS = 2**20
+#: Largest sum of the ROIs' sizes of one call (px).
+MAX_TOTAL_ROI_PIXELS = 2**26
+
 
 @dataclass(frozen=True)
 class EdgeFit:
@@ -119,7 +127,40 @@ def check_roi(roi, shape, label: str = "ROI") -> tuple[int, int, int, int]:
         raise DataError(
             f"{label}: ({x0}, {y0}, {x1}, {y1}) is too thin; give at least 4 x 4 px around the edge"
         )
+    if (x1 - x0 + 1) * (y1 - y0 + 1) > MAX_ROI_PIXELS:
+        raise DataError(
+            f"{label}: ({x0}, {y0}, {x1}, {y1}) covers {(x1 - x0 + 1) * (y1 - y0 + 1):,} px, more than "
+            f"{MAX_ROI_PIXELS:,}; give a rectangle around one edge (tens of px across it)"
+        )
     return x0, y0, x1, y1
+
+
+def check_rois(rois, shape, labels=None) -> list[tuple[int, int, int, int]]:
+    """Validate every ROI (:func:`check_roi`), their number (at most :data:`MAX_EDGES`) and
+    their total size (at most :data:`MAX_TOTAL_ROI_PIXELS`), before any fit."""
+    try:
+        n = len(rois)
+    except TypeError:
+        raise DataError(f"rois must be a list of rectangles (x0, y0, x1, y1), got {type(rois).__name__}",
+                        param="rois") from None  # fmt: skip
+    if n > MAX_EDGES:
+        raise DataError(f"{n:,} ROIs is more than {MAX_EDGES:,} edges; give fewer ROIs", param="rois")
+    if labels is not None and len(labels) != n:
+        raise DataError(
+            f"labels has {len(labels)} entries for {n} ROIs; give one label per ROI", param="labels"
+        )
+    out = [
+        check_roi(roi, shape, labels[i] if labels is not None else f"edge {i + 1}")
+        for i, roi in enumerate(rois)
+    ]
+    total = sum((x1 - x0 + 1) * (y1 - y0 + 1) for x0, y0, x1, y1 in out)
+    if total > MAX_TOTAL_ROI_PIXELS:
+        raise DataError(
+            f"the {n:,} ROIs cover {total:,} px together, more than {MAX_TOTAL_ROI_PIXELS:,}; give fewer or "
+            "smaller ROIs",
+            param="rois",
+        )
+    return out
 
 
 def fit_edge(image: np.ndarray, roi, *, um_per_px: float | None = None, label: str = "") -> EdgeFit:
@@ -271,13 +312,20 @@ class EsfSummary:
 
 
 def analyse_edges(image, rois, *, um_per_px=None, labels=None, progress=None) -> EsfSummary:
-    """Fit every ROI; ``progress`` is an optional callable called once per edge."""
+    """Fit every ROI.  The ROIs are checked first (:func:`check_rois`: inside the image, at
+    most :data:`MAX_EDGES` of them, each at most :data:`MAX_ROI_PIXELS` and together at
+    most :data:`MAX_TOTAL_ROI_PIXELS`).  ``progress(done, total)`` is called after each edge."""
+    from oapcal.progress import progress_callback
+
+    progress = progress_callback(progress)
+    image = np.asarray(image, float)  # once, not per edge
+    rois = check_rois(rois, image.shape[:2], labels)
     edges = []
     for i, roi in enumerate(rois):
         label = labels[i] if labels is not None else f"edge {i + 1}"
         edges.append(fit_edge(image, roi, um_per_px=um_per_px, label=label))
         if progress is not None:
-            progress()
+            progress(i + 1, len(rois))
     return EsfSummary(tuple(edges), um_per_px)
 
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.model import family_of, undistort
+from oapcal.validate import image as _valid_image
 
 INTERPOLATIONS = ("nearest", "linear", "cubic", "lanczos")
 EXTENTS = ("input", "full", "calibrated")
@@ -401,10 +402,6 @@ REMAP_TILE = 4096
 _PAD = 6
 
 
-#: Pixel types ``cv2.remap`` corrects (those :mod:`oapcal.io.images` reads).
-IMAGE_DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
-
-
 def check_image(image, maps, out=None, *, allow_size_mismatch: bool = False) -> np.ndarray:
     """``image`` as an array once it is what :func:`correct_image` corrects, with the rules of
     ``oapcal correct``; else :class:`DataError` saying what to give.
@@ -412,22 +409,16 @@ def check_image(image, maps, out=None, *, allow_size_mismatch: bool = False) -> 
     Refused: anything but a grey ``(rows, cols)`` or colour ``(rows, cols, 1, 3 or 4)``
     image (a stack ``(frames, rows, cols)`` is corrected frame by frame:
     :func:`oapcal.batch.stack.correct_frames`), a pixel type other than
-    :data:`IMAGE_DTYPES`, an image of another size than the map was built for (when the map
+    :data:`oapcal.validate.IMAGE_DTYPES`, an image of another size than the map was built for (when the map
     knows it; ``allow_size_mismatch`` allows it), and an ``out`` that is not a writable
     array of the output's shape and the image's dtype.
     """
-    if not isinstance(image, np.ndarray):
-        raise DataError(f"the image must be a NumPy array, not {type(image).__name__}")
+    image = _valid_image(image)  # an array of pixels of a supported type, at least 2-D
     if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)) or 0 in image.shape:
         raise DataError(
             f"an image of shape {image.shape} cannot be corrected: give one grey (rows, cols) or colour "
             "(rows, cols, 3 or 4) image; correct a stack (frames, rows, cols) frame by frame "
             "(oapcal.batch.stack.correct_frames)",
-        )
-    if image.dtype.name not in IMAGE_DTYPES:
-        raise DataError(
-            f"pixel type {image.dtype.name} cannot be corrected; convert the image to one of "
-            f"{', '.join(IMAGE_DTYPES)}",
         )
     map_x = maps.map_x if isinstance(maps, CorrectionMap) else maps[0]
     expected = getattr(maps, "input_shape", None)
@@ -480,7 +471,7 @@ def correct_image(
 
     if interp not in _CV2_INTERP:
         raise DataError(f"unknown interpolation {interp!r}: use one of {', '.join(INTERPOLATIONS)}")
-    check_image(image, maps, out, allow_size_mismatch=allow_size_mismatch)
+    image = check_image(image, maps, out, allow_size_mismatch=allow_size_mismatch)
     map_x, map_y = maps
     if max(image.shape[:2]) < REMAP_LIMIT and max(map_x.shape) < REMAP_LIMIT:
         result = _remap(

@@ -49,6 +49,7 @@ the centre of the nested spiral of layers.  Every bar corner has an id such as
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -125,33 +126,72 @@ def bar_width_um(group: int, element: int) -> float:
     return 1000.0 / (2.0 * line_pairs_per_mm(group, element))
 
 
+#: The groups of the standard target (MIL-STD-150A), lowest and highest.
+LOWEST_GROUP, HIGHEST_GROUP = -2, 9
+#: One part of a groups text: a group or a range ``lo-hi`` (ASCII digits; a leading ``-`` a sign).
+_GROUPS_PART = re.compile(r"(-?[0-9]+)(?:-(-?[0-9]+))?")
+
+
 def parse_groups(text: str | tuple | list) -> tuple[int, ...]:
-    """``"4-5"`` -> ``(4, 5)``; ``"4"`` -> ``(4,)``; ``"2,4-5"`` or a sequence also work."""
-    if not isinstance(text, str):
-        groups = tuple(int(g) for g in text)
+    """``"4-5"`` -> ``(4, 5)``; ``"4"`` -> ``(4,)``; ``"2,4-5"`` or a sequence of whole
+    numbers also work.  Every group lies in -2 ... 9 (checked before a range is expanded, so
+    ``4-99999999999999999999`` is one line, not an overflow); a range is written low to high;
+    only ASCII digits are read (``4_5`` and other scripts' digits are refused, not 45).
+    Anything else raises :class:`~oapcal.errors.DataError` naming ``groups``.
+
+    >>> parse_groups("2, 4-5"), parse_groups("-2--1"), parse_groups([5, 4])
+    ((2, 4, 5), (-2, -1), (4, 5))
+    >>> parse_groups("9-3")
+    Traceback (most recent call last):
+    oapcal.errors.DataError: groups '9-3': the range 9-3 is reversed; write it low to high, 3-9
+    """
+    shown = repr(text)
+    shown = shown if len(shown) <= 60 else shown[:50] + "..."
+    how = "write e.g. 4-5 (groups 4 and 5) or 2,4-5"
+    span = f"the standard target has groups {LOWEST_GROUP} to {HIGHEST_GROUP}"
+    groups: list[int] = []
+    if isinstance(text, str):
+        for part in "".join(text.split()).split(","):
+            if not part:
+                continue
+            match = _GROUPS_PART.fullmatch(part)
+            if match is None:
+                raise DataError(f"groups {shown}: not a group range ({part!r}); {how}", param="groups")
+            for g in (match[1], match[2]):
+                # the digits are looked at before int(): a number of thousands of digits is
+                # out of range, not Python's int() error
+                if g is not None and (len(g.lstrip("-0")) > 2 or not LOWEST_GROUP <= int(g) <= HIGHEST_GROUP):
+                    raise DataError(
+                        f"groups {shown}: {span}, not {g if len(g) <= 24 else g[:20] + '...'}", param="groups"
+                    )
+            lo = int(match[1])
+            hi = lo if match[2] is None else int(match[2])
+            if hi < lo:
+                raise DataError(
+                    f"groups {shown}: the range {part} is reversed; write it low to high, {hi}-{lo}",
+                    param="groups",
+                )
+            groups.extend(range(lo, hi + 1))
     else:
-        groups = []
         try:
-            for part in text.replace(" ", "").split(","):
-                if not part:
-                    continue
-                head, sep, tail = part[1:].partition("-")  # a leading '-' is a sign
-                if sep:
-                    lo, hi = int(part[0] + head), int(tail)
-                    groups.extend(range(lo, hi + 1))
-                else:
-                    groups.append(int(part))
-        except ValueError:
+            items = list(text) if len(text) <= 10 * (HIGHEST_GROUP - LOWEST_GROUP + 1) else None
+        except (TypeError, OverflowError):
+            items = None
+        if items is None:
             raise DataError(
-                f"groups {text!r}: not a group range; write e.g. 4-5 (groups 4 and 5) or 2,4-5"
-            ) from None
-        groups = tuple(groups)
+                f"groups {shown}: give a text such as '4-5' or a short list of groups", param="groups"
+            )
+        for g in items:
+            if isinstance(g, (bool, np.bool_)) or not isinstance(g, (int, np.integer)):
+                raise DataError(f"groups {shown}: {g!r} is not a whole number; {how}", param="groups")
+            if not LOWEST_GROUP <= g <= HIGHEST_GROUP:
+                raise DataError(f"groups {shown}: {span}, not {g}", param="groups")
+            groups.append(int(g))
     if not groups:
-        raise DataError(f"groups {text!r}: no group given; write e.g. 4-5")
+        raise DataError(f"groups {shown}: no group given; {how}", param="groups")
     if len(set(groups)) != len(groups):
-        raise DataError(f"groups {text!r}: a group is listed twice")
-    if min(groups) < -2 or max(groups) > 9:
-        raise DataError(f"groups {text!r}: the standard target has groups -2 to 9")
+        twice = sorted({g for g in groups if groups.count(g) > 1})
+        raise DataError(f"groups {shown}: group {twice[0]} is listed twice", param="groups")
     return tuple(sorted(groups))
 
 

@@ -5,7 +5,7 @@ The record itself is :class:`oapcal.calibration.Calibration` (re-exported here).
 Layout (``docs/file-formats.md`` has an annotated example)::
 
     {"format": "oapcal-calibration", "version": 2, "oapcal_version": ..., "created_utc": ...,
-     "model_family": "brown-conrady" | "brown-conrady+rotation" | "relay",
+     "model_family": "brown-conrady" | "brown-conrady+rotation" | "relay" | "relay+microscope",
      "relay_design": {the nominal relay of a relay model} or null,
      "free": ["k1", ...], "params": {all of the family's by name}, "stderr": {free ones by name},
      "covariance": [[...]]  (free parameters, in "free" order),
@@ -42,7 +42,7 @@ from oapcal.errors import InputFileError
 from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
 from oapcal.io.userfile import read_json
-from oapcal.model import BROWN_CONRADY, FAMILIES, RELAY
+from oapcal.model import BROWN_CONRADY, FAMILIES, RELAY_FAMILIES
 
 __all__ = [
     "CHECK_GRID",
@@ -162,7 +162,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         )
     cov = np.array([[np.nan if v is None else float(v) for v in row] for row in rows], float)
     cov = cov.reshape(k, k)
-    if family is RELAY:
+    if family in RELAY_FAMILIES:
         from oapcal.optics.relay_model import design_from_record
 
         design_from_record(data.get("relay_design"), params, source)

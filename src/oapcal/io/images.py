@@ -30,6 +30,7 @@ import numpy as np
 
 from oapcal.errors import InputFileError
 from oapcal.io.userfile import MAX_PIXELS, check_input_file
+from oapcal.validate import IMAGE_DTYPES
 
 TIFF_SUFFIXES = (".tif", ".tiff")
 OPENCV_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -37,7 +38,7 @@ IMAGE_SUFFIXES = TIFF_SUFFIXES + OPENCV_SUFFIXES
 #: Files that keep every value of an 8- or 16-bit grey image (no JPEG, no 8-bit-only BMP).
 LOSSLESS_SUFFIXES = (".png",) + TIFF_SUFFIXES
 #: dtypes that ``cv2.remap`` can correct.
-DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
+DTYPES = IMAGE_DTYPES
 #: TIFF outputs with more pixel data than this are written as BigTIFF (as tifffile.imwrite
 #: decides: 4 GiB less 32 MiB for the headers).
 BIGTIFF_BYTES = 2**32 - 2**25

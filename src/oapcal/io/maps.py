@@ -141,6 +141,11 @@ def load_map(path: str | Path, max_pixels: int | None = None) -> CorrectionMap:
             f"{path}: a map must hold two float arrays of the same (rows, cols) shape, "
             f"got {both.dtype} {both.shape}"
         )
+    if both.shape[1] == 0 or both.shape[2] == 0:
+        raise InputFileError(
+            f"{path}: the map is {both.shape[2]} x {both.shape[1]} px: it has no pixels; write it again "
+            "with save_map"
+        )
     if not np.isfinite(both).all():
         raise InputFileError(f"{path}: the map holds NaN or inf values")
     rows, cols = both.shape[1:]

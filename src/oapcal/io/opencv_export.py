@@ -42,6 +42,12 @@ from oapcal.io.atomic import atomic_path, atomic_write
 from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE, INDEX, N_PARAMS, family_of, scale_params
 
 SUFFIXES = (".json", ".yml", ".yaml", ".xml")
+#: Memory of a relay export per output pixel: the exact maps (8 B), the approximation's maps
+#: and their error in float64 (about 30 B): measured 41 B (290 MB at 1024 x 1024, 420 MB at
+#: 2048 x 2048); with room.
+EXPORT_BYTES_PER_PX = 48
+#: Largest memory estimate of an export (4 GiB): about 9,400 x 9,400 output px.
+MAX_EXPORT_BYTES = 4 * 2**30
 
 
 def opencv_parameters(params, image_size: tuple[int, int], geometry: OutputGeometry | None = None) -> dict:
@@ -161,6 +167,44 @@ def _inside(map_x, map_y, image_size) -> np.ndarray:
         return (map_x >= 0) & (map_x <= w - 1) & (map_y >= 0) & (map_y <= h - 1)
 
 
+def _approximation_samples(calibration_or_params, image_size, geometry: OutputGeometry):
+    """The samples of the forward map an approximation is fitted to (``xy_u``, ``xy_d`` and
+    whether ``xy_d`` lies in the input), refused when too few lie in the input: cheap, so
+    checked before any map is built."""
+    from oapcal.model import distort
+
+    params = np.asarray(getattr(calibration_or_params, "params", calibration_or_params), float)
+    width, height = image_size
+    rows, cols = geometry.shape
+    n_long = min(APPROX_GRID, max(rows, cols))
+    nx = max(2, min(cols, round(n_long * cols / max(rows, cols))))
+    ny = max(2, min(rows, round(n_long * rows / max(rows, cols))))
+    gx, gy = np.meshgrid(np.linspace(0, cols - 1, nx), np.linspace(0, rows - 1, ny))
+    xy_u = np.stack([gx.ravel(), gy.ravel()], -1) * geometry.scale + (geometry.x0, geometry.y0)
+    with np.errstate(all="ignore"):
+        xy_d = distort(xy_u, params)
+    keep = _inside(xy_d[:, 0], xy_d[:, 1], (width, height))
+    if keep.sum() >= APPROX_MIN_SAMPLES:
+        return xy_u, xy_d, keep
+    found = f"{int(keep.sum())} of {len(keep)} samples"
+    is_input = (geometry.shape == (height, width) and geometry.x0 == 0 and geometry.y0 == 0
+                and geometry.scale == 1)  # fmt: skip
+    if is_input:  # the output already is the input's region: the image is the wrong size
+        made = getattr(calibration_or_params, "image_size", None)
+        made = f" (the calibration was made for {made[0]}x{made[1]} px)" if made else ""
+        raise DataError(
+            f"the model maps only {found} of the {width}x{height} px image into itself: its field "
+            f"covers too little of an image this size to fit an Eq. (1) approximation; give the image "
+            f"size the calibration was made for{made}",
+            param="image_size",
+        )
+    raise DataError(
+        f"the output region shows too little of the {width}x{height} px input image ({found}) to fit "
+        "an Eq. (1) approximation; use extent 'input' or a larger output",
+        param=("extent", "out_size", "um_per_px"),
+    )
+
+
 def brown_conrady_approximation(
     calibration_or_params,
     image_size: tuple[int, int],
@@ -179,27 +223,13 @@ def brown_conrady_approximation(
     """
     from oapcal.fitting import fit
     from oapcal.imaging.remap import correction_map
-    from oapcal.model import distort
 
     params = np.asarray(getattr(calibration_or_params, "params", calibration_or_params), float)
     width, height = int(image_size[0]), int(image_size[1])
+    xy_u, xy_d, keep = _approximation_samples(calibration_or_params, (width, height), geometry)
     if exact is None:
         exact = correction_map(params, (height, width), geometry=geometry)
     rows, cols = geometry.shape
-    n_long = min(APPROX_GRID, max(rows, cols))
-    nx = max(2, min(cols, round(n_long * cols / max(rows, cols))))
-    ny = max(2, min(rows, round(n_long * rows / max(rows, cols))))
-    gx, gy = np.meshgrid(np.linspace(0, cols - 1, nx), np.linspace(0, rows - 1, ny))
-    xy_u = np.stack([gx.ravel(), gy.ravel()], -1) * geometry.scale + (geometry.x0, geometry.y0)
-    xy_d = distort(xy_u, params)
-    keep = _inside(xy_d[:, 0], xy_d[:, 1], (width, height))
-    if keep.sum() < APPROX_MIN_SAMPLES:
-        raise DataError(
-            f"the output region shows too little of the {width}x{height} px input image "
-            f"({int(keep.sum())} of {len(keep)} samples) to fit an Eq. (1) approximation; "
-            "use extent 'input' or a larger output",
-            param=("extent", "out_size", "um_per_px"),
-        )
     result = fit(xy_u[keep], xy_d[keep], "full")
     approx = np.asarray(result.params, float)
     inside = _inside(exact.map_x, exact.map_y, (width, height))
@@ -257,6 +287,17 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
         # coefficients only, but a calibration whose map samples nothing of the image is refused
         check_model_samples(params, (height, width), geometry)
         return opencv_parameters(params, (width, height), geometry)
+    rows, cols = geometry.shape
+    need = EXPORT_BYTES_PER_PX * rows * cols
+    if need > MAX_EXPORT_BYTES:
+        raise DataError(
+            f"exporting the {family.name} model's exact maps for a {cols}x{rows} px output would need "
+            f"about {need / 2**30:.3g} GiB of memory, over the {MAX_EXPORT_BYTES / 2**30:g} GiB limit; "
+            "give a smaller image size or output (the maps hold every output pixel)",
+            param=("image_size", "out_size", "um_per_px"),
+        )
+    check_model_samples(params, (height, width), geometry)  # a map of nothing: refused first, any family
+    _approximation_samples(calibration_or_params, (width, height), geometry)  # cheap: before the maps
     exact = correction_map(params, (height, width), geometry=geometry)
     approx = brown_conrady_approximation(calibration_or_params, (width, height), geometry, exact)
     coefficients = opencv_parameters(approx.params, (width, height), geometry)

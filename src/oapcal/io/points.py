@@ -25,6 +25,7 @@ import numpy as np
 from oapcal.errors import DataError, InputFileError
 from oapcal.io.atomic import atomic_write
 from oapcal.io.userfile import parse_number, read_text
+from oapcal.validate import point_pairs
 
 PAIR_COLUMNS = ("x_u", "y_u", "x_d", "y_d")
 #: Coordinates beyond this magnitude are refused: no image is that large, and the model's
@@ -223,6 +224,11 @@ def check_spread(xy: np.ndarray, label: str, source: str) -> None:
     xy = np.asarray(xy, float)
     if len(xy) == 0 or not np.isfinite(xy).all():
         return
+    if len(xy) == 1:  # no spread to speak of: say how many there are
+        raise DataError(
+            f"{source}: there is only one {label} point; a fit needs several, spread over the field in "
+            "both x and y"
+        )
     size = float(np.abs(xy).max())
     spread = xy.max(axis=0) - xy.min(axis=0)
     if spread.min() < max(MIN_SPREAD, MIN_RELATIVE_SPREAD * size):
@@ -260,9 +266,22 @@ def write_points(path: str | Path, fieldnames, rows) -> None:
 
 
 def write_point_pairs(path: str | Path, xy_u, xy_d, ids=None) -> None:
-    """Write a point-pair file ``id,x_u,y_u,x_d,y_d`` (``id`` only when given)."""
-    xy_u = np.asarray(xy_u, float)
-    xy_d = np.asarray(xy_d, float)
+    """Write a point-pair file ``id,x_u,y_u,x_d,y_d`` (``id`` only when given).
+
+    ``xy_u``, ``xy_d`` are ``(N, 2)`` arrays of finite numbers (what :func:`read_points`
+    reads back) and ``ids`` has one id per point; anything else raises
+    :class:`~oapcal.errors.DataError` before the file is touched."""
+    xy_u, xy_d = point_pairs(xy_u, xy_d)
+    if ids is not None:
+        if isinstance(ids, (str, bytes)) or not hasattr(ids, "__len__"):
+            raise DataError(
+                f"ids must be a sequence of one id per point, got {type(ids).__name__}", param="ids"
+            )
+        if len(ids) != len(xy_u):
+            raise DataError(
+                f"ids has {len(ids)} entries but there are {len(xy_u)} points; give one id per point",
+                param="ids",
+            )
     fields = (["id"] if ids is not None else []) + list(PAIR_COLUMNS)
     rows = []
     for i in range(len(xy_u)):

@@ -27,8 +27,11 @@ MAX_INDEX = 10_000_000
 
 
 def read_rois(path) -> tuple[list[tuple[int, int, int, int]], list[str]]:
-    """Rectangles and labels (``"roi N"`` where the file has no ``label`` column)."""
+    """Rectangles and labels (``"roi N"`` where the file has no ``label`` column).  A file of
+    more than :data:`oapcal.imaging.esf.MAX_EDGES` rectangles is refused at the first row
+    past the limit, before any fit."""
     name = str(path)
+    from oapcal.imaging.esf import MAX_EDGES
     from oapcal.io.userfile import read_text
 
     text = read_text(path, "ROI file", missing="no such ROI file; check the path")
@@ -45,6 +48,11 @@ def read_rois(path) -> tuple[list[tuple[int, int, int, int]], list[str]]:
         line = reader.line_num
         if not row or all(not c.strip() for c in row):
             continue
+        if len(rois) == MAX_EDGES:
+            raise InputFileError(
+                f"{name}: line {line}: more than {MAX_EDGES:,} rectangles (an edge takes 1-30 ms to fit); "
+                f"give at most {MAX_EDGES:,}, e.g. split the file"
+            )
         if len(row) < len(header):
             raise InputFileError(f"{name}: line {line}: {len(row)} cells but the header has {len(header)}")
         values = []

@@ -16,7 +16,9 @@ Every message names the file and says what to do; all raise
 from __future__ import annotations
 
 import json
+import os
 import re
+import stat
 import sys
 from pathlib import Path
 
@@ -141,17 +143,30 @@ def sniff(path: str | Path, n_bytes: int = 4096) -> str:
     cut at the end ignored), or ``""`` when the file cannot be read or is not text: for
     deciding what a file is (a napari reader) without reading a large or binary file.
 
+    Only a regular file is read: a FIFO, socket, device or directory (under any name, through
+    any link) gives ``""`` without being read.  It is opened non-blocking and checked on the
+    open descriptor, so a FIFO with no writer cannot block the caller and a file swapped for
+    one between a check and the open is still caught.
+
     >>> import tempfile, pathlib
     >>> f = pathlib.Path(tempfile.mkdtemp()) / "p.csv"
     >>> _ = f.write_bytes(b"\xef\xbb\xbfx_u,y_u\n" + b"1,2\n" * 10**5)
     >>> sniff(f, 12).splitlines()[0], sniff(f.parent / "missing.csv")
     ('x_u,y_u', '')
     """
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0)
     try:
-        with open(path, "rb") as fh:
-            head = fh.read(n_bytes)
+        fd = os.open(path, flags)
+    except (OSError, ValueError):  # ValueError: a NUL byte in the name
+        return ""
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return ""
+        head = os.read(fd, n_bytes)
     except OSError:
         return ""
+    finally:
+        os.close(fd)
     if b"\x00" in head:
         return ""
     try:

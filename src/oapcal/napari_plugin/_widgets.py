@@ -591,7 +591,9 @@ class CorrectWidget(_OapcalWidget):
         self._run("correct", work, done)
 
     def save(self, _=None) -> None:
-        """Save the chosen calibration to ``save as`` (atomically, never over the input)."""
+        """Save the chosen calibration to ``save as`` (atomically): only to a ``.json`` name,
+        never over a file the calibration was read or fitted from, nor over the source file of
+        any layer in the viewer (an image open there, say)."""
         import oapcal
 
         path = str(self.save_path.value or "")
@@ -600,20 +602,57 @@ class CorrectWidget(_OapcalWidget):
             return
         try:
             cal = self.calibration()
-            inputs = {str(self.file.value or ""), str(cal.source or "")} | {
-                str(layer.metadata.get("oapcal_source") or "")
-                for layer in self.viewer.layers
-                if layer.metadata.get(L.CALIBRATION) is cal
-            }
-            target = Path(path).resolve()
-            if any(p not in ("", ".") and Path(p).resolve() == target for p in inputs):
-                self._fail(f"{path}: is a file the calibration was read or fitted from; choose another name")
+            problem = _save_target_problem(path, self._protected_paths(cal))
+            if problem:
+                self._fail(problem)
                 return
             oapcal.save_calibration(cal, path)
         except Exception as exc:
             self._fail(_message(exc))
             return
         self._set_status(f"saved the calibration to {path}")
+
+    def _protected_paths(self, cal) -> dict[str, str]:
+        """Paths that ``save`` must not write, each with why: the calibration's own inputs and
+        the source of every layer in the viewer."""
+        own = [self.file.value, cal.source] + [
+            layer.metadata.get("oapcal_source")
+            for layer in self.viewer.layers
+            if layer.metadata.get(L.CALIBRATION) is cal
+        ]
+        out = {}
+        for p in own:
+            if p:
+                out.setdefault(str(p), "is a file the calibration was read or fitted from")
+        for layer in self.viewer.layers:
+            for p in (getattr(getattr(layer, "source", None), "path", None),
+                      layer.metadata.get("oapcal_source")):  # fmt: skip
+                if p:
+                    out.setdefault(str(p), f"is the source of the layer '{layer.name}'")
+        return out
+
+
+def _save_target_problem(path: str, protected: dict[str, str]) -> str | None:
+    """Why ``path`` must not receive a calibration (one line), or None: its suffix is not
+    ``.json``, or it is (through links, ``..`` or case) one of ``protected``."""
+    import os
+
+    if Path(path).suffix.lower() != ".json":
+        return f"{path}: a calibration is saved as a .json file; choose a name ending in .json"
+    target = Path(path).resolve()
+    for p, why in protected.items():
+        if p in ("", "."):
+            continue
+        other = Path(p).resolve()
+        same = other == target
+        if not same and target.exists() and other.exists():
+            try:
+                same = os.path.samefile(target, other)
+            except OSError:
+                same = False
+        if same:
+            return f"{path}: {why}; choose another name"
+    return None
 
 
 def _lazy_stack(data, cmap, interp: str, spatial: int):

@@ -24,7 +24,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import InputFileError, ModelSpecError
-from oapcal.model import RELAY, RELAY_DESIGN_NAMES, RELAY_MISALIGNMENT_NAMES, RELAY_POSE_NAMES
+from oapcal.model import (
+    MICROSCOPE_NAMES,
+    RELAY,
+    RELAY_MICROSCOPE,
+    RELAY_MISALIGNMENT_NAMES,
+    RELAY_POSE_NAMES,
+)
 from oapcal.optics.misalign import PARAMETERS, Misalignment
 from oapcal.optics.relay import DEFAULT_FOCAL_LENGTH_MM, oap_relay, paraxial_matrix
 
@@ -35,8 +41,16 @@ from oapcal.optics.relay import DEFAULT_FOCAL_LENGTH_MM, oap_relay, paraxial_mat
 DEFAULT_FREE = ("scale", "rotation", "shift_x", "shift_y", "m2_decentre_x", "m2_decentre_y", "d1",
                 "camera_defocus", "camera_tilt_x", "camera_tilt_y")  # fmt: skip
 
+#: With a microscope behind the relay (``relay+microscope``) the default is the same:
+#: the microscope's magnification stays the design's (the target's scale absorbs an error
+#: of it: the two differ only through the relay's own distortion, and fitted together the
+#: fit does not converge in 5 of 6 cases) and its radial term is left out (fitted from
+#: landmarks over the middle third of the frame it extrapolates worse than it helps: frame
+#: max 3.5 against 2.3 px, ``benchmarks/microscope.py``); add ``microscope`` for it.
+DEFAULT_FREE_MICROSCOPE = DEFAULT_FREE
+
 #: Short names accepted in subsets (``relay:d1,tilt2x,camera``): each stands for these
-#: parameters.
+#: parameters (``microscope`` and ``magnification`` only with a microscope).
 ALIASES: dict[str, tuple[str, ...]] = {
     "pose": RELAY_POSE_NAMES,
     "tilt1": ("m1_tilt_x", "m1_tilt_y"),
@@ -55,6 +69,8 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "defocus": ("camera_defocus",),
     "object": ("object_tilt_x", "object_tilt_y"),
     "stop": ("stop_decentre_x", "stop_decentre_y"),
+    "microscope": ("microscope_k1",),
+    "magnification": ("microscope_magnification",),
 }
 
 
@@ -66,7 +82,11 @@ class RelayDesign:
     ``focal_length_mm`` both mirrors' (``focal_length_2_mm`` the second's if different);
     ``orientation`` ``"U"`` or ``"Z"``; ``stop_distance_mm`` (0: at the first mirror);
     ``pixel_size_um`` the camera's pixel pitch; ``centre`` (px) the point of the
-    reference frame on the relay's axis (None: the middle of the reference points).
+    reference frame on the relay's axis (None: the middle of the reference points);
+    ``microscope_magnification`` a finite-conjugate microscope between the relay's image
+    and the camera, its lateral magnification, negative when it inverts the image (-5: a
+    5x objective forming a real, inverted image); None (default): the camera is at the
+    relay's image plane.  With a microscope the model family is ``relay+microscope``.
     """
 
     setup: int | None = 1
@@ -77,6 +97,21 @@ class RelayDesign:
     stop_distance_mm: float = 0.0
     pixel_size_um: float = 4.8
     centre: tuple[float, float] | None = None
+    microscope_magnification: float | None = None
+
+    @property
+    def family(self):
+        """The model family of this design: :data:`~oapcal.model.RELAY`, or
+        :data:`~oapcal.model.RELAY_MICROSCOPE` with a microscope."""
+        return RELAY if self.microscope_magnification is None else RELAY_MICROSCOPE
+
+    @property
+    def object_um_per_px(self) -> float:
+        """Object um per reference px: the pixel size over the relay's and the microscope's
+        magnification (their absolute values)."""
+        f1, f2 = self.relay().focal_lengths_mm
+        mag = 1.0 if self.microscope_magnification is None else abs(float(self.microscope_magnification))
+        return float(self.pixel_size_um) * f1 / f2 / mag
 
     def relay(self, misalignment=None):
         """The relay (:func:`oapcal.optics.relay.oap_relay`) of this design."""
@@ -90,15 +125,19 @@ class RelayDesign:
             return self
         xy_u = np.asarray(xy_u, float)
         mid = 0.5 * (xy_u.min(axis=0) + xy_u.max(axis=0))
-        return RelayDesign(**{**self.to_dict(), "centre": (float(mid[0]), float(mid[1]))})
+        return RelayDesign.from_dict({**self.to_dict(), "centre": (float(mid[0]), float(mid[1]))})
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "setup": self.setup, "d1_mm": self.d1_mm, "focal_length_mm": self.focal_length_mm,
             "focal_length_2_mm": self.focal_length_2_mm, "orientation": self.orientation,
             "stop_distance_mm": self.stop_distance_mm, "pixel_size_um": self.pixel_size_um,
             "centre": None if self.centre is None else [float(c) for c in self.centre],
         }  # fmt: skip
+        # written only with a microscope: a relay design's record is what it was before
+        if self.microscope_magnification is not None:
+            out["microscope_magnification"] = float(self.microscope_magnification)
+        return out
 
     @classmethod
     def from_dict(cls, data: Mapping) -> RelayDesign:
@@ -108,11 +147,17 @@ class RelayDesign:
         return cls(**data)
 
 
-def relay_params(design: RelayDesign, misalignment=None, pose: Mapping | None = None) -> np.ndarray:
+def relay_params(
+    design: RelayDesign, misalignment=None, pose: Mapping | None = None, microscope: Mapping | None = None
+) -> np.ndarray:
     """The relay family's parameter vector ``(36,)``: ``pose`` (``scale``, ``rotation``
     deg, ``shift_x``, ``shift_y`` px; identity by default), the ``misalignment`` (a
     :class:`~oapcal.optics.misalign.Misalignment` or dict; none by default) and the
-    ``design``'s constants.  ``design.centre`` must be set (:meth:`RelayDesign.with_centre`)."""
+    ``design``'s constants.  ``design.centre`` must be set (:meth:`RelayDesign.with_centre`).
+
+    With a microscope in the design, the ``relay+microscope`` vector ``(39,)``: the same,
+    then ``microscope`` (``microscope_magnification``, default the design's, and
+    ``microscope_k1``, default 0) and the design's magnification."""
     if design.centre is None:
         raise ModelSpecError("the relay design needs its centre (px): give it or use with_centre(points)")
     mis = Misalignment.of(misalignment)
@@ -131,7 +176,19 @@ def relay_params(design: RelayDesign, misalignment=None, pose: Mapping | None = 
         "a11": inv[0, 0], "a12": inv[0, 1], "a21": inv[1, 0], "a22": inv[1, 1],
     }  # fmt: skip
     values = {**pose, **mis.to_dict(), **design_values}
-    return np.array([float(values[n]) for n in RELAY.param_names])
+    family = design.family
+    if family is RELAY_MICROSCOPE:
+        mag = float(design.microscope_magnification)
+        scope = {"microscope_magnification": mag, "microscope_k1": 0.0, **dict(microscope or {})}
+        unknown = sorted(set(scope) - set(MICROSCOPE_NAMES))
+        if unknown:
+            raise ModelSpecError(
+                f"unknown microscope value {unknown[0]!r}: use {', '.join(MICROSCOPE_NAMES)}"
+            )
+        values.update(scope, microscope_design_magnification=mag)
+    elif microscope:
+        raise ModelSpecError("microscope values need a design with a microscope (microscope_magnification)")
+    return np.array([float(values[n]) for n in family.param_names])
 
 
 #: What a stored design may hold (the ranges ``oapcal fit --model relay`` accepts):
@@ -143,6 +200,8 @@ DESIGN_RANGES = {
     "stop_distance_mm": (0.0, 100_000.0, False, False),
     "pixel_size_um": (0.0, 1000.0, True, False),
 }
+#: The microscope's magnification, in absolute value (its sign says whether it inverts).
+MICROSCOPE_MAGNIFICATION_RANGE = (0.01, 1000.0)
 
 
 def design_from_record(record, params, source: str = "calibration") -> RelayDesign:
@@ -190,10 +249,27 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
         and all(isinstance(c, int | float) and not isinstance(c, bool) and np.isfinite(c) for c in centre)
     ):  # fmt: skip
         raise bad("relay_design.centre", f"is {centre!r}; it must be two numbers [x, y] in px")
+    mag = record.get("microscope_magnification")
+    lo, hi = MICROSCOPE_MAGNIFICATION_RANGE
+    if mag is not None and (
+        isinstance(mag, bool) or not isinstance(mag, int | float) or not lo <= abs(mag) <= hi
+    ):
+        raise bad(
+            "relay_design.microscope_magnification",
+            f"is {mag!r}; it must be null (no microscope) or a number with {lo:g} <= |M| <= {hi:g} "
+            "(negative: the microscope inverts the image)",
+        )
     design = RelayDesign.from_dict(record)
+    family = design.family
+    if len(params) != family.n_params:
+        raise bad(
+            "relay_design.microscope_magnification",
+            f"says the model is {family.name!r} ({family.n_params} parameters) but the file holds "
+            f"{len(params)}; restore the design or refit",
+        )
     expected = relay_params(design)
-    for name in RELAY_DESIGN_NAMES:
-        i = RELAY.param_names.index(name)
+    for name in family.never_free:
+        i = family.param_names.index(name)
         if not abs(params[i] - expected[i]) <= 1e-9 * max(1.0, abs(expected[i])):
             raise bad(
                 f"params.{name}",
@@ -203,25 +279,32 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
     return design
 
 
-def relay_mask(spec="default") -> np.ndarray:
+def relay_mask(spec="default", family=RELAY) -> np.ndarray:
     """The free-parameter mask ``(36,)`` of a relay subset: ``"default"``
     (:data:`DEFAULT_FREE`), ``"all"`` (every pose and misalignment value), or names and
     :data:`ALIASES` separated by commas (``"pose,d1,tilt2x,tilt2y,camera"``); a subset
-    always fits the pose (an unknown target has one)."""
+    always fits the pose (an unknown target has one).
+
+    ``family`` :data:`~oapcal.model.RELAY_MICROSCOPE` (``design.family`` of a design with a
+    microscope): the mask ``(39,)``; ``"default"`` is then :data:`DEFAULT_FREE_MICROSCOPE`,
+    ``"all"`` adds the microscope's magnification and radial term, and the names may
+    include them (``microscope``, ``magnification``)."""
+    scope = family is RELAY_MICROSCOPE
     if isinstance(spec, str):
         text = spec.strip()
         if text.startswith("relay:"):
             text = text[len("relay:") :]
         if text in ("", "default", "relay"):
-            names = set(DEFAULT_FREE)
+            names = set(DEFAULT_FREE_MICROSCOPE if scope else DEFAULT_FREE)
         elif text == "all":
             names = set(RELAY_POSE_NAMES) | set(RELAY_MISALIGNMENT_NAMES)
+            names |= set(MICROSCOPE_NAMES) if scope else set()
         else:
             names = set(RELAY_POSE_NAMES)
             for item in (t.strip() for t in text.split(",")):
                 if item in ALIASES:
                     names.update(ALIASES[item])
-                elif item in PARAMETERS or item in RELAY_POSE_NAMES:
+                elif item in PARAMETERS or item in RELAY_POSE_NAMES or item in MICROSCOPE_NAMES:
                     names.add(item)
                 else:
                     raise ModelSpecError(
@@ -230,7 +313,14 @@ def relay_mask(spec="default") -> np.ndarray:
                     )
     else:
         names = set(spec)
-    return np.array([n in names for n in RELAY.param_names])
+    if not scope and names & set(MICROSCOPE_NAMES):
+        name = sorted(names & set(MICROSCOPE_NAMES))[0]
+        raise ModelSpecError(
+            f"the relay parameter {name!r} is the microscope's: give the design a microscope "
+            "(its microscope_magnification, e.g. -5 for a 5x objective that inverts the image)",
+            param="microscope_magnification",
+        )
+    return np.array([n in names for n in family.param_names])
 
 
 #: A subset whose normalized parameter Jacobian has a singular value below this fraction of
@@ -267,12 +357,12 @@ def identifiability(xy_u, params, mask, jac: np.ndarray | None = None) -> Identi
     """The identifiability of the free parameters ``mask`` of the relay model ``params`` at
     the reference points ``xy_u (N, 2)`` (:class:`Identifiability`).  ``jac`` is the
     parameter Jacobian ``(N, 2, 36)`` there if already known (many subsets of one model)."""
-    from oapcal.model import jacobian_params
+    from oapcal.model import family_of, jacobian_params
 
     mask = np.asarray(mask, bool)
-    names = tuple(n for n, m in zip(RELAY.param_names, mask) if m)
+    names = tuple(n for n, m in zip(family_of(mask).param_names, mask) if m)
     if jac is None:
-        jac = jacobian_params(np.asarray(xy_u, float), np.asarray(params, float), family=RELAY)
+        jac = jacobian_params(np.asarray(xy_u, float), np.asarray(params, float))
     jac = jac[..., mask]
     a = jac.reshape(-1, int(mask.sum()))
     norms = np.linalg.norm(a, axis=0)
@@ -298,8 +388,12 @@ def default_centre(design: RelayDesign, xy_u, image_size=None) -> RelayDesign:
         return design
     if image_size is not None:
         w, h = image_size
-        return RelayDesign(**{**design.to_dict(), "centre": ((float(w) - 1) / 2, (float(h) - 1) / 2)})
+        return RelayDesign.from_dict({**design.to_dict(), "centre": ((float(w) - 1) / 2, (float(h) - 1) / 2)})
     return design.with_centre(xy_u)
+
+
+#: The iteration cap of a relay fit (:func:`calibrate_relay`; the solver's default is 200).
+RELAY_MAX_ITER = 1000
 
 
 def calibrate_relay(
@@ -330,7 +424,7 @@ def calibrate_relay(
 
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
-    mask = relay_mask(free)
+    mask = relay_mask(free, design.family)
     check_enough_points(len(xy_u), int(mask.sum()), source=source or "the point data")
     design = default_centre(design, xy_u, image_size)
     p0 = relay_params(design)
@@ -338,8 +432,11 @@ def calibrate_relay(
     if not ident.ok:
         raise DataError(f"{source or 'the point data'}: {ident.message()}", param="free")
     if um_per_px is None:
-        f1, f2 = design.relay().focal_lengths_mm
-        um_per_px = float(design.pixel_size_um) * f1 / f2
+        um_per_px = design.object_um_per_px
+    # Behind a microscope the misalignment moves the image by hundreds of px and the fit
+    # creeps along the scale-defocus-d1 valley: 228 iterations in one of six cases of
+    # benchmarks/microscope.py.  The cap only ends fits that would not stop by themselves.
+    fit_options.setdefault("max_iter", RELAY_MAX_ITER)
     return calibrate(xy_u, xy_d, mask, init=p0, um_per_px=um_per_px, image_size=image_size, name=name,
                      source=source, relay_design=design.to_dict(), **fit_options)  # fmt: skip
 
@@ -350,15 +447,27 @@ def describe(calibration) -> list[str]:
     lines = []
     units = {"scale": "", "rotation": "deg", "shift_x": "px", "shift_y": "px"}
     words = {"scale": "target scale", "rotation": "target turned (counter-clockwise)",
-             "shift_x": "target shifted in x", "shift_y": "target shifted in y"}  # fmt: skip
-    for i, n in enumerate(RELAY.param_names):
+             "shift_x": "target shifted in x", "shift_y": "target shifted in y",
+             "microscope_magnification": "microscope: magnification (negative: inverting)",
+             "microscope_k1": "microscope: radial term at the sensor"}  # fmt: skip
+    units["microscope_k1"] = "1/mm^2"
+    names = calibration.family.param_names
+    for i, n in enumerate(names):
         if n not in calibration.free:
             continue
         unit, text = PARAMETERS.get(n, (units.get(n, ""), words.get(n, n)))
         value, err = float(calibration.params[i]), float(calibration.stderr[i])
         lines.append(f"{n}: {text}: {value:.4g} +/- {err:.2g} {unit}".rstrip())
+    if calibration.family is RELAY_MICROSCOPE:
+        p = dict(zip(names, np.asarray(calibration.params, float)))
+        m = p["microscope_magnification"]
+        lines.append(
+            f"microscope: magnification {m:.6g} ({'inverting' if m < 0 else 'upright'}; design "
+            f"{p['microscope_design_magnification']:.6g})"
+        )
     return lines
 
 
-__all__ = ["RELAY", "RelayDesign", "relay_params", "relay_mask", "DEFAULT_FREE", "ALIASES", "identifiability",
-           "Identifiability", "calibrate_relay", "describe"]  # fmt: skip
+__all__ = ["RELAY", "RELAY_MICROSCOPE", "RelayDesign", "relay_params", "relay_mask", "DEFAULT_FREE",
+           "DEFAULT_FREE_MICROSCOPE", "ALIASES", "identifiability", "Identifiability", "calibrate_relay",
+           "describe"]  # fmt: skip

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.errors import GeometrySpecError
+from oapcal.errors import GeometrySpecError, OapcalError
 from oapcal.optics.misalign import PARAMETERS, Misalignment
 from oapcal.optics.relay import Relay, grid_distortion
 
@@ -60,7 +60,17 @@ RESOLUTION_PX = 1e-3
 METRICS = ("max_px", "mean_px", "corrected_mean_px", "corrected_max_px", "recentred_mean_px",
            "recentred_max_px", "shift_px", "scale_error_ppm")  # fmt: skip
 
-__all__ = ["DISTRIBUTIONS", "GROUPS", "METRICS", "RESOLUTION_PX", "Tolerancing", "expand_tolerances"]
+__all__ = [
+    "DISTRIBUTIONS",
+    "GROUPS",
+    "MAX_TRIALS",
+    "METRICS",
+    "RESOLUTION_PX",
+    "Tolerancing",
+    "check_monte_carlo",
+    "expand_tolerances",
+    "monte_carlo_bytes",
+]
 
 
 def expand_tolerances(groups: dict[str, float] | None = None, parameters: dict[str, float] | None = None):
@@ -77,6 +87,74 @@ def expand_tolerances(groups: dict[str, float] | None = None, parameters: dict[s
             raise GeometrySpecError(f"unknown misalignment {key!r}: use one of {', '.join(PARAMETERS)}")
         out[key] = _check_tolerance(value, key)
     return {k: v for k, v in out.items() if v > 0}
+
+
+#: Most Monte Carlo trials (:meth:`Tolerancing.monte_carlo`, ``oapcal tolerance --trials``).
+MAX_TRIALS = 500_000
+#: Memory kept per trial (its sample: a dict of the misalignment and the metrics, the metric
+#: arrays, and the JSON the command prints): measured 4.9 kB per trial with the 4 tilt
+#: parameters (``--grid 9``: 239 MB at 2,000 trials, 287 MB at 12,000); with room.
+BYTES_PER_TRIAL = 4096
+BYTES_PER_TRIAL_PARAMETER = 512
+#: Memory per traced grid point of one block of trials (the real and paraxial points and
+#: the residual arrays of the metrics): measured 190 B (``--grid 201``, 103 trials a block:
+#: 1.01 GB peak, 0.23 GB of it before the Monte Carlo).
+BYTES_PER_BLOCK_POINT = 400
+#: Largest memory estimate of a Monte Carlo (4 GiB).
+MAX_MONTE_CARLO_BYTES = 4 * 2**30
+
+
+def monte_carlo_block(n: int) -> int:
+    """Trials traced at once for an ``n`` x ``n`` grid: up to 256, and about 2**22 grid points."""
+    return int(max(1, min(256, 2**22 // max(1, n * n))))
+
+
+def monte_carlo_bytes(trials: int, n: int, n_parameters: int) -> int:
+    """Memory estimate (bytes) of a Monte Carlo of ``trials`` on an ``n`` x ``n`` grid."""
+    kept = int(trials) * (BYTES_PER_TRIAL + BYTES_PER_TRIAL_PARAMETER * n_parameters)
+    return kept + min(int(trials), monte_carlo_block(n)) * n * n * BYTES_PER_BLOCK_POINT
+
+
+def check_monte_carlo(relay: Relay, tolerances: dict[str, float], trials, distribution: str = "uniform",
+                      n: int = 17) -> None:  # fmt: skip
+    """Refuse, before any tracing, a Monte Carlo that cannot run: ``trials`` not a whole
+    number in 1 ... :data:`MAX_TRIALS`, a memory estimate (:func:`monte_carlo_bytes`) over
+    4 GiB, or a tolerance whose extreme draw (``+/- tol`` uniform; ``+/- 2.5 tol``, 5 sigma,
+    normal) is not a valid misalignment of ``relay`` (a d1 change that leaves no collimated
+    path, say).  Each raises :class:`~oapcal.errors.GeometrySpecError` naming the parameter."""
+    import operator
+
+    if distribution not in DISTRIBUTIONS:
+        raise GeometrySpecError(
+            f"unknown distribution {distribution!r}: use uniform or normal", param="distribution"
+        )
+    try:
+        count = operator.index(trials) if not isinstance(trials, bool) else None
+    except TypeError:
+        count = None
+    if count is None or not 1 <= count <= MAX_TRIALS:
+        raise GeometrySpecError(
+            f"trials must be a whole number from 1 to {MAX_TRIALS:,}, got {trials!r}", param="trials"
+        )
+    tolerances = expand_tolerances(parameters=tolerances)
+    need = monte_carlo_bytes(count, n, len(tolerances))
+    if need > MAX_MONTE_CARLO_BYTES:
+        raise GeometrySpecError(
+            f"{count:,} trials on a grid of {n} x {n} would need about {need / 2**30:.3g} GiB of memory, "
+            f"over the {MAX_MONTE_CARLO_BYTES / 2**30:g} GiB limit; give fewer trials or a smaller grid",
+            param=("trials", "n"),
+        )
+    reach = 1.0 if distribution == "uniform" else 2.5
+    for name, tol in tolerances.items():
+        for sign in (1.0, -1.0):
+            try:
+                relay.with_misalignment(Misalignment.from_dict({name: sign * reach * tol}))
+            except OapcalError as exc:
+                raise GeometrySpecError(
+                    f"the tolerance {tol:g} of {name} reaches {sign * reach * tol:+g}, where {exc}; give a "
+                    "smaller tolerance",
+                    param=("tolerances", name),
+                ) from None
 
 
 def _check_tolerance(value, name: str) -> float:
@@ -310,22 +388,26 @@ class Tolerancing:
         pct = [float(q) for q in percentiles]
         if not all(0 <= q <= 100 for q in pct):
             raise GeometrySpecError(f"percentiles must lie in 0..100, got {', '.join(f'{q:g}' for q in pct)}")
+        check_monte_carlo(self.relay, tolerances, trials, distribution, self.n)
         samples = self.sample(tolerances, trials, seed, distribution)
         total = len(samples)
-        traced = []
-        for i, m in enumerate(samples):
-            traced.append(self._trace(self.relay.with_misalignment(m)))
-            if progress is not None and (i % 8 == 7 or i + 1 == total):
-                progress(i + 1, total)
-        metrics = {}
-        block = 256
+        # Streamed: each block of trials is traced, measured and dropped, so memory holds the
+        # metrics and samples of every trial but the traced grids of one block only.
+        block = monte_carlo_block(self.n)
+        metrics: dict[str, list] = {}
         for lo in range(0, total, block):
-            part = self._metrics(traced[lo : lo + block])
+            traced = []
+            for i in range(lo, min(lo + block, total)):
+                traced.append(self._trace(self.relay.with_misalignment(samples[i])))
+                if progress is not None and (i % 8 == 7 or i + 1 == total):
+                    progress(i + 1, total)
+            part = self._metrics(traced)
+            if refit:
+                part.update(self._refit(traced))
             for k, v in part.items():
                 metrics.setdefault(k, []).append(v)
+            del traced
         metrics = {k: np.concatenate(v) for k, v in metrics.items()}
-        if refit:
-            metrics.update(self._refit(traced))
         clear = metrics.pop("clear")
         lost = metrics.pop("lost")
         summary = {}

@@ -113,7 +113,7 @@ def model_summary(calibration) -> dict:
     """The calibration's model: ``family`` (its name), ``free`` (the fitted parameters) and,
     for the relay, ``as_fitted`` (:func:`oapcal.optics.relay_model.describe`)."""
     out = {"family": calibration.family.name, "free": list(calibration.free)}
-    if calibration.family.name == "relay":
+    if calibration.relay_design is not None:
         from oapcal.optics.relay_model import describe
 
         out["as_fitted"] = describe(calibration)
@@ -401,6 +401,8 @@ FAMILY_WORDS = {
     "brown-conrady": "Eq. (1), the Brown-Conrady model",
     "brown-conrady+rotation": "Eq. (1) after an in-plane rotation of the target (deg)",
     "relay": "the physical relay: the target's pose and the relay's misalignment, traced through its design",
+    "relay+microscope": "the physical relay with a microscope behind it: the target's pose, the relay's "
+    "misalignment and the microscope's magnification and radial term, traced through its design",
 }
 
 #: Units and meanings of the relay's pose parameters (its misalignments':

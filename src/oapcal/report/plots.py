@@ -134,8 +134,12 @@ def uncertainty_figure(umap):
     im = ax.imshow(umap.sigma_px, cmap="magma", extent=extent, interpolation="nearest")
     _colorbar(fig, im, ax, "1-sigma position uncertainty [px]", umap.um_per_px)
     if umap.outside_hull.any():
-        ax.contourf(umap.x, umap.y, umap.outside_hull.astype(float), levels=[0.5, 1.5], colors="none",
-                    hatches=["//"])  # fmt: skip
+        if min(umap.outside_hull.shape) >= 2:
+            ax.contourf(umap.x, umap.y, umap.outside_hull.astype(float), levels=[0.5, 1.5], colors="none",
+                        hatches=["//"])  # fmt: skip
+        else:  # a map one sample wide (an image 1 px high or wide) has no contour: shade it
+            shade = np.ma.masked_where(~umap.outside_hull, umap.outside_hull.astype(float))
+            ax.imshow(shade, cmap="Greys", vmin=0, vmax=2, alpha=0.5, extent=extent, interpolation="nearest")
         _hull_outline(
             ax, umap.hull, color="cyan", label="hull of the calibration points (outside: extrapolated)"
         )

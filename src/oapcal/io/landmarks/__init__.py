@@ -193,6 +193,11 @@ def _read_one(path, fmt: str, text: str, image: str | None, opts: dict, role: st
 
 
 def _key(lm: Landmark, attr: str, source: str) -> str:
+    if attr in lm.unusable:
+        raise InputFileError(
+            f"{source}: {lm.where}: attribute {attr!r} is {lm.unusable[attr]}, not a text or number that "
+            "can name the landmark; give it a text value (e.g. the corner id)"
+        )
     if attr not in lm.attrs:
         have = ", ".join(sorted(lm.attrs)[:6]) or "none"
         raise InputFileError(

@@ -26,12 +26,26 @@ MAX_COORD = 1.0e7
 class Landmark:
     """One labelled point: ``x, y`` in px (oapcal convention), its attributes as strings
     (``{"corner": "A3"}``), and ``where`` it came from (``"line 5"``, ``"region 2"``) for
-    messages."""
+    messages; ``unusable`` the attributes whose values cannot name a landmark (a nested
+    object, null, a list), each as a short description of its value, for messages."""
 
     x: float
     y: float
     attrs: dict = field(default_factory=dict)
     where: str = ""
+    unusable: dict = field(default_factory=dict)
+
+
+def unusable_attributes(values: dict) -> dict:
+    """The entries of ``values`` that :func:`attribute_text` cannot read, as ``name ->
+    short description`` (``"an object {'a': {'b': 1}}"``, ``"null"``, ``"a list [1, 2]"``)."""
+    out = {}
+    for key, value in values.items():
+        if attribute_text(value) is None:
+            kind = ("null" if value is None else "an object" if isinstance(value, dict)
+                    else "a list" if isinstance(value, list) else f"a {type(value).__name__}")  # fmt: skip
+            out[str(key)] = kind if value is None else f"{kind} {_short(value)}"
+    return out
 
 
 @dataclass(frozen=True)

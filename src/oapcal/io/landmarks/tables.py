@@ -139,6 +139,14 @@ def read_bigwarp(path, *, text: str | None = None) -> tuple[LandmarkSet, Landmar
             continue
         nd = (width - 2) // 2
         halves = (cells[2 : 2 + nd], cells[2 + nd :])
+        for side, half in zip(("moving", "fixed"), halves):
+            gone = [_missing(v) for v in half]
+            if any(gone) and not all(gone):  # BigWarp writes every coordinate of an unplaced point
+                ax = "xyz"[gone.index(True)]
+                raise InputFileError(
+                    f"{name}: {where}: landmark {label!r} has {side} {ax} = {half[gone.index(True)]!r} but "
+                    f"its other {side} coordinates are numbers; give a finite {ax}, or disable the landmark"
+                )
         if any(_missing(v) for half in halves for v in half):
             ignored.append(f"{where}: landmark {label!r} is placed in only one image")
             continue

@@ -30,6 +30,7 @@ from oapcal.io.landmarks._base import (
     csv_rows,
     first_row,
     read_text,
+    unusable_attributes,
 )
 from oapcal.io.userfile import parse_json
 
@@ -199,7 +200,7 @@ def _via2_region(shape, attrs, name: str, where: str):
     x = coordinate(shape["cx"], name, where, "cx") - PIXEL_OFFSET
     y = coordinate(shape["cy"], name, where, "cy") - PIXEL_OFFSET
     text_attrs = {str(k): t for k, v in attrs.items() if (t := attribute_text(v)) is not None}
-    return Landmark(x, y, text_attrs, where)
+    return Landmark(x, y, text_attrs, where, unusable_attributes(attrs))
 
 
 # -- VIA 3 ------------------------------------------------------------------------------------
@@ -259,14 +260,15 @@ def _via3_images(data: dict, name: str) -> list[tuple[str, list]]:
             )
         x = coordinate(xy[1], name, where, "x") - PIXEL_OFFSET
         y = coordinate(xy[2], name, where, "y") - PIXEL_OFFSET
-        attrs = {}
+        attrs, raw = {}, {}
         for aid, value in av.items():
             aid = str(aid)
             label = options.get(aid, {}).get(value, value) if isinstance(value, str) else value
+            raw[anames.get(aid, aid)] = label
             text = attribute_text(label)
             if text is not None:
                 attrs[anames.get(aid, aid)] = text
-        images[vid].append(Landmark(x, y, attrs, where))
+        images[vid].append(Landmark(x, y, attrs, where, unusable_attributes(raw)))
     result = [(view_name[vid], regions, vid) for vid, regions in images.items()]
     return _Images(result, skipped)
 
