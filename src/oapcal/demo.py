@@ -79,6 +79,10 @@ def run_demo(
     stage = Path(tempfile.mkdtemp(prefix=".oapcal-demo-", dir=final))
     try:
         result = _run_steps(stage, final, seed=seed, trials=trials, report=report, step=step)
+        from oapcal.io.atomic import check_output_target
+
+        for path in result.files.values():  # none moved unless all may be
+            check_output_target(final / path.name)
         files = {}
         for label, path in result.files.items():
             os.replace(path, final / path.name)

@@ -52,6 +52,10 @@ LOCAL_SCHEDULERS = ("threads", "synchronous", "processes")
 MAX_CHUNKS = 1_000_000
 #: Seconds to wait for a scheduler given by address to answer.
 CONNECT_TIMEOUT = 10
+#: Seconds to wait, once connected, for a scheduler to have at least one worker.
+WORKER_TIMEOUT = 30
+#: Protocols of a ``dask.distributed`` scheduler address.
+SCHEDULER_PROTOCOLS = ("tcp", "tls", "ws", "wss", "ucx")
 
 
 @dataclass(frozen=True)
@@ -159,11 +163,11 @@ def _worker_map(source: tuple) -> CorrectionMap:
     return correction_map(np.array(params), shape, geometry=geometry)
 
 
-def _correct_block(block: np.ndarray, source, interp: str, border: float) -> np.ndarray:
+def _correct_block(block: np.ndarray, source, interp: str, border: float, allow: bool = False) -> np.ndarray:
     cmap = source if isinstance(source, CorrectionMap) else _worker_map(source)
     out = np.empty((block.shape[0], *cmap.shape, *block.shape[3:]), block.dtype)
     for i, frame in enumerate(block):
-        out[i] = correct_image(frame, cmap, interp, border).reshape(out.shape[1:])
+        out[i] = correct_image(frame, cmap, interp, border, allow_size_mismatch=allow).reshape(out.shape[1:])
     return out
 
 
@@ -181,11 +185,17 @@ def _write_zarr_block(block: np.ndarray, path: str, block_info=None) -> np.ndarr
 
 
 @contextlib.contextmanager
-def dask_scheduler(scheduler: str | None = None, workers: int | None = None):
+def dask_scheduler(
+    scheduler: str | None = None, workers: int | None = None, worker_timeout: float | None = None
+):
     """Yield what ``dask.compute(..., scheduler=...)`` takes, and the number of chunks to
     keep in flight: a new ``LocalCluster`` (default), a ``Client`` of the scheduler at an
     address (``tcp://host:8786``), or a local scheduler name (threads, synchronous,
     processes).  Open it once for a batch of stacks.
+
+    An address is checked before any connection (:func:`parse_scheduler_address`); a
+    scheduler that has no worker within ``worker_timeout`` seconds (default
+    :data:`WORKER_TIMEOUT`) is refused rather than waited for forever.
 
     Dask's own log messages (tracebacks of workers stopped by Ctrl-C, a full disk) are kept
     off the terminal; oapcal reports the problem in one line.  The local cluster's worker
@@ -194,6 +204,8 @@ def dask_scheduler(scheduler: str | None = None, workers: int | None = None):
     if scheduler in LOCAL_SCHEDULERS:
         yield scheduler, max(2, workers or os.cpu_count() or 1)
         return
+    if scheduler is not None:
+        scheduler = parse_scheduler_address(scheduler)
     from oapcal.extras import require
 
     require("distributed")
@@ -211,8 +223,63 @@ def dask_scheduler(scheduler: str | None = None, workers: int | None = None):
             return
         client = connect_scheduler(scheduler)
         with client:
+            _wait_for_workers(client, scheduler, WORKER_TIMEOUT if worker_timeout is None else worker_timeout)
             n_threads = sum(client.nthreads().values()) or 1
             yield client, 2 * n_threads
+
+
+def parse_scheduler_address(address: str) -> str:
+    """``address`` once it has the form of a scheduler address, ``PROTOCOL://HOST:PORT``
+    (:data:`SCHEDULER_PROTOCOLS`) or ``HOST:PORT`` (tcp), with a port 1-65535; else
+    :class:`InputFileError` saying what to give (no connection is tried).
+
+    >>> parse_scheduler_address("tcp://127.0.0.1:8786"), parse_scheduler_address("[::1]:8786")
+    ('tcp://127.0.0.1:8786', 'tcp://[::1]:8786')
+    >>> parse_scheduler_address("THREADS")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    oapcal.errors.InputFileError: scheduler 'THREADS': not a scheduler name; give tcp://HOST:PORT ...
+    """
+    import re
+
+    text = str(address).strip()
+    usage = (
+        "give tcp://HOST:PORT of a running dask scheduler, or threads, synchronous or processes (lower case)"
+    )
+    protocol, sep, rest = text.partition("://")
+    if not sep:
+        protocol, rest = "tcp", text
+    protocol = protocol.lower()
+    match = re.fullmatch(r"(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):([0-9]{1,5})", rest)
+    if protocol not in SCHEDULER_PROTOCOLS:
+        why = f"protocol {protocol}:// is not one of a dask scheduler ({', '.join(SCHEDULER_PROTOCOLS)})"
+        raise InputFileError(f"scheduler {address!r}: {why}; {usage}", param="scheduler")
+    if not match:
+        why = (
+            "has no port" if re.fullmatch(r"\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+", rest) else "is not HOST:PORT"
+        )
+        if not sep and not match and text.lower() in {*LOCAL_SCHEDULERS, "sync", "thread", "process"}:
+            why = "not a scheduler name"
+        elif not sep:
+            why = "not a scheduler name or address"
+        raise InputFileError(f"scheduler {address!r}: {why}; {usage}", param="scheduler")
+    port = int(match[2])
+    if not 1 <= port <= 65535:
+        raise InputFileError(f"scheduler {address!r}: port {port} is not 1-65535; {usage}", param="scheduler")
+    return f"{protocol}://{match[1]}:{port}"
+
+
+def _wait_for_workers(client, address: str, timeout: float) -> None:
+    """Refuse (InputFileError) a scheduler that has no worker after ``timeout`` seconds."""
+    try:
+        client.wait_for_workers(1, timeout=timeout)
+    except Exception:  # TimeoutError (distributed's or asyncio's)
+        if client.nthreads():
+            return
+        raise InputFileError(
+            f"scheduler {address}: has no workers after {timeout:g} s; start workers "
+            f"('dask worker {address}') or leave the scheduler out for a local cluster",
+            param="scheduler",
+        ) from None
 
 
 def connect_scheduler(address: str, timeout: float | None = None):
@@ -350,8 +417,10 @@ def correct_stack_dask(
     """
     from oapcal.io.atomic import file_fingerprint, resume_complete, write_resume_record
 
-    input_path = Path(input_path)
-    out_path = _plan_output(input_path, Path(out_dir), settings.output_format)
+    shown_in = Path(input_path)
+    shown_out = _plan_output(shown_in, Path(out_dir), settings.output_format)
+    # Workers of a distributed cluster run in their own directories: they get absolute paths.
+    input_path, out_path = shown_in.absolute(), shown_out.absolute()
     stack = _open_input(calibration, input_path, settings)
     plan = _plan_map(calibration, input_path, stack.shape[1:3], cmap, map_path, settings)
     record = {
@@ -360,12 +429,12 @@ def correct_stack_dask(
         "frames": int(stack.shape[0]),
     }
     if out_path.exists() and not settings.overwrite and resume_complete(out_path, record):
-        return DaskResult(str(input_path), str(out_path), 0, 0, skipped=True)
+        return DaskResult(str(shown_in), str(shown_out), 0, 0, skipped=True)
     corrected = _build_graph(stack, plan, settings)
     name = settings.calibration_name or getattr(calibration, "name", None)
     n_chunks = _run_and_write(corrected, out_path, plan.geometry, name, input_path.name, settings, session)
     write_resume_record(out_path, {**record})
-    return DaskResult(str(input_path), str(out_path), corrected.shape[0], n_chunks)
+    return DaskResult(str(shown_in), str(shown_out), corrected.shape[0], n_chunks)
 
 
 def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
@@ -378,6 +447,9 @@ def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
             f"{out_path}: the output would overwrite the input {input_path}; choose another out_dir",
             param="out_dir",
         )
+    from oapcal.io.atomic import check_output_target
+
+    check_output_target(out_path, directory=output_format == "zarr")
     return out_path
 
 
@@ -408,6 +480,9 @@ def _plan_map(calibration, input_path: Path, frame_shape, cmap, map_path, settin
                 f"{input_path}: frames are {cols}x{rows} px but the map{where} was built for "
                 f"{cmap.input_shape[1]}x{cmap.input_shape[0]} px input"
             )
+        from oapcal.imaging.remap import check_map_samples
+
+        check_map_samples(cmap, (rows, cols))
         source = ("file", str(Path(map_path).resolve())) if map_path is not None else None
         if source is None:
             import dask
@@ -416,8 +491,9 @@ def _plan_map(calibration, input_path: Path, frame_shape, cmap, map_path, settin
         digest = correction_digest(calibration, cmap, interp=interp, border=border)
         return _MapPlan(source, cmap.geometry, digest)
     params = np.asarray(getattr(calibration, "params", calibration), float)
+    # the frame size was checked against the calibration's when the stack was opened
     geometry = correction_map(calibration, (rows, cols), extent=settings.extent, um_per_px=settings.um_per_px,
-                              out_size=settings.out_size, geometry=None).geometry  # fmt: skip
+                              out_size=settings.out_size, allow_size_mismatch=True).geometry  # fmt: skip
     source = ("params", tuple(float(v) for v in params), geometry.shape, geometry.x0, geometry.y0,
               geometry.scale, geometry.um_per_px)  # fmt: skip
     fit_size = None if settings.out_size is None else list(settings.out_size)
@@ -434,6 +510,7 @@ def _build_graph(stack, plan: _MapPlan, settings: DaskSettings):
         plan.source,
         settings.interp,
         settings.border,
+        settings.allow_size_mismatch,
         dtype=stack.dtype,
         chunks=(stack.chunks[0], (shape[0],), (shape[1],), *stack.chunks[3:]),
     )

@@ -35,11 +35,13 @@ from pathlib import Path
 
 import numpy as np
 
-from oapcal.errors import InputFileError, OapcalError, OutputError
-from oapcal.imaging.remap import CorrectionMap, correct_image, correction_map
+from oapcal.errors import DataError, InputFileError, OapcalError, OutputError
+from oapcal.imaging.remap import CorrectionMap, check_map_samples, correct_image, correction_map
 from oapcal.io.atomic import (
     atomic_path,
+    check_directory_writable,
     check_free_space,
+    check_output_target,
     ensure_not_input,
     file_fingerprint,
     remove_stale_temps,
@@ -237,6 +239,7 @@ def plan_outputs(
                 "choose another path for it"
             )
         ensure_not_input(out, [*files, *protect])
+        check_output_target(out)
         outputs.append(out)
     return outputs
 
@@ -282,6 +285,7 @@ class MapCache:
         self.allow = allow_size_mismatch
         self.options = geometry_options
         self._maps: dict[tuple[int, int], CorrectionMap] = {}
+        self._checked: set[tuple[int, int]] = set()
         self._lock = threading.Lock()
 
     def get(self, frame_shape, source) -> CorrectionMap:
@@ -301,10 +305,16 @@ class MapCache:
                     "px input; build a map for this size or give allow_size_mismatch=True",
                     param="allow_size_mismatch",
                 )
+            with self._lock:
+                if (rows, cols) not in self._checked:  # a map file made for another camera
+                    check_map_samples(self.cmap, (rows, cols))
+                    self._checked.add((rows, cols))
             return self.cmap
         with self._lock:
             if (rows, cols) not in self._maps:
-                self._maps[(rows, cols)] = correction_map(self.calibration, (rows, cols), **self.options)
+                self._maps[(rows, cols)] = correction_map(
+                    self.calibration, (rows, cols), allow_size_mismatch=True, **self.options
+                )  # the size was checked above
             return self._maps[(rows, cols)]
 
 
@@ -342,6 +352,7 @@ def correct_stack(
     """
     files, failures, dirs = expand_inputs([str(p) for p in inputs])
     outputs = plan_outputs(files, out_dir, dirs, protect, reserved=reserved)
+    check_directory_writable(out_dir)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     remove_stale_temps(out_dir, outputs)
     name = calibration_name or getattr(calibration, "name", None)
@@ -410,7 +421,9 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
                 with FrameWriter(tmp, info.kind, name, cmap.geometry.um_per_px, **meta) as writer:
                     out = None
                     for frame in frames:
-                        out = correct_image(frame, cmap, interp, border, out=out)
+                        out = correct_image(
+                            frame, cmap, interp, border, out=out, allow_size_mismatch=cache.allow
+                        )
                         writer.write(out.reshape(cmap.shape + frame.shape[2:]))
                         n += 1
                         bar.advance()
@@ -448,10 +461,20 @@ def _os_message(src: Path, dst: Path, exc: OSError) -> str:
 
 
 def correct_frames(
-    frames: np.ndarray, cmap: CorrectionMap, interp: str = "linear", border: float = 0
+    frames: np.ndarray,
+    cmap: CorrectionMap,
+    interp: str = "linear",
+    border: float = 0,
+    *,
+    allow_size_mismatch: bool = False,
 ) -> np.ndarray:
-    """Correct an in-memory stack ``(frames, rows, cols[, ch])`` with one map."""
+    """Correct an in-memory stack ``(frames, rows, cols[, ch])`` with one map (each frame
+    checked as :func:`~oapcal.imaging.remap.correct_image` checks an image)."""
+    frames = np.asarray(frames)
+    if frames.ndim not in (3, 4):
+        raise DataError(f"a stack must be (frames, rows, cols[, ch]), got shape {frames.shape}")
     out = np.empty((len(frames), *cmap.shape, *frames.shape[3:]), frames.dtype)
     for i, frame in enumerate(frames):
-        out[i] = correct_image(frame, cmap, interp, border).reshape(out.shape[1:])
+        corrected = correct_image(frame, cmap, interp, border, allow_size_mismatch=allow_size_mismatch)
+        out[i] = corrected.reshape(out.shape[1:])
     return out

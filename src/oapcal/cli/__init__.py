@@ -295,6 +295,8 @@ def environment_message(exc: OSError) -> str:
         errno.EROFS: "the file system is read-only; choose another place",
         errno.ENOSPC: "the disk is full; free space or choose another place",
         errno.EDQUOT: "the disk quota is exceeded; free space or choose another place",
+        errno.EFBIG: "the file is larger than the file system or the file-size limit (ulimit -f) allows; "
+        "choose another place or a smaller output",
         errno.ENOENT: "check the path",
         errno.ENAMETOOLONG: "choose a shorter name",
     }.get(exc.errno, "check the path and the disk")

@@ -268,18 +268,21 @@ def check_output(out: str | None, *inputs) -> None:
 
 def check_writable(out) -> None:
     """Raise :class:`~oapcal.errors.OutputError` naming ``out`` unless a file can be created
-    in its directory, and ``out`` is not a directory."""
+    in its directory, and ``out`` is not a directory nor a FIFO, socket or device
+    (:func:`oapcal.io.atomic.check_output_target`)."""
     import errno
     import os
     import tempfile
     from pathlib import Path
 
     from oapcal.errors import OutputError
+    from oapcal.io.atomic import check_output_target
 
     path = Path(out)
     directory = path.parent if str(path.parent) else Path(".")
     if path.is_dir():
         raise OutputError(f"{out}: is a directory; give a file name for this output")
+    check_output_target(path)
     if not directory.is_dir():
         what = "is not a directory" if directory.exists() else "does not exist; create it first"
         raise OutputError(f"{out}: the output directory {directory} {what}")
@@ -324,9 +327,12 @@ class OutputSet:
         import tempfile
         from pathlib import Path
 
+        from oapcal.io.atomic import check_output_target
+
         if path is None or str(path) == "-":
             return path
         dest = Path(path)
+        check_output_target(dest)
         directory = dest.parent if str(dest.parent) else Path(".")
         fd, tmp = tempfile.mkstemp(prefix=".oapcal-", suffix=f".stage{dest.suffix}", dir=directory)
         os.close(fd)
@@ -339,9 +345,20 @@ class OutputSet:
 
     def __exit__(self, exc_type, exc, tb):
         import contextlib
+        import errno
         import os
 
+        from oapcal.io.atomic import check_output_target
+
         if exc_type is None:
+            try:
+                for _, dest in self._staged:  # none renamed unless all may be
+                    check_output_target(dest)
+            except BaseException:
+                for tmp, _ in self._staged:
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(tmp)
+                raise
             for tmp, dest in self._staged:
                 os.replace(tmp, dest)
             return False
@@ -353,6 +370,14 @@ class OutputSet:
             for tmp, dest in self._staged:  # name the user's file, not the staged one
                 if tmp.stem in name:
                     raise OSError(exc.errno, exc.strerror, str(dest)) from None
+        if (
+            isinstance(exc, OSError)
+            and exc.filename is None
+            and exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT)
+            and self._staged
+        ):  # a full disk or a size limit while writing one of them: name them, not stdout
+            names = " or ".join(str(dest) for _, dest in self._staged)
+            raise OSError(exc.errno, exc.strerror or os.strerror(exc.errno), names) from None
         return False
 
 
@@ -432,9 +457,9 @@ class Finite(click.FloatRange):
         return super()._describe_range()
 
 
-#: Float options that may be NaN or infinite on purpose (correct's fill value for pixels
-#: outside the input).
-NON_FINITE_OK = frozenset({"border"})
+#: Float options that may be NaN or infinite on purpose: none (correct's --border, the fill
+#: value of pixels outside the input, is a finite number like every other float option).
+NON_FINITE_OK: frozenset[str] = frozenset()
 #: Largest seed (NumPy takes any non-negative integer; this keeps it one 64-bit word).
 MAX_SEED = 2**63 - 1
 

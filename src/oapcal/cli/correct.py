@@ -148,13 +148,24 @@ def correct_command(
                 flag = "--" + option.replace("_", "-")
                 raise click.UsageError(f"{flag} applies to --dask only: add --dask or drop {flag}")
     size = parse_size(out_size, "--out-size")
+    if use_dask and scheduler is not None:  # an address is checked before anything else
+        from oapcal.batch.distributed import LOCAL_SCHEDULERS, parse_scheduler_address
+
+        if scheduler not in LOCAL_SCHEDULERS:
+            parse_scheduler_address(scheduler)
     max_pixels = max_pixels or MAX_PIXELS
     check_output(save_map, calib, map_file, *inputs)
     plan = _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map) if inputs else None
+    if inputs:
+        from oapcal.io.atomic import check_directory_writable
+
+        check_directory_writable(out_dir)  # before any work, as every command probes its outputs
     cal = load_usable_calibration(calib, allow_unconverged)
     name = cal.name or Path(calib).name
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
     cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels)
+    if inputs:
+        _check_samples(cal, cmap, plan[0], geometry, max_pixels)
     if not inputs:
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
         return 0
@@ -252,6 +263,37 @@ def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels):
     if save_map:
         write_map(cmap, save_map)
     return cmap
+
+
+def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
+    """Refuse, before any work, a calibration (or --map) whose map samples no pixel of the
+    images (:class:`~oapcal.imaging.remap.EmptyMapError`), for the calibration's image size
+    or else the first input's; every other size is checked as its map is built."""
+    from oapcal.imaging.remap import check_map_samples, check_model_samples, output_geometry
+
+    shape = (cal.image_size[1], cal.image_size[0]) if cal.image_size else None
+    if cmap is not None:
+        shape = cmap.input_shape or shape
+    if shape is None and files:
+        from oapcal.errors import OapcalError
+        from oapcal.io.images import probe
+
+        try:
+            shape = probe(files[0], max_pixels).frame_shape[:2]
+        except (OapcalError, OSError):  # reported with that file
+            return
+    if shape is None:
+        return
+    if cmap is not None:
+        check_map_samples(cmap, shape)
+        return
+    from oapcal.errors import DataError
+
+    try:
+        geometry = output_geometry(cal, shape, **geometry)
+    except DataError:  # a geometry refused for this size is reported with each file
+        return
+    check_model_samples(cal, shape, geometry)
 
 
 def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json):

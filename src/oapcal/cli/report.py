@@ -79,6 +79,11 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
             ) from None
         from oapcal.io.calibration import check_model_region
 
+        if cal.image_size and tuple(cal.image_size) != (img.shape[1], img.shape[0]):  # as correct does
+            raise InputFileError(
+                f"{image}: is {img.shape[1]}x{img.shape[0]} px but the calibration is for "
+                f"{cal.image_size[0]}x{cal.image_size[1]} px images; give an image of that camera"
+            )
         check_model_region(cal, (img.shape[1], img.shape[0]), source=calib)
     sel = load_any_selection(selection) if selection else None
     rob = load_robustness(robustness) if robustness else None

@@ -27,7 +27,7 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.model import family_of, undistort
-from oapcal.validate import image as check_image
+from oapcal.validate import image as _valid_image
 
 INTERPOLATIONS = ("nearest", "linear", "cubic", "lanczos")
 EXTENTS = ("input", "full", "calibrated")
@@ -37,6 +37,76 @@ MAX_MAP_BYTES = 4 * 2**30
 #: An output larger than this many times the input's pixel count is refused (a guard
 #: against a folded map or a tiny --um-per-px asking for a huge image).
 MAX_GROWTH = 16
+#: The smallest output side (px): an output geometry that collapses below it (a huge
+#: --um-per-px, a degenerate region) is refused, as --out-size under 2x2 is.
+MIN_OUTPUT_SIDE = 2
+#: A map is refused (:class:`EmptyMapError`) when fewer than this fraction of its output
+#: pixels take their value from inside the input image: 0.1 %, far below what any allowed
+#: output geometry of a usable calibration gives (at least 1 / MAX_GROWTH).
+MIN_SAMPLED_FRACTION = 1e-3
+
+
+class EmptyMapError(DataError):
+    """A correction map whose output pixels sample no (or almost no) pixel of the input
+    image: the output would be all border (an offset of 1e29 px, a magnification of 1e12,
+    a relay mirror tilted far off, a --map built for another camera)."""
+
+
+def sampled_fraction(maps, input_shape: tuple[int, int]) -> float:
+    """The fraction of a map's output pixels whose source lies inside an input image of
+    ``input_shape = (rows, cols)`` (pixel centres ``0 .. cols - 1``, ``0 .. rows - 1``;
+    NaN counts as outside).  Counted a block of rows at a time (no full-size temporaries).
+
+    >>> from oapcal.model import identity_params
+    >>> sampled_fraction(correction_map(identity_params(), (3, 4)), (3, 4))
+    1.0
+    """
+    map_x, map_y = maps
+    rows, cols = int(input_shape[0]), int(input_shape[1])
+    n = map_x.size
+    if n == 0:
+        return 0.0
+    step = max(1, (1 << 20) // max(1, map_x.shape[1]))
+    inside = 0
+    with np.errstate(invalid="ignore"):
+        for lo in range(0, map_x.shape[0], step):
+            mx, my = map_x[lo : lo + step], map_y[lo : lo + step]
+            inside += int(np.count_nonzero((mx >= 0) & (mx <= cols - 1) & (my >= 0) & (my <= rows - 1)))
+    return inside / n
+
+
+def check_map_samples(maps, input_shape: tuple[int, int]) -> None:
+    """Raise :class:`EmptyMapError` when fewer than :data:`MIN_SAMPLED_FRACTION` of the
+    map's output pixels sample the input image of ``input_shape = (rows, cols)``: the
+    corrected image would be all (or nearly all) border.  The rule is on the map, so it
+    holds for every model family and for maps loaded from files."""
+    fraction = sampled_fraction(maps, input_shape)
+    if fraction >= MIN_SAMPLED_FRACTION:
+        return
+    map_x = maps[0] if not isinstance(maps, CorrectionMap) else maps.map_x
+    n = map_x.size
+    count = round(fraction * n)
+    rows, cols = int(input_shape[0]), int(input_shape[1])
+    what = "no pixel" if count == 0 else f"almost no pixel (under {MIN_SAMPLED_FRACTION:.1%} of the output)"
+    raise EmptyMapError(
+        f"the map samples {what} of the image: {count} of {n} output pixels take their value from "
+        f"inside the {cols}x{rows} px input, the rest would be border; the calibration's offsets, "
+        "scale or design (or the map file) do not fit this image: check them, or the output options"
+    )
+
+
+def check_model_samples(
+    calibration_or_params, input_shape: tuple[int, int], geometry: OutputGeometry
+) -> None:
+    """:func:`check_map_samples` for the map of ``geometry`` without building it whole: the
+    map at every k-th output pixel (at most 512 along the longer side), for a caller that
+    needs no map (``export-opencv`` of an Eq. (1) calibration writes coefficients)."""
+    rows, cols = geometry.shape
+    k = max(1, -(-max(rows, cols) // 512))
+    coarse = OutputGeometry(
+        ((rows - 1) // k + 1, (cols - 1) // k + 1), geometry.x0, geometry.y0, geometry.scale * k
+    )
+    correction_map(calibration_or_params, input_shape, geometry=coarse, allow_size_mismatch=True)
 
 
 def _params_of(calibration_or_params) -> np.ndarray:
@@ -139,14 +209,33 @@ def output_geometry(
         scale = float(um_per_px) / float(cal_um)
     if out_size is not None:
         w, h = int(out_size[0]), int(out_size[1])
-        if w < 2 or h < 2:
+        if w < MIN_OUTPUT_SIDE or h < MIN_OUTPUT_SIDE:
             raise DataError(f"the output size must be at least 2x2 px, got {w}x{h}")
         scale = max((x1 - x0) / (w - 1), (y1 - y0) / (h - 1))
         cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
         x0, y0 = cx - scale * (w - 1) / 2, cy - scale * (h - 1) / 2
         shape = (h, w)
     else:
-        shape = (int(math.floor((y1 - y0) / scale + 1e-9)) + 1, int(math.floor((x1 - x0) / scale + 1e-9)) + 1)
+        if not (math.isfinite(scale) and scale > 0):
+            raise DataError(
+                f"the output scale {um_per_px} um per px is outside what a float can represent here; "
+                "choose another um_per_px",
+                param="um_per_px",
+            )
+        # (x1 - x0) / scale may overflow to inf for a tiny scale: capped, the size check refuses it
+        span = [min((y1 - y0) / scale, 2.0**40), min((x1 - x0) / scale, 2.0**40)]
+        shape = (int(math.floor(span[0] + 1e-9)) + 1, int(math.floor(span[1] + 1e-9)) + 1)
+    if min(shape) < MIN_OUTPUT_SIDE:
+        coarsest = ""
+        if um_per_px is not None and cal_um:
+            limit = float(cal_um) * min(x1 - x0, y1 - y0) / (MIN_OUTPUT_SIDE - 1)
+            coarsest = f" (at most {limit:.4g} um per px here)"
+        raise DataError(
+            f"the output would be {shape[1]}x{shape[0]} px, under {MIN_OUTPUT_SIDE} px on a side: the "
+            f"output region collapses; choose a finer um_per_px{coarsest}, a larger out_size or "
+            "another extent",
+            param=("um_per_px", "out_size", "extent"),
+        )
     if shape[0] * shape[1] > MAX_GROWTH * rows * cols:
         raise DataError(
             f"the output would be {shape[1]}x{shape[0]} px, more than {MAX_GROWTH} times the "
@@ -211,6 +300,8 @@ def correction_map(
     um_per_px: float | None = None,
     out_size: tuple[int, int] | None = None,
     geometry: OutputGeometry | None = None,
+    check: bool = True,
+    allow_size_mismatch: bool = False,
 ) -> CorrectionMap:
     """The correction map for distorted images of ``shape = (rows, cols)``.
 
@@ -220,8 +311,22 @@ def correction_map(
     ``extent``, ``um_per_px`` and ``out_size``, or is given as ``geometry``.  By default the
     output has the input's shape and output pixel ``(col, row)`` is the undistorted point
     ``(col, row)``.
+
+    A map that samples no pixel of the input (:func:`check_map_samples`) raises
+    :class:`EmptyMapError`, unless ``check`` is False.  A calibration with an
+    ``image_size`` other than ``shape`` raises :class:`DataError` unless
+    ``allow_size_mismatch`` (as ``oapcal correct`` refuses it without
+    ``--allow-size-mismatch``).
     """
     params = _params_of(calibration_or_params)
+    cal_size = getattr(calibration_or_params, "image_size", None)
+    rows_in, cols_in = int(shape[0]), int(shape[1])
+    if cal_size and tuple(int(v) for v in cal_size) != (cols_in, rows_in) and not allow_size_mismatch:
+        raise DataError(
+            f"the image is {cols_in}x{rows_in} px but the calibration is for {cal_size[0]}x{cal_size[1]} px "
+            "images; give images of that camera, or allow_size_mismatch=True to correct it anyway",
+            param="allow_size_mismatch",
+        )
     if geometry is None:
         geometry = output_geometry(
             calibration_or_params, shape, extent=extent, um_per_px=um_per_px, out_size=out_size
@@ -241,15 +346,22 @@ def correction_map(
     family = family_of(params)
     if family.map_step and min(rows, cols) > 4 * family.map_step:
         _spline_map(params, xs, ys, family.map_step, out_x, out_y)
-        return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
-    # The model's compiled point function over the separable grid, rows in parallel.
+    else:
+        _grid_map(params, family, xs, ys, out_x, out_y)
+    if check:
+        check_map_samples((out_x, out_y), shape)
+    return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
+
+
+def _grid_map(params, family, xs, ys, out_x, out_y) -> None:
+    """The model's compiled point function over the separable grid, rows in parallel."""
     from oapcal import _kernels
     from oapcal.model import kernel_array
 
+    rows, cols = out_x.shape
     block = _kernels.block_size(rows, -(-(1 << 20) // max(cols, 1)))  # threads only for > 1 Mpx
     _kernels.run_blocks(_kernels.grid_map, rows, block, family.code,
                         kernel_array(params), xs, ys, out_x, out_y)  # fmt: skip
-    return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
 
 
 #: Output rows interpolated at a time by :func:`_spline_map` (bounds its float64 temporaries).
@@ -290,29 +402,86 @@ REMAP_TILE = 4096
 _PAD = 6
 
 
+def check_image(image, maps, out=None, *, allow_size_mismatch: bool = False) -> np.ndarray:
+    """``image`` as an array once it is what :func:`correct_image` corrects, with the rules of
+    ``oapcal correct``; else :class:`DataError` saying what to give.
+
+    Refused: anything but a grey ``(rows, cols)`` or colour ``(rows, cols, 1, 3 or 4)``
+    image (a stack ``(frames, rows, cols)`` is corrected frame by frame:
+    :func:`oapcal.batch.stack.correct_frames`), a pixel type other than
+    :data:`oapcal.validate.IMAGE_DTYPES`, an image of another size than the map was built for (when the map
+    knows it; ``allow_size_mismatch`` allows it), and an ``out`` that is not a writable
+    array of the output's shape and the image's dtype.
+    """
+    image = _valid_image(image)  # an array of pixels of a supported type, at least 2-D
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)) or 0 in image.shape:
+        raise DataError(
+            f"an image of shape {image.shape} cannot be corrected: give one grey (rows, cols) or colour "
+            "(rows, cols, 3 or 4) image; correct a stack (frames, rows, cols) frame by frame "
+            "(oapcal.batch.stack.correct_frames)",
+        )
+    map_x = maps.map_x if isinstance(maps, CorrectionMap) else maps[0]
+    expected = getattr(maps, "input_shape", None)
+    if expected and tuple(image.shape[:2]) != tuple(expected) and not allow_size_mismatch:
+        raise DataError(
+            f"the image is {image.shape[1]}x{image.shape[0]} px but the map was built for "
+            f"{expected[1]}x{expected[0]} px images; build a map for this size or give "
+            "allow_size_mismatch=True to correct it anyway",
+            param="allow_size_mismatch",
+        )
+    if out is not None:
+        want = tuple(map_x.shape) + image.shape[2:]
+        shapes = {want, tuple(map_x.shape)} if image.shape[2:] == (1,) else {want}
+        if (
+            not isinstance(out, np.ndarray)
+            or tuple(out.shape) not in shapes
+            or out.dtype != image.dtype
+            or not out.flags.c_contiguous
+            or not out.flags.writeable
+        ):
+            got = f"{out.shape} {out.dtype}" if isinstance(out, np.ndarray) else type(out).__name__
+            raise DataError(
+                f"out must be a writable C-contiguous array of shape {want} and dtype {image.dtype} "
+                f"(the output's), got {got}",
+                param="out",
+            )
+    return image
+
+
 def correct_image(
-    image: np.ndarray, maps, interp: str = "linear", border: float = 0, out: np.ndarray | None = None
+    image: np.ndarray,
+    maps,
+    interp: str = "linear",
+    border: float = 0,
+    out: np.ndarray | None = None,
+    *,
+    allow_size_mismatch: bool = False,
 ) -> np.ndarray:
     """Correct one image (grey ``(rows, cols)`` or colour ``(rows, cols, ch)``) with a map
     from :func:`correction_map`; the output has the map's shape and keeps the input's dtype.
 
     Pixels whose source falls outside the input get the value ``border`` (in every
-    channel).  ``out`` (an array of the output's shape and dtype) receives the result when
-    given.  Images or maps
-    with a side of 32767 px or more (beyond ``cv2.remap``) are corrected tile by tile, with
-    the same result.
+    channel).  ``out`` (an array of the output's shape and dtype) receives the result and
+    is returned.  The image is checked first (:func:`check_image`): a stack, an unsupported
+    pixel type, an image of another size than the map's (unless ``allow_size_mismatch``)
+    or a wrong ``out`` raise :class:`DataError`.  Images or maps with a side of 32767 px
+    or more (beyond ``cv2.remap``) are corrected tile by tile, with the same result.
     """
     import cv2
 
-    image = check_image(image)
     if interp not in _CV2_INTERP:
         raise DataError(f"unknown interpolation {interp!r}: use one of {', '.join(INTERPOLATIONS)}")
+    image = check_image(image, maps, out, allow_size_mismatch=allow_size_mismatch)
     map_x, map_y = maps
     if max(image.shape[:2]) < REMAP_LIMIT and max(map_x.shape) < REMAP_LIMIT:
-        return _remap(
+        result = _remap(
             image, map_x, map_y, _CV2_INTERP[interp], dst=out, borderMode=cv2.BORDER_CONSTANT,
             borderValue=(border,) * 4,
         )  # fmt: skip
+        if out is not None and result is not out:  # OpenCV made a new array: out receives it
+            out[...] = result.reshape(out.shape)
+            result = out
+        return result
     if out is None:
         out = np.empty(map_x.shape + image.shape[2:], image.dtype)
     for r0 in range(0, map_x.shape[0], REMAP_TILE):

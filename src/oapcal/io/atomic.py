@@ -17,12 +17,14 @@ was made from, so that a rerun skips only outputs that match.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import itertools
 import json
 import os
 import re
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -46,10 +48,49 @@ _UMASK = _read_umask()
 
 
 def _publish(tmp: str, path: Path) -> None:
-    """Give the temporary file ordinary permissions (mkstemp makes it 0600), then rename."""
+    """Give the temporary file ordinary permissions (mkstemp makes it 0600), then rename
+    (after checking again that ``path`` did not become a FIFO or device meanwhile)."""
+    check_output_target(path)
     with contextlib.suppress(OSError):
         os.chmod(tmp, 0o666 & ~_UMASK)
     os.replace(tmp, path)
+
+
+#: The errors of a write that did not fit: a full disk, a file-size limit, a disk quota.
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EFBIG, errno.EDQUOT)
+
+_SPECIAL_KINDS = (
+    (stat.S_ISFIFO, "a named pipe (FIFO)"),
+    (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+)
+
+
+def check_output_target(path: str | os.PathLike, *, directory: bool = False) -> None:
+    """Refuse (:class:`OutputError`, naming ``path``) an output path that exists and is not
+    a regular file (a directory when ``directory``): a FIFO, a socket, a character device
+    such as ``/dev/null``, a block device, or a symbolic link to one.  Outputs are written
+    to a temporary file renamed over the path, which would replace such a file, so none is
+    ever written to or replaced; a missing path (or a dangling link) is fine.
+
+    >>> check_output_target("/dev/null")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    oapcal.errors.OutputError: /dev/null: is a character device, not a regular file; oapcal ...
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return
+    if stat.S_ISREG(mode) or (directory and stat.S_ISDIR(mode)):
+        return
+    for test, kind in _SPECIAL_KINDS:
+        if test(mode):
+            link = "a link to " if os.path.islink(path) else ""
+            raise OutputError(
+                f"{os.fsdecode(path)}: is {link}{kind}, not a regular file; oapcal replaces its outputs "
+                "whole and never replaces one: give the path of a regular file"
+            )
 
 
 #: Longest file name (bytes) of common file systems.
@@ -93,11 +134,12 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", *, clean: bool = True
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
+    check_output_target(path)
     if clean:
         _clean_beside(directory, path)
     fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.name, ".tmp"), suffix=".tmp", dir=directory)
     try:
-        with os.fdopen(fd, mode, **open_kwargs) as fh:
+        with _naming_output(path), os.fdopen(fd, mode, **open_kwargs) as fh:
             _lock(fh.fileno())
             yield fh
             if fcntl is not None:  # rename while still locked (not possible on Windows)
@@ -112,6 +154,19 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", *, clean: bool = True
 
 
 @contextlib.contextmanager
+def _naming_output(path: Path) -> Iterator[None]:
+    """An :class:`OSError` of a full disk, a file-size limit or a quota that names no file
+    (``write`` and ``flush`` say only ``ENOSPC`` / ``EFBIG`` / ``EDQUOT``) raised again
+    naming the output ``path``, so that it is not taken for standard output."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is None and exc.errno in _WRITE_ERRNOS:
+            raise OSError(exc.errno, exc.strerror or os.strerror(exc.errno), os.fspath(path)) from exc
+        raise
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, *, clean: bool = True) -> Iterator[Path]:
     """Yield a temporary path beside ``path`` for a library that writes by file name
     (OpenCV, tifffile, Matplotlib); rename it to ``path`` on success, remove it on error.
@@ -122,6 +177,7 @@ def atomic_path(path: str | os.PathLike, *, clean: bool = True) -> Iterator[Path
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
+    check_output_target(path)
     if clean:
         _clean_beside(directory, path)
     suffix = f".tmp{path.suffix}"
@@ -131,8 +187,9 @@ def atomic_path(path: str | os.PathLike, *, clean: bool = True) -> Iterator[Path
         fd = None
     _lock(fd)
     try:
-        yield Path(tmp)
-        _publish(tmp, path)
+        with _naming_output(path):
+            yield Path(tmp)
+            _publish(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
@@ -147,12 +204,15 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary directory beside ``path`` (for a zarr store), renamed to ``path``
     on success (replacing an older ``path``), removed on error."""
     path = Path(path)
+    check_output_target(path, directory=True)
     directory = path.parent if str(path.parent) else Path(".")
     tmp = tempfile.mkdtemp(prefix=_temp_prefix(path.name, ".tmp"), suffix=".tmp", dir=directory)
     fd = os.open(tmp, os.O_RDONLY) if fcntl is not None else None
     _lock(fd)
     try:
-        yield Path(tmp)
+        with _naming_output(path):
+            yield Path(tmp)
+        check_output_target(path, directory=True)
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)
         os.replace(tmp, path)
@@ -291,6 +351,28 @@ def check_free_space(directory: str | os.PathLike, n_bytes: int, what: str | os.
             f"{free / 2**30:.3g} GiB free; free some space or choose another output directory",
             param="out_dir",
         )
+
+
+def check_directory_writable(directory: str | os.PathLike) -> None:
+    """Refuse (:class:`OutputError`), before any work, an output directory in which no file
+    can be created: tried by creating and removing an empty temporary file in it, or, when
+    it does not exist yet, in its nearest existing parent (where it will be made)."""
+    directory = Path(directory)
+    probe = directory
+    while not probe.is_dir() and probe != probe.parent:
+        probe = probe.parent
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".oapcal-", suffix=".probe", dir=probe)
+    except OSError as exc:
+        hint = "the file system is read-only" if exc.errno == errno.EROFS else "check its permissions"
+        where = "" if probe == directory else f" (it would be made in {probe})"
+        raise OutputError(
+            f"{directory}: cannot create files in {probe}{where} ({exc.strerror}); {hint} or choose "
+            "another output directory",
+            param="out_dir",
+        ) from None
+    os.close(fd)
+    os.unlink(tmp)
 
 
 def ensure_not_input(output: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> None:

@@ -1,8 +1,9 @@
 """Reading single images for analysis (edge spread, correction checks, reports).
 
-Files are read by :func:`oapcal.io.images.read_image` (the path checked by
-:func:`~oapcal.io.userfile.check_input_file`, the pixel-count limit checked before decoding,
-errors naming the file), TIFF through tifffile and everything else through OpenCV.  Colour
+Files are read by :mod:`oapcal.io.images` (the path checked by
+:func:`~oapcal.io.userfile.check_input_file`, the pixel-count limit and the frame count
+checked on the header before decoding: a multi-page TIFF is refused unread; errors naming
+the file), TIFF through tifffile and everything else through OpenCV.  Colour
 images are converted to grey (ITU-R BT.601 weights, as OpenCV does); the result is a
 ``float64 (rows, cols)`` array in the file's own intensity units.  Problems raise
 :class:`~oapcal.errors.InputFileError` naming the file.
@@ -27,12 +28,20 @@ def read_image_grey(path: str | Path) -> np.ndarray:
     array([[7., 7., 7.],
            [7., 7., 7.]])
     """
-    from oapcal.io.images import read_image
+    from oapcal.io.images import open_frames, probe
 
     name = str(path)
     p = Path(path)
-    # read_image checks the path and the pixel count before decoding and names the file on any error.
-    image = read_image(p)
+    # The header first (the path, the pixel count, the frame count): a stack is refused before
+    # any page is decoded, as 'oapcal correct' decides from the header.
+    info = probe(p)
+    if info.n_frames != 1:
+        raise InputFileError(
+            f"{name}: is a stack of {info.n_frames} frames (pages); give one grey or colour image, "
+            "e.g. one page saved on its own"
+        )
+    with open_frames(p, info=info) as (_, frames):
+        image = next(iter(frames))
     if image.ndim == 3 and image.shape[-1] in (3, 4) and p.suffix.lower() not in (".tif", ".tiff"):
         image = image[..., [2, 1, 0]]  # OpenCV decodes colour as BGR
     image = np.asarray(image)

@@ -234,7 +234,7 @@ def brown_conrady_approximation(
     approx = np.asarray(result.params, float)
     inside = _inside(exact.map_x, exact.map_y, (width, height))
     if np.isfinite(approx).all():
-        ax, ay = correction_map(approx, (height, width), geometry=geometry)
+        ax, ay = correction_map(approx, (height, width), geometry=geometry, check=False)
         err = np.hypot(ax.astype(float) - exact.map_x, ay.astype(float) - exact.map_y)
     else:
         err = np.full(exact.shape, np.nan)
@@ -272,8 +272,11 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
     ``cv2.remap``), the best Eq. (1) approximation's ``camera_matrix``, ``dist_coeffs``
     and ``new_camera_matrix`` (:func:`brown_conrady_approximation`) and its error in
     ``approximation`` (a dict), and a ``note`` saying so.
+
+    A calibration whose correction map samples no pixel of the image raises
+    :class:`~oapcal.imaging.remap.EmptyMapError`, whatever the family.
     """
-    from oapcal.imaging.remap import correction_map
+    from oapcal.imaging.remap import check_model_samples, correction_map
 
     params = np.asarray(getattr(calibration_or_params, "params", calibration_or_params), float)
     family = family_of(params)
@@ -281,6 +284,8 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
     if geometry is None:
         geometry = OutputGeometry((height, width))
     if family in (BROWN_CONRADY, BROWN_CONRADY_POSE):
+        # coefficients only, but a calibration whose map samples nothing of the image is refused
+        check_model_samples(params, (height, width), geometry)
         return opencv_parameters(params, (width, height), geometry)
     rows, cols = geometry.shape
     need = EXPORT_BYTES_PER_PX * rows * cols
@@ -291,6 +296,7 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
             "give a smaller image size or output (the maps hold every output pixel)",
             param=("image_size", "out_size", "um_per_px"),
         )
+    check_model_samples(params, (height, width), geometry)  # a map of nothing: refused first, any family
     _approximation_samples(calibration_or_params, (width, height), geometry)  # cheap: before the maps
     exact = correction_map(params, (height, width), geometry=geometry)
     approx = brown_conrady_approximation(calibration_or_params, (width, height), geometry, exact)

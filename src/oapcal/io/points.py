@@ -24,7 +24,7 @@ import numpy as np
 
 from oapcal.errors import DataError, InputFileError
 from oapcal.io.atomic import atomic_write
-from oapcal.io.userfile import read_text
+from oapcal.io.userfile import parse_number, read_text
 from oapcal.validate import point_pairs
 
 PAIR_COLUMNS = ("x_u", "y_u", "x_d", "y_d")
@@ -62,10 +62,13 @@ class PointPairs:
 
 def _parse_float(text: str, name: str, line: int, column: str) -> float:
     try:
-        value = float(text)
-    except (TypeError, ValueError):
+        value = parse_number(text)
+    except (TypeError, ValueError, AttributeError):
         shown = "an empty cell" if not (text or "").strip() else repr(text)
-        raise InputFileError(f"{name}: line {line}, column {column!r}: {shown} is not a number") from None
+        raise InputFileError(
+            f"{name}: line {line}, column {column!r}: {shown} is not a number (give ASCII decimal or "
+            "scientific notation, e.g. 47.5 or 4.75e1)"
+        ) from None
     if not math.isfinite(value):
         raise InputFileError(
             f"{name}: line {line}, column {column!r}: {text.strip()} is not a finite number; "

@@ -19,6 +19,7 @@ import io
 import math
 
 from oapcal.errors import InputFileError
+from oapcal.io.userfile import parse_number
 
 ROI_COLUMNS = ("x0", "y0", "x1", "y1")
 #: Largest pixel index accepted in an ROI file.
@@ -58,7 +59,7 @@ def read_rois(path) -> tuple[list[tuple[int, int, int, int]], list[str]]:
         for c in ROI_COLUMNS:
             cell = row[col[c]].strip()
             try:
-                v = float(cell)
+                v = parse_number(cell)
             except ValueError:
                 raise InputFileError(f"{name}: line {line}, column {c!r}: {cell!r} is not a number") from None
             if not math.isfinite(v) or abs(v) > MAX_INDEX:

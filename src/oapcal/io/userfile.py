@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import stat
 import sys
 from pathlib import Path
@@ -71,7 +72,8 @@ def read_text(path: str | Path, what: str = "file", *, missing: str = "no such f
     """The text of ``path`` (``-`` is stdin) decoded as UTF-8.
 
     ``what`` names the kind of file in messages ("point file", "calibration file", ...);
-    ``missing`` is the message for a missing file (after the file name).  At most
+    ``missing`` is the message for a missing file (after the file name).  Line endings
+    come back as ``\\n`` whatever the file used (``\\r\\n``, CR only).  At most
     :data:`MAX_FILE_BYTES` are read, whatever the file is (a device or pipe included).
     """
     name = str(path)
@@ -82,7 +84,7 @@ def read_text(path: str | Path, what: str = "file", *, missing: str = "no such f
             _check_start(text.encode("utf-8", "surrogatepass")[:_CHUNK], name, what)
             if len(text) > MAX_FILE_BYTES:
                 raise InputFileError(f"{name}: is over {MAX_FILE_BYTES // 2**20} MiB; not read")
-            return text
+            return _unix_newlines(text)
         data = _read_bounded(stream, name, what)
     else:
         p = Path(path)
@@ -103,11 +105,24 @@ def read_text(path: str | Path, what: str = "file", *, missing: str = "no such f
             raise InputFileError(f"{name}: cannot be read ({exc.strerror}); check its permissions") from None
     _check_start(data, name, what)
     try:
-        return data.decode("utf-8-sig")
+        return _unix_newlines(data.decode("utf-8-sig"))
     except UnicodeDecodeError as exc:
         raise InputFileError(
             f"{name}: is not UTF-8 text (bad byte at offset {exc.start}); save it as UTF-8"
         ) from None
+
+
+def _unix_newlines(text: str) -> str:
+    r"""Line endings as ``\n``: Windows ``\r\n`` and old Mac ``\r`` (CR only) files read like
+    any other (Python's csv module would otherwise refuse a lone CR with advice about
+    'universal-newline mode').
+
+    >>> _unix_newlines("a,b\r1,2\r\n3,4\n")
+    'a,b\n1,2\n3,4\n'
+    """
+    if "\r" not in text:
+        return text
+    return text.replace("\r\n", "\n").replace("\r", "\n")
 
 
 def parse_json(text: str, name: str, what: str = "file"):
@@ -190,3 +205,35 @@ def check_input_file(path: str | Path, what: str, suffixes, *, missing: str = "c
     if not path.is_file():
         raise InputFileError(f"{path}: no such {what}; {missing}")
     return path
+
+
+#: A number as oapcal reads it from a text file: ASCII decimal or scientific notation
+#: (``47.5``, ``-1e-3``, ``.5``, ``3.``), or nan / inf (refused later as not finite).
+_NUMBER = re.compile(
+    r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf|infinity)", re.I | re.ASCII
+)
+
+
+def parse_number(text: str) -> float:
+    """A number from a text cell, surrounding whitespace ignored: ASCII decimal or scientific
+    notation only.  Python's ``float`` also reads ``4_7.5`` (47.5), Arabic-Indic and
+    full-width digits; a file holding those is more likely wrong than meant, so they raise
+    :class:`ValueError`, like any text that is not a number.
+
+    >>> parse_number(" -1.5e3 "), parse_number(".5")
+    (-1500.0, 0.5)
+    >>> for bad in ("4_7.5", "\u0664\u0667.\u0665", "\uff14\uff17.\uff15", "0x1p3", ""):
+    ...     try:
+    ...         parse_number(bad)
+    ...     except ValueError:
+    ...         print("refused", ascii(bad))
+    refused '4_7.5'
+    refused '\u0664\u0667.\u0665'
+    refused '\uff14\uff17.\uff15'
+    refused '0x1p3'
+    refused ''
+    """
+    stripped = text.strip()
+    if not _NUMBER.fullmatch(stripped):
+        raise ValueError(f"not a number in ASCII decimal notation: {text!r}")
+    return float(stripped)

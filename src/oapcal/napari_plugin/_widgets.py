@@ -547,6 +547,11 @@ class CorrectWidget(_OapcalWidget):
         data = layer.data
         spatial = 3 if layer.rgb else 2
         shape = data.shape[data.ndim - spatial : data.ndim - spatial + 2]
+        if cal.image_size and tuple(cal.image_size) != (shape[1], shape[0]):  # as 'oapcal correct'
+            self._fail(f"{layer.name} is {shape[1]}x{shape[0]} px but the calibration is for "
+                       f"{cal.image_size[0]}x{cal.image_size[1]} px images: choose an image of that "
+                       "camera, or refit the calibration for this one")  # fmt: skip
+            return
         interp = self.interp.value
         want_unc, want_hull = self.show_uncertainty.value, self.show_hull.value
 

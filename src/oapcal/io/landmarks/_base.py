@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from oapcal.errors import InputFileError
+from oapcal.io.userfile import parse_number
 from oapcal.io.userfile import read_text as _read_text
 
 #: Landmark files larger than this are refused before they are read (bytes).
@@ -89,10 +90,13 @@ def coordinate(value, source: str, where: str, axis: str) -> float:
         )
     if isinstance(value, str):
         try:
-            number = float(value)
+            number = parse_number(value)
         except ValueError:
             shown = "an empty cell" if not value.strip() else _short(value)
-            raise InputFileError(f"{source}: {where}: {axis} is {shown}, not a number") from None
+            raise InputFileError(
+                f"{source}: {where}: {axis} is {shown}, not a number (give ASCII decimal or scientific "
+                "notation, e.g. 47.5)"
+            ) from None
     else:
         try:
             number = float(value)

@@ -31,6 +31,7 @@ from oapcal.io.landmarks._base import (
     read_text,
     sniff_delimiter,
 )
+from oapcal.io.userfile import parse_number
 
 _AXIS = re.compile(r"^axis-(\d+)$")
 #: Plane coordinates (BigWarp z, napari's leading axes) closer than this, relative to their
@@ -62,7 +63,7 @@ def is_bigwarp_row(first_line: str) -> bool:
     if len(cells) not in (6, 8):
         return False
     try:
-        [float(c) for c in cells[2:]]
+        [parse_number(c) for c in cells[2:]]
     except ValueError:
         return False
     return True
@@ -176,7 +177,7 @@ def read_bigwarp(path, *, text: str | None = None) -> tuple[LandmarkSet, Landmar
 
 def _missing(text: str) -> bool:
     try:
-        return not math.isfinite(float(text))
+        return not math.isfinite(parse_number(text))
     except ValueError:
         return False
 
