@@ -20,6 +20,12 @@ import numpy as np
 ASPECT_RANGE = (2.8, 8.5)
 #: Fraction of the blob's minimum-area rectangle its pixels must fill.
 MIN_FILL = 0.72
+#: Distance between neighbouring bars of a triplet / the thresholded width of a bar.
+#: The thresholded width is half the period only on a sharp image: blur, overexposure and
+#: the interpolation of a turned image widen the bright (or dark) blob, and at 1.55 (the
+#: earlier lower bound) the heavily blurred LAB-UMK image (bars 11 px, gaps 6 px at the
+#: threshold) lost half its triplets when turned by 15-30 degrees (14 -> 6-8).
+SPACING_RANGE = (1.3, 2.5)
 #: Smallest bar width (px) looked for: narrower bars are not resolved reliably.
 MIN_BAR_PX = 1.6
 
@@ -166,7 +172,7 @@ def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
                 and abs(da) < 0.2 * length + 1
                 and 0.7 < bars[j, 2] / w < 1.45
                 and 0.75 < bars[j, 3] / length < 1.33
-                and 1.55 * w - 0.5 < abs(dn) < 2.5 * w + 0.8
+                and SPACING_RANGE[0] * w - 0.5 < abs(dn) < SPACING_RANGE[1] * w + 0.8
             ):
                 side[int(np.sign(dn))].append((abs(dn), j))
         for dl, jl in side[-1]:

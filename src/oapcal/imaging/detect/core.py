@@ -326,6 +326,13 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
         det_d = _replace(det_d, pose=pose_info, debug=debug, triplets_found=len(trips), work=work)
         if det_p is None:
             pose_info = dict(pose_info, method="correlation")
+            if det_d.status != 0 and pres.message:
+                # both kinds of evidence are missing: say what each lacked
+                msg = (
+                    f"{pres.message}; and the correlation search at the given scale (quarter turns "
+                    f"and mirrors only) did not place the target either: {det_d.message}"
+                )
+                det_d = _replace(det_d, message=msg, param=tuple(dict.fromkeys(pres.param + det_d.param)))
             return _replace(det_d, pose=pose_info)
         det_p, det_d = _at_scale(det_p, um_per_px, (w, h)), _at_scale(det_d, um_per_px, (w, h))
         det = _combine([det_p, det_d])
