@@ -313,8 +313,12 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
         # else (um_per_px given, the triplets did not place the target) from a correlation
         # search at that scale.
         small = h * w <= DENSE_MAX_PIXELS and um_per_px is not None
-        if det_p is not None and det_p.status == 0 and det_p.coverage >= 0.9 and not small:
-            # a large image: the dense registration only when the triplets fell short
+        # without a scale a small image gets the dense registration too when the triplet
+        # path dropped any expected corner (a misaligned relay: 240 of 264, "moved", where
+        # the dense registration keeps 288; the images it keeps whole are not re-registered)
+        enough = 0.9 if h * w > DENSE_MAX_PIXELS else 0.999
+        if det_p is not None and det_p.status == 0 and det_p.coverage >= enough and not small:
+            # the dense registration only when the triplets fell short
             return _at_scale(_replace(det_p, pose=dict(det_p.pose, method="triplets")), um_per_px, (w, h))
         bar.stage("dense registration")
         u_dense = det_p.um_per_px if init is not None else float(um_per_px)
@@ -400,11 +404,44 @@ def _combine(dets: list) -> Detection:
         return (len(d.ids), -(rms if rms is not None and np.isfinite(rms) else np.inf))
 
     best = max(ok, key=rank)
+    best = _with_missing_from(best, ok)
     if best is dets[0]:
         return _replace(best, pose=dict(best.pose, method="triplets"))
     if best.pose.get("method") != "correlation":
         return _replace(best, pose=dict(best.pose, method="dense"))
     return best
+
+
+def _with_missing_from(best: Detection, ok: list) -> Detection:
+    """``best`` with the corners that only other (agreeing) detections kept, each with
+    the position and error of the first that kept it: one registration may drop a triplet
+    (e.g. "moved") that another keeps (the dense registration of the LAB-UMK image dropped
+    G5E2V, which the triplet path keeps; the triplet path drops many that it keeps)."""
+    have = set(best.ids)
+    ids, xy_u, xy_d, se = list(best.ids), [best.xy_u], [best.xy_d], [best.stderr_px]
+    for d in ok:
+        if d is best:
+            continue
+        k = [n for n, i in enumerate(d.ids) if i not in have]
+        if not k:
+            continue
+        ids += [d.ids[n] for n in k]
+        have.update(d.ids[n] for n in k)
+        xy_u.append(d.xy_u[k])
+        xy_d.append(d.xy_d[k])
+        se.append(d.stderr_px[k])
+    if len(ids) == len(best.ids):
+        return best
+    rank = {i: n for n, i in enumerate(_full_target().corner_ids)}
+    order = np.argsort([rank.get(i, len(rank)) for i in ids], kind="stable")
+    return _replace(
+        best,
+        n_expected=max(best.n_expected, len(ids)),
+        ids=tuple(ids[n] for n in order),
+        xy_u=np.concatenate(xy_u)[order],
+        xy_d=np.concatenate(xy_d)[order],
+        stderr_px=np.concatenate(se)[order],
+    )
 
 
 def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sigma_hint_px, max_stderr_px,
