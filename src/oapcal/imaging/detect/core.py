@@ -432,15 +432,28 @@ def _with_missing_from(best: Detection, ok: list) -> Detection:
         se.append(d.stderr_px[k])
     if len(ids) == len(best.ids):
         return best
-    rank = {i: n for n, i in enumerate(_full_target().corner_ids)}
+    tw = _full_target()
+    rank = {i: n for n, i in enumerate(tw.corner_ids)}
     order = np.argsort([rank.get(i, len(rank)) for i in ids], kind="stable")
+    ids = [ids[n] for n in order]
+    xy_u, xy_d, se = np.concatenate(xy_u)[order], np.concatenate(xy_d)[order], np.concatenate(se)[order]
+    # the pooled corners pass the same global check as each registration's own (a corner
+    # that one registration dropped as inconsistent does not come back through another)
+    width_px = np.array([tw.bar_width[rank[i] // 4] for i in ids]) / best.um_per_px
+    # (no model on a registration of 16 or more corners: the check was switched off)
+    skipped = best.consistency.get("model") is None and len(best.ids) >= 16
+    check = check_consistency(xy_u, xy_d, width_px, None if skipped else "auto")
+    if check.status != 0:
+        return best
+    keep = check.consistent
     return _replace(
         best,
-        n_expected=max(best.n_expected, len(ids)),
-        ids=tuple(ids[n] for n in order),
-        xy_u=np.concatenate(xy_u)[order],
-        xy_d=np.concatenate(xy_d)[order],
-        stderr_px=np.concatenate(se)[order],
+        n_expected=max(best.n_expected, int(keep.sum())),
+        ids=tuple(i for i, k in zip(ids, keep) if k),
+        xy_u=xy_u[keep],
+        xy_d=xy_d[keep],
+        stderr_px=se[keep],
+        consistency=check.summary(),
     )
 
 
