@@ -167,6 +167,23 @@ def _inside(map_x, map_y, image_size) -> np.ndarray:
         return (map_x >= 0) & (map_x <= w - 1) & (map_y >= 0) & (map_y <= h - 1)
 
 
+def _check_samples(calibration_or_params, params, image_size, geometry: OutputGeometry) -> None:
+    """:func:`~oapcal.imaging.remap.check_model_samples`, its message naming the image size the
+    calibration was made for when the image is another."""
+    from oapcal.imaging.remap import EmptyMapError, check_model_samples
+
+    made_for = getattr(calibration_or_params, "image_size", None)
+    try:
+        check_model_samples(params, (int(image_size[1]), int(image_size[0])), geometry)
+    except EmptyMapError as exc:
+        if made_for is None or tuple(made_for) == tuple(image_size):
+            raise
+        raise EmptyMapError(
+            f"{exc}; the calibration was made for {made_for[0]}x{made_for[1]} px, not "
+            f"{image_size[0]}x{image_size[1]}", param=exc.param
+        ) from None
+
+
 def _approximation_samples(calibration_or_params, image_size, geometry: OutputGeometry):
     """The samples of the forward map an approximation is fitted to (``xy_u``, ``xy_d`` and
     whether ``xy_d`` lies in the input), refused when too few lie in the input: cheap, so
@@ -276,7 +293,7 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
     A calibration whose correction map samples no pixel of the image raises
     :class:`~oapcal.imaging.remap.EmptyMapError`, whatever the family.
     """
-    from oapcal.imaging.remap import check_model_samples, correction_map
+    from oapcal.imaging.remap import correction_map
 
     params = np.asarray(getattr(calibration_or_params, "params", calibration_or_params), float)
     family = family_of(params)
@@ -285,7 +302,7 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
         geometry = OutputGeometry((height, width))
     if family in (BROWN_CONRADY, BROWN_CONRADY_POSE):
         # coefficients only, but a calibration whose map samples nothing of the image is refused
-        check_model_samples(params, (height, width), geometry)
+        _check_samples(calibration_or_params, params, (width, height), geometry)
         return opencv_parameters(params, (width, height), geometry)
     rows, cols = geometry.shape
     need = EXPORT_BYTES_PER_PX * rows * cols
@@ -296,7 +313,7 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
             "give a smaller image size or output (the maps hold every output pixel)",
             param=("image_size", "out_size", "um_per_px"),
         )
-    check_model_samples(params, (height, width), geometry)  # a map of nothing: refused first, any family
+    _check_samples(calibration_or_params, params, (width, height), geometry)  # a map of nothing: refused
     _approximation_samples(calibration_or_params, (width, height), geometry)  # cheap: before the maps
     exact = correction_map(params, (height, width), geometry=geometry)
     approx = brown_conrady_approximation(calibration_or_params, (width, height), geometry, exact)
