@@ -20,17 +20,6 @@ import numpy as np
 ASPECT_RANGE = (2.8, 8.5)
 #: Fraction of the blob's minimum-area rectangle its pixels must fill.
 MIN_FILL = 0.72
-#: Distance between neighbouring bars of a triplet / the thresholded width of a bar.
-#: The thresholded width is half the period only on a sharp image: blur, overexposure and
-#: the interpolation of a turned image widen the bright (or dark) blob, and at 1.55 (the
-#: earlier lower bound) the heavily blurred LAB-UMK image (bars 11 px, gaps 6 px at the
-#: threshold) lost half its triplets when turned by 15-30 degrees (14 -> 6-8).
-SPACING_RANGE = (1.3, 2.5)
-#: Bar length (thresholded) / bar width (half the period) of a triplet; the target's is 5.
-#: An anamorphic image stretches one against the other: through a misaligned relay the
-#: scale along x and y differs by 10-20 %, and a triplet of group 4 there measured 6.9
-#: (it was refused above 6.6, the pose search then lacked most of group 4-5's triplets).
-LENGTH_RANGE = (3.3, 8.0)
 #: Smallest bar width (px) looked for: narrower bars are not resolved reliably.
 MIN_BAR_PX = 1.6
 
@@ -175,11 +164,9 @@ def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
             if (
                 dth < np.deg2rad(10)
                 and abs(da) < 0.2 * length + 1
-                # (a small bar's thresholded width is whole px, 2 or 3 for one bar: the
-                # tolerances have an absolute part)
-                and 0.7 * w - 0.8 < bars[j, 2] < 1.45 * w + 0.8
+                and 0.7 < bars[j, 2] / w < 1.45
                 and 0.75 < bars[j, 3] / length < 1.33
-                and SPACING_RANGE[0] * w - 0.5 < abs(dn) < SPACING_RANGE[1] * w + 1.5
+                and 1.55 * w - 0.5 < abs(dn) < 2.5 * w + 0.8
             ):
                 side[int(np.sign(dn))].append((abs(dn), j))
         for dl, jl in side[-1]:
@@ -189,7 +176,7 @@ def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
                 period = 0.5 * (dl + dr)
                 wb = period / 2
                 lengths = bars[[jl, i, jr], 3]
-                if not LENGTH_RANGE[0] < lengths.mean() / wb < LENGTH_RANGE[1]:
+                if not 3.6 < lengths.mean() / wb < 6.6:
                     continue
                 pts = bars[[jl, i, jr], :2]
                 # irregularity: unequal spacing, widths, lengths, offsets along the bars

@@ -299,29 +299,18 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
         init = None
         if pres.status == 0:
             bar.stage("refining triplets")
-            # The pose's own scale, not the given one, from here on: a strongly distorted
-            # image (a misaligned relay, a tilted camera) has a best-similarity scale some
-            # % off the paraxial one, and every check below that compares a registration's
-            # scale with the one it started from would refuse the pose at the given scale
-            # (measured: +7 to +11 % through misaligned relays; 156 of 264 corners dropped).
-            # The ids were decided by the pose search, slips tested; the reference points
-            # are put at the given scale at the end (_at_scale).
-            det_p, init = _detect_from_pose(img, target, pres.pose, trips, ref, None, orientation,
+            det_p, init = _detect_from_pose(img, target, pres.pose, trips, ref, um_per_px, orientation,
                                             sigma_hint_px, max_stderr_px, ambiguity_ratio, consistency_model,
                                             _replace(empty), bar, layout)  # fmt: skip
         # The dense registration of the whole target: from the pose when there is one,
         # else (um_per_px given, the triplets did not place the target) from a correlation
         # search at that scale.
         small = h * w <= DENSE_MAX_PIXELS and um_per_px is not None
-        # without a scale a small image gets the dense registration too when the triplet
-        # path dropped any expected corner (a misaligned relay: 240 of 264, "moved", where
-        # the dense registration keeps 288; the images it keeps whole are not re-registered)
-        enough = 0.9 if h * w > DENSE_MAX_PIXELS else 0.999
-        if det_p is not None and det_p.status == 0 and det_p.coverage >= enough and not small:
-            # the dense registration only when the triplets fell short
-            return _at_scale(_replace(det_p, pose=dict(det_p.pose, method="triplets")), um_per_px, (w, h))
+        if det_p is not None and det_p.status == 0 and det_p.coverage >= 0.9 and not small:
+            # a large image: the dense registration only when the triplets fell short
+            return _replace(det_p, pose=dict(det_p.pose, method="triplets"))
         bar.stage("dense registration")
-        u_dense = det_p.um_per_px if init is not None else float(um_per_px)
+        u_dense = float(um_per_px) if um_per_px else det_p.um_per_px
         det_d = _detect_dense(
             img, target if init is not None else usaf_target(groups), u_dense,
             orientation if init is None else init["orientation"], sigma_hint_px, max_stderr_px,
@@ -330,15 +319,7 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
         det_d = _replace(det_d, pose=pose_info, debug=debug, triplets_found=len(trips), work=work)
         if det_p is None:
             pose_info = dict(pose_info, method="correlation")
-            if det_d.status != 0 and pres.message:
-                # both kinds of evidence are missing: say what each lacked
-                msg = (
-                    f"{pres.message}; and the correlation search at the given scale (quarter turns "
-                    f"and mirrors only) did not place the target either: {det_d.message}"
-                )
-                det_d = _replace(det_d, message=msg, param=tuple(dict.fromkeys(pres.param + det_d.param)))
             return _replace(det_d, pose=pose_info)
-        det_p, det_d = _at_scale(det_p, um_per_px, (w, h)), _at_scale(det_d, um_per_px, (w, h))
         det = _combine([det_p, det_d])
         if um_per_px is not None and det.reason != "registrations_disagree" and (small or det.status != 0):
             # the pose from few triplets may be poor (a blurred, noisy or strongly
@@ -353,17 +334,6 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
                              triplets_found=len(trips), work=work)  # fmt: skip
             det = _combine([det_p, det_d, det_c])
     return det
-
-
-def _at_scale(det: Detection, um_per_px, size) -> Detection:
-    """``det`` with its reference points at ``um_per_px`` (None: unchanged): the target's
-    reference px are linear in ``1 / um_per_px`` about the image centre of ``size``
-    (w, h) (:meth:`~oapcal.imaging.usaf.UsafTarget.to_reference_px`)."""
-    if um_per_px is None or not np.isfinite(det.um_per_px):
-        return det
-    c = (np.asarray(size, float) - 1.0) / 2.0
-    xy_u = c + (det.xy_u - c) * (det.um_per_px / float(um_per_px))
-    return _replace(det, xy_u=xy_u, um_per_px=float(um_per_px))
 
 
 def _combine(dets: list) -> Detection:
@@ -404,57 +374,11 @@ def _combine(dets: list) -> Detection:
         return (len(d.ids), -(rms if rms is not None and np.isfinite(rms) else np.inf))
 
     best = max(ok, key=rank)
-    best = _with_missing_from(best, ok)
     if best is dets[0]:
         return _replace(best, pose=dict(best.pose, method="triplets"))
     if best.pose.get("method") != "correlation":
         return _replace(best, pose=dict(best.pose, method="dense"))
     return best
-
-
-def _with_missing_from(best: Detection, ok: list) -> Detection:
-    """``best`` with the corners that only other (agreeing) detections kept, each with
-    the position and error of the first that kept it: one registration may drop a triplet
-    (e.g. "moved") that another keeps (the dense registration of the LAB-UMK image dropped
-    G5E2V, which the triplet path keeps; the triplet path drops many that it keeps)."""
-    have = set(best.ids)
-    ids, xy_u, xy_d, se = list(best.ids), [best.xy_u], [best.xy_d], [best.stderr_px]
-    for d in ok:
-        if d is best:
-            continue
-        k = [n for n, i in enumerate(d.ids) if i not in have]
-        if not k:
-            continue
-        ids += [d.ids[n] for n in k]
-        have.update(d.ids[n] for n in k)
-        xy_u.append(d.xy_u[k])
-        xy_d.append(d.xy_d[k])
-        se.append(d.stderr_px[k])
-    if len(ids) == len(best.ids):
-        return best
-    tw = _full_target()
-    rank = {i: n for n, i in enumerate(tw.corner_ids)}
-    order = np.argsort([rank.get(i, len(rank)) for i in ids], kind="stable")
-    ids = [ids[n] for n in order]
-    xy_u, xy_d, se = np.concatenate(xy_u)[order], np.concatenate(xy_d)[order], np.concatenate(se)[order]
-    # the pooled corners pass the same global check as each registration's own (a corner
-    # that one registration dropped as inconsistent does not come back through another)
-    width_px = np.array([tw.bar_width[rank[i] // 4] for i in ids]) / best.um_per_px
-    # (no model on a registration of 16 or more corners: the check was switched off)
-    skipped = best.consistency.get("model") is None and len(best.ids) >= 16
-    check = check_consistency(xy_u, xy_d, width_px, None if skipped else "auto")
-    if check.status != 0:
-        return best
-    keep = check.consistent
-    return _replace(
-        best,
-        n_expected=max(best.n_expected, int(keep.sum())),
-        ids=tuple(i for i, k in zip(ids, keep) if k),
-        xy_u=xy_u[keep],
-        xy_d=xy_d[keep],
-        stderr_px=se[keep],
-        consistency=check.summary(),
-    )
 
 
 def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sigma_hint_px, max_stderr_px,
@@ -465,7 +389,7 @@ def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sig
     with contextlib.nullcontext():
         u_ref = float(um_per_px) if um_per_px else 1.0 / pose.s
         orient = nearest_orientation(pose.lin) if orientation == "auto" else orientation
-        polarity = _pose_polarity(img, trips, pose)
+        polarity = float(np.sign(np.median(trips.polarity[[i for i, _ in pose.matches]])))
         empty = _replace(empty, um_per_px=u_ref, orientation=orient,
                          polarity="bright" if polarity > 0 else "dark")  # fmt: skip
         corners_u = target.reference_px(u_ref, (w, h), orient)
@@ -520,8 +444,7 @@ def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sig
         consistency=check.summary(),
         predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
     )
-    init = {"orientation": orient, "warp": warp, "rects": rects, "masks": masks, "polarity": polarity,
-            "anchors": _pose_anchors(target, ref, pose, trips)}  # fmt: skip
+    init = {"orientation": orient, "warp": warp, "rects": rects, "masks": masks, "polarity": polarity}
     return _finish(empty, target, corners_u, keep_idx, keep_xy, keep_se, dropped, check, common), init
 
 
@@ -675,33 +598,6 @@ def _layouts() -> list:
     return list(getattr(usaf, "LAYOUTS", {None: None}))
 
 
-def _pose_polarity(img, trips, pose) -> float:
-    """+1 bright bars, -1 dark: the majority of the pose's matched triplets; on a tie (the
-    gaps between overexposed bright bars also make a dark triplet at the same place) the
-    polarity that the image's background has not (the background covers more of the image
-    than the bars: a median below the middle of the range is a dark background)."""
-    total = float(np.sum(trips.polarity[[i for i, _ in pose.matches]]))
-    if total != 0:
-        return float(np.sign(total))
-    return 1.0 if float(np.median(img)) < 0.5 else -1.0
-
-
-def _pose_anchors(target, ref, pose, trips) -> list:
-    """The pose's matched triplets that belong to ``target``: (their corner indices in
-    ``target``, the image triplet's centre, its bar width in px) each."""
-    keys = {
-        (int(target.bar_group[b[0]]), int(target.bar_element[b[0]]), str(target.bar_orientation[b[0]])): b
-        for b in target.triplets()
-    }
-    out = []
-    for i, j in pose.matches:
-        b = keys.get((int(ref.group[j]), int(ref.element[j]), str(ref.orient[j])))
-        if b is not None:
-            idx = np.concatenate([4 * np.asarray(b) + c for c in range(4)])
-            out.append((idx, np.asarray(trips.centre[i], float), float(trips.width[i])))
-    return out
-
-
 def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr_px, ambiguity_ratio,
                   orientation_ratio, consistency_model, bar, init=None) -> Detection:  # fmt: skip
     """The dense registration at a given scale (module docstring, docs/detection.md), from
@@ -723,7 +619,6 @@ def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr
         return _dense_levels(
             img, target, um_per_px, init["orientation"], {}, init["rects"], init["warp"], init["polarity"],
             sigma_hint_px, max_stderr_px, ambiguity_ratio, consistency_model, bar, empty, init["masks"],
-            anchors=init.get("anchors"),
         )  # fmt: skip
     candidates = list(ORIENTATIONS) if orientation == "auto" else [orientation]
     scores = {}
@@ -758,12 +653,7 @@ def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr
 
 
 def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, sigma_hint_px, max_stderr_px,
-                  ambiguity_ratio, consistency_model, bar, empty, masks=None,
-                  anchors=None) -> Detection:  # fmt: skip
-    """The dense registration, coarse to fine, then every triplet refined.  A slip onto the
-    neighbouring element is ruled out by ``anchors`` (the pose's matched triplets: the
-    registration must keep each on its image triplet) when it starts from a pose, else by
-    its scale (within half an element step of ``um_per_px``)."""
+                  ambiguity_ratio, consistency_model, bar, empty, masks=None) -> Detection:  # fmt: skip
     import cv2
 
     h, w = img.shape
@@ -807,23 +697,7 @@ def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, 
     pu = corners_u[fin] - corners_u[fin].mean(axis=0)
     pc = pred[fin] - pred[fin].mean(axis=0)
     scale = float(np.sqrt((pu**2).sum() / max((pc**2).sum(), 1e-12))) if fin.sum() > 2 else 1.0
-    if anchors:
-        # From a pose: its ids were decided (and its slips tested) by the pose search, on
-        # the image triplets it matched.  The registration keeps them when it puts every
-        # matched triplet's centre on the image triplet (a slip moves them by a period or
-        # more).  The scale is no test here: under a strongly distorted field the pose's
-        # scale, fitted near its matches, differs from the whole target's by up to 13 %
-        # (measured through a misaligned relay), more than half an element step.
-        off = [np.hypot(*(pred[idx].mean(axis=0) - xc)) / wc for idx, xc, wc in anchors]
-        off = np.asarray(off)[np.isfinite(off)]
-        if len(off) == 0 or np.median(off) > 1.0:
-            msg = (
-                f"the dense registration left the pose's matched triplets (median "
-                f"{np.median(off) if len(off) else float('nan'):.1f} bar widths off): possibly every "
-                f"id one element off; nothing was kept"
-            )
-            return _replace(empty, message=msg, ncc=global_ncc)
-    elif abs(np.log(scale)) > np.log(HALF_ELEMENT):
+    if abs(np.log(scale)) > np.log(HALF_ELEMENT):
         msg = (
             f"the registered target's scale differs from {um_per_px:g} um/px by "
             f"{100 * (1 / scale - 1):+.1f} % "

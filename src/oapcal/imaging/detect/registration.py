@@ -267,8 +267,7 @@ def _levenberg_marquardt(
     except np.linalg.LinAlgError:
         cov = np.full((len(theta),) * 2, np.nan)
     model = values - cur[0]
-    # (a region of constant pixels, e.g. the flat border around a turned image, has no correlation)
-    ncc = float(np.corrcoef(values, model)[0, 1]) if np.std(model) > 0 and np.std(values) > 0 else 0.0
+    ncc = float(np.corrcoef(values, model)[0, 1]) if np.std(model) > 0 else 0.0
     return _LMResult(c, float(a_), float(b_), float(s), cost, cov, converged, n_iter, ncc)
 
 
