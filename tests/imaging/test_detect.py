@@ -57,6 +57,34 @@ def test_detection_goal_at_paper_like_conditions(paper_like):
     assert 0.3 < np.median(det.stderr_px) / (np.median(err) / np.sqrt(np.log(4))) < 3.0
 
 
+@pytest.fixture(scope="module")
+def paper_like_unhinted(paper_like):
+    sim, _ = paper_like
+    return detect_usaf(sim.image, (4, 5))
+
+
+@pytest.mark.parametrize("factor", [1.09, 0.91])
+def test_a_scale_hint_a_few_percent_off_removes_no_corner(paper_like, paper_like_unhinted, factor):
+    """A ``um_per_px`` 9 % off the image's own scale (a misaligned relay's best-similarity
+    scale differs by 7-11 % from the paraxial one) only narrows the search: every corner
+    the unhinted search keeps is kept, at the same place, with the same id.  (Before, the
+    registrations compared their scale with the hint's and were refused: 228 and 238 of
+    288 corners, against 288 without the hint.)"""
+    sim, _ = paper_like
+    free = paper_like_unhinted
+    hint = sim.um_per_px * factor
+    det = detect_usaf(sim.image, (4, 5), hint)
+    assert free.ok and len(free.ids) == 288
+    assert det.ok and set(free.ids) <= set(det.ids)
+    k = [det.ids.index(i) for i in free.ids]
+    np.testing.assert_allclose(det.xy_d[k], free.xy_d, atol=0.05)
+    # the reference points are at the given scale: the unhinted ones scaled about the centre
+    assert det.um_per_px == hint
+    c = (np.array(sim.image.shape[::-1]) - 1) / 2
+    np.testing.assert_allclose(det.xy_u[k], c + (free.xy_u - c) * free.um_per_px / hint, atol=1e-6)
+    assert evaluate_detection(det, sim.ids, sim.xy_d, sim.visible)["mismatches"] == 0
+
+
 @pytest.mark.parametrize("seed", [1, 2])
 def test_a_strongly_distorted_target_is_found_without_its_scale(seed):
     """The setup-1-like field (~40 px) bends the rows of triplets by more than an affine
