@@ -74,15 +74,19 @@ def test_a_scale_hint_a_few_percent_off_removes_no_corner(paper_like, paper_like
     free = paper_like_unhinted
     hint = sim.um_per_px * factor
     det = detect_usaf(sim.image, (4, 5), hint)
-    assert free.ok and len(free.ids) == 288
+    assert free.ok and len(free.ids) >= 250  # 264 or 288: G5E6 (1.8 px bars) by the dense path only
     assert det.ok and set(free.ids) <= set(det.ids)
     k = [det.ids.index(i) for i in free.ids]
-    np.testing.assert_allclose(det.xy_d[k], free.xy_d, atol=0.05)
+    # at the same place: the dense registration's corners may be kept instead of the triplet
+    # path's (they differ by up to 0.3 px at the worst corner; the next corner is > 3 px
+    # away), so both are judged against the truth
+    assert np.hypot(*(det.xy_d[k] - free.xy_d).T).max() < 0.5
+    score = evaluate_detection(det, sim.ids, sim.xy_d, sim.visible)
+    assert score["mismatches"] == 0 and score["median_error_px"] < 0.05 and score["max_error_px"] < 0.3
     # the reference points are at the given scale: the unhinted ones scaled about the centre
     assert det.um_per_px == hint
     c = (np.array(sim.image.shape[::-1]) - 1) / 2
     np.testing.assert_allclose(det.xy_u[k], c + (free.xy_u - c) * free.um_per_px / hint, atol=1e-6)
-    assert evaluate_detection(det, sim.ids, sim.xy_d, sim.visible)["mismatches"] == 0
 
 
 @pytest.mark.parametrize("seed", [1, 2])

@@ -408,7 +408,7 @@ def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sig
     with contextlib.nullcontext():
         u_ref = float(um_per_px) if um_per_px else 1.0 / pose.s
         orient = nearest_orientation(pose.lin) if orientation == "auto" else orientation
-        polarity = float(np.sign(np.median(trips.polarity[[i for i, _ in pose.matches]])))
+        polarity = _pose_polarity(img, trips, pose)
         empty = _replace(empty, um_per_px=u_ref, orientation=orient,
                          polarity="bright" if polarity > 0 else "dark")  # fmt: skip
         corners_u = target.reference_px(u_ref, (w, h), orient)
@@ -463,7 +463,8 @@ def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sig
         consistency=check.summary(),
         predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
     )
-    init = {"orientation": orient, "warp": warp, "rects": rects, "masks": masks, "polarity": polarity}
+    init = {"orientation": orient, "warp": warp, "rects": rects, "masks": masks, "polarity": polarity,
+            "anchors": _pose_anchors(target, ref, pose, trips)}  # fmt: skip
     return _finish(empty, target, corners_u, keep_idx, keep_xy, keep_se, dropped, check, common), init
 
 
@@ -617,6 +618,33 @@ def _layouts() -> list:
     return list(getattr(usaf, "LAYOUTS", {None: None}))
 
 
+def _pose_polarity(img, trips, pose) -> float:
+    """+1 bright bars, -1 dark: the majority of the pose's matched triplets; on a tie (the
+    gaps between overexposed bright bars also make a dark triplet at the same place) the
+    polarity that the image's background has not (the background covers more of the image
+    than the bars: a median below the middle of the range is a dark background)."""
+    total = float(np.sum(trips.polarity[[i for i, _ in pose.matches]]))
+    if total != 0:
+        return float(np.sign(total))
+    return 1.0 if float(np.median(img)) < 0.5 else -1.0
+
+
+def _pose_anchors(target, ref, pose, trips) -> list:
+    """The pose's matched triplets that belong to ``target``: (their corner indices in
+    ``target``, the image triplet's centre, its bar width in px) each."""
+    keys = {
+        (int(target.bar_group[b[0]]), int(target.bar_element[b[0]]), str(target.bar_orientation[b[0]])): b
+        for b in target.triplets()
+    }
+    out = []
+    for i, j in pose.matches:
+        b = keys.get((int(ref.group[j]), int(ref.element[j]), str(ref.orient[j])))
+        if b is not None:
+            idx = np.concatenate([4 * np.asarray(b) + c for c in range(4)])
+            out.append((idx, np.asarray(trips.centre[i], float), float(trips.width[i])))
+    return out
+
+
 def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr_px, ambiguity_ratio,
                   orientation_ratio, consistency_model, bar, init=None) -> Detection:  # fmt: skip
     """The dense registration at a given scale (module docstring, docs/detection.md), from
@@ -638,6 +666,7 @@ def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr
         return _dense_levels(
             img, target, um_per_px, init["orientation"], {}, init["rects"], init["warp"], init["polarity"],
             sigma_hint_px, max_stderr_px, ambiguity_ratio, consistency_model, bar, empty, init["masks"],
+            anchors=init.get("anchors"),
         )  # fmt: skip
     candidates = list(ORIENTATIONS) if orientation == "auto" else [orientation]
     scores = {}
@@ -672,7 +701,12 @@ def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr
 
 
 def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, sigma_hint_px, max_stderr_px,
-                  ambiguity_ratio, consistency_model, bar, empty, masks=None) -> Detection:  # fmt: skip
+                  ambiguity_ratio, consistency_model, bar, empty, masks=None,
+                  anchors=None) -> Detection:  # fmt: skip
+    """The dense registration, coarse to fine, then every triplet refined.  A slip onto the
+    neighbouring element is ruled out by ``anchors`` (the pose's matched triplets: the
+    registration must keep each on its image triplet) when it starts from a pose, else by
+    its scale (within half an element step of ``um_per_px``)."""
     import cv2
 
     h, w = img.shape
@@ -716,7 +750,23 @@ def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, 
     pu = corners_u[fin] - corners_u[fin].mean(axis=0)
     pc = pred[fin] - pred[fin].mean(axis=0)
     scale = float(np.sqrt((pu**2).sum() / max((pc**2).sum(), 1e-12))) if fin.sum() > 2 else 1.0
-    if abs(np.log(scale)) > np.log(HALF_ELEMENT):
+    if anchors:
+        # From a pose: its ids were decided (and its slips tested) by the pose search, on
+        # the image triplets it matched.  The registration keeps them when it puts every
+        # matched triplet's centre on the image triplet (a slip moves them by a period or
+        # more).  The scale is no test here: under a strongly distorted field the pose's
+        # scale, fitted near its matches, differs from the whole target's by up to 13 %
+        # (measured through a misaligned relay), more than half an element step.
+        off = [np.hypot(*(pred[idx].mean(axis=0) - xc)) / wc for idx, xc, wc in anchors]
+        off = np.asarray(off)[np.isfinite(off)]
+        if len(off) == 0 or np.median(off) > 1.0:
+            msg = (
+                f"the dense registration left the pose's matched triplets (median "
+                f"{np.median(off) if len(off) else float('nan'):.1f} bar widths off): possibly every "
+                f"id one element off; nothing was kept"
+            )
+            return _replace(empty, message=msg, ncc=global_ncc)
+    elif abs(np.log(scale)) > np.log(HALF_ELEMENT):
         msg = (
             f"the registered target's scale differs from {um_per_px:g} um/px by "
             f"{100 * (1 / scale - 1):+.1f} % "
