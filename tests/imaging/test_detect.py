@@ -218,7 +218,6 @@ def test_cli_detect_json(run_cli, simulated_files, tmp_path):
             ["detect", "{dir}/img.png", "--groups", "x", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"],
             "not a group range",
         ),
-        (["detect", "{tmp}/flat.png", "--um-per-px", "4.8", "--out", "{tmp}/p.csv"], "uniform"),
         (
             [
                 "detect",
@@ -255,6 +254,26 @@ def test_cli_bad_input_exits_2_with_one_line(run_cli, simulated_files, tmp_path,
     assert pattern in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written
     assert {p.name: p.stat().st_mtime_ns for p in simulated_files.iterdir()} == before_dir
+
+
+def test_cli_uniform_image_is_a_target_not_found_naming_the_file(run_cli, tmp_path):
+    # a valid image without a target is exit 3 (docs/conventions.md), not bad input (exit 2)
+    import cv2
+
+    flat = tmp_path / "flat.png"
+    cv2.imwrite(str(flat), np.full((48, 64), 7, np.uint8))
+    code, _, err = run_cli("detect", flat, "--um-per-px", "4.8", "--out", tmp_path / "p.csv")
+    assert code == 3 and not (tmp_path / "p.csv").exists()
+    (line,) = err.strip().splitlines()
+    assert str(flat) in line and "the image is uniform" in line
+
+
+def test_an_image_without_pixels_is_a_named_error():
+    from oapcal.errors import DataError
+
+    for shape in [(0, 0), (0, 40), (1, 40)]:
+        with pytest.raises(DataError, match="no pixels"):
+            detect_usaf(np.zeros(shape), (4, 5))
 
 
 def test_cli_relay_options(run_cli, tmp_path):

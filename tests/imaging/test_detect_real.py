@@ -95,11 +95,9 @@ def test_images_without_a_target_are_refused_with_a_reason(kind):
         assert "um_per_px" in det.summary() and det.summary()["reason"] == det.message
 
 
-def test_blank_image_is_a_named_error():
-    from oapcal.errors import DataError
-
-    with pytest.raises(DataError, match="uniform"):
-        detect_usaf(np.zeros((100, 120)), (4, 5))
+def test_blank_image_is_a_target_not_found():
+    det = detect_usaf(np.zeros((100, 120)), (4, 5))
+    assert det.status != 0 and "the image is uniform" in det.message and len(det.ids) == 0
 
 
 def test_an_absurd_scale_is_refused_quickly_not_rendered():

@@ -117,7 +117,7 @@ def detect_command(
             from oapcal.report.detect_plots import plot_detection
 
             plot_detection(img, det, plot, groups=groups)
-        click.echo(with_flag_hint(f"oapcal: detection failed: {det.message}", det.param), err=True)
+        click.echo(with_flag_hint(f"oapcal: detection failed: {image}: {det.message}", det.param), err=True)
         if score is not None and not as_json:
             _print_summary(summary)
         if as_json:

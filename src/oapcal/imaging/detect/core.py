@@ -171,10 +171,12 @@ def _to_float_image(image: np.ndarray) -> np.ndarray:
         img = img[..., :3].mean(axis=-1)
     if img.ndim != 2:
         raise DataError(f"image has shape {img.shape}: expected a 2-D grey or colour image")
+    if min(img.shape) < 2:
+        raise DataError(f"image has shape {img.shape}: it has no pixels to detect a target in")
     img = img.astype(np.float64)
     lo, hi = np.percentile(img, [0.5, 99.9])
-    if not hi > lo:
-        raise DataError("the image is uniform: there is no target to detect")
+    if not hi > lo:  # a valid image without a target: a failed detection (exit 3), not bad input
+        return None
     return (img - lo) / (hi - lo)
 
 
@@ -225,6 +227,10 @@ def detect_usaf(
         raise DataError(f"mirror {mirror!r}: use auto, yes or no")
     groups = parse_groups(groups)
     img = _to_float_image(image)
+    if img is None:
+        return Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1,
+                         "the target was not found: the image is uniform (no contrast at all)",
+                         um_per_px=float(um_per_px) if um_per_px else float("nan"))  # fmt: skip
     h, w = img.shape
     if h * w > MAX_IMAGE_PIXELS:
         raise DataError(
