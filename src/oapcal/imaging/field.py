@@ -28,7 +28,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.model import distort, identity_params, params_from_dict, undistort
+from oapcal.model import distort, family_of, identity_params, params_from_dict, undistort
 
 
 @runtime_checkable
@@ -47,7 +47,8 @@ class DistortionField(Protocol):
 
 @dataclass(frozen=True)
 class ModelDistortionField:
-    """Eq. (1) with 13 parameters ``params`` (px units) as a distortion field.
+    """A fitted model's parameter vector ``params`` (px units; any family: Eq. (1), Eq. (1)
+    with the target's rotation, the relay, the relay with a microscope) as a distortion field.
 
     The paraxial image of the object point ``xy_um`` is
     ``centre + magnification * xy_um / pixel_size_um`` with ``centre`` the image centre
@@ -61,8 +62,13 @@ class ModelDistortionField:
 
     def __post_init__(self):
         p = np.array(self.params, dtype=float)
-        if p.shape != (13,) or not np.isfinite(p).all():
-            raise DataError("a model distortion field needs 13 finite parameters")
+        if p.ndim != 1 or family_of(p).n_params != p.shape[0]:
+            raise DataError(
+                f"a model distortion field needs one model's parameter vector (13, 14, 36 or 39 "
+                f"values), got shape {p.shape}"
+            )
+        if not np.isfinite(p).all():
+            raise DataError("a model distortion field needs finite parameters")
         p.setflags(write=False)
         object.__setattr__(self, "params", p)
         if not (self.pixel_size_um > 0 and self.magnification != 0):
