@@ -131,3 +131,24 @@ def test_design_constants_cannot_be_fitted_and_names_are_checked():
 
 def test_misalignment_names_are_the_tracers():
     assert RELAY.param_names[4:24] == tuple(PARAMETERS)
+
+
+@pytest.mark.parametrize(
+    "options,pattern",
+    [
+        (["--d1", "0.001"], "derivatives are not finite"),
+        (["--focal-length", "1e-10"], "has no paraxial image"),
+        (["--relay-centre", "1e308,1e308"], "does not image 81 of 81 reference points"),
+    ],
+)
+def test_relay_designs_inside_the_option_ranges_that_trace_nothing_are_one_line(
+    run_cli, tmp_path, options, pattern
+):
+    # values the options accept but no relay has: a named error (exit 2), not LinAlgError
+    grid = tmp_path / "grid.csv"
+    code, _, err = run_cli("simulate", "relay", "--units", "px", "--image-size", "640x480", "--grid", "9",
+                           "--reference", "design", "--out", grid)  # fmt: skip
+    assert code == 0, err
+    code, _, err = run_cli("fit", grid, "--model", "relay", *options, "--out", tmp_path / "c.json")
+    assert code == 2 and pattern in err and "internal error" not in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "c.json").exists()

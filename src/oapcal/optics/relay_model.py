@@ -23,13 +23,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.errors import InputFileError, ModelSpecError
+from oapcal.errors import DataError, InputFileError, ModelSpecError
 from oapcal.model import (
     MICROSCOPE_NAMES,
     RELAY,
     RELAY_MICROSCOPE,
     RELAY_MISALIGNMENT_NAMES,
     RELAY_POSE_NAMES,
+    distort,
 )
 from oapcal.optics.misalign import PARAMETERS, Misalignment
 from oapcal.optics.relay import DEFAULT_FOCAL_LENGTH_MM, oap_relay, paraxial_matrix
@@ -166,7 +167,15 @@ def relay_params(
     if unknown:
         raise ModelSpecError(f"unknown pose value {unknown[0]!r}: use {', '.join(RELAY_POSE_NAMES)}")
     relay = design.relay()
-    inv = np.linalg.inv(paraxial_matrix(relay))
+    with np.errstate(all="ignore"):
+        paraxial = paraxial_matrix(relay)
+    if not np.isfinite(paraxial).all() or abs(np.linalg.det(paraxial)) < 1e-300:
+        raise DataError(
+            f"the relay design {_design_words(design)} has no paraxial image (its paraxial matrix "
+            "is singular or not finite): check the design values",
+            param="design",
+        )
+    inv = np.linalg.inv(paraxial)
     f1, f2 = relay.focal_lengths_mm
     design_values = {
         "d1_mm": relay.d1_mm, "f1_mm": f1, "f2_mm": f2,
@@ -202,6 +211,19 @@ DESIGN_RANGES = {
 }
 #: The microscope's magnification, in absolute value (its sign says whether it inverts).
 MICROSCOPE_MAGNIFICATION_RANGE = (0.01, 1000.0)
+
+
+def _design_words(design: RelayDesign) -> str:
+    """The design's values in a message: ``(d1 0.001 mm, focal length 50.8 mm, ...)``."""
+    relay_d1 = design.d1_mm if design.d1_mm is not None else {1: 860.0, 2: 660.0}.get(design.setup)
+    centre = None if design.centre is None else f"centre ({design.centre[0]:.4g}, {design.centre[1]:.4g}) px"
+    parts = [
+        f"d1 {relay_d1:g} mm" if relay_d1 is not None else None,
+        f"focal length {design.focal_length_mm:g} mm",
+        f"pixel {design.pixel_size_um:g} um",
+        centre,
+    ]
+    return "(" + ", ".join(p for p in parts if p) + ")"
 
 
 def design_from_record(record, params, source: str = "calibration") -> RelayDesign:
@@ -365,6 +387,14 @@ def identifiability(xy_u, params, mask, jac: np.ndarray | None = None) -> Identi
         jac = jacobian_params(np.asarray(xy_u, float), np.asarray(params, float))
     jac = jac[..., mask]
     a = jac.reshape(-1, int(mask.sum()))
+    if not np.isfinite(a).all():
+        bad = tuple(n for n, ok in zip(names, np.isfinite(a).all(axis=0)) if not ok)
+        raise DataError(
+            f"the relay model's derivatives are not finite at the reference points for {', '.join(bad)}: "
+            "the design (d1, focal lengths, pixel size, centre) does not describe a working relay "
+            "for these points; check the design values and the points' units",
+            param="design",
+        )
     norms = np.linalg.norm(a, axis=0)
     dead = tuple((n,) for n, v in zip(names, norms) if not v > 0)
     a = a / np.where(norms > 0, norms, 1.0)
@@ -428,6 +458,16 @@ def calibrate_relay(
     check_enough_points(len(xy_u), int(mask.sum()), source=source or "the point data")
     design = default_centre(design, xy_u, image_size)
     p0 = relay_params(design)
+    with np.errstate(all="ignore"):
+        start = distort(xy_u, p0)
+    bad = ~np.isfinite(start).all(axis=1)
+    if not np.isfinite(p0).all() or bad.any():
+        raise DataError(
+            f"{source or 'the point data'}: the relay design {_design_words(design)} does not image "
+            f"{int(bad.sum()) or len(xy_u)} of {len(xy_u)} reference points (the trace is not finite "
+            "there): check the design values (d1, focal lengths, pixel size, centre) and the points' units",
+            param="design",
+        )
     ident = identifiability(xy_u, p0, mask)
     if not ident.ok:
         raise DataError(f"{source or 'the point data'}: {ident.message()}", param="free")
