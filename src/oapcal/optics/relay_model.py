@@ -215,10 +215,10 @@ MICROSCOPE_MAGNIFICATION_RANGE = (0.01, 1000.0)
 
 def _design_words(design: RelayDesign) -> str:
     """The design's values in a message: ``(d1 0.001 mm, focal length 50.8 mm, ...)``."""
-    relay_d1 = design.d1_mm if design.d1_mm is not None else {1: 860.0, 2: 660.0}.get(design.setup)
+    relay_d1 = design.relay().d1_mm  # the setup's d1 unless d1_mm is given
     centre = None if design.centre is None else f"centre ({design.centre[0]:.4g}, {design.centre[1]:.4g}) px"
     parts = [
-        f"d1 {relay_d1:g} mm" if relay_d1 is not None else None,
+        f"d1 {relay_d1:g} mm",
         f"focal length {design.focal_length_mm:g} mm",
         f"pixel {design.pixel_size_um:g} um",
         centre,
