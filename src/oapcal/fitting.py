@@ -205,14 +205,13 @@ def centre_start(xy_u: np.ndarray, xy_d: np.ndarray, rotation: bool = False) -> 
     >>> np.round(centre_start(u, d, rotation=True)[[8, 9, 10, 11, 12, 13]], 6)
     array([ 5., -5., -5., 15.,  2., 90.])
     """
+    from oapcal.normalize import similarity
+
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
     c_u = xy_u.mean(axis=0)
     c_d = xy_d.mean(axis=0)
-    zu = (xy_u[:, 0] - c_u[0]) + 1j * (xy_u[:, 1] - c_u[1])
-    zd = (xy_d[:, 0] - c_d[0]) + 1j * (xy_d[:, 1] - c_d[1])
-    norm = float(np.vdot(zu, zu).real)
-    s = complex(np.vdot(zu, zd)) / norm if norm > 0 else 1.0 + 0.0j
+    s = complex(similarity(xy_u, xy_d)[0])
     if not np.isfinite(s) or s == 0:
         s = 1.0 + 0.0j
     theta = float(np.angle(s)) if rotation else 0.0

@@ -47,6 +47,30 @@ class Normalized:
     scale_d: float
 
 
+def similarity(points: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The least-squares similarity (rotation, scale, shift) taking ``points`` ``(..., N, 2)``
+    onto ``target`` ``(N, 2)`` or ``(..., N, 2)``, in complex form: ``t - c_t = a (p - c_p)``
+    with ``c`` each set's centroid and ``a = sum conj(p') t' / sum |p'|^2`` (``|a|`` the
+    scale, ``arg a`` the turn).  Returns ``(a, zp - c_p, zt - c_t)``: ``a`` of shape
+    ``(...)`` (1 where the points have no spread) and the centred complex points.
+
+    >>> p = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    >>> a, _, _ = similarity(p, 2 * p[:, ::-1] * [-1, 1])       # turned by 90 deg, scaled by 2
+    >>> round(float(abs(a)), 12), round(float(np.degrees(np.angle(a))), 9)
+    (2.0, 90.0)
+    """
+    points = np.asarray(points, float)
+    target = np.asarray(target, float)
+    zp = points[..., 0] + 1j * points[..., 1]
+    zt = target[..., 0] + 1j * target[..., 1]
+    pc = zp - zp.mean(-1, keepdims=True)
+    tc = zt - zt.mean(-1, keepdims=True)
+    norm = (np.abs(pc) ** 2).sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(norm > 0, (np.conj(pc) * tc).sum(-1) / np.where(norm > 0, norm, 1.0), 1.0 + 0.0j)
+    return a, pc, tc
+
+
 def _yrange(xy: np.ndarray, label: str) -> float:
     span = float(np.ptp(xy[:, 1]))
     if not span > 0:

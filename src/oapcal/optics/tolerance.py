@@ -167,12 +167,10 @@ def _check_tolerance(value, name: str) -> float:
 def _similarity_residuals(points: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """``points`` ``(..., N, 2)`` moved by their best rotation, scale and shift onto
     ``truth`` ``(N, 2)`` (complex linear least squares ``t = a p + b``), minus ``truth``."""
-    zp = points[..., 0] + 1j * points[..., 1]
-    zt = truth[:, 0] + 1j * truth[:, 1]
-    pc = zp - zp.mean(-1, keepdims=True)
-    tc = zt - zt.mean()
-    a = (np.conj(pc) * tc).sum(-1, keepdims=True) / (np.abs(pc) ** 2).sum(-1, keepdims=True)
-    r = a * pc - tc
+    from oapcal.normalize import similarity
+
+    a, pc, tc = similarity(points, truth)
+    r = a[..., None] * pc - tc
     return np.stack([r.real, r.imag], axis=-1)
 
 
