@@ -237,8 +237,12 @@ def test_fit_from_via_export_equals_fit_from_plain_csv(run_cli, tmp_path, pairs)
     assert via["free"] == ref["free"]
     for name, value in ref["params"].items():
         assert via["params"][name] == pytest.approx(value, rel=1e-9, abs=1e-12), name
+    # The residuals go through the iterative inverse, which stops within its tolerance
+    # (1e-10 px, or the model's rounding level): the two files list the points in another
+    # order, so sums round differently and the max residual moved by 1.7e-9 relative
+    # (1.8e-9 px) between runs with freshly compiled and cached kernels.
     for key, value in ref["residuals"].items():
-        assert via["residuals"][key] == pytest.approx(value, rel=1e-9, abs=1e-12), key
+        assert via["residuals"][key] == pytest.approx(value, rel=1e-8, abs=1e-12), key
 
 
 # -- command line --------------------------------------------------------------------------------
