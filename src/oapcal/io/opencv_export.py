@@ -180,7 +180,8 @@ def _check_samples(calibration_or_params, params, image_size, geometry: OutputGe
             raise
         raise EmptyMapError(
             f"{exc}; the calibration was made for {made_for[0]}x{made_for[1]} px, not "
-            f"{image_size[0]}x{image_size[1]}", param=exc.param
+            f"{image_size[0]}x{image_size[1]}",
+            param=exc.param,
         ) from None
 
 
