@@ -1,4 +1,4 @@
-"""``oapcal fit`` and ``oapcal correct-points``."""
+"""``oapcal fit`` (``oapcal correct-points`` is in :mod:`oapcal.cli.correct_points`)."""
 
 from __future__ import annotations
 
@@ -6,11 +6,9 @@ import click
 
 from oapcal.cli._common import (
     INIT_HELP,
-    allow_unconverged_option,
     check_output,
     console,
     load_pairs,
-    load_usable_calibration,
     parse_size,
     points_options,
     print_json,
@@ -253,44 +251,3 @@ def print_fit(cal) -> None:
     out.print(res)
     if r.get("n_failed"):
         out.print(f"[red]{r['n_failed']} points could not be corrected (inverse did not converge)[/red]")
-
-
-@click.command("correct-points")
-@click.argument("calib", type=click.Path(dir_okay=False))
-@points_options
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    required=True,
-    help="Output CSV: the input columns plus x_c,y_c,converged.",
-)
-@allow_unconverged_option
-def correct_points_command(calib, points, out, allow_unconverged):
-    """Correct distorted points (columns x_d,y_d of POINTS, or the landmarks of --distorted
-    FILE) with a calibration."""
-    from oapcal.io.points import write_points
-    from oapcal.model import undistort
-
-    check_output(out, calib, points)
-    cal = load_usable_calibration(calib, allow_unconverged)
-    pairs = load_pairs(points, require=("x_d", "y_d"))
-    inverse = undistort(pairs.xy_d, cal.params)
-    fields = [f for f in pairs.fieldnames if f not in ("x_c", "y_c", "converged")]
-    fields += ["x_c", "y_c", "converged"]
-    rows = []
-    for row, xy, ok in zip(pairs.rows, inverse.xy, inverse.converged):
-        row = dict(row)
-        row["x_c"] = repr(float(xy[0])) if ok else ""
-        row["y_c"] = repr(float(xy[1])) if ok else ""
-        row["converged"] = int(bool(ok))
-        rows.append(row)
-    write_points(out, fields, rows)
-    n_bad = int((~inverse.converged).sum())
-    if n_bad:
-        click.echo(
-            f"oapcal: warning: {n_bad} of {len(rows)} points could not be corrected "
-            f"({int(inverse.folded.sum())} where the map folds over); their x_c,y_c are empty",
-            err=True,
-        )
-    return 0
