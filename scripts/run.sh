@@ -16,7 +16,7 @@ fi
 stamp=.venv/.oapcal-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     .venv/bin/python -m pip install --quiet --upgrade pip
-    .venv/bin/python -m pip install --quiet -e ".[test,dask,napari,bench]"
+    .venv/bin/python -m pip install --quiet -e ".[test,dask,napari,bench,tables]"
     touch "$stamp"
 fi
 

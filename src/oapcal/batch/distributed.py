@@ -39,6 +39,7 @@ from oapcal.io.images import (
     FrameWriter,
     check_frame,
     info_slice,
+    output_kind,
     probe,
     read_tiff_frames,
 )
@@ -47,6 +48,8 @@ from oapcal.progress import Stages
 
 ZARR_SUFFIX = ".zarr"
 LOCAL_SCHEDULERS = ("threads", "synchronous", "processes")
+#: ``DaskSettings.output_format``: a zarr array, an OME-Zarr (NGFF 0.4) group, a TIFF.
+OUTPUT_FORMATS = ("zarr", "ome-zarr", "tiff")
 #: The most chunks one stack may have (a header claiming 1e9 frames would otherwise build a
 #: task graph larger than memory); raise --chunk-frames for longer stacks.
 MAX_CHUNKS = 1_000_000
@@ -95,8 +98,11 @@ def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_P
     if path.suffix.lower() == ZARR_SUFFIX:
         import zarr
 
+        from oapcal.io.ome import ome_zarr_array_path
+
+        ngff = ome_zarr_array_path(path) if path.is_dir() else None
         try:
-            z = zarr.open_array(str(path), mode="r")
+            z = zarr.open_array(str(ngff or path), mode="r")
         except Exception as exc:  # zarr raises several types for a missing or bad store
             raise InputFileError(
                 f"{path}: cannot be opened as a zarr array ({type(exc).__name__}: {exc})"
@@ -120,6 +126,9 @@ def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_P
                 "the store holds no data; the array is empty or its header is corrupt"
             )
         arr = da.from_zarr(z)
+        if ngff is not None and z.ndim == 4:  # NGFF stores colour as (t, c, y, x)
+            arr = arr.transpose(0, 2, 3, 1)
+            shape = tuple(arr.shape)
         if z.ndim == 2:
             arr = arr[None]
         check_frame(path, np.empty((1, 1) + arr.shape[3:], arr.dtype))
@@ -171,13 +180,14 @@ def _correct_block(block: np.ndarray, source, interp: str, border: float, allow:
     return out
 
 
-def _write_zarr_block(block: np.ndarray, path: str, block_info=None) -> np.ndarray:
-    """Write one corrected chunk into the zarr array at ``path``; return its frame count."""
+def _write_zarr_block(block: np.ndarray, path: str, ngff: bool = False, block_info=None) -> np.ndarray:
+    """Write one corrected chunk into the zarr array at ``path`` (with ``ngff``, colour as
+    NGFF's ``(t, c, y, x)``); return its frame count."""
     import zarr
 
     start = block_info[0]["array-location"][0][0]
     z = zarr.open_array(path, mode="r+")
-    z[start : start + len(block)] = block
+    z[start : start + len(block)] = np.moveaxis(block, -1, 1) if ngff and block.ndim == 4 else block
     return np.array([len(block)])
 
 
@@ -348,8 +358,16 @@ def _workers_ignore_sigint():
 
 
 def dask_output_name(input_path: str | Path, output_format: str = "zarr") -> str:
-    """The output name of a stack: ``STEM.zarr`` or ``STEM.tif``."""
+    """The output name of a stack: ``STEM.zarr``, ``STEM.tif`` or ``STEM.ome.zarr``.
+
+    >>> dask_output_name("a/run.ome.tif", "ome-zarr"), dask_output_name("run.tif")
+    ('run.ome.zarr', 'run.zarr')
+    """
     input_path = Path(input_path)
+    if output_format == "ome-zarr":
+        from oapcal.batch.stack import output_name
+
+        return output_name(input_path, "ome-zarr")
     suffix = ZARR_SUFFIX if output_format == "zarr" else ".tif"
     return input_path.name.removesuffix(input_path.suffix) + suffix
 
@@ -362,6 +380,7 @@ class DaskSettings:
     when no prebuilt map is given (see :func:`oapcal.imaging.remap.correction_map`).
     """
 
+    #: ``zarr`` (a plain array), ``ome-zarr`` (NGFF 0.4, :mod:`oapcal.io.ome`) or ``tiff``.
     output_format: str = "zarr"
     chunk_frames: int = 16
     interp: str = "linear"
@@ -432,15 +451,16 @@ def correct_stack_dask(
         return DaskResult(str(shown_in), str(shown_out), 0, 0, skipped=True)
     corrected = _build_graph(stack, plan, settings)
     name = settings.calibration_name or getattr(calibration, "name", None)
-    n_chunks = _run_and_write(corrected, out_path, plan.geometry, name, input_path.name, settings, session)
+    n_chunks = _run_and_write(corrected, out_path, plan.geometry, name, input_path.name, settings, session,
+                              calibration)  # fmt: skip
     write_resume_record(out_path, {**record})
     return DaskResult(str(shown_in), str(shown_out), corrected.shape[0], n_chunks)
 
 
 def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
     """The output path of ``input_path``; refuses an unknown format or overwriting the input."""
-    if output_format not in ("zarr", "tiff"):
-        raise OutputError(f"unknown output format {output_format!r}: use zarr or tiff")
+    if output_format not in OUTPUT_FORMATS:
+        raise OutputError(f"unknown output format {output_format!r}: use {', '.join(OUTPUT_FORMATS)}")
     out_path = out_dir / dask_output_name(input_path, output_format)
     if out_path.resolve() == input_path.resolve():
         raise OutputError(
@@ -449,7 +469,7 @@ def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
         )
     from oapcal.io.atomic import check_output_target
 
-    check_output_target(out_path, directory=output_format == "zarr")
+    check_output_target(out_path, directory=output_format != "tiff")
     return out_path
 
 
@@ -516,7 +536,9 @@ def _build_graph(stack, plan: _MapPlan, settings: DaskSettings):
     )
 
 
-def _run_and_write(corrected, out_path: Path, geometry, name, label, settings: DaskSettings, session) -> int:
+def _run_and_write(
+    corrected, out_path: Path, geometry, name, label, settings: DaskSettings, session, calibration=None
+) -> int:
     """Compute ``corrected`` a window of chunks at a time into ``out_path``, atomically;
     return the number of chunks."""
     from oapcal.io.atomic import check_free_space, remove_stale_temps
@@ -537,17 +559,24 @@ def _run_and_write(corrected, out_path: Path, geometry, name, label, settings: D
     )
     try:
         with own as (sched, window), bar:
-            if settings.output_format == "zarr":
-                _write_zarr(corrected, out_path, geometry, name, sched, window, bar)
+            if settings.output_format in ("zarr", "ome-zarr"):
+                from oapcal.io.ome import provenance
+
+                ngff = None
+                if settings.output_format == "ome-zarr":
+                    ngff = provenance(name, geometry.um_per_px, label, calibration)
+                _write_zarr(corrected, out_path, geometry, name, sched, window, bar, ngff)
             else:
-                _write_tiff(corrected, out_path, geometry, name, out_bytes, sched, window, bar)
+                _write_tiff(corrected, out_path, geometry, name, out_bytes, sched, window, bar, label,
+                            calibration)  # fmt: skip
     except OSError as exc:
         raise _os_error(out_path, exc) from None
     return n_chunks
 
 
-def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, bar) -> None:
-    """Each chunk written into a temporary zarr store by the worker that corrected it."""
+def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, bar, ngff=None) -> None:
+    """Each chunk written into a temporary zarr store by the worker that corrected it; with
+    ``ngff`` (the provenance) an OME-Zarr group whose array ``0`` the workers write."""
     import zarr
 
     from oapcal.io.atomic import atomic_dir
@@ -556,21 +585,30 @@ def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, b
     n_chunks = len(corrected.chunks[0])
     with atomic_dir(out_path) as tmp:
         try:
-            z = zarr.create_array(
-                str(tmp), shape=out_shape, chunks=(corrected.chunks[0][0], *out_shape[1:]),
-                dtype=corrected.dtype, overwrite=True,
-            )  # fmt: skip
-            z.attrs.update(
-                {
-                    "oapcal_calibration": name,
-                    "um_per_px": geometry.um_per_px,
-                    "axes": "TYX" + "C" * (len(out_shape) == 4),
-                }
-            )
+            target = str(tmp)
+            if ngff is not None:
+                from oapcal.io.ome import create_ome_zarr
+
+                create_ome_zarr(tmp, out_shape[0], out_shape[1:], corrected.dtype, geometry.um_per_px, ngff,
+                                Path(ngff["source"] or out_path.name).name)  # fmt: skip
+                target = str(tmp / "0")
+            else:
+                z = zarr.create_array(
+                    str(tmp), shape=out_shape, chunks=(corrected.chunks[0][0], *out_shape[1:]),
+                    dtype=corrected.dtype, overwrite=True,
+                )  # fmt: skip
+                z.attrs.update(
+                    {
+                        "oapcal_calibration": name,
+                        "um_per_px": geometry.um_per_px,
+                        "axes": "TYX" + "C" * (len(out_shape) == 4),
+                    }
+                )
             drop = list(range(1, corrected.ndim))
             written = corrected.map_blocks(
-                _write_zarr_block, str(tmp), dtype=int, chunks=((1,) * n_chunks,), drop_axis=drop
-            )
+                _write_zarr_block, target, ngff is not None, dtype=int, chunks=((1,) * n_chunks,),
+                drop_axis=drop,
+            )  # fmt: skip
             total = 0
             for j in range(0, n_chunks, window):
                 counts = written[j : j + window].compute(scheduler=sched)
@@ -583,8 +621,12 @@ def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, b
             raise OutputError(f"{out_path}: {total} of {out_shape[0]} frames were written")
 
 
-def _write_tiff(corrected, out_path: Path, geometry, name, out_bytes: int, sched, window: int, bar) -> None:
-    """Chunks gathered in order, a window at a time, and appended to a temporary TIFF."""
+def _write_tiff(
+    corrected, out_path: Path, geometry, name, out_bytes: int, sched, window: int, bar, source=None,
+    calibration=None,
+) -> None:  # fmt: skip
+    """Chunks gathered in order, a window at a time, and appended to a temporary TIFF (an
+    OME-TIFF when ``out_path`` is named ``.ome.tif``)."""
     from oapcal.io.atomic import atomic_path
 
     n_frames = corrected.shape[0]
@@ -593,7 +635,8 @@ def _write_tiff(corrected, out_path: Path, geometry, name, out_bytes: int, sched
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int)
     with (
         atomic_path(out_path) as tmp,
-        FrameWriter(tmp, "tiff", name, geometry.um_per_px, expected_bytes=out_bytes) as writer,
+        FrameWriter(tmp, output_kind(out_path), name, geometry.um_per_px, expected_bytes=out_bytes,
+                    n_frames=n_frames, source=source, calibration=calibration) as writer,  # fmt: skip
     ):
         for j in range(0, n_chunks, window):
             last = min(n_chunks - 1, j + window - 1)
