@@ -70,6 +70,9 @@ class DaskResult:
     frames: int
     chunks: int
     skipped: bool = False
+    #: What the run decided for the user (streamed in this process; a scheduler that is
+    #: slower than streaming on one machine), for the command to print; "" when nothing.
+    note: str = ""
 
 
 # ------------------------------------------------------------------------ lazy input
@@ -194,14 +197,63 @@ def _write_zarr_block(block: np.ndarray, path: str, ngff: bool = False, block_in
 # ------------------------------------------------------------------------ schedulers
 
 
+#: ``DaskSettings.engine``: ``auto`` streams the chunks in this process when no scheduler is
+#: given and at most one worker (see :func:`streams_locally`), ``dask`` always runs Dask's
+#: scheduler (a new ``LocalCluster`` when none is given).
+ENGINES = ("auto", "dask")
+#: What :func:`dask_scheduler` yields for a run that streams in this process.
+STREAM = "stream"
+
+
+def streams_locally(scheduler: str | None, workers: int | None, engine: str = "auto") -> bool:
+    """Whether a run streams its frames in this process (read, remapped and written one at a
+    time, as ``oapcal correct`` without ``--dask`` does, into the same output) instead of
+    starting a ``LocalCluster``: with ``engine="auto"``, no
+    scheduler and at most one worker, the default of ``oapcal correct --dask``.  On one
+    machine that is the fastest way (``docs/benchmarks.md``, "Dask against streaming"):
+    a local cluster only adds its start-up and the transfer of frames between processes.
+
+    >>> streams_locally(None, None), streams_locally(None, 2), streams_locally("tcp://h:8786", 1)
+    (True, False, False)
+    """
+    if engine not in ENGINES:
+        raise InputFileError(f"engine {engine!r}: use one of {', '.join(ENGINES)}", param="engine")
+    return engine == "auto" and scheduler is None and (workers or 1) <= 1
+
+
+def dask_note(scheduler: str | None, workers: int | None, engine: str = "auto") -> str:
+    """What to tell the user about where a ``--dask`` run goes, from the measurements in
+    ``docs/benchmarks.md``; "" for a cluster given by address.
+
+    >>> dask_note("tcp://10.0.0.5:8786", None)
+    ''
+    """
+    if streams_locally(scheduler, workers, engine):
+        return (
+            "streamed in this process, frame by frame: on one machine a local cluster of Dask workers "
+            "is slower than streaming (docs/benchmarks.md); give workers > 1 or a scheduler address "
+            "to run Dask workers"
+        )
+    if scheduler is None or scheduler in LOCAL_SCHEDULERS:
+        return (
+            "Dask on this machine alone is slower than correcting without Dask, which streams the "
+            "frames in one process (docs/benchmarks.md); Dask pays on a cluster (a scheduler address) "
+            "whose workers see the files"
+        )
+    return ""
+
+
 @contextlib.contextmanager
 def dask_scheduler(
-    scheduler: str | None = None, workers: int | None = None, worker_timeout: float | None = None
-):
+    scheduler: str | None = None, workers: int | None = None, worker_timeout: float | None = None,
+    *, engine: str = "auto",
+):  # fmt: skip
     """Yield what ``dask.compute(..., scheduler=...)`` takes, and the number of chunks to
-    keep in flight: a new ``LocalCluster`` (default), a ``Client`` of the scheduler at an
-    address (``tcp://host:8786``), or a local scheduler name (threads, synchronous,
-    processes).  Open it once for a batch of stacks.
+    keep in flight: :data:`STREAM` and 1 when the frames stream in this process without
+    Dask (:func:`streams_locally`: the default without a scheduler and with at most one
+    worker, unless ``engine="dask"``), else a new ``LocalCluster`` of ``workers`` processes,
+    a ``Client`` of the scheduler at an address (``tcp://host:8786``), or a local scheduler
+    name (threads, synchronous, processes).  Open it once for a batch of stacks.
 
     An address is checked before any connection (:func:`parse_scheduler_address`); a
     scheduler that has no worker within ``worker_timeout`` seconds (default
@@ -211,6 +263,9 @@ def dask_scheduler(
     off the terminal; oapcal reports the problem in one line.  The local cluster's worker
     processes ignore Ctrl-C (the main process stops them).
     """
+    if streams_locally(scheduler, workers, engine):
+        yield STREAM, 1
+        return
     if scheduler in LOCAL_SCHEDULERS:
         yield scheduler, max(2, workers or os.cpu_count() or 1)
         return
@@ -396,6 +451,9 @@ class DaskSettings:
     overwrite: bool = False
     #: ``progress(done, total, description)`` over the frames written (:mod:`oapcal.progress`).
     progress: object = None
+    #: :data:`ENGINES`: ``auto`` streams in this process when no scheduler and at most one
+    #: worker are given (:func:`streams_locally`), ``dask`` always uses Dask's scheduler.
+    engine: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -449,12 +507,22 @@ def correct_stack_dask(
     }
     if out_path.exists() and not settings.overwrite and resume_complete(out_path, record):
         return DaskResult(str(shown_in), str(shown_out), 0, 0, skipped=True)
-    corrected = _build_graph(stack, plan, settings)
     name = settings.calibration_name or getattr(calibration, "name", None)
-    n_chunks = _run_and_write(corrected, out_path, plan.geometry, name, input_path.name, settings, session,
-                              calibration)  # fmt: skip
+    own = (
+        contextlib.nullcontext(session)
+        if session is not None
+        else dask_scheduler(settings.scheduler, settings.workers, engine=settings.engine)
+    )
+    with own as opened:
+        if opened[0] == STREAM:
+            n_chunks = _stream_and_write(stack, input_path, plan, out_path, name, settings, calibration)
+        else:
+            corrected = _build_graph(stack, plan, settings)
+            n_chunks = _run_and_write(corrected, out_path, plan.geometry, name, input_path.name, settings,
+                                      opened, calibration)  # fmt: skip
     write_resume_record(out_path, {**record})
-    return DaskResult(str(shown_in), str(shown_out), corrected.shape[0], n_chunks)
+    note = dask_note(settings.scheduler, settings.workers, settings.engine)
+    return DaskResult(str(shown_in), str(shown_out), int(stack.shape[0]), n_chunks, note=note)
 
 
 def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
@@ -555,7 +623,7 @@ def _run_and_write(
     own = (
         contextlib.nullcontext(session)
         if session is not None
-        else dask_scheduler(settings.scheduler, settings.workers)
+        else dask_scheduler(settings.scheduler, settings.workers, engine=settings.engine)
     )
     try:
         with own as (sched, window), bar:
@@ -572,6 +640,117 @@ def _run_and_write(
     except OSError as exc:
         raise _os_error(out_path, exc) from None
     return n_chunks
+
+
+def _stream_and_write(stack, input_path: Path, plan: _MapPlan, out_path: Path, name, settings: DaskSettings,
+                      calibration) -> int:  # fmt: skip
+    """The frames of ``stack`` read, remapped and written one at a time in this process,
+    into the output :func:`_run_and_write` would write (the same store, chunks and
+    metadata); return the number of chunks of the input."""
+    from oapcal.io.atomic import atomic_dir, atomic_path, check_free_space, remove_stale_temps
+    from oapcal.io.images import open_frames
+
+    source = plan.source
+    if isinstance(source, tuple):
+        cmap = _worker_map(source)
+    else:
+        cmap = source if isinstance(source, CorrectionMap) else source.compute(scheduler="synchronous")
+    n, chunk = int(stack.shape[0]), int(stack.chunks[0][0])
+    out_shape = (n, *plan.geometry.shape, *stack.shape[3:])
+    dtype = np.dtype(stack.dtype)
+    out_bytes = int(np.prod(out_shape, dtype=np.int64)) * dtype.itemsize
+    out_dir = out_path.parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(out_dir, [out_path])
+    fmt = settings.output_format
+    if fmt == "tiff":
+        check_free_space(out_dir, out_bytes, out_path)
+
+    def frames():
+        if input_path.suffix.lower() in TIFF_SUFFIXES:
+            with open_frames(input_path, settings.max_pixels) as (_, pages):
+                yield from pages
+            return
+        for lo in range(0, n, chunk):  # a zarr input: one chunk at a time
+            yield from stack[lo : lo + chunk].compute(scheduler="synchronous")
+
+    label = input_path.name
+    meta = dict(expected_bytes=out_bytes, n_frames=n, source=label, calibration=calibration)
+    try:
+        with Stages(settings.progress, n, f"{label} frames") as bar:
+            temporary = atomic_path(out_path) if fmt == "tiff" else atomic_dir(out_path)
+            with temporary as tmp:
+                if fmt == "zarr":
+                    writer = _ZarrSlabs(tmp, out_shape, chunk, dtype, name, plan.geometry.um_per_px)
+                else:
+                    kind = output_kind(out_path) if fmt == "tiff" else "ome-zarr"
+                    writer = FrameWriter(tmp, kind, name, plan.geometry.um_per_px, **meta)
+                with writer:
+                    buffer = None
+                    for frame in frames():
+                        buffer = correct_image(frame, cmap, settings.interp, settings.border, out=buffer,
+                                               allow_size_mismatch=settings.allow_size_mismatch)  # fmt: skip
+                        writer.write(buffer.reshape(out_shape[1:]))
+                        bar.advance()
+                if writer.n != n:
+                    raise OutputError(f"{out_path}: {writer.n} of {n} frames were written")
+    except OSError as exc:
+        raise _os_error(out_path, exc) from None
+    return len(stack.chunks[0])
+
+
+class _ZarrSlabs:
+    """Frames gathered into slabs of ``chunk`` frames and written to a new zarr array at
+    ``path`` as :func:`_write_zarr` makes it (its chunks and attributes).  A slab is
+    encoded and written by one background thread while the next is filled (zarr's
+    compression releases the GIL), at most two slabs in memory."""
+
+    def __init__(self, path, shape, chunk: int, dtype, name, um_per_px):
+        import zarr
+
+        chunks = (chunk, *shape[1:])
+        self.z = zarr.create_array(str(path), shape=shape, chunks=chunks, dtype=dtype, overwrite=True)
+        self.z.attrs.update({"oapcal_calibration": name, "um_per_px": um_per_px,
+                             "axes": "TYX" + "C" * (len(shape) == 4)})  # fmt: skip
+        self.chunk, self.shape, self.dtype = chunk, shape, dtype
+        self.slab = np.empty((chunk, *shape[1:]), dtype)
+        self.n = 0
+        self._k = 0
+        self._pool = None
+        self._pending = None
+
+    def __enter__(self):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="oapcal-zarr")
+        return self
+
+    def write(self, frame: np.ndarray) -> None:
+        self.slab[self._k] = frame
+        self._k += 1
+        self.n += 1
+        if self._k == self.chunk:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._k:
+            return
+        if self._pending is not None:
+            self._pending.result()  # the previous slab is written: at most two in memory
+        lo, slab = self.n - self._k, self.slab[: self._k]
+        self._pending = self._pool.submit(self.z.__setitem__, slice(lo, self.n), slab)
+        self.slab = np.empty((self.chunk, *self.shape[1:]), self.dtype)
+        self._k = 0
+
+    def __exit__(self, exc_type, *exc):
+        try:
+            if exc_type is None:
+                self._flush()
+            if self._pending is not None:
+                self._pending.result()
+        finally:
+            self._pool.shutdown(wait=True)
+        return False
 
 
 def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, bar, ngff=None) -> None:
@@ -635,8 +814,16 @@ def _write_tiff(
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int)
     with (
         atomic_path(out_path) as tmp,
-        FrameWriter(tmp, output_kind(out_path), name, geometry.um_per_px, expected_bytes=out_bytes,
-                    n_frames=n_frames, source=source, calibration=calibration) as writer,  # fmt: skip
+        FrameWriter(
+            tmp,
+            output_kind(out_path),
+            name,
+            geometry.um_per_px,
+            expected_bytes=out_bytes,
+            n_frames=n_frames,
+            source=source,
+            calibration=calibration,
+        ) as writer,  # fmt: skip
     ):
         for j in range(0, n_chunks, window):
             last = min(n_chunks - 1, j + window - 1)
