@@ -6,8 +6,8 @@ directory) is corrected through the library calls behind ``oapcal correct``:
 1. streaming (``correct_stack``, the command without ``--dask``: frame by frame, one
    process, OpenCV's own threads), TIFF out;
 2. ``correct_stack_dask`` with the default ``engine="auto"`` and no scheduler (what
-   ``--dask`` now does with one worker: the chunks streamed in this process by Dask's
-   synchronous scheduler);
+   ``--dask`` now does with one worker: the frames streamed in this process without Dask,
+   into the same output);
 3. Dask's ``threads`` scheduler (one process, a thread pool);
 4. ``engine="dask"``, N = 1, 2, 4 workers: a new ``LocalCluster`` of N single-threaded
    worker processes talking over loopback TCP (what ``--dask --workers N`` does; before this
@@ -160,7 +160,7 @@ def main_bench():
             return lambda out: correct_stack_dask(cal, src, out, None, settings)
 
         measure("streaming (correct without --dask)", stream, "stream")
-        measure("--dask, engine auto: streamed in-process (synchronous)", with_dask(), "auto")
+        measure("--dask, engine auto (one worker): streamed in-process", with_dask(), "auto")
         measure("--dask --scheduler threads", with_dask(scheduler="threads"), "threads")
         for n in workers:
             label = f"--dask --workers {n}: new LocalCluster (loopback TCP)"
