@@ -289,7 +289,10 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
             f"says the model is {family.name!r} ({family.n_params} parameters) but the file holds "
             f"{len(params)}; restore the design or refit",
         )
-    expected = relay_params(design)
+    try:
+        expected = relay_params(design)
+    except DataError as exc:  # e.g. no paraxial image: name the file's field
+        raise bad("relay_design", f"describes no working relay: {exc}") from None
     for name in family.never_free:
         i = family.param_names.index(name)
         if not abs(params[i] - expected[i]) <= 1e-9 * max(1.0, abs(expected[i])):
