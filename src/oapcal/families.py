@@ -74,6 +74,8 @@ MICROSCOPE_BLOCKS: dict[str, tuple[str, ...]] = {"microscope": ("microscope_k1",
 #: with a microscope, ``relay+microscope``).
 FAMILY_NAMES = {"bc": "brown-conrady", "bc+rotation": "brown-conrady+rotation", "relay": "relay"}
 Progress = Callable[[int, int], None]
+#: The relay subset of every misalignment value (with priors: always cross-validated).
+FULL_RELAY_SPEC = "relay:all"
 #: The start of the reason of a model that ``oapcal fit`` would refuse to write.
 REFUSED_PREFIX = "fit would refuse it"
 
@@ -205,11 +207,16 @@ def region_problem(params, xy_u, image_size=None) -> str:
     return ""
 
 
-def region_sigma(xy_u, xy_d, mask, p0, region_points, prior=None, family=None) -> tuple[float, float | None]:
+def region_sigma(xy_u, xy_d, mask, p0, region_points, prior=None, family=None,
+                 fixed_prior=None) -> tuple[float, float | None]:  # fmt: skip
     """The RMS over ``region_points (M, 2)`` of the 1-sigma position uncertainty (px) of the
     model ``mask`` fitted to all points from ``p0`` (with ``prior``, the posterior one),
     propagated by :func:`oapcal.uncertainty.position_covariance`; inf where the map folds
-    everywhere or the fit fails.  Returns ``(sigma, k_eff)``."""
+    everywhere or the fit fails.  ``fixed_prior`` (name -> prior width, deg or mm): the
+    values the model leaves at the design although their prior says they are uncertain;
+    their prior variance is propagated too and added (an upper bound: the fitted values
+    absorb part of it), so that a subset does not look surer for fixing what is not known.
+    Returns ``(sigma, k_eff)``."""
     from oapcal.fitting import fit_batch
     from oapcal.uncertainty import position_covariance
 
@@ -220,12 +227,17 @@ def region_sigma(xy_u, xy_d, mask, p0, region_points, prior=None, family=None) -
     with np.errstate(all="ignore"):
         cov = position_covariance(region_points, fit.params, fit.covariance, fit.free)
         var = cov[..., 0, 0] + cov[..., 1, 1]
+        fixed = {n: w for n, w in (fixed_prior or {}).items() if n not in fit.free and np.isfinite(w) and w > 0}
+        if fixed:
+            extra = position_covariance(region_points, fit.params, np.diag([w**2 for w in fixed.values()]),
+                                        tuple(fixed))  # fmt: skip
+            var = var + extra[..., 0, 0] + extra[..., 1, 1]
     var = var[np.isfinite(var)]
     return (float(np.sqrt(var.mean())) if var.size else np.inf), fit.k_eff
 
 
 def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, seed: int, progress,
-           image_size=None, prior=None, region_points=None):  # fmt: skip
+           image_size=None, prior=None, region_points=None, fixed_prior=None):  # fmt: skip
     """Score the models ``subsets`` (``[(spec, mask)]``) of one family from the starts ``p0``
     ``(B, P)``; ``invalid`` lists ``(spec, mask, reason)`` ranked last.  The valid ones are
     checked in AICc order over the output region (:func:`region_problem`) until ``cv_top``
@@ -253,6 +265,15 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
             rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
         else:
             top.append(row)
+    for i, row in enumerate(rows):
+        # with priors every value of the relay is constrained: its full model is always
+        # cross-validated (the Bayesian model; a subset fixes what the priors say is uncertain)
+        if row[0] == FULL_RELAY_SPEC and prior is not None and row[4] and row not in top:
+            problem = region_problem(fitted[row[0]], xy_u, image_size)
+            if problem:
+                rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
+            else:
+                top.append(row)
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))
     cv_err = {}
     if top and cv:
@@ -268,7 +289,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
         for r in cv_err:
             i = index[r]
             one = None if prior is None else tuple(np.broadcast_to(a, masks.shape)[i : i + 1] for a in prior)
-            sigma[r] = region_sigma(xy_u, xy_d, masks[i], p0[i], region_points, one)
+            sigma[r] = region_sigma(xy_u, xy_d, masks[i], p0[i], region_points, one, fixed_prior=fixed_prior)
     out = []
     for spec, mask, aicc, err, valid, reason in rows:
         free = names_from_mask(mask)
@@ -290,7 +311,7 @@ def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progres
     subsets = relay_subset_masks(design.family)
     constrained = np.zeros(design.family.n_params, bool)
     if priors is not None:
-        subsets.append(("relay:all", relay_mask("all", design.family)))
+        subsets.append((FULL_RELAY_SPEC, relay_mask("all", design.family)))
         sig = priors.sigma(design)
         constrained = np.array([np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
     ok, invalid = [], []
@@ -308,8 +329,9 @@ def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progres
         _, noise = map_fit(xy_u, xy_d, design, np.array([m for _, m in ok]), priors, covariance=False)
         mean, unit = priors.arrays(design, 1.0)
         prior = (np.broadcast_to(mean, starts.shape), unit[None] / noise[:, None])
+    fixed_prior = None if priors is None else priors.sigma(design)
     return _score(design.family.name, xy_u, xy_d, ok, starts, invalid, cv, cv_top, seed, progress, image_size,
-                  prior, region_points)  # fmt: skip
+                  prior, region_points, fixed_prior)  # fmt: skip
 
 
 def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
