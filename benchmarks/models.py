@@ -755,12 +755,12 @@ def few_central(seeds, grid_u):
         lm_d = trace(mis, turn, lm_u) + figure(lm_u) + rng.normal(0, FEW_NOISE, lm_u.shape)
         row = {"seed": seed}
 
-        def score(params, row=row, key=None):
+        def score(params, row=row, key=None, grid_d=grid_d):
             err = np.hypot(*(undistort(grid_d, params).xy - grid_u).T)
             row[key] = float(np.nanmean(err))
             row[key + " failed"] = int((~np.isfinite(err)).sum())
 
-        def fit_spec(spec, family, priors):
+        def fit_spec(spec, family, priors, lm_u=lm_u, lm_d=lm_d):
             if family.startswith("relay"):
                 return calibrate_relay(lm_u, lm_d, DESIGN, spec, priors=priors).params
             return calibrate(lm_u, lm_d, spec, rotation="none").params
@@ -812,7 +812,8 @@ def print_few_central(rows):
         failed = sum(r.get(key + " failed", 0) for r in rows)
         print(
             f"| {key} | {np.median(v):.3f} | {v.mean():.3f} | {v.max():.3f} | {(v <= 0.5).sum()}/{len(v)} "
-            f"| {(v <= best_peer).sum()}/{len(v)} |" + (f" ({failed} grid points uncorrected)" if failed else "")
+            f"| {(v <= best_peer).sum()}/{len(v)} |"
+            + (f" ({failed} grid points uncorrected)" if failed else "")
         )
     print("\npicks (before -> after):", "; ".join(f"{r['seed']}: {r['before pick']} -> {r['after pick']}"
                                                  for r in rows))  # fmt: skip

@@ -227,7 +227,9 @@ def region_sigma(xy_u, xy_d, mask, p0, region_points, prior=None, family=None,
     with np.errstate(all="ignore"):
         cov = position_covariance(region_points, fit.params, fit.covariance, fit.free)
         var = cov[..., 0, 0] + cov[..., 1, 1]
-        fixed = {n: w for n, w in (fixed_prior or {}).items() if n not in fit.free and np.isfinite(w) and w > 0}
+        fixed = {
+            n: w for n, w in (fixed_prior or {}).items() if n not in fit.free and np.isfinite(w) and w > 0
+        }
         if fixed:
             extra = position_covariance(region_points, fit.params, np.diag([w**2 for w in fixed.values()]),
                                         tuple(fixed))  # fmt: skip
@@ -282,7 +284,9 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
         starts = np.array([p0[index[r[0]]] for r in top])
         rows_top = [index[r[0]] for r in top]
         prior_top = None if prior is None else tuple(np.broadcast_to(a, masks.shape)[rows_top] for a in prior)
-        errs, failed = cross_validate(xy_u, xy_d, masks_top, folds=cv, init=starts, seed=seed, prior=prior_top)
+        errs, failed = cross_validate(
+            xy_u, xy_d, masks_top, folds=cv, init=starts, seed=seed, prior=prior_top
+        )
         cv_err = {r[0]: (float(e), int(f)) for r, e, f in zip(top, errs, failed)}
     sigma = {}
     if region_points is not None:
@@ -423,8 +427,8 @@ def _recommend(candidates, params, points, region_words):
         <= INDISTINGUISHABLE * min(c.cv_mean_error, best.cv_mean_error)
     ]  # fmt: skip
     for c in same:
-        ratio = max(c.predicted_error, best.predicted_error) / max(min(c.predicted_error, best.predicted_error),
-                                                                     1e-300)  # fmt: skip
+        lo, hi = sorted((c.predicted_error, best.predicted_error))
+        ratio = hi / max(lo, 1e-300)
         gap = _disagreement(best, c, params, points) if c.spec in params and best.spec in params else np.nan
         if ratio > DIFFER_BEYOND:
             notes.append(
@@ -434,7 +438,11 @@ def _recommend(candidates, params, points, region_words):
                 f"the two models {gap:.3g} px apart at most"
             )
     if best.family not in PHYSICAL:
-        physical = [c for c in same if c.family in PHYSICAL and c.predicted_error <= DIFFER_BEYOND * best.predicted_error]
+        physical = [
+            c
+            for c in same
+            if c.family in PHYSICAL and c.predicted_error <= DIFFER_BEYOND * best.predicted_error
+        ]
         if physical:
             pick = physical[0]
             notes.append(
@@ -485,7 +493,9 @@ def select_families(
                         param="cv")  # fmt: skip
     priors = parse_priors(priors)
     if isinstance(region, str) and region == "auto":
-        region = None if image_size is None else (0.0, 0.0, float(image_size[0]) - 1, float(image_size[1]) - 1)
+        region = (
+            None if image_size is None else (0.0, 0.0, float(image_size[0]) - 1, float(image_size[1]) - 1)
+        )
     elif isinstance(region, str) and region == "hull":
         region = None
     elif isinstance(region, str):
@@ -496,10 +506,13 @@ def select_families(
         candidates.extend(_bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size, points))
     if "relay" in families:
         design = default_centre(design, xy_u, image_size)
-        candidates.extend(_relay_candidates(xy_u, xy_d, design, cv, cv_top, seed, progress, image_size, priors,
+        candidates.extend(_relay_candidates(xy_u, xy_d, design, cv, cv_top, seed, progress, image_size,
+                                            priors,
                                             points))  # fmt: skip
     if "bc+rotation" in families:
-        candidates.extend(_rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size, points))
+        candidates.extend(
+            _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size, points)
+        )
     valid_aicc = [c.aicc for c in candidates if c.valid and np.isfinite(c.aicc)]
     best = min(valid_aicc) if valid_aicc else np.nan
     candidates = [

@@ -509,7 +509,9 @@ def _posterior_covariance(jtj, w2, masks, rss, n_res):
         d = np.sqrt(np.diag(post))
         d = np.where(d > 0, d, 1.0)
         inv = np.linalg.pinv(post / np.outer(d, d)) / np.outer(d, d)
-        k_eff[b] = float(np.trace(inv @ a))
+        # tr(P^-1 J^T J) = k - tr(P^-1 W^2) for P = J^T J + W^2: the second form is exactly
+        # k without rows even where the pseudo-inverse drops a near-degenerate direction
+        k_eff[b] = float(len(free) - np.sum(np.diag(inv) * w2[b][free]))
         dof = n_res[b] - k_eff[b]
         s2 = rss[b] / dof if dof > 0 else np.nan
         cov[b][np.ix_(free, free)] = inv * s2

@@ -173,7 +173,13 @@ def _starts(init, xy_u, xy_d, masks) -> np.ndarray:
 
 
 def score_models(
-    xy_u, xy_d, masks, init=DEFAULT_INIT, *, max_iter: int = 200, progress: Progress | None = None,
+    xy_u,
+    xy_d,
+    masks,
+    init=DEFAULT_INIT,
+    *,
+    max_iter: int = 200,
+    progress: Progress | None = None,
     prior=None,
 ):
     """Fit and score the models ``masks (B, P)`` (any family: ``P`` names it, and ``init``

@@ -120,7 +120,9 @@ def select_command(points, normalization, init, top, cv, seed, json_out, familie
     relay_priors = load_priors(priors)
     if families is None and (relay_priors is not None or region != "auto"):
         flag = "--priors" if relay_priors is not None else "--region"
-        raise click.UsageError(f"{flag} applies to choosing across families: give --families (or --model relay)")
+        raise click.UsageError(
+            f"{flag} applies to choosing across families: give --families (or --model relay)"
+        )
     if families is not None:
         return _select_families(points, families, normalization, init, top, cv, seed, json_out, image_size,
                                 relay_design, _parse_region(region), relay_priors)  # fmt: skip
@@ -160,14 +162,25 @@ def _parse_region(text: str):
         box = ()
     if len(box) != 4 or not all(math.isfinite(v) for v in box) or box[2] <= box[0] or box[3] <= box[1]:
         raise click.BadParameter(
-            f"{text!r} is not auto, hull or a box X0,Y0,X1,Y1 with X1 > X0 and Y1 > Y0 (px), e.g. 0,0,639,479",
+            f"{text!r} is not auto, hull or a box X0,Y0,X1,Y1 with X1 > X0 and Y1 > Y0 (px), "
+            "e.g. 0,0,639,479",
             param_hint="--region",
         )
     return box
 
 
 def _select_families(
-    points, families, normalization, init, top, cv, seed, json_out, image_size, relay_design, region="auto",
+    points,
+    families,
+    normalization,
+    init,
+    top,
+    cv,
+    seed,
+    json_out,
+    image_size,
+    relay_design,
+    region="auto",
     priors=None,
 ):
     """``oapcal select --families``."""
@@ -233,11 +246,18 @@ def print_family_selection(sel, top: int, source: str = "") -> None:
         out.print(f"Note: {note}.")
     r = sel.recommended
     if r is not None and r.predicted_error is not None:
-        where = "the landmarks' hull" if sel.region is None else "the region " + ",".join(f"{v:g}" for v in sel.region)
-        priors = " --priors " + str(sel.priors.get("spec")) if sel.priors and r.family.startswith("relay") else ""
+        where = (
+            "the landmarks' hull"
+            if sel.region is None
+            else "the region " + ",".join(f"{v:g}" for v in sel.region)
+        )
+        priors = (
+            " --priors " + str(sel.priors.get("spec")) if sel.priors and r.family.startswith("relay") else ""
+        )
         out.print(
             f"[bold]Recommended for correcting {where}[/bold] (held-out error and the propagated "
-            f"uncertainty there): --model {r.spec}{priors} ({r.family}, predicted {r.predicted_error:.4g} px)."
+            f"uncertainty there): --model {r.spec}{priors} ({r.family}, predicted "
+            f"{r.predicted_error:.4g} px)."
         )
 
 

@@ -441,7 +441,8 @@ DEFAULT_PRIORS: dict[str, float] = {
 }  # fmt: skip
 #: The words of :data:`DEFAULT_PRIORS` with their units (``d1`` in % of the design's d1).
 PRIOR_UNITS = {"tilt": "deg", "decentre": "mm", "clock": "deg", "focal_length": "mm", "d1": "%",
-               "stop_decentre": "mm", "camera_tilt": "deg", "defocus": "mm", "object_tilt": "deg"}  # fmt: skip
+               "stop_decentre": "mm", "camera_tilt": "deg", "defocus": "mm",
+               "object_tilt": "deg"}  # fmt: skip
 #: The noise-scale iterations of a MAP fit without a given noise (:func:`map_fit`).
 NOISE_ITERATIONS = 4
 
@@ -522,7 +523,7 @@ def priors_from_dict(data: Mapping, spec: str = "file") -> RelayPriors:
     instead), or ``{"widths": {...}, "noise_px": ...}``; unknown words raise
     :class:`~oapcal.errors.ModelSpecError` naming them."""
     if not isinstance(data, Mapping):
-        raise ModelSpecError("priors must be an object of widths such as {\"tilt\": 0.05}", param="priors")
+        raise ModelSpecError('priors must be an object of widths such as {"tilt": 0.05}', param="priors")
     data = dict(data)
     if isinstance(data.get("widths"), Mapping):
         data = {**data.pop("widths"), **data}
@@ -604,7 +605,6 @@ def map_fit(xy_u, xy_d, design: RelayDesign, masks, priors: RelayPriors, *, p0=N
         if np.all(np.abs(noise / used - 1.0) < 0.05):
             break
     return fits, used
-
 
 
 def calibrate_relay(
@@ -709,4 +709,5 @@ def describe(calibration) -> list[str]:
 
 __all__ = ["RELAY", "RELAY_MICROSCOPE", "RelayDesign", "relay_params", "relay_mask", "DEFAULT_FREE",
            "DEFAULT_FREE_MICROSCOPE", "ALIASES", "identifiability", "Identifiability", "calibrate_relay",
-           "describe", "DEFAULT_PRIORS", "RelayPriors", "parse_priors", "priors_from_dict", "map_fit"]  # fmt: skip
+           "describe", "DEFAULT_PRIORS", "RelayPriors", "parse_priors", "priors_from_dict",
+           "map_fit"]  # fmt: skip
