@@ -739,7 +739,7 @@ def few_central(seeds, grid_u):
     the default priors (by the predicted error over the field), and the peers."""
     from oapcal.calibration import calibrate
     from oapcal.families import select_families
-    from oapcal.optics.relay_model import calibrate_relay
+    from oapcal.optics.relay_model import DEFAULT_PRIORS, calibrate_relay
 
     lo, hi = grid_u.min(axis=0), grid_u.max(axis=0)
     mid, half = 0.5 * (lo + hi), 0.5 * FEW_SHARE * (hi - lo)
@@ -769,6 +769,10 @@ def few_central(seeds, grid_u):
         score(calibrate_relay(lm_u, lm_d, DESIGN, "default", priors="default").params,
               key="relay default + priors")  # fmt: skip
         score(calibrate_relay(lm_u, lm_d, DESIGN, "all", priors="default").params, key="relay all + priors")
+        for factor in (0.5, 2.0):  # the priors misstated: half and twice the truth's ranges
+            widths = {k: v * factor for k, v in DEFAULT_PRIORS.items()}
+            score(calibrate_relay(lm_u, lm_d, DESIGN, "all", priors=widths).params,
+                  key=f"relay all + priors x{factor:g}")  # fmt: skip
         families = ("bc", "bc+rotation", "relay")
         before = select_families(lm_u, lm_d, DESIGN, families, cv=5, cv_top=3, region=field)
         r = before.heldout_best
@@ -793,7 +797,8 @@ def few_central(seeds, grid_u):
     return rows
 
 
-FEW_PATHS = ("relay default", "relay default + priors", "relay all + priors", "select, held-out (before)",
+FEW_PATHS = ("relay default", "relay default + priors", "relay all + priors", "relay all + priors x0.5",
+             "relay all + priors x2", "select, held-out (before)",
              "select --priors default, predicted (after)")  # fmt: skip
 FEW_PEERS = ("poly3 (skimage)", "poly5 (skimage)", "TPS (scipy)")
 

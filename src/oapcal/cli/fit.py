@@ -191,6 +191,13 @@ def _check_fit_usable(cal, source: str) -> None:
         check_model_region(cal, source=source)
     except InputFileError as exc:
         raise FitFailed(f"{exc}; nothing written") from None
+    if cal.relay_design is not None and cal.fit.converged:
+        from oapcal.optics.relay_model import implausible
+
+        problem = implausible(cal)
+        if problem:
+            problem = problem.replace("the priors (priors 'default')", "--priors default")
+            raise FitFailed(f"{source}: {problem}; nothing written")
 
 
 def fit_summary(cal) -> dict:

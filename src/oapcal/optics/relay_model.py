@@ -680,6 +680,49 @@ def calibrate_relay(
                      source=source, relay_design=design.to_dict(), priors=record, **fit_options)  # fmt: skip
 
 
+#: Largest misalignment angle (deg) of a plausible fit: what ``oapcal simulate relay``
+#: accepts (beyond it the value describes another relay, not a misaligned one).
+PLAUSIBLE_ANGLE_DEG = 45.0
+
+
+def implausible(calibration) -> str:
+    """Why a relay calibration is not a plausible fit, or ``""``: a fitted angle beyond
+    +/- :data:`PLAUSIBLE_ANGLE_DEG` deg, a decentre, defocus or focal-length change beyond the
+    mirrors' focal length, a d1 change beyond the design's d1 (or leaving none), or the
+    inverse failing at more than half of the calibration points.  Points in the wrong unit
+    (mm given as px) fit that way: the misalignment runs off to absorb a scale the design
+    cannot have."""
+    design = RelayDesign.from_dict(calibration.relay_design)
+    f1, f2 = design.relay().focal_lengths_mm
+    d1 = design.relay().d1_mm
+    values = calibration.params_dict
+    problems = []
+    for name in calibration.free:
+        if name not in PARAMETERS:
+            continue
+        unit = PARAMETERS[name][0]
+        v = values[name]
+        if unit == "deg":
+            limit, words = PLAUSIBLE_ANGLE_DEG, f"+/- {PLAUSIBLE_ANGLE_DEG:g} deg"
+        elif name == "d1":
+            limit, words = 0.999 * d1, f"the design's d1 of {d1:g} mm"
+        else:
+            limit, words = min(f1, f2), f"the focal length of {min(f1, f2):g} mm"
+        if not abs(v) <= limit:
+            problems.append(f"{name} = {v:.4g} {unit} is beyond {words}")
+    failed = int(getattr(calibration.residuals, "n_failed", 0) or 0)
+    n = int(calibration.fit.n_points)
+    if failed * 2 > n:
+        problems.append(f"{failed} of {n} calibration points cannot be corrected through it")
+    if not problems:
+        return ""
+    return (
+        "the relay fit is not a plausible misalignment (" + "; ".join(problems[:3]) + "): check the points' "
+        "units (reference and distorted points in px) and the design, or fit with the priors (priors "
+        "'default')"
+    )
+
+
 def describe(calibration) -> list[str]:
     """One line per fitted parameter in physical words, with its standard error:
     ``"OAP 2: tip: rotation about ... : 0.0301 +/- 0.0001 deg"``."""
@@ -710,4 +753,4 @@ def describe(calibration) -> list[str]:
 __all__ = ["RELAY", "RELAY_MICROSCOPE", "RelayDesign", "relay_params", "relay_mask", "DEFAULT_FREE",
            "DEFAULT_FREE_MICROSCOPE", "ALIASES", "identifiability", "Identifiability", "calibrate_relay",
            "describe", "DEFAULT_PRIORS", "RelayPriors", "parse_priors", "priors_from_dict",
-           "map_fit"]  # fmt: skip
+           "map_fit", "implausible", "PLAUSIBLE_ANGLE_DEG"]  # fmt: skip
