@@ -10,7 +10,7 @@ import click
 PRIORS_HELP = (
     "With a relay model: Gaussian priors on the misalignment from the mounts' tolerances "
     "(a maximum a posteriori fit, docs/models.md): 'off' (no priors, the fit as before), "
-    "'default' (tilt 0.05 deg, decentre 0.2 mm, clock 0.05 deg, focal_length 0.2 mm, d1 5 %, "
+    "'default' (scale 1 %, tilt 0.05 deg, decentre 0.2 mm, clock 0.05 deg, focal_length 0.2 mm, d1 5 %, "
     "stop_decentre 0.2 mm, camera_tilt 1 deg, defocus 0.2 mm, object_tilt 1 deg; 1 sigma), "
     "key=value pairs over the defaults (tilt=0.1,d1=2,noise_px=0.3; inf: no prior, 0: fixed) "
     "or a JSON file of them."

@@ -433,14 +433,16 @@ RELAY_MAX_ITER = 1000
 #: clocking 0.05 deg (kinematic mounts after alignment), mirror and stop decentres 0.2 mm,
 #: focal lengths 0.2 mm (0.4 % of a 50.8 mm OAP), d1 5 % of the design's (a rail set by a
 #: ruler), camera and object-plane tilt 1 deg (a C-mount and a stage), camera defocus
-#: 0.2 mm.  The target's pose (scale, rotation, shift) and the microscope's values take no
-#: prior.
+#: 0.2 mm; and the target's scale 1 % (the reference points of a relay fit are the target's
+#: ideal image in px at the design's magnification: a target printed or measured to 1 %).
+#: The target's placement (rotation, shift) and the microscope's values take no prior.
 DEFAULT_PRIORS: dict[str, float] = {
+    "scale": 1.0,
     "tilt": 0.05, "decentre": 0.2, "clock": 0.05, "focal_length": 0.2, "d1": 5.0, "stop_decentre": 0.2,
     "camera_tilt": 1.0, "defocus": 0.2, "object_tilt": 1.0,
 }  # fmt: skip
 #: The words of :data:`DEFAULT_PRIORS` with their units (``d1`` in % of the design's d1).
-PRIOR_UNITS = {"tilt": "deg", "decentre": "mm", "clock": "deg", "focal_length": "mm", "d1": "%",
+PRIOR_UNITS = {"scale": "%", "tilt": "deg", "decentre": "mm", "clock": "deg", "focal_length": "mm", "d1": "%",
                "stop_decentre": "mm", "camera_tilt": "deg", "defocus": "mm",
                "object_tilt": "deg"}  # fmt: skip
 #: The noise-scale iterations of a MAP fit without a given noise (:func:`map_fit`).
@@ -452,9 +454,9 @@ class RelayPriors:
     """Gaussian priors on a relay's misalignment (:func:`parse_priors`).
 
     ``widths``: the 1-sigma width of each group of :data:`DEFAULT_PRIORS` (``d1`` in % of
-    the design's d1) or of one misalignment value by its name (deg or mm; ``d1_mm`` for d1
-    in mm); ``inf``: no prior (that value as free as without priors); ``0``: fixed at the
-    design.  Every prior is centred on the design (no misalignment).  ``noise_px``: the
+    the design's d1, ``scale`` in % of the target's scale) or of one misalignment value by
+    its name (deg or mm; ``d1_mm`` for d1 in mm); ``inf``: no prior (that value as free as
+    without priors); ``0``: fixed at the design.  Every prior is centred on the design (no misalignment).  ``noise_px``: the
     landmarks' noise (px per coordinate) that weighs the priors against the residuals; None
     (default): estimated from the fit's own residuals, ``sqrt(RSS / (n - k_eff))``.
     """
@@ -464,7 +466,8 @@ class RelayPriors:
     spec: str = "default"
 
     def sigma(self, design: RelayDesign) -> dict[str, float]:
-        """The width (deg or mm) of every misalignment value of :data:`PARAMETERS`."""
+        """The width (deg or mm) of every misalignment value of :data:`PARAMETERS`, and of the
+        target's ``scale`` (a fraction) when it has one."""
         from oapcal.optics.tolerance import GROUPS
 
         d1_mm = design.relay().d1_mm
@@ -474,7 +477,9 @@ class RelayPriors:
                 for name in GROUPS[key]:
                     out[name] = value * d1_mm / 100.0 if key == "d1" else value
         for key, value in self.widths.items():
-            if key == "d1_mm":
+            if key == "scale":  # in %: the target's scale is 1 when the reference is its ideal image
+                out["scale"] = value / 100.0
+            elif key == "d1_mm":
                 out["d1"] = value
             elif key in PARAMETERS and key not in GROUPS:
                 out[key] = value
@@ -532,12 +537,12 @@ def priors_from_dict(data: Mapping, spec: str = "file") -> RelayPriors:
     if base not in ("default", "none"):
         raise ModelSpecError(f"prior 'base' must be 'default' or 'none', got {base!r}", param="priors")
     widths = dict(DEFAULT_PRIORS) if base == "default" else {}
-    known = set(DEFAULT_PRIORS) | (set(PARAMETERS) - {"d1"}) | {"d1_mm"}
+    known = set(DEFAULT_PRIORS) | (set(PARAMETERS) - {"d1"}) | {"d1_mm", "scale"}
     for key, value in data.items():
         if key not in known:
             raise ModelSpecError(
-                f"unknown prior {key!r}: use {', '.join(DEFAULT_PRIORS)} (d1 in %), a misalignment "
-                "name of oapcal.optics.misalign.PARAMETERS, d1_mm, or noise_px",
+                f"unknown prior {key!r}: use {', '.join(DEFAULT_PRIORS)} (d1 and scale in %), a "
+                "misalignment name of oapcal.optics.misalign.PARAMETERS, d1_mm, or noise_px",
                 param="priors",
             )
         widths[key] = _prior_value(key, value)
