@@ -457,8 +457,8 @@ class RelayPriors:
     the design's d1, ``scale`` in % of the target's scale) or of one misalignment value by
     its name (deg or mm; ``d1_mm`` for d1 in mm); ``inf``: no prior (that value as free as
     without priors); ``0``: fixed at the design.  Every prior is centred on the design (no
-    misalignment, scale 1).  ``noise_px``: the landmarks' noise (px per coordinate) that weighs the priors against the residuals; None
-    (default): estimated from the fit's own residuals, ``sqrt(RSS / (n - k_eff))``.
+    misalignment, scale 1).  ``noise_px``: the landmarks' noise (px per coordinate) that
+    weighs the priors against the residuals; None (default): estimated from the fit's own residuals, ``sqrt(RSS / (n - k_eff))``.
     """
 
     widths: Mapping[str, float]
