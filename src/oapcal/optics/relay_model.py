@@ -458,7 +458,8 @@ class RelayPriors:
     its name (deg or mm; ``d1_mm`` for d1 in mm); ``inf``: no prior (that value as free as
     without priors); ``0``: fixed at the design.  Every prior is centred on the design (no
     misalignment, scale 1).  ``noise_px``: the landmarks' noise (px per coordinate) that
-    weighs the priors against the residuals; None (default): estimated from the fit's own residuals, ``sqrt(RSS / (n - k_eff))``.
+    weighs the priors against the residuals; None (default): estimated from the fit's own
+    residuals, ``sqrt(RSS / (n - k_eff))``.
     """
 
     widths: Mapping[str, float]
