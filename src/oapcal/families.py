@@ -214,9 +214,9 @@ def region_sigma(xy_u, xy_d, mask, p0, region_points, prior=None, family=None,
     propagated by :func:`oapcal.uncertainty.position_covariance`; inf where the map folds
     everywhere or the fit fails.  ``fixed_prior`` (name -> prior width, deg or mm): the
     values the model leaves at the design although their prior says they are uncertain;
-    their prior variance is propagated too and added (an upper bound: the fitted values
-    absorb part of it), so that a subset does not look surer for fixing what is not known.
-    Returns ``(sigma, k_eff)``."""
+    what of their prior variance the fitted values cannot absorb is propagated too and
+    added (:func:`_fixed_variance`), so that a subset does not look surer for fixing what
+    is not known.  Returns ``(sigma, k_eff)``."""
     from oapcal.fitting import fit_batch
     from oapcal.uncertainty import position_covariance
 
@@ -231,11 +231,37 @@ def region_sigma(xy_u, xy_d, mask, p0, region_points, prior=None, family=None,
             n: w for n, w in (fixed_prior or {}).items() if n not in fit.free and np.isfinite(w) and w > 0
         }
         if fixed:
-            extra = position_covariance(region_points, fit.params, np.diag([w**2 for w in fixed.values()]),
-                                        tuple(fixed))  # fmt: skip
-            var = var + extra[..., 0, 0] + extra[..., 1, 1]
+            var = var + _fixed_variance(xy_u, fit, prior, fixed, region_points)
     var = var[np.isfinite(var)]
     return (float(np.sqrt(var.mean())) if var.size else np.inf), fit.k_eff
+
+
+def _fixed_variance(xy_u, fit, prior, fixed: dict, region_points) -> np.ndarray:
+    """The position variance (px^2) at ``region_points`` that values held fixed at the design
+    (``fixed``: name -> prior width) leave after the fit: linearized, an error ``dq`` of them
+    moves the fitted values by ``dp = -G dq`` with ``G = (J_f^T J_f + W^2)^-1 J_f^T J_q`` at
+    the landmarks (``W`` the prior rows' weights), and the corrected position by
+    ``-J_u^-1 (J_q - J_f G) dq``.  Propagated by
+    :func:`oapcal.uncertainty.position_covariance` with the joint covariance of ``(dp, dq)``,
+    ``[[G S G^T, -G S], [-S G^T, S]]``, ``S = diag(width^2)``."""
+    from oapcal.model import jacobian_params
+    from oapcal.uncertainty import position_covariance
+
+    names = fit.family.param_names
+    f = [names.index(n) for n in fit.free]
+    q = [names.index(n) for n in fixed]
+    jac = jacobian_params(xy_u, fit.params).reshape(-1, len(names))
+    jf, jq = jac[:, f], jac[:, q]
+    w2 = np.zeros(len(f))
+    if prior is not None:
+        sigma = np.broadcast_to(prior[1], (1, len(names)))[0][f]
+        with np.errstate(divide="ignore"):
+            w2 = np.where(np.isfinite(sigma), 1.0 / sigma**2, 0.0)
+    g = np.linalg.lstsq(jf.T @ jf + np.diag(w2), jf.T @ jq, rcond=None)[0]
+    big_s = np.diag([w**2 for w in fixed.values()])
+    joint = np.block([[g @ big_s @ g.T, -g @ big_s], [-big_s @ g.T, big_s]])
+    cov = position_covariance(region_points, fit.params, joint, tuple(fit.free) + tuple(fixed))
+    return cov[..., 0, 0] + cov[..., 1, 1]
 
 
 def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, seed: int, progress,

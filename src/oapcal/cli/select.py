@@ -222,7 +222,10 @@ def print_family_selection(sel, top: int, source: str = "") -> None:
         table.add_column(col, justify="left" if col in ("family", "model (--model)") else "right")
     families = list(dict.fromkeys(c.family for c in sel.candidates))
     for family in families:
-        for c in [c for c in sel.candidates if c.family == family and c.valid][:top]:
+        shown = [c for c in sel.candidates if c.family == family and c.valid][:top]
+        if sel.recommended is not None and sel.recommended.family == family and sel.recommended not in shown:
+            shown.append(sel.recommended)  # the recommendation is always in the table
+        for c in shown:
             mark = " [bold green]<- recommended[/bold green]" if c is sel.recommended else ""
             k = str(c.k + 1) if c.k_eff is None else f"{c.k_eff + 1:.3g}"
             table.add_row(c.family, c.spec + mark, k, _fmt(c.aicc, ".2f"),
