@@ -76,7 +76,7 @@ def relay_files(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("d21")
     runner = CliRunner()
-    for args in (["simulate", "relay", "--out", str(d / "grid.csv")],
+    for args in (["simulate", "relay", "--units", "px", "--out", str(d / "grid.csv")],
                  ["fit", str(d / "grid.csv"), "--model", "relay", "--out", str(d / "cal.json")]):  # fmt: skip
         result = runner.invoke(cli, args)
         assert result.exit_code == 0, result.output
