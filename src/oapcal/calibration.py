@@ -76,7 +76,10 @@ class Calibration:
     how it was fitted (:class:`FitSummary`); ``residuals`` are the paper's Table-1
     statistics of the corrected calibration points (:class:`oapcal.stats.ResidualStats`).
     ``notes`` are what :func:`calibrate` decided for the user (e.g. that it fitted the
-    target's rotation too); they are printed, not stored in the file.
+    target's rotation too); they are printed, not stored in the file.  ``error_model`` is
+    the model floor and extrapolation measured on the landmarks
+    (:class:`oapcal.uncertainty.ErrorModel`, :mod:`oapcal.error_model`), None for files
+    written before it existed.
     """
 
     free: tuple[str, ...]
@@ -95,6 +98,7 @@ class Calibration:
     created_utc: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     relay_design: dict | None = None
     notes: tuple[str, ...] = ()
+    error_model: object | None = None
 
     @property
     def family(self) -> ModelFamily:
@@ -170,6 +174,7 @@ def calibrate(
     source: str | None = None,
     relay_design: dict | None = None,
     rotation: str = "auto",
+    error_model: bool = True,
     **fit_options,
 ) -> Calibration:
     """Fit ``model`` to reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``.
@@ -190,6 +195,9 @@ def calibrate(
     otherwise absorbed into a distortion centre that runs away, x_off ~ 1e4 px, and the fit
     hits the iteration cap); the record's ``notes`` say so.  ``"fit"`` always adds the
     rotation, ``"none"`` never.
+
+    ``error_model`` (default True) also measures the model floor and the extrapolation
+    error on the landmarks (:func:`oapcal.error_model.estimate_error_model`: a few refits).
     """
     from scipy.spatial import ConvexHull, QhullError
 
@@ -217,6 +225,12 @@ def calibrate(
     lo = norm.xy_u.min(axis=0)
     hi = norm.xy_u.max(axis=0)
     init_name = init if isinstance(init, str) else "user"
+    errors = None
+    if error_model and result.converged:
+        from oapcal.error_model import estimate_error_model
+
+        mask = np.array([n in result.free for n in family_of(result.params).param_names])
+        errors = estimate_error_model(norm.xy_u, norm.xy_d, result.params, mask, **fit_options)
     return Calibration(
         free=result.free,
         params=np.array(result.params),
@@ -246,6 +260,7 @@ def calibrate(
         source=source,
         relay_design=relay_design,
         notes=notes,
+        error_model=errors,
     )
 
 

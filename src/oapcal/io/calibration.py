@@ -15,7 +15,9 @@ Layout (``docs/file-formats.md`` has an annotated example)::
                    and "*_um" with a scale},
      "um_per_px": S or null, "image_size": [width, height] or null,
      "bounds": [x_min, y_min, x_max, y_max] of the reference points, or null,
-     "hull": convex hull of the reference points [[x, y], ...], or null}
+     "hull": convex hull of the reference points [[x, y], ...], or null,
+     "error_model": {"floor_px", "noise_px", "extrapolation", "ramp_px", ...} (optional:
+                    oapcal.uncertainty.ErrorModel; files without it load, with None)}
 
 Version 1 (no ``model_family``: Eq. 1) is still read.  Non-finite numbers are written as
 null.  On reading, every number must be finite (NaN, Infinity and numbers too large for
@@ -43,6 +45,7 @@ from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
 from oapcal.io.userfile import read_json
 from oapcal.model import BROWN_CONRADY, FAMILIES, RELAY_FAMILIES
+from oapcal.uncertainty import ErrorModel
 
 __all__ = [
     "CHECK_GRID",
@@ -100,6 +103,7 @@ def calibration_to_dict(calibration: Calibration) -> dict:
             "image_size": list(calibration.image_size) if calibration.image_size else None,
             "bounds": list(calibration.bounds) if calibration.bounds is not None else None,
             "hull": np.asarray(calibration.hull).tolist() if calibration.hull is not None else None,
+            **({"error_model": calibration.error_model.to_dict()} if calibration.error_model else {}),
         }
     )
 
@@ -184,6 +188,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         oapcal_version=data.get("oapcal_version", "unknown"),
         created_utc=data.get("created_utc", "unknown"),
         relay_design=data.get("relay_design"),
+        error_model=ErrorModel.from_dict(data.get("error_model")),
     )
     check_model_region(cal, source=source)
     return cal
