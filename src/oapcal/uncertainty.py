@@ -128,16 +128,23 @@ class ErrorModel:
 
 
 def hull_distance(xy, hull) -> np.ndarray:
-    """Distance of points ``(..., 2)`` outside the convex polygon ``hull`` ``(M, 2)``; 0
-    inside or on it.  A hull without area contains nothing: the distance is then to its
-    vertices' segments.
+    """Distance of points ``(..., 2)`` outside the convex hull of the polygon ``hull``
+    ``(M, 2)``; 0 inside or on it.  A hull without area contains nothing: the distance is
+    then to its segments.
 
     >>> square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
     >>> hull_distance(np.array([[0.5, 0.5], [3.0, 1.0], [2.0, 2.0]]), square).round(4).tolist()
     [0.0, 2.0, 1.4142]
     """
+    from scipy.spatial import ConvexHull, QhullError
+
     xy = np.asarray(xy, float)
     poly = np.asarray(hull, float)
+    try:
+        poly = poly[ConvexHull(poly).vertices]  # counter-clockwise (x right, y up)
+        flat_hull = False
+    except QhullError:  # a flat hull (Qhull cannot build a simplex)
+        flat_hull = True
     flat = xy.reshape(-1, 2)
     a = poly
     ab = np.roll(poly, -1, axis=0) - a
@@ -146,10 +153,14 @@ def hull_distance(xy, hull) -> np.ndarray:
     block = max(1, 2_000_000 // max(len(poly), 1))
     for lo in range(0, len(flat), block):
         p = flat[lo : lo + block, None, :]
-        t = np.clip(((p - a) * ab).sum(-1) / ab2, 0.0, 1.0)
-        diff = p - (a + t[..., None] * ab)
-        out[lo : lo + block] = np.sqrt((diff * diff).sum(-1)).min(axis=1)
-    out[inside_hull(flat, poly)] = 0.0
+        ap = p - a
+        t = np.clip((ap * ab).sum(-1) / ab2, 0.0, 1.0)
+        diff = ap - t[..., None] * ab
+        dist = np.sqrt((diff * diff).sum(-1)).min(axis=1)
+        if not flat_hull:  # inside: on the left of every edge (or on it)
+            cross = ab[:, 0] * ap[..., 1] - ab[:, 1] * ap[..., 0]
+            dist[(cross >= -1e-9 * np.sqrt(ab2)).all(axis=1)] = 0.0
+        out[lo : lo + block] = dist
     return out.reshape(xy.shape[:-1])
 
 
@@ -181,7 +192,8 @@ def _combine(sp2, xy_u, calibration) -> np.ndarray:
 def extrapolation_report(calibration, xy_u) -> dict:
     """How far points ``(N, 2)`` (output positions, the calibration's reference units) lie
     beyond the landmarks' hull, and their predicted error: ``{"n", "outside", "max_distance_px",
-    "max_predicted_px", "median_predicted_outside_px"}`` (None where nothing is outside)."""
+    "max_predicted_px", "median_predicted_outside_px", "predicted"}`` (None where nothing is
+    outside; ``predicted`` the ``(N,)`` predicted errors, inf where the map folds)."""
     xy_u = np.asarray(xy_u, float).reshape(-1, 2)
     hull = getattr(calibration, "hull", None)
     if hull is None or len(hull) < 3:
@@ -197,6 +209,7 @@ def extrapolation_report(calibration, xy_u) -> dict:
         "max_distance_px": float(dist[out].max()) if out.any() else None,
         "max_predicted_px": float(finite.max()) if len(finite) else None,
         "median_predicted_outside_px": float(np.median(finite[out])) if out.any() else None,
+        "predicted": finite,
     }
 
 
