@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from oapcal.uncertainty import ErrorModel, hull_distance, position_covariance
+from oapcal.uncertainty import ErrorModel, position_covariance
 
 #: Neighbours whose residuals each landmark's is compared with (the floor estimate).
 NEIGHBOURS = 4
@@ -124,4 +124,3 @@ def _sides(xy_u: np.ndarray) -> np.ndarray:
         proj = (xy_u - centre) @ np.array([np.cos(theta), np.sin(theta)])
         keep.append(proj < np.quantile(proj, 1 - HOLDOUT_FRACTION))
     return np.array(keep)
-

@@ -27,7 +27,13 @@ MAX_ERROR_HELP = (
 )
 
 
-def trust_message(summary: dict, *, masked: bool, border: float | None = None) -> str | None:
+def trust_message(
+    summary: dict,
+    *,
+    masked: bool,
+    border: float | None = None,
+    hint: str = "leave --extent input out to write only the trust region",
+) -> str | None:
     """The line a command prints about where its output extrapolates (``summary`` from
     :func:`oapcal.imaging.remap.trust_summary`), or None when all of it lies within the
     landmarks' hull and is trusted."""
@@ -41,7 +47,8 @@ def trust_message(summary: dict, *, masked: bool, border: float | None = None) -
         f"{100 * outside:.1f} % of the {w}x{h} px output lies beyond the landmarks' hull (up to "
         f"{far:.0f} px from it), where the predicted error reaches {worst:.3g} px"
         if outside > 0 and far is not None
-        else f"the {w}x{h} px output lies within the landmarks' hull; its predicted error reaches {worst:.3g} px"
+        else f"the {w}x{h} px output lies within the landmarks' hull; its predicted error reaches "
+        f"{worst:.3g} px"
     )
     old = "" if summary["has_error_model"] else (
         " (this calibration has no error model, written by an older oapcal: the predicted error is the "
@@ -58,9 +65,34 @@ def trust_message(summary: dict, *, masked: bool, border: float | None = None) -
     if outside == 0 and (trusted is None or trusted >= 1.0):
         return None
     above = "" if trusted is None else f"; {100 * (1 - trusted):.1f} % of it is predicted above {limit:g} px"
+    return f"oapcal: warning: the whole output is corrected: {where}{above}; {hint}{old}"
+
+
+def points_trust_message(calibration, xy_c) -> str | None:
+    """The line ``correct-points`` (and any command correcting points) prints when corrected
+    points ``(N, 2)`` lie beyond the landmarks' hull: how many, how far, with what predicted
+    error (:func:`oapcal.uncertainty.extrapolation_report`); None when all lie within it."""
+    import numpy as np
+
+    from oapcal.uncertainty import extrapolation_report
+
+    xy_c = np.asarray(xy_c, float).reshape(-1, 2)
+    if not len(xy_c):
+        return None
+    with np.errstate(all="ignore"):
+        rep = extrapolation_report(calibration, xy_c)
+    if not rep["outside"]:
+        return None
+    pred = rep["predicted"][rep["predicted"] > 0] if rep["outside"] else rep["predicted"]
+    worst = float(np.max(pred)) if len(pred) else float("nan")
+    old = "" if getattr(calibration, "error_model", None) is not None else (
+        " (the calibration has no error model: the fit's covariance alone, optimistic beyond the hull; refit)"
+    )  # fmt: skip
+    far = "" if rep["max_distance_px"] is None else f" (up to {rep['max_distance_px']:.0f} px from it)"
     return (
-        f"oapcal: warning: the whole output is corrected: {where}{above}; leave --extent input out "
-        f"to write only the trust region{old}"
+        f"oapcal: {rep['outside']} of {rep['n']} corrected points lie beyond the landmarks' hull{far}: the "
+        f"model extrapolates there; predicted error {rep['median_predicted_outside_px']:.3g} px median, "
+        f"{worst:.3g} px max{old}"
     )
 
 
@@ -197,11 +229,15 @@ def correct_command(
         raise click.UsageError("--map fixes the output geometry: drop --extent, --um-per-px and --out-size")
     ctx = click.get_current_context()
     if map_file and max_error_px is not None:
-        raise click.UsageError("--map holds its own output (and trust region, if built with one): drop --max-error-px")
+        raise click.UsageError(
+            "--map holds its own output (and trust region, if built with one): drop --max-error-px"
+        )
     whole = extent == "input" and ctx.get_parameter_source("extent") != click.core.ParameterSource.DEFAULT
     from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
 
-    limit = max_error_px if max_error_px is not None else (None if whole or map_file else DEFAULT_MAX_ERROR_PX)
+    limit = (
+        max_error_px if max_error_px is not None else (None if whole or map_file else DEFAULT_MAX_ERROR_PX)
+    )
     if not use_dask:
         for option in ("scheduler", "chunk_frames", "dask_format"):
             if ctx.get_parameter_source(option) != click.core.ParameterSource.DEFAULT:
@@ -223,7 +259,9 @@ def correct_command(
     cal = load_usable_calibration(calib, allow_unconverged)
     name = cal.name or Path(calib).name
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
-    cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels, limit)
+    # the sequential path builds a trust-region map per input size itself; --dask gets one map
+    prebuild = limit if (use_dask or save_map) else None
+    cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels, prebuild)
     if inputs:
         _check_samples(cal, cmap, plan[0], geometry, max_pixels)
     trust = _trust(cal, cmap, plan[0] if plan else [], geometry, max_pixels, limit, border)
@@ -252,6 +290,7 @@ def correct_command(
             calibration_name=name, protect=[calib] + ([map_file] if map_file else []),
             reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
             progress=update, **({} if cmap else geometry),
+            max_error_px=None if cmap is not None or map_file else limit,
         )  # fmt: skip
     results = [_result(r) for r in report.results]
     return _finish(results, report.summary(), report.count("failed"), as_json, trust)
@@ -342,10 +381,13 @@ def _trust(cal, cmap, files, geometry, max_pixels, limit, border) -> dict | None
     from oapcal.errors import DataError
     from oapcal.imaging.remap import output_geometry, trust_summary
 
+    hint = "leave --extent input out to write only the trust region"
     if cmap is not None:
         geo, predicted = cmap.geometry, cmap.predicted_error
         limit = cmap.max_error_px if cmap.max_error_px is not None else limit
         masked = cmap.predicted_error is not None
+        if cmap.predicted_error is None:  # a --map file
+            hint = "a map saved by 'oapcal correct --save-map' without --extent input holds the trust region"
     else:
         shape = (cal.image_size[1], cal.image_size[0]) if cal.image_size else None
         if shape is None and files:
@@ -362,12 +404,12 @@ def _trust(cal, cmap, files, geometry, max_pixels, limit, border) -> dict | None
             geo = output_geometry(cal, shape, **geometry)
         except DataError:
             return None
-        predicted, masked = None, False
+        predicted, masked = None, limit is not None
     from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
 
     summary = trust_summary(cal, geo, limit if limit is not None else DEFAULT_MAX_ERROR_PX, predicted)
     summary["masked"] = masked
-    line = trust_message(summary, masked=masked, border=border)
+    line = trust_message(summary, masked=masked, border=border, hint=hint)
     if line:
         click.echo(line, err=True)
     return summary

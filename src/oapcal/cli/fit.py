@@ -293,4 +293,9 @@ def correct_points_command(calib, points, out, allow_unconverged):
             f"({int(inverse.folded.sum())} where the map folds over); their x_c,y_c are empty",
             err=True,
         )
+    from oapcal.cli.correct import points_trust_message
+
+    line = points_trust_message(cal, inverse.xy[inverse.converged])
+    if line:
+        click.echo(line, err=True)
     return 0

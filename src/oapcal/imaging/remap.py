@@ -349,8 +349,12 @@ def predicted_error_map(calibration, geometry: OutputGeometry, *, samples: int |
     return out
 
 
-def trust_summary(calibration, geometry: OutputGeometry, max_error_px: float | None = None,
-                  predicted: np.ndarray | None = None) -> dict:
+def trust_summary(
+    calibration,
+    geometry: OutputGeometry,
+    max_error_px: float | None = None,
+    predicted: np.ndarray | None = None,
+) -> dict:
     """Where the output of ``geometry`` extrapolates, and how well it is predicted: on a grid
     of at most :data:`ERROR_SAMPLES` points along the longer side, ``{"output_px",
     "outside_fraction", "max_distance_px", "max_predicted_px", "median_predicted_outside_px",
