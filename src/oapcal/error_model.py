@@ -81,8 +81,9 @@ def estimate_error_model(xy_u, xy_d, params, mask, **fit_options) -> ErrorModel 
     ratios = []
     if len(keep):
         fit_options.pop("covariance", None)
-        batch = fit_batch(xy_u, xy_d, np.repeat(mask[None], len(keep), 0), np.repeat(params[None], len(keep), 0),
-                          points=keep, family=family, **fit_options)  # fmt: skip
+        masks = np.repeat(mask[None], len(keep), 0)
+        starts = np.repeat(params[None], len(keep), 0)
+        batch = fit_batch(xy_u, xy_d, masks, starts, points=keep, family=family, **fit_options)
         idx = np.flatnonzero(mask)
         for b in range(len(keep)):
             if not batch.converged[b]:

@@ -403,8 +403,8 @@ def mask_untrusted(cmap: CorrectionMap, predicted: np.ndarray, max_error_px: flo
     trusted = np.isfinite(predicted) & (predicted <= max_error_px)
     if trusted.mean() < MIN_SAMPLED_FRACTION:
         raise DataError(
-            f"{'no' if not trusted.any() else 'almost no'} output pixel (under {MIN_SAMPLED_FRACTION:.1%}) has a "
-            f"predicted error of {max_error_px:g} px or less (the smallest is "
+            f"{'no' if not trusted.any() else 'almost no'} output pixel (under {MIN_SAMPLED_FRACTION:.1%}) "
+            f"has a predicted error of {max_error_px:g} px or less (the smallest is "
             f"{float(np.nanmin(predicted)):.3g} px): the calibration does not support a correction this "
             "accurate here; raise max_error_px, or give max_error_px=None for the whole output",
             param="max_error_px",
