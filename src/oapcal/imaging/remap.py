@@ -316,8 +316,9 @@ class CorrectionMap:
 def predicted_error_map(calibration, geometry: OutputGeometry, *, samples: int | None = None) -> np.ndarray:
     """The predicted 1-sigma error (:func:`oapcal.uncertainty.predicted_error`) of every
     output pixel of ``geometry``, in output px (the calibration's reference units over
-    ``geometry.scale``), ``float32 (rows, cols)``: computed on a grid of ``samples`` points along the longer side (default
-    :data:`ERROR_SAMPLES`) and interpolated linearly in between; inf where the map folds."""
+    ``geometry.scale``), ``float32 (rows, cols)``: computed on a grid of ``samples`` points
+    along the longer side (default :data:`ERROR_SAMPLES`) and interpolated linearly in
+    between; inf where the map folds."""
     from scipy.ndimage import map_coordinates
 
     from oapcal.uncertainty import predicted_error
