@@ -1,0 +1,180 @@
+"""Coverage of the reported uncertainty (issue 21, item 3): is the predicted error honest?
+
+Truths, landmarks and noise are those of ``benchmarks/models.py`` (imported, not copied):
+setup 1 with all 20 misalignment values drawn per seed and the target turned by <= 1 deg,
+traced by the NumPy tracer over the 1 mm field; landmarks at random reference positions
+over the whole field or its central half (``--landmarks`` of them, default 250), plus the
+"few central landmarks" case of the issue (40 in the central 40 % of the field), with
+Gaussian noise on the distorted positions.
+
+Each calibration is made as the library makes it (:func:`oapcal.calibration.calibrate`,
+:func:`oapcal.optics.relay_model.calibrate_relay`, 640 x 480 px image) for ``paper``
+(Eq. 1's preset, no rotation), ``bc+rotation`` (the preset with the target's rotation) and
+``relay`` (the default subset).  At the 21 x 21 field points of the 1 mm grid the actual
+error of the correction (``|undistort(traced point) - reference point|``) is compared with
+
+* ``covariance``: the fit's covariance propagated to the correction alone (what the
+  report showed before the error model), and
+* ``predicted``: :func:`oapcal.uncertainty.predicted_error`, the covariance inflated by the
+  calibration's measured floor and extrapolation (:mod:`oapcal.error_model`);
+
+reporting the share of field points within 1 and 2 sigma inside and outside the
+landmarks' hull (the goal is 85-99 % within 2 sigma).  The error is a length and sigma
+``sqrt(sigma_x^2 + sigma_y^2)``: for an isotropic 2-D Gaussian error the shares are 63 % and
+98 % (``1 - exp(-1)``, ``1 - exp(-4)``), not the 68 / 95 % of one coordinate.
+
+    .venv/bin/python benchmarks/uncertainty.py [--seeds 10] [--noise 0.3] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from models import DESIGN, GRID_N, LAYOUTS, draw_truth, landmark_positions, reference_grid, trace  # noqa: E402
+
+from oapcal.calibration import calibrate  # noqa: E402
+from oapcal.model import undistort  # noqa: E402
+from oapcal.optics.relay_model import calibrate_relay  # noqa: E402
+from oapcal.uncertainty import inside_hull, position_covariance, predicted_error  # noqa: E402
+
+MODELS = ("paper", "bc+rotation", "relay")
+#: Layouts: the two of benchmarks/models.py, and the issue's few central landmarks.
+SCENARIOS = ("whole", "central", "few central")
+GOAL_2SIGMA = (0.85, 0.99)
+
+
+def field_points() -> np.ndarray:
+    """The 21 x 21 points of the 1 mm grid (every 5th of benchmarks/models.py's 101 x 101)."""
+    return reference_grid().reshape(GRID_N, GRID_N, 2)[::5, ::5].reshape(-1, 2)
+
+
+def landmarks(seed: int, scenario: str, n: int, grid: np.ndarray) -> np.ndarray:
+    if scenario == "few central":  # 40 landmarks in the central 40 % of the field (issue 21)
+        lo, hi = grid.min(axis=0), grid.max(axis=0)
+        mid, half = 0.5 * (lo + hi), 0.2 * (hi - lo)
+        return np.random.default_rng([seed, 21]).uniform(mid - half, mid + half, (40, 2))
+    return landmark_positions(seed, scenario, grid)[:n]
+
+
+def calibrate_model(model: str, lm_u, lm_d):
+    if model == "relay":
+        return calibrate_relay(lm_u, lm_d, DESIGN, "default", image_size=(640, 480))
+    spec = "paper+rotation" if model == "bc+rotation" else "paper"
+    return calibrate(lm_u, lm_d, spec, image_size=(640, 480), rotation="none")
+
+
+def run_case(seed: int, scenario: str, model: str, noise: float, n: int, grid_full, field) -> dict:
+    mis, turn = draw_truth(seed)
+    lm_u = landmarks(seed, scenario, n, grid_full)
+    unit = np.random.default_rng([seed, 7, SCENARIOS.index(scenario)]).normal(size=lm_u.shape)
+    lm_d = trace(mis, turn, lm_u) + noise * unit
+    t = time.perf_counter()
+    cal = calibrate_model(model, lm_u, lm_d)
+    seconds = time.perf_counter() - t
+    field_d = trace(mis, turn, field)
+    err = np.hypot(*(undistort(field_d, cal.params).xy - field).T)
+    cov = position_covariance(field, cal.params, cal.covariance, cal.free)
+    sigma_cov = np.sqrt(cov[:, 0, 0] + cov[:, 1, 1])
+    sigma_pred = predicted_error(field, cal)
+    inside = inside_hull(field, cal.hull)
+    row = {"seed": seed, "scenario": scenario, "model": model, "converged": cal.fit.converged,
+           "seconds": seconds, "error_model": cal.error_model}  # fmt: skip
+    for kind, sigma in (("covariance", sigma_cov), ("predicted", sigma_pred)):
+        z = err / sigma
+        for region, sel in (("in", inside), ("out", ~inside)):
+            ok = sel & np.isfinite(z)
+            row[f"{kind}_{region}_1"] = float((z[ok] <= 1).mean()) if ok.any() else np.nan
+            row[f"{kind}_{region}_2"] = float((z[ok] <= 2).mean()) if ok.any() else np.nan
+    row["err_out_median"] = float(np.median(err[~inside])) if (~inside).any() else np.nan
+    row["pred_out_median"] = float(np.median(sigma_pred[~inside])) if (~inside).any() else np.nan
+    # the trust region at 1 px: the share of the field it keeps, and of those kept points
+    # the share whose actual error is above 1 px
+    kept = sigma_pred <= 1.0
+    row["trusted"] = float(kept.mean())
+    row["trusted_bad"] = float((err[kept] > 1.0).mean()) if kept.any() else np.nan
+    return row
+
+
+def table(rows, noise: float) -> str:
+    lines = [
+        f"\n**{noise} px noise** ({len({r['seed'] for r in rows})} seeds; mean share over seeds, lowest seed "
+        "in brackets; within 1 sigma / within 2 sigma)\n",
+        "| landmarks | model | covariance only, inside hull | covariance only, outside | predicted, inside hull "
+        "| predicted, outside | goal (85-99 % in 2 sigma) | trusted at 1 px: share of field, of it > 1 px |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for scenario in SCENARIOS:
+        for model in MODELS:
+            r = [x for x in rows if x["scenario"] == scenario and x["model"] == model]
+            if not r:
+                continue
+
+            def cell(kind, region, r=r):
+                one = np.array([x[f"{kind}_{region}_1"] for x in r])
+                two = np.array([x[f"{kind}_{region}_2"] for x in r])
+                if np.isnan(two).all():
+                    return "-"
+                return f"{np.nanmean(one):.0%} / {np.nanmean(two):.0%} ({np.nanmin(two):.0%})"
+
+            twos = [np.nanmean([x[f"predicted_{reg}_2"] for x in r]) for reg in ("in", "out")]
+            twos = [v for v in twos if np.isfinite(v)]
+            if any(v < GOAL_2SIGMA[0] for v in twos):
+                verdict = "**not met** (optimistic)"
+            elif any(v > GOAL_2SIGMA[1] for v in twos):
+                verdict = "not met: conservative"
+            else:
+                verdict = "met"
+            trusted = np.mean([x["trusted"] for x in r])
+            bad = np.nanmean([x["trusted_bad"] for x in r])
+            lines.append(
+                f"| {scenario} | {model} | {cell('covariance', 'in')} | {cell('covariance', 'out')} "
+                f"| {cell('predicted', 'in')} | {cell('predicted', 'out')} | {verdict} "
+                f"| {trusted:.0%}, {bad:.1%} |"
+            )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=10, help="truths (seeds 0..N-1)")
+    ap.add_argument("--noise", type=float, nargs="+", default=[0.3, 0.03], help="landmark noise, px")
+    ap.add_argument("--landmarks", type=int, default=250, help="landmarks of the whole and central layouts")
+    ap.add_argument("--quick", action="store_true", help="2 seeds, 0.3 px only (while developing)")
+    args = ap.parse_args()
+    if args.quick:
+        args.seeds, args.noise = 2, [0.3]
+    grid_full = reference_grid()
+    field = field_points()
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores", flush=True)
+    t0 = time.perf_counter()
+    for noise in args.noise:
+        rows = []
+        for seed in range(args.seeds):
+            for scenario in SCENARIOS:
+                for model in MODELS:
+                    rows.append(run_case(seed, scenario, model, noise, args.landmarks, grid_full, field))
+            print(f"noise {noise}, seed {seed}: {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+        print(table(rows, noise))
+        failed = [(r["model"], r["scenario"], r["seed"]) for r in rows if not r["converged"]]
+        print("\nfits not converged:", failed or "none")
+        for model in MODELS:
+            ems = [r["error_model"] for r in rows if r["model"] == model and r["error_model"] is not None]
+            if ems:
+                print(
+                    f"- {model}: floor {np.median([e.floor_px for e in ems]):.3g} px median, extrapolation "
+                    f"factor {np.median([e.extrapolation for e in ems]):.2f} median "
+                    f"({min(e.extrapolation for e in ems):.2f}-{max(e.extrapolation for e in ems):.2f}); "
+                    f"calibrate with the error model {np.median([r['seconds'] for r in rows if r['model'] == model]):.2f} s median"
+                )
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
