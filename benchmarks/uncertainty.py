@@ -32,17 +32,14 @@ import argparse
 import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
+from models import DESIGN, GRID_N, draw_truth, landmark_positions, reference_grid, trace
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from models import DESIGN, GRID_N, LAYOUTS, draw_truth, landmark_positions, reference_grid, trace  # noqa: E402
-
-from oapcal.calibration import calibrate  # noqa: E402
-from oapcal.model import undistort  # noqa: E402
-from oapcal.optics.relay_model import calibrate_relay  # noqa: E402
-from oapcal.uncertainty import inside_hull, position_covariance, predicted_error  # noqa: E402
+from oapcal.calibration import calibrate
+from oapcal.model import undistort
+from oapcal.optics.relay_model import calibrate_relay
+from oapcal.uncertainty import inside_hull, position_covariance, predicted_error
 
 MODELS = ("paper", "bc+rotation", "relay")
 #: Layouts: the two of benchmarks/models.py, and the issue's few central landmarks.
@@ -104,10 +101,11 @@ def run_case(seed: int, scenario: str, model: str, noise: float, n: int, grid_fu
 
 def table(rows, noise: float) -> str:
     lines = [
-        f"\n**{noise} px noise** ({len({r['seed'] for r in rows})} seeds; mean share over seeds, lowest seed "
-        "in brackets; within 1 sigma / within 2 sigma)\n",
-        "| landmarks | model | covariance only, inside hull | covariance only, outside | predicted, inside hull "
-        "| predicted, outside | goal (85-99 % in 2 sigma) | trusted at 1 px: share of field, of it > 1 px |",
+        f"\n**{noise} px noise** ({len({r['seed'] for r in rows})} seeds; mean share over seeds, "
+        "lowest seed in brackets; within 1 sigma / within 2 sigma)\n",
+        "| landmarks | model | covariance only, inside hull | covariance only, outside "
+        "| predicted, inside hull | predicted, outside | goal (85-99 % in 2 sigma) "
+        "| trusted at 1 px: share of field, of it > 1 px |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for scenario in SCENARIOS:
@@ -160,18 +158,20 @@ def main() -> None:
             for scenario in SCENARIOS:
                 for model in MODELS:
                     rows.append(run_case(seed, scenario, model, noise, args.landmarks, grid_full, field))
-            print(f"noise {noise}, seed {seed}: {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+            elapsed = time.perf_counter() - t0
+            print(f"noise {noise}, seed {seed}: {elapsed:.0f} s", file=sys.stderr, flush=True)
         print(table(rows, noise))
         failed = [(r["model"], r["scenario"], r["seed"]) for r in rows if not r["converged"]]
         print("\nfits not converged:", failed or "none")
         for model in MODELS:
             ems = [r["error_model"] for r in rows if r["model"] == model and r["error_model"] is not None]
             if ems:
+                secs = np.median([r["seconds"] for r in rows if r["model"] == model])
                 print(
                     f"- {model}: floor {np.median([e.floor_px for e in ems]):.3g} px median, extrapolation "
                     f"factor {np.median([e.extrapolation for e in ems]):.2f} median "
                     f"({min(e.extrapolation for e in ems):.2f}-{max(e.extrapolation for e in ems):.2f}); "
-                    f"calibrate with the error model {np.median([r['seconds'] for r in rows if r['model'] == model]):.2f} s median"
+                    f"calibrate with the error model {secs:.2f} s median"
                 )
     print(f"\ntotal {time.perf_counter() - t0:.0f} s")
 

@@ -25,10 +25,13 @@ correlation of the residuals (noise is uncorrelated from landmark to landmark, a
 not), and the extrapolation factor ``kappa`` from refits that leave one side of the
 landmarks out and predict it.  The predicted 1-sigma error at output point ``u`` is::
 
-    predicted(u)^2 = (k(u) sigma(u))^2 + F^2,   k(u) = 1 + (kappa - 1) min(1, d(u) / d0)
+    predicted(u)^2 = (k(u) sigma(u))^2 + F^2
+    k(u) = (1 + (kappa - 1) min(1, d / d0)) max(1, (1 + d / R) / (1 + t_p))^g
 
-with ``sigma`` the propagated uncertainty above, ``d(u)`` the distance of ``u`` outside the
-hull (0 inside) and ``d0`` the landmarks' spacing (:func:`predicted_error`).  Without an
+with ``sigma`` the propagated uncertainty above, ``d = d(u)`` the distance of ``u`` outside
+the hull (0 inside), ``d0`` the landmarks' spacing, ``R`` the hull's radius (of the disc of
+its area), ``t_p`` how far (in ``R``) the refits extrapolated, and ``g`` the growth beyond
+that (:func:`predicted_error`, :func:`extrapolation_factor`).  Without an
 error model (a file written before it existed) the predicted error is ``sigma`` alone,
 which is optimistic outside the hull.
 
@@ -89,8 +92,8 @@ def position_covariance(xy_u, params, covariance, free) -> np.ndarray:
 TRUST_LEVELS_PX = (0.5, 1.0, 2.0)
 
 #: Keys of a calibration file's ``error_model`` object (:meth:`ErrorModel.to_dict`).
-ERROR_MODEL_KEYS = ("method", "floor_px", "noise_px", "extrapolation", "ramp_px", "sides", "sides_used",
-                    "holdout_fraction")  # fmt: skip
+ERROR_MODEL_KEYS = ("method", "floor_px", "noise_px", "extrapolation", "ramp_px", "growth_exponent",
+                    "probed_distance", "sides", "sides_used", "holdout_fraction")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -112,6 +115,8 @@ class ErrorModel:
     noise_px: float
     extrapolation: float
     ramp_px: float
+    growth_exponent: float = 0.0
+    probed_distance: float = 0.0
     sides: int = 8
     sides_used: int = 8
     holdout_fraction: float = 0.25
@@ -184,9 +189,33 @@ def _combine(sp2, xy_u, calibration) -> np.ndarray:
         dist = np.full(sp2.shape, np.inf)
     else:
         dist = hull_distance(xy_u, hull)
-    ramp = np.minimum(1.0, dist / max(float(em.ramp_px), 1e-300))
-    k = 1.0 + (float(em.extrapolation) - 1.0) * ramp
+    k = extrapolation_factor(dist, em, hull_radius(hull))
     return np.sqrt(k * k * sp2 + float(em.floor_px) ** 2)
+
+
+def hull_radius(hull) -> float:
+    """The radius of the disc with the area of the polygon ``hull`` (0 without area)."""
+    if hull is None or len(hull) < 3:
+        return 0.0
+    x, y = np.asarray(hull, float).T
+    area = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    return float(np.sqrt(area / np.pi))
+
+
+def extrapolation_factor(dist, error_model: ErrorModel, radius: float) -> np.ndarray:
+    """The factor ``k`` on the propagated uncertainty at distance ``dist`` outside a hull of
+    radius ``radius`` (module docstring): ``1 + (kappa - 1) min(1, d / d0)`` as far as the
+    refits probed (``d / R <= t_p``, ``probed_distance``), times
+    ``((1 + d / R) / (1 + t_p))^g`` beyond."""
+    dist = np.asarray(dist, float)
+    ramp = np.minimum(1.0, dist / max(float(error_model.ramp_px), 1e-300))
+    k = 1.0 + (float(error_model.extrapolation) - 1.0) * ramp
+    g = float(error_model.growth_exponent)
+    if g:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.where(radius > 0, dist / max(radius, 1e-300), np.inf)
+            k = k * np.maximum(1.0, (1.0 + rel) / (1.0 + float(error_model.probed_distance))) ** g
+    return k
 
 
 def extrapolation_report(calibration, xy_u) -> dict:
