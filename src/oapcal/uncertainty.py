@@ -221,7 +221,8 @@ def extrapolation_factor(dist, error_model: ErrorModel, radius: float) -> np.nda
 def extrapolation_report(calibration, xy_u) -> dict:
     """How far points ``(N, 2)`` (output positions, the calibration's reference units) lie
     beyond the landmarks' hull, and their predicted error: ``{"n", "outside", "max_distance_px",
-    "max_predicted_px", "median_predicted_outside_px", "predicted"}`` (None where nothing is
+    "max_predicted_px", "median_predicted_outside_px", "max_predicted_outside_px",
+    "predicted"}`` (None where nothing is
     outside; ``predicted`` the ``(N,)`` predicted errors, inf where the map folds)."""
     xy_u = np.asarray(xy_u, float).reshape(-1, 2)
     hull = getattr(calibration, "hull", None)
@@ -238,6 +239,7 @@ def extrapolation_report(calibration, xy_u) -> dict:
         "max_distance_px": float(dist[out].max()) if out.any() else None,
         "max_predicted_px": float(finite.max()) if len(finite) else None,
         "median_predicted_outside_px": float(np.median(finite[out])) if out.any() else None,
+        "max_predicted_outside_px": float(finite[out].max()) if out.any() else None,
         "predicted": finite,
     }
 

@@ -83,8 +83,7 @@ def points_trust_message(calibration, xy_c) -> str | None:
         rep = extrapolation_report(calibration, xy_c)
     if not rep["outside"]:
         return None
-    pred = rep["predicted"][rep["predicted"] > 0] if rep["outside"] else rep["predicted"]
-    worst = float(np.max(pred)) if len(pred) else float("nan")
+    worst = rep["max_predicted_outside_px"]
     old = "" if getattr(calibration, "error_model", None) is not None else (
         " (the calibration has no error model: the fit's covariance alone, optimistic beyond the hull; refit)"
     )  # fmt: skip
@@ -405,6 +404,10 @@ def _trust(cal, cmap, files, geometry, max_pixels, limit, border) -> dict | None
         except DataError:
             return None
         predicted, masked = None, limit is not None
+        if masked:  # the trust region as correct_stack builds it, for the share written
+            from oapcal.imaging.remap import predicted_error_map
+
+            predicted = predicted_error_map(cal, geo)
     from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
 
     summary = trust_summary(cal, geo, limit if limit is not None else DEFAULT_MAX_ERROR_PX, predicted)
