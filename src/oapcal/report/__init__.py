@@ -543,7 +543,7 @@ def _trust_html(umap, s: dict, plots) -> str:
             "left one side of the landmarks out and predicted it), growing as "
             f"(1 + d/R)^{em.growth_exponent:g} beyond {em.probed_distance:.2f} hull radii. "
             "'oapcal correct' writes only the trust region, where the predicted error is at most "
-            f"{DEFAULT_MAX_ERROR_PX:g} px (--max-error-px; outlined in red), unless --extent input is given."
+            f"{DEFAULT_MAX_ERROR_PX:g} px by default (outlined in red; docs/correct.md)."
         )
     return (
         H.png_figure(
