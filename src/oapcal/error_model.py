@@ -91,7 +91,11 @@ def estimate_error_model(xy_u, xy_d, params, mask, **fit_options) -> ErrorModel 
     keep = keep[keep.sum(axis=1) >= k + 2]
     ratios, reach = [], []
     if len(keep):
-        fit_options.pop("covariance", None)
+        import inspect
+
+        # the fit's own options, as far as the batched solver takes them (covariance: always)
+        accepted = set(inspect.signature(fit_batch).parameters) - {"covariance", "points", "family"}
+        fit_options = {k: v for k, v in fit_options.items() if k in accepted}
         masks = np.repeat(mask[None], len(keep), 0)
         starts = np.repeat(params[None], len(keep), 0)
         batch = fit_batch(xy_u, xy_d, masks, starts, points=keep, family=family, **fit_options)
