@@ -223,7 +223,8 @@ def extrapolation_report(calibration, xy_u) -> dict:
     beyond the landmarks' hull, and their predicted error: ``{"n", "outside", "max_distance_px",
     "max_predicted_px", "median_predicted_outside_px", "max_predicted_outside_px",
     "predicted"}`` (None where nothing is
-    outside; ``predicted`` the ``(N,)`` predicted errors, inf where the map folds)."""
+    outside, or without a hull; ``predicted`` the ``(N,)`` predicted errors, inf where the
+    map folds)."""
     xy_u = np.asarray(xy_u, float).reshape(-1, 2)
     hull = getattr(calibration, "hull", None)
     if hull is None or len(hull) < 3:
@@ -236,7 +237,7 @@ def extrapolation_report(calibration, xy_u) -> dict:
     return {
         "n": int(len(xy_u)),
         "outside": int(out.sum()),
-        "max_distance_px": float(dist[out].max()) if out.any() else None,
+        "max_distance_px": float(dist[out].max()) if out.any() and np.isfinite(dist).all() else None,
         "max_predicted_px": float(finite.max()) if len(finite) else None,
         "median_predicted_outside_px": float(np.median(finite[out])) if out.any() else None,
         "max_predicted_outside_px": float(finite[out].max()) if out.any() else None,

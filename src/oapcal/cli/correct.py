@@ -43,13 +43,21 @@ def trust_message(
     far = summary["max_distance_px"]
     worst = summary["max_predicted_px"]
     trusted = summary["trusted_fraction"]
-    where = (
-        f"{100 * outside:.1f} % of the {w}x{h} px output lies beyond the landmarks' hull (up to "
-        f"{far:.0f} px from it), where the predicted error reaches {worst:.3g} px"
-        if outside > 0 and far is not None
-        else f"the {w}x{h} px output lies within the landmarks' hull; its predicted error reaches "
-        f"{worst:.3g} px"
-    )
+    if outside > 0 and far is not None:
+        where = (
+            f"{100 * outside:.1f} % of the {w}x{h} px output lies beyond the landmarks' hull (up to "
+            f"{far:.0f} px from it), where the predicted error reaches {worst:.3g} px"
+        )
+    elif outside > 0:  # a calibration without a hull (possible only by editing its file)
+        where = (
+            f"the calibration records no hull of its landmarks, so all of the {w}x{h} px output counts "
+            f"as extrapolated; the predicted error reaches {worst:.3g} px"
+        )
+    else:
+        where = (
+            f"the {w}x{h} px output lies within the landmarks' hull; its predicted error reaches "
+            f"{worst:.3g} px"
+        )
     old = "" if summary["has_error_model"] else (
         " (this calibration has no error model, written by an older oapcal: the predicted error is the "
         "fit's covariance alone, optimistic beyond the hull; refit to measure it)"
@@ -87,7 +95,11 @@ def points_trust_message(calibration, xy_c) -> str | None:
     old = "" if getattr(calibration, "error_model", None) is not None else (
         " (the calibration has no error model: the fit's covariance alone, optimistic beyond the hull; refit)"
     )  # fmt: skip
-    far = "" if rep["max_distance_px"] is None else f" (up to {rep['max_distance_px']:.0f} px from it)"
+    far = (
+        " (the calibration records no hull)"
+        if rep["max_distance_px"] is None
+        else (f" (up to {rep['max_distance_px']:.0f} px from it)")
+    )
     return (
         f"oapcal: {rep['outside']} of {rep['n']} corrected points lie beyond the landmarks' hull{far}: the "
         f"model extrapolates there; predicted error {rep['median_predicted_outside_px']:.3g} px median, "
