@@ -275,6 +275,11 @@ def correct_command(
     cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels, prebuild)
     if inputs:
         _check_samples(cal, cmap, plan[0], geometry, max_pixels)
+    if use_dask:  # a missing extra is one clear error, before anything else is said
+        from oapcal.extras import EXTRAS, require
+
+        for module in EXTRAS["dask"]:
+            require(module, "dask")
     trust = _trust(cal, cmap, plan[0] if plan else [], geometry, max_pixels, limit, border)
     if not inputs:
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
