@@ -16,6 +16,7 @@ Layout (``docs/file-formats.md`` has an annotated example)::
      "um_per_px": S or null, "image_size": [width, height] or null,
      "bounds": [x_min, y_min, x_max, y_max] of the reference points, or null,
      "hull": convex hull of the reference points [[x, y], ...], or null,
+     "priors": the priors of a maximum a posteriori relay fit (only then),
      "error_model": {"floor_px", "noise_px", "extrapolation", "ramp_px", ...} (optional:
                     oapcal.uncertainty.ErrorModel; files without it load, with None)}
 
@@ -103,6 +104,8 @@ def calibration_to_dict(calibration: Calibration) -> dict:
             "image_size": list(calibration.image_size) if calibration.image_size else None,
             "bounds": list(calibration.bounds) if calibration.bounds is not None else None,
             "hull": np.asarray(calibration.hull).tolist() if calibration.hull is not None else None,
+            # written only for a fit with priors: other files are as before
+            **({"priors": calibration.priors} if calibration.priors is not None else {}),
             **({"error_model": calibration.error_model.to_dict()} if calibration.error_model else {}),
         }
     )
@@ -188,6 +191,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         oapcal_version=data.get("oapcal_version", "unknown"),
         created_utc=data.get("created_utc", "unknown"),
         relay_design=data.get("relay_design"),
+        priors=data.get("priors"),
         error_model=ErrorModel.from_dict(data.get("error_model")),
     )
     check_model_region(cal, source=source)
