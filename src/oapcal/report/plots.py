@@ -180,9 +180,7 @@ def predicted_error_figure(umap, max_error_px: float = 1.0):
     trusted = umap.trusted(max_error_px)
     if min(pred.shape) >= 2 and trusted.any() and not trusted.all():
         ax.contour(umap.x, umap.y, trusted.astype(float), levels=[0.5], colors="red", linewidths=1.6)
-        ax.contourf(
-            umap.x, umap.y, (~trusted).astype(float), levels=[0.5, 1.5], colors="none", hatches=["/"]
-        )
+        ax.contourf(umap.x, umap.y, (~trusted).astype(float), levels=[0.5, 1.5], colors="none", hatches=["/"])
         ax.plot([], [], color="red", lw=1.6, label=f"trust region: predicted error <= {max_error_px:g} px")
     _hull_outline(ax, umap.hull, color="white", label="hull of the calibration points")
     ax.legend(loc="lower right", fontsize=8, framealpha=0.7)
