@@ -9,8 +9,9 @@ Gaussian noise on the distorted positions.
 
 Each calibration is made as the library makes it (:func:`oapcal.calibration.calibrate`,
 :func:`oapcal.optics.relay_model.calibrate_relay`, 640 x 480 px image) for ``paper``
-(Eq. 1's preset, no rotation), ``bc+rotation`` (the preset with the target's rotation) and
-``relay`` (the default subset).  At the 21 x 21 field points of the 1 mm grid the actual
+(Eq. 1's preset, no rotation), ``bc+rotation`` (the preset with the target's rotation),
+``relay`` (the default subset) and ``relay+priors`` (the same with the default physical
+priors, a maximum a posteriori fit: its covariance is the posterior's).  At the 21 x 21 field points of the 1 mm grid the actual
 error of the correction (``|undistort(traced point) - reference point|``) is compared with
 
 * ``covariance``: the fit's covariance propagated to the correction alone (what the
@@ -41,7 +42,7 @@ from oapcal.model import undistort
 from oapcal.optics.relay_model import calibrate_relay
 from oapcal.uncertainty import inside_hull, position_covariance, predicted_error
 
-MODELS = ("paper", "bc+rotation", "relay")
+MODELS = ("paper", "bc+rotation", "relay", "relay+priors")
 #: Layouts: the two of benchmarks/models.py, and the issue's few central landmarks.
 SCENARIOS = ("whole", "central", "few central")
 GOAL_2SIGMA = (0.85, 0.99)
@@ -61,8 +62,9 @@ def landmarks(seed: int, scenario: str, n: int, grid: np.ndarray) -> np.ndarray:
 
 
 def calibrate_model(model: str, lm_u, lm_d):
-    if model == "relay":
-        return calibrate_relay(lm_u, lm_d, DESIGN, "default", image_size=(640, 480))
+    if model.startswith("relay"):
+        priors = "default" if model == "relay+priors" else None
+        return calibrate_relay(lm_u, lm_d, DESIGN, "default", image_size=(640, 480), priors=priors)
     spec = "paper+rotation" if model == "bc+rotation" else "paper"
     return calibrate(lm_u, lm_d, spec, image_size=(640, 480), rotation="none")
 
