@@ -11,7 +11,8 @@ Each calibration is made as the library makes it (:func:`oapcal.calibration.cali
 :func:`oapcal.optics.relay_model.calibrate_relay`, 640 x 480 px image) for ``paper``
 (Eq. 1's preset, no rotation), ``bc+rotation`` (the preset with the target's rotation),
 ``relay`` (the default subset) and ``relay+priors`` (the same with the default physical
-priors, a maximum a posteriori fit: its covariance is the posterior's).  At the 21 x 21 field points of the 1 mm grid the actual
+priors, a maximum a posteriori fit: its covariance is the posterior's).  At the 21 x 21
+field points of the 1 mm grid the actual
 error of the correction (``|undistort(traced point) - reference point|``) is compared with
 
 * ``covariance``: the fit's covariance propagated to the correction alone (what the
