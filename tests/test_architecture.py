@@ -15,7 +15,7 @@ LAYERS = [
     {"model", "_kernels", "_relay_kernel"},
     {"stats", "normalize", "synthetic", "uncertainty"},
     {"fitting"},
-    {"select", "subsampling", "calibration"},
+    {"select", "subsampling", "calibration", "error_model"},
     {"imaging", "optics", "families"},
     {"io"},
     {"batch"},

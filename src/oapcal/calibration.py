@@ -81,7 +81,9 @@ class Calibration:
     target's rotation too); they are printed, not stored in the file.  ``priors`` the
     priors of a maximum a posteriori fit
     (:meth:`oapcal.optics.relay_model.RelayPriors.to_dict`, with the noise used); None
-    without priors.
+    without priors.  ``error_model`` is the model floor and extrapolation measured on the
+    landmarks (:class:`oapcal.uncertainty.ErrorModel`, :mod:`oapcal.error_model`), None for
+    files written before it existed.
     """
 
     free: tuple[str, ...]
@@ -101,6 +103,7 @@ class Calibration:
     relay_design: dict | None = None
     notes: tuple[str, ...] = ()
     priors: dict | None = None
+    error_model: object | None = None
 
     @property
     def family(self) -> ModelFamily:
@@ -177,6 +180,7 @@ def calibrate(
     relay_design: dict | None = None,
     rotation: str = "auto",
     priors: dict | None = None,
+    error_model: bool = True,
     **fit_options,
 ) -> Calibration:
     """Fit ``model`` to reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``.
@@ -200,6 +204,9 @@ def calibrate(
 
     ``priors`` is recorded only (the priors of a maximum a posteriori relay fit, whose rows
     come in ``fit_options["prior"]``: :func:`oapcal.optics.relay_model.calibrate_relay`).
+
+    ``error_model`` (default True) also measures the model floor and the extrapolation
+    error on the landmarks (:func:`oapcal.error_model.estimate_error_model`: a few refits).
     """
     from scipy.spatial import ConvexHull, QhullError
 
@@ -227,6 +234,12 @@ def calibrate(
     lo = norm.xy_u.min(axis=0)
     hi = norm.xy_u.max(axis=0)
     init_name = init if isinstance(init, str) else "user"
+    errors = None
+    if error_model and result.converged:
+        from oapcal.error_model import estimate_error_model
+
+        mask = np.array([n in result.free for n in family_of(result.params).param_names])
+        errors = estimate_error_model(norm.xy_u, norm.xy_d, result.params, mask, **fit_options)
     return Calibration(
         free=result.free,
         params=np.array(result.params),
@@ -258,6 +271,7 @@ def calibrate(
         relay_design=relay_design,
         notes=notes,
         priors=priors,
+        error_model=errors,
     )
 
 

@@ -10,7 +10,8 @@
 5. **fit** the selected model to the detected pairs and score it as in the paper's
    Table 1, in px and um; compare the fitted model with the ray-traced truth;
 6. test the fit's **robustness** by refitting on random 90 % subsets;
-7. **correct** the image;
+7. **correct** the image where the correction is trusted (predicted error at most
+   :data:`oapcal.imaging.remap.DEFAULT_MAX_ERROR_PX`, as ``oapcal correct`` by default);
 8. write the **report**.
 
 Everything goes into one directory; :class:`DemoResult` lists the files and numbers.
@@ -101,7 +102,7 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
     will be (named in the calibration's ``source``)."""
     from oapcal.calibration import calibrate
     from oapcal.imaging.detect import detect_usaf, evaluate_detection
-    from oapcal.imaging.remap import correct_image, correction_map
+    from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX, correct_image, correction_map, trust_summary
     from oapcal.imaging.simulate import simulate_image
     from oapcal.io.calibration import save_calibration
     from oapcal.io.grid import write_grid_csv
@@ -189,7 +190,9 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
 
     # 7. the corrected image
     start("correct")
-    corrected = correct_image(image.image, correction_map(cal, image.image.shape[:2]), "cubic")
+    cmap = correction_map(cal, image.image.shape[:2], max_error_px=DEFAULT_MAX_ERROR_PX)
+    corrected = correct_image(image.image, cmap, "cubic")
+    trust = trust_summary(cal, cmap.geometry, DEFAULT_MAX_ERROR_PX, cmap.predicted_error)
     files["corrected image"] = out / "corrected.png"
     write_image(files["corrected image"], corrected)
 
@@ -218,7 +221,7 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
         detection=detection_summary,
         truth_error=truth_error,
         robustness=rob,
-        extra={"chosen": chosen},
+        extra={"chosen": chosen, "trust": trust},
     )
 
 

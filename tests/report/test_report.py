@@ -86,7 +86,9 @@ def test_report_is_self_contained_and_has_every_section(report, inputs):
     text = report_html.read_text()
     assert "<script" not in text and "http://" not in text and "https://" not in text
     images = re.findall(r'<img src="data:image/png;base64,([^"]+)"', text)
-    assert len(images) == 5  # residuals, field, uncertainty, before/after, ESF
+    assert (
+        len(images) == 6
+    )  # residuals, field, uncertainty, predicted error + trust region, before/after, ESF
     for b64 in images:
         png = base64.b64decode(b64)
         assert png[:8] == b"\x89PNG\r\n\x1a\n"

@@ -101,7 +101,7 @@ def demo_like_report(tmp_path_factory):
 def test_report_renders_without_errors_and_all_images_load(tmp_path, demo_like_report):
     result, console = probe(tmp_path, demo_like_report)
     assert result["errors"] == []
-    assert result["images"] == 5 and result["broken"] == 0
+    assert result["images"] == 6 and result["broken"] == 0  # with the predicted error and trust region
     assert console == []  # nothing at all on the page's console
 
 

@@ -374,6 +374,7 @@ def correct_stack(
     reserved: Sequence[tuple[str | Path, str]] = (),
     progress=None,
     output_format: str | None = None,
+    max_error_px: float | None = None,
 ) -> StackReport:
     """Correct every image and stack of ``inputs`` into ``out_dir`` (see the module doc).
 
@@ -388,7 +389,8 @@ def correct_stack(
     own format, are written as video.  ``progress(done, total, description)`` (optional) hears of
     every frame corrected (:mod:`oapcal.progress`).  Raises
     :class:`~oapcal.errors.OutputError` before writing anything when the output directory
-    is not allowed; per-file problems are results.
+    is not allowed; per-file problems are results.  ``max_error_px`` builds each map with
+    that trust region (:func:`~oapcal.imaging.remap.correction_map`).
     """
     files, failures, dirs = expand_inputs([str(p) for p in inputs])
     output_name(".", output_format)  # an unknown format is refused before any work
@@ -407,11 +409,13 @@ def correct_stack(
         extent=extent,
         um_per_px=um_per_px,
         out_size=out_size,
+        **({} if max_error_px is None else {"max_error_px": max_error_px}),
     )
     digest = correction_digest(
         calibration, cmap, interp=interp, border=float(border), extent=extent, um_per_px=um_per_px,
         out_size=None if out_size is None else list(out_size),
         **({} if output_format is None else {"output_format": output_format}),
+        **({} if max_error_px is None else {"max_error_px": max_error_px}),
     )  # fmt: skip
     jobs = []
     results: dict[int, FileResult] = {}

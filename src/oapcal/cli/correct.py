@@ -17,8 +17,94 @@ from oapcal.cli._common import (
 
 GEOMETRY_HELP = (
     "Output region: 'input' (default: the input's size and undistorted coordinates), 'full' "
-    "(the whole corrected field, nothing cut), 'calibrated' (the box of the calibration points)."
+    "(the whole corrected field, nothing cut), 'calibrated' (the box of the calibration points). "
+    "Given explicitly, 'input' writes the whole frame, beyond the trust region too (with a warning)."
 )
+MAX_ERROR_HELP = (
+    "Trust region: write only output pixels whose predicted error (the fit's covariance, the "
+    "model floor and the extrapolation measured on the landmarks) is at most this many output px; "
+    "the rest get --border. Default 1, unless --extent input is given (the whole frame)."
+)
+
+
+def trust_message(
+    summary: dict,
+    *,
+    masked: bool,
+    border: float | None = None,
+    hint: str = "leave --extent input out to write only the trust region",
+) -> str | None:
+    """The line a command prints about where its output extrapolates (``summary`` from
+    :func:`oapcal.imaging.remap.trust_summary`), or None when all of it lies within the
+    landmarks' hull and is trusted."""
+    w, h = summary["output_px"]
+    limit = summary["max_error_px"]
+    outside = summary["outside_fraction"]
+    far = summary["max_distance_px"]
+    worst = summary["max_predicted_px"]
+    trusted = summary["trusted_fraction"]
+    if outside > 0 and far is not None:
+        where = (
+            f"{100 * outside:.1f} % of the {w}x{h} px output lies beyond the landmarks' hull (up to "
+            f"{far:.0f} px from it), where the predicted error reaches {worst:.3g} px"
+        )
+    elif outside > 0:  # a calibration without a hull (possible only by editing its file)
+        where = (
+            f"the calibration records no hull of its landmarks, so all of the {w}x{h} px output counts "
+            f"as extrapolated; the predicted error reaches {worst:.3g} px"
+        )
+    else:
+        where = (
+            f"the {w}x{h} px output lies within the landmarks' hull; its predicted error reaches "
+            f"{worst:.3g} px"
+        )
+    old = "" if summary["has_error_model"] else (
+        " (this calibration has no error model, written by an older oapcal: the predicted error is the "
+        "fit's covariance alone, optimistic beyond the hull; refit to measure it)"
+    )  # fmt: skip
+    if masked:
+        if trusted is not None and trusted >= 1.0:
+            return None if outside == 0 else f"oapcal: {where}, within --max-error-px {limit:g}{old}"
+        return (
+            f"oapcal: trust region: {100 * trusted:.1f} % of the output has a predicted error of at most "
+            f"{limit:g} px and is corrected; the rest is written as the border value {border:g}: {where} "
+            f"(--max-error-px sets the threshold, --extent input writes the whole frame){old}"
+        )
+    if outside == 0 and (trusted is None or trusted >= 1.0):
+        return None
+    above = "" if trusted is None else f"; {100 * (1 - trusted):.1f} % of it is predicted above {limit:g} px"
+    return f"oapcal: warning: the whole output is corrected: {where}{above}; {hint}{old}"
+
+
+def points_trust_message(calibration, xy_c) -> str | None:
+    """The line ``correct-points`` (and any command correcting points) prints when corrected
+    points ``(N, 2)`` lie beyond the landmarks' hull: how many, how far, with what predicted
+    error (:func:`oapcal.uncertainty.extrapolation_report`); None when all lie within it."""
+    import numpy as np
+
+    from oapcal.uncertainty import extrapolation_report
+
+    xy_c = np.asarray(xy_c, float).reshape(-1, 2)
+    if not len(xy_c):
+        return None
+    with np.errstate(all="ignore"):
+        rep = extrapolation_report(calibration, xy_c)
+    if not rep["outside"]:
+        return None
+    worst = rep["max_predicted_outside_px"]
+    old = "" if getattr(calibration, "error_model", None) is not None else (
+        " (the calibration has no error model: the fit's covariance alone, optimistic beyond the hull; refit)"
+    )  # fmt: skip
+    far = (
+        " (the calibration records no hull)"
+        if rep["max_distance_px"] is None
+        else (f" (up to {rep['max_distance_px']:.0f} px from it)")
+    )
+    return (
+        f"oapcal: {rep['outside']} of {rep['n']} corrected points lie beyond the landmarks' hull{far}: the "
+        f"model extrapolates there; predicted error {rep['median_predicted_outside_px']:.3g} px median, "
+        f"{worst:.3g} px max{old}"
+    )
 
 
 def geometry_options(func):
@@ -72,6 +158,12 @@ def geometry_options(func):
 )
 @geometry_options
 @click.option(
+    "--max-error-px",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help=MAX_ERROR_HELP,
+)
+@click.option(
     "--save-map",
     type=click.Path(dir_okay=False),
     default=None,
@@ -121,15 +213,20 @@ def geometry_options(func):
 @click.option("--json", "as_json", is_flag=True, help="Print the per-file results as one JSON object.")
 @allow_unconverged_option
 def correct_command(
-    calib, inputs, out_dir, interp, border, workers, extent, um_per_px, out_size, save_map, map_file,
-    allow_size_mismatch, max_pixels, overwrite, use_dask, scheduler, chunk_frames, dask_format, quiet,
-    as_json, allow_unconverged,
+    calib, inputs, out_dir, interp, border, workers, extent, um_per_px, out_size, max_error_px, save_map,
+    map_file, allow_size_mismatch, max_pixels, overwrite, use_dask, scheduler, chunk_frames, dask_format,
+    quiet, as_json, allow_unconverged,
 ):  # fmt: skip
     """Correct images with a calibration: files, multi-page TIFF stacks, directories, globs.
 
     Each INPUT is written to OUT_DIR under its own name and format, atomically; complete
     outputs are skipped on a rerun. Unreadable inputs are reported and skipped; the exit
     code is then 4.
+
+    By default only the trust region is written: output pixels whose predicted error is at
+    most --max-error-px (1 px); the others get --border, and the command says how much of
+    the output that is and how far it lies beyond the landmarks. --extent input (given
+    explicitly) writes the whole frame, with a warning.
     """
     from pathlib import Path
 
@@ -141,8 +238,18 @@ def correct_command(
         raise click.UsageError("give --out-dir DIR for the corrected images")
     if map_file and (extent != "input" or um_per_px or out_size):
         raise click.UsageError("--map fixes the output geometry: drop --extent, --um-per-px and --out-size")
+    ctx = click.get_current_context()
+    if map_file and max_error_px is not None:
+        raise click.UsageError(
+            "--map holds its own output (and trust region, if built with one): drop --max-error-px"
+        )
+    whole = extent == "input" and ctx.get_parameter_source("extent") != click.core.ParameterSource.DEFAULT
+    from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
+
+    limit = (
+        max_error_px if max_error_px is not None else (None if whole or map_file else DEFAULT_MAX_ERROR_PX)
+    )
     if not use_dask:
-        ctx = click.get_current_context()
         for option in ("scheduler", "chunk_frames", "dask_format"):
             if ctx.get_parameter_source(option) != click.core.ParameterSource.DEFAULT:
                 flag = "--" + option.replace("_", "-")
@@ -163,9 +270,17 @@ def correct_command(
     cal = load_usable_calibration(calib, allow_unconverged)
     name = cal.name or Path(calib).name
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
-    cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels)
+    # the sequential path builds a trust-region map per input size itself; --dask gets one map
+    prebuild = limit if (use_dask or save_map) else None
+    cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels, prebuild)
     if inputs:
         _check_samples(cal, cmap, plan[0], geometry, max_pixels)
+    if use_dask:  # a missing extra is one clear error, before anything else is said
+        from oapcal.extras import EXTRAS, require
+
+        for module in EXTRAS["dask"]:
+            require(module, "dask")
+    trust = _trust(cal, cmap, plan[0] if plan else [], geometry, max_pixels, limit, border)
     if not inputs:
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
         return 0
@@ -177,10 +292,10 @@ def correct_command(
             output_format=dask_format, chunk_frames=chunk_frames, interp=interp, border=border,
             allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, scheduler=scheduler,
             workers=workers, calibration_name=name, overwrite=overwrite,
-            progress=update, **({} if map_file else geometry),
+            progress=update, **({} if cmap is not None else geometry),
         )  # fmt: skip
         with bar:
-            return _correct_dask(cal, plan, out_dir, cmap if map_file else None, map_file, settings, as_json)
+            return _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json, trust)
     from oapcal.batch.stack import correct_stack
 
     bar, update = progress_bar("correcting", enabled=not (quiet or as_json))
@@ -191,9 +306,10 @@ def correct_command(
             calibration_name=name, protect=[calib] + ([map_file] if map_file else []),
             reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
             progress=update, **({} if cmap else geometry),
+            max_error_px=None if cmap is not None or map_file else limit,
         )  # fmt: skip
     results = [_result(r) for r in report.results]
-    return _finish(results, report.summary(), report.count("failed"), as_json)
+    return _finish(results, report.summary(), report.count("failed"), as_json, trust)
 
 
 def _result(r) -> dict:
@@ -228,9 +344,10 @@ def _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map):
     return files, failures, outputs
 
 
-def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels):
-    """The map given by --map, or built for --save-map (for the calibration's image size or
-    the first input's), or None (built per input size while correcting)."""
+def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels, limit=None):
+    """The map given by --map, or built for --save-map or a trust region (``limit``, the
+    --max-error-px in effect; for the calibration's image size or the first input's), or
+    None (built per input size while correcting)."""
     from oapcal.errors import DataError
     from oapcal.imaging.remap import correction_map
     from oapcal.io.maps import load_map
@@ -238,7 +355,7 @@ def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels):
 
     if map_file:
         cmap = load_map(map_file, max_pixels=max_pixels)
-    elif save_map:
+    elif save_map or limit is not None:
         shape = None
         if cal.image_size:
             shape = (cal.image_size[1], cal.image_size[0])
@@ -249,20 +366,73 @@ def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels):
                     "--max-pixels if the camera is really this large)"
                 )
         elif files:
+            from oapcal.errors import OapcalError
             from oapcal.io.images import probe
 
-            shape = probe(files[0], max_pixels).frame_shape[:2]
+            try:
+                shape = probe(files[0], max_pixels).frame_shape[:2]
+            except (OapcalError, OSError):
+                if save_map:
+                    raise
+                return None  # reported with that file; the trust region is then built per input size
         if shape is None:
+            if not save_map:
+                return None
             raise DataError(
                 "--save-map needs the input image size: refit with 'oapcal fit --image-size WxH' "
                 "or give an input image"
             )
-        cmap = correction_map(cal, shape, **geometry)
+        cmap = correction_map(cal, shape, **geometry, max_error_px=limit)
     else:
         return None
     if save_map:
         write_map(cmap, save_map)
     return cmap
+
+
+def _trust(cal, cmap, files, geometry, max_pixels, limit, border) -> dict | None:
+    """Say on stderr how far the output lies beyond the landmarks' hull and with what
+    predicted error (:func:`trust_message`); the summary for --json, or None when the output
+    size is unknown."""
+    from oapcal.errors import DataError
+    from oapcal.imaging.remap import output_geometry, trust_summary
+
+    hint = "leave --extent input out to write only the trust region"
+    if cmap is not None:
+        geo, predicted = cmap.geometry, cmap.predicted_error
+        limit = cmap.max_error_px if cmap.max_error_px is not None else limit
+        masked = cmap.predicted_error is not None
+        if cmap.predicted_error is None:  # a --map file
+            hint = "a map saved by 'oapcal correct --save-map' without --extent input holds the trust region"
+    else:
+        shape = (cal.image_size[1], cal.image_size[0]) if cal.image_size else None
+        if shape is None and files:
+            from oapcal.errors import OapcalError
+            from oapcal.io.images import probe
+
+            try:
+                shape = probe(files[0], max_pixels).frame_shape[:2]
+            except (OapcalError, OSError):
+                return None
+        if shape is None:
+            return None
+        try:
+            geo = output_geometry(cal, shape, **geometry)
+        except DataError:
+            return None
+        predicted, masked = None, limit is not None
+        if masked:  # the trust region as correct_stack builds it, for the share written
+            from oapcal.imaging.remap import predicted_error_map
+
+            predicted = predicted_error_map(cal, geo)
+    from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
+
+    summary = trust_summary(cal, geo, limit if limit is not None else DEFAULT_MAX_ERROR_PX, predicted)
+    summary["masked"] = masked
+    line = trust_message(summary, masked=masked, border=border, hint=hint)
+    if line:
+        click.echo(line, err=True)
+    return summary
 
 
 def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
@@ -296,7 +466,7 @@ def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
     check_model_samples(cal, shape, geometry)
 
 
-def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json):
+def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json, trust=None):
     """Correct each planned stack with Dask on one scheduler; ``cmap`` is the --map or None
     (a map built per stack size)."""
     import logging
@@ -349,16 +519,18 @@ def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json):
     summary = (
         f"{n_done} corrected ({frames} frames), {n_skip} skipped (complete output exists), {n_failed} failed"
     )
-    return _finish(results, summary, n_failed, as_json)
+    return _finish(results, summary, n_failed, as_json, trust)
 
 
-def _finish(results, summary, n_failed, as_json) -> int:
-    """Report failures on stderr, the summary on stdout; exit 4 if any input failed."""
+def _finish(results, summary, n_failed, as_json, trust=None) -> int:
+    """Report failures on stderr, the summary on stdout; exit 4 if any input failed.  With
+    --json the object also holds ``trust`` (:func:`oapcal.imaging.remap.trust_summary`, and
+    ``masked``: whether only the trust region was written)."""
     for r in results:
         if r["status"] == "failed":
             click.echo(f"oapcal: error: {r['message']}", err=True)
     if as_json:
-        print_json({"results": results, "summary": summary, "failed": n_failed})
+        print_json({"results": results, "summary": summary, "failed": n_failed, "trust": trust})
     else:
         console().print(summary)
     return 4 if n_failed else 0

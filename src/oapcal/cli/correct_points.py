@@ -129,6 +129,10 @@ def _correct_table(calib, points, out, preset, units, table_um_per_px, allow_unc
             err=True,
         )
     _warn_unconverged(int((present & ~converged).sum()), int(present.sum()), None)
+    from oapcal.io.tables import table_scale
+
+    _say_trust(cal, xy_c[present & converged] / table_scale(cal, units, table_um_per_px)[1]
+               - (0.5 if origin == "corner" else 0.0))  # fmt: skip
     return 0
 
 
@@ -150,7 +154,17 @@ def _correct_pairs(calib, points, out, allow_unconverged) -> int:
         rows.append(row)
     write_points(out, fields, rows)
     _warn_unconverged(int((~inverse.converged).sum()), len(rows), int(inverse.folded.sum()))
+    _say_trust(cal, inverse.xy[inverse.converged])
     return 0
+
+
+def _say_trust(cal, xy_c_px) -> None:
+    """Say how far beyond the landmarks' hull the corrected points (px) lie, if any do."""
+    from oapcal.cli.correct import points_trust_message
+
+    line = points_trust_message(cal, xy_c_px)
+    if line:
+        click.echo(line, err=True)
 
 
 def _warn_unconverged(n_bad: int, n: int, n_folded: int | None) -> None:

@@ -75,6 +75,16 @@ def demo_command(out_dir, seed, trials, no_report):
                 f"   {m.name}: not converged {m.not_converged} of {m.trials}; held-out mean error "
                 f"{m.heldout_mean_error:.3f} px"
             )
+    trust = result.extra.get("trust")
+    if trust:
+        out.print(
+            f"[bold]7. Correction:[/bold] trusted (predicted error <= {trust['max_error_px']:g} px) in "
+            f"{100 * trust['trusted_fraction']:.0f} % of the frame; the landmarks cover "
+            f"{100 * (1 - trust['outside_fraction']):.0f} %, and the frame reaches "
+            f"{trust['max_distance_px']:.0f} px beyond their hull (predicted error up to "
+            f"{trust['max_predicted_px']:.3g} px); the rest of corrected.png is black (the report shows "
+            "the trust region)"
+        )
     for label, path in result.files.items():
         click.echo(sanitize(f"wrote {label}: {path}"))
     return 0

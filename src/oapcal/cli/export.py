@@ -21,6 +21,22 @@ def _check_size(size, what) -> None:
         )
 
 
+def _say_trust(cal, geometry) -> None:
+    """Say on stderr how far the exported correction reaches beyond the landmarks' hull and
+    with what predicted error: OpenCV corrects the whole frame, trust region or not."""
+    from oapcal.cli.correct import trust_message
+    from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX, trust_summary
+
+    summary = trust_summary(cal, geometry, DEFAULT_MAX_ERROR_PX)
+    line = trust_message(
+        summary, masked=False,
+        hint="OpenCV corrects the whole frame; 'oapcal correct' writes only where the predicted error "
+        f"is at most {DEFAULT_MAX_ERROR_PX:g} px ('oapcal correct --save-map' writes that map)",
+    )  # fmt: skip
+    if line:
+        click.echo(line, err=True)
+
+
 #: The longest image side accepted (the pixel count is limited too).
 MAX_SIDE = 2**20
 
@@ -80,6 +96,7 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, a
         )
         return 3
     save_opencv(export, out, cal.name or Path(calib).name)
+    _say_trust(cal, geometry)
     w, h = export["new_image_size"]
     if family is BROWN_CONRADY:
         click.echo(f"wrote {out}: pass new_image_size {w}x{h} to cv2.initUndistortRectifyMap")

@@ -40,6 +40,15 @@ MAX_GROWTH = 16
 #: The smallest output side (px): an output geometry that collapses below it (a huge
 #: --um-per-px, a degenerate region) is refused, as --out-size under 2x2 is.
 MIN_OUTPUT_SIDE = 2
+#: The default largest predicted error (px) of a written output pixel (``oapcal correct
+#: --max-error-px``): beyond it the trust region ends and the pixel gets the border value.
+DEFAULT_MAX_ERROR_PX = 1.0
+#: Samples of the predicted error along the output's longer side (interpolated between):
+#: the error is smooth, and the relay's parameter Jacobian costs central differences.
+ERROR_SAMPLES = {"analytic": 160, "finite-difference": 64}
+#: Map value given to output pixels outside the trust region: far enough outside any input
+#: that every interpolation kernel (Lanczos reaches 4 px) samples only the border.
+MASKED = -64.0
 #: A map is refused (:class:`EmptyMapError`) when fewer than this fraction of its output
 #: pixels take their value from inside the input image: 0.1 %, far below what any allowed
 #: output geometry of a usable calibration gives (at least 1 / MAX_GROWTH).
@@ -277,12 +286,17 @@ class CorrectionMap:
 
     ``input_shape`` is the ``(rows, cols)`` of the distorted images the map expects, or
     None when unknown (a map loaded from a ``.npy`` or ``.tiff`` file).
+    ``predicted_error`` ``(rows, cols)`` float32 is the predicted 1-sigma error of every
+    output pixel (:func:`predicted_error_map`) when the map was built with
+    ``max_error_px``, which it then holds: the pixels above it sample nothing (the border).
     """
 
     map_x: np.ndarray
     map_y: np.ndarray
     geometry: OutputGeometry
     input_shape: tuple[int, int] | None = None
+    predicted_error: np.ndarray | None = None
+    max_error_px: float | None = None
 
     def __iter__(self):
         return iter((self.map_x, self.map_y))
@@ -290,6 +304,116 @@ class CorrectionMap:
     @property
     def shape(self) -> tuple[int, int]:
         return self.map_x.shape
+
+    @property
+    def trusted(self) -> np.ndarray | None:
+        """``(rows, cols)`` bool: the trust region (None for a map built without it)."""
+        if self.predicted_error is None or self.max_error_px is None:
+            return None
+        return np.isfinite(self.predicted_error) & (self.predicted_error <= self.max_error_px)
+
+
+def predicted_error_map(calibration, geometry: OutputGeometry, *, samples: int | None = None) -> np.ndarray:
+    """The predicted 1-sigma error (:func:`oapcal.uncertainty.predicted_error`) of every
+    output pixel of ``geometry``, in output px (the calibration's reference units over
+    ``geometry.scale``), ``float32 (rows, cols)``: computed on a grid of ``samples`` points
+    along the longer side (default :data:`ERROR_SAMPLES`) and interpolated linearly in
+    between; inf where the map folds."""
+    from scipy.ndimage import map_coordinates
+
+    from oapcal.uncertainty import predicted_error
+
+    params = _params_of(calibration)
+    family = family_of(params)
+    if samples is None:
+        samples = ERROR_SAMPLES["analytic" if family.analytic_jacobian else "finite-difference"]
+    rows, cols = geometry.shape
+    n = max(rows, cols)
+    step = max(1.0, (n - 1) / max(samples - 1, 1))
+    ny = int(np.ceil((rows - 1) / step)) + 1
+    nx = int(np.ceil((cols - 1) / step)) + 1
+    cx = np.minimum(np.arange(nx) * step, cols - 1)
+    cy = np.minimum(np.arange(ny) * step, rows - 1)
+    gx, gy = np.meshgrid(geometry.x0 + geometry.scale * cx, geometry.y0 + geometry.scale * cy)
+    with np.errstate(all="ignore"):
+        coarse = predicted_error(np.stack([gx, gy], -1), calibration)
+    coarse = np.where(np.isfinite(coarse), coarse / geometry.scale, np.inf)
+    out = np.empty((rows, cols), np.float32)
+    cols_f = np.interp(np.arange(cols, dtype=float), cx, np.arange(nx, dtype=float))
+    for lo in range(0, rows, SPLINE_ROWS):
+        r = np.arange(lo, min(lo + SPLINE_ROWS, rows), dtype=float)
+        rows_f = np.interp(r, cy, np.arange(ny, dtype=float))
+        ri, ci = np.meshgrid(rows_f, cols_f, indexing="ij")
+        with np.errstate(invalid="ignore"):
+            out[lo : lo + len(r)] = map_coordinates(coarse, [ri, ci], order=1, mode="nearest")
+    out[~np.isfinite(out)] = np.inf
+    return out
+
+
+def trust_summary(
+    calibration,
+    geometry: OutputGeometry,
+    max_error_px: float | None = None,
+    predicted: np.ndarray | None = None,
+) -> dict:
+    """Where the output of ``geometry`` extrapolates, and how well it is predicted: on a grid
+    of at most :data:`ERROR_SAMPLES` points along the longer side, ``{"output_px",
+    "outside_fraction", "max_distance_px", "max_predicted_px", "median_predicted_outside_px",
+    "max_error_px", "trusted_fraction", "has_error_model"}`` (distances and errors in
+    output px; ``trusted_fraction`` the share with a predicted error of
+    at most ``max_error_px``, from ``predicted`` when given, None without a threshold)."""
+    from oapcal.uncertainty import extrapolation_report
+
+    rows, cols = geometry.shape
+    n = max(ERROR_SAMPLES["finite-difference"], 2)
+    step = max(1.0, (max(rows, cols) - 1) / (n - 1))
+    cx = np.unique(np.minimum(np.arange(int(np.ceil((cols - 1) / step)) + 1) * step, cols - 1))
+    cy = np.unique(np.minimum(np.arange(int(np.ceil((rows - 1) / step)) + 1) * step, rows - 1))
+    gx, gy = np.meshgrid(geometry.x0 + geometry.scale * cx, geometry.y0 + geometry.scale * cy)
+    with np.errstate(all="ignore"):
+        rep = extrapolation_report(calibration, np.stack([gx.ravel(), gy.ravel()], -1))
+    trusted = None
+    coarse = np.asarray(rep.pop("predicted")) / geometry.scale
+    if max_error_px is not None:
+        if predicted is not None:
+            trusted = float((np.isfinite(predicted) & (predicted <= max_error_px)).mean())
+        else:
+            trusted = float(np.mean(coarse <= max_error_px))
+
+    def px(v):
+        return None if v is None else float(v) / geometry.scale
+
+    return {
+        "output_px": [int(cols), int(rows)],
+        "outside_fraction": rep["outside"] / max(rep["n"], 1),
+        "max_distance_px": px(rep["max_distance_px"]),
+        "max_predicted_px": px(rep["max_predicted_px"]),
+        "median_predicted_outside_px": px(rep["median_predicted_outside_px"]),
+        "max_error_px": max_error_px,
+        "trusted_fraction": trusted,
+        "has_error_model": getattr(calibration, "error_model", None) is not None,
+    }
+
+
+def mask_untrusted(cmap: CorrectionMap, predicted: np.ndarray, max_error_px: float) -> CorrectionMap:
+    """``cmap`` with every output pixel whose ``predicted`` error exceeds ``max_error_px``
+    sampling nothing (it gets the border value), and the error and threshold kept.
+    Raises :class:`DataError` when no pixel is trusted."""
+    if not max_error_px > 0:
+        raise DataError(f"max_error_px must be positive, got {max_error_px}", param="max_error_px")
+    trusted = np.isfinite(predicted) & (predicted <= max_error_px)
+    if trusted.mean() < MIN_SAMPLED_FRACTION:
+        raise DataError(
+            f"{'no' if not trusted.any() else 'almost no'} output pixel (under {MIN_SAMPLED_FRACTION:.1%}) "
+            f"has a predicted error of {max_error_px:g} px or less (the smallest is "
+            f"{float(np.nanmin(predicted)):.3g} px): the calibration does not support a correction this "
+            "accurate here; raise max_error_px, or give max_error_px=None for the whole output",
+            param="max_error_px",
+        )
+    map_x = np.where(trusted, cmap.map_x, np.float32(MASKED)).astype(np.float32)
+    map_y = np.where(trusted, cmap.map_y, np.float32(MASKED)).astype(np.float32)
+    return CorrectionMap(map_x, map_y, cmap.geometry, cmap.input_shape, predicted.astype(np.float32),
+                         float(max_error_px))  # fmt: skip
 
 
 def correction_map(
@@ -302,6 +426,7 @@ def correction_map(
     geometry: OutputGeometry | None = None,
     check: bool = True,
     allow_size_mismatch: bool = False,
+    max_error_px: float | None = None,
 ) -> CorrectionMap:
     """The correction map for distorted images of ``shape = (rows, cols)``.
 
@@ -317,6 +442,12 @@ def correction_map(
     ``image_size`` other than ``shape`` raises :class:`DataError` unless
     ``allow_size_mismatch`` (as ``oapcal correct`` refuses it without
     ``--allow-size-mismatch``).
+
+    ``max_error_px`` (default None: every output pixel) builds the **trust region**: output
+    pixels whose predicted error (:func:`predicted_error_map`) exceeds it sample nothing
+    and get the border value when the map is applied; the map keeps ``predicted_error``.
+    ``oapcal correct`` builds its maps with :data:`DEFAULT_MAX_ERROR_PX` unless told
+    otherwise.
     """
     params = _params_of(calibration_or_params)
     cal_size = getattr(calibration_or_params, "image_size", None)
@@ -350,7 +481,16 @@ def correction_map(
         _grid_map(params, family, xs, ys, out_x, out_y)
     if check:
         check_map_samples((out_x, out_y), shape)
-    return CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
+    cmap = CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
+    if max_error_px is not None:
+        if isinstance(calibration_or_params, np.ndarray) or not hasattr(calibration_or_params, "covariance"):
+            raise DataError(
+                "a trust region (max_error_px) needs a calibration, with its covariance: bare parameters "
+                "know no uncertainty",
+                param="max_error_px",
+            )
+        cmap = mask_untrusted(cmap, predicted_error_map(calibration_or_params, geometry), max_error_px)
+    return cmap
 
 
 def _grid_map(params, family, xs, ys, out_x, out_y) -> None:

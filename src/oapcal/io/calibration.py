@@ -16,7 +16,9 @@ Layout (``docs/file-formats.md`` has an annotated example)::
      "um_per_px": S or null, "image_size": [width, height] or null,
      "bounds": [x_min, y_min, x_max, y_max] of the reference points, or null,
      "hull": convex hull of the reference points [[x, y], ...], or null,
-     "priors": the priors of a maximum a posteriori relay fit (only then)}
+     "priors": the priors of a maximum a posteriori relay fit (only then),
+     "error_model": {"floor_px", "noise_px", "extrapolation", "ramp_px", ...} (optional:
+                    oapcal.uncertainty.ErrorModel; files without it load, with None)}
 
 Version 1 (no ``model_family``: Eq. 1) is still read.  Non-finite numbers are written as
 null.  On reading, every number must be finite (NaN, Infinity and numbers too large for
@@ -44,6 +46,7 @@ from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
 from oapcal.io.userfile import read_json
 from oapcal.model import BROWN_CONRADY, FAMILIES, RELAY_FAMILIES
+from oapcal.uncertainty import ErrorModel
 
 __all__ = [
     "CHECK_GRID",
@@ -103,6 +106,7 @@ def calibration_to_dict(calibration: Calibration) -> dict:
             "hull": np.asarray(calibration.hull).tolist() if calibration.hull is not None else None,
             # written only for a fit with priors: other files are as before
             **({"priors": calibration.priors} if calibration.priors is not None else {}),
+            **({"error_model": calibration.error_model.to_dict()} if calibration.error_model else {}),
         }
     )
 
@@ -188,6 +192,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         created_utc=data.get("created_utc", "unknown"),
         relay_design=data.get("relay_design"),
         priors=data.get("priors"),
+        error_model=ErrorModel.from_dict(data.get("error_model")),
     )
     check_model_region(cal, source=source)
     return cal

@@ -476,8 +476,25 @@ class FitWidget(_OapcalWidget):
         }
         state = "converged" if cal.fit.converged else f"did NOT converge ({cal.fit.message})"
         notes = "".join(f"; {note}" for note in cal.notes)
+        trust = _trust_words(cal)
         self._set_status(f"{cal.fit.n_points} pairs, model {', '.join(cal.free)}: {state}; "
-                         f"mean residual {cal.residuals.mean_px:.3g} px{notes}")  # fmt: skip
+                         f"mean residual {cal.residuals.mean_px:.3g} px{notes}{trust}")  # fmt: skip
+
+
+def _trust_words(cal) -> str:
+    """``"; predicted error <= 1 px over 26 % of the image (floor ..., extrapolation x...)"``:
+    the calibration's trust region over its image (empty without an image size)."""
+    from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
+    from oapcal.uncertainty import uncertainty_map
+
+    if not cal.image_size or not cal.fit.converged:
+        return ""
+    w, h = cal.image_size
+    umap = uncertainty_map(cal, (h, w), step=max(1, max(w, h) // 64))
+    share = float(umap.trusted(DEFAULT_MAX_ERROR_PX).mean())
+    em = cal.error_model
+    how = "" if em is None else f" (floor {em.floor_px:.2g} px, extrapolation x{em.extrapolation:.2g})"
+    return f"; predicted error <= {DEFAULT_MAX_ERROR_PX:g} px over {100 * share:.0f} % of the image{how}"
 
 
 class CorrectWidget(_OapcalWidget):
@@ -495,6 +512,10 @@ class CorrectWidget(_OapcalWidget):
         self.file = FileEdit(label="or file", mode="r", filter="*.json", value="")
         self.interp = ComboBox(label="interpolation", choices=list(INTERPOLATIONS), value="cubic")
         self.show_uncertainty = CheckBox(label="uncertainty map", value=True)
+        self.trust_only = CheckBox(label="only the trust region", value=False)
+        self.max_error = FloatSpinBox(
+            label="max predicted error (px)", value=1.0, min=0.01, max=1e4, step=0.1
+        )
         self.show_hull = CheckBox(label="calibration hull", value=True)
         self.allow_unconverged = CheckBox(label="allow an unconverged fit", value=False)
         self.button = PushButton(text="Correct")
@@ -502,8 +523,9 @@ class CorrectWidget(_OapcalWidget):
         self.save_button = PushButton(text="Save calibration")
         self.button.changed.connect(self.run)
         self.save_button.changed.connect(self.save)
-        widgets = [self.image, self.source, self.file, self.interp, self.show_uncertainty, self.show_hull,
-                   self.allow_unconverged, self.button, self.save_path, self.save_button]  # fmt: skip
+        widgets = [self.image, self.source, self.file, self.interp, self.show_uncertainty, self.trust_only,
+                   self.max_error, self.show_hull, self.allow_unconverged, self.button, self.save_path,
+                   self.save_button]  # fmt: skip
         super().__init__(napari_viewer, widgets)
 
     def _calibrations(self, _w=None):
@@ -554,9 +576,11 @@ class CorrectWidget(_OapcalWidget):
             return
         interp = self.interp.value
         want_unc, want_hull = self.show_uncertainty.value, self.show_hull.value
+        limit = float(self.max_error.value)
+        trust_only = bool(self.trust_only.value)
 
         def work():
-            cmap = oapcal.correction_map(cal, shape)
+            cmap = oapcal.correction_map(cal, shape, max_error_px=limit if trust_only else None)
             if data.ndim == spatial:
                 corrected = oapcal.correct_image(np.asarray(data), cmap, interp)
             else:
@@ -581,12 +605,36 @@ class CorrectWidget(_OapcalWidget):
                           "blending": "additive", "scale": (UNCERTAINTY_STEP, UNCERTAINTY_STEP),
                           "metadata": {L.CALIBRATION: cal, "summary": unc.summary()}}  # fmt: skip
                 _replace_layer(self.viewer, (sigma.astype(np.float32), kwargs, "image"))
+                pred = unc.predicted_px if unc.um_per_px is None else unc.predicted_px * unc.um_per_px
+                kwargs = {
+                    **kwargs,
+                    "name": f"predicted error ({unit})",
+                    "colormap": "viridis",
+                    "visible": False,
+                }
+                _replace_layer(self.viewer, (pred.astype(np.float32), kwargs, "image"))
+                trusted = unc.trusted(limit).astype(np.uint8)
+                region = {
+                    "name": f"trust region (<= {limit:g} px)",
+                    "opacity": 0.25,
+                    "scale": (UNCERTAINTY_STEP, UNCERTAINTY_STEP),
+                    "metadata": {L.CALIBRATION: cal},
+                }
+                _replace_layer(self.viewer, (trusted, region, "labels"))
             if want_hull:
                 hull = L.hull_layer(cal)
                 if hull is not None:
                     _replace_layer(self.viewer, hull)
             lazy = " (lazy: frames are corrected when shown)" if data.ndim > spatial else ""
-            self._set_status(f"corrected {layer.name}{lazy}")
+            trust = ""
+            if unc is not None:
+                share = float(unc.trusted(limit).mean())
+                written = "only it written" if trust_only else "the whole frame written"
+                trust = (
+                    f"; trust region (predicted error <= {limit:g} px): {100 * share:.0f} % of the frame, "
+                    f"{written}"
+                )
+            self._set_status(f"corrected {layer.name}{lazy}{trust}")
 
         self._run("correct", work, done)
 

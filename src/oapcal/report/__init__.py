@@ -509,6 +509,51 @@ def _uncertainty_html(umap, s: dict, plots) -> str:
         H.png_figure(png, "uncertainty map", "1-sigma positional uncertainty of the correction.")
         + H.table(headers, rows, "1-sigma positional uncertainty")
         + H.paragraph(text)
+        + _trust_html(umap, s, plots)
+    )
+
+
+def _trust_html(umap, s: dict, plots) -> str:
+    """The predicted error (covariance, model floor, extrapolation) and the trust region."""
+    from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
+    from oapcal.uncertainty import TRUST_LEVELS_PX
+
+    if umap.predicted_px is None:
+        return ""
+    png = plots.figure_png(plots.predicted_error_figure(umap, DEFAULT_MAX_ERROR_PX))
+    rows = [
+        [f"{region} the hull", s.get(f"{region}_predicted_median_px"), s.get(f"{region}_predicted_max_px")]
+        for region in ("inside", "outside")
+    ]
+    shares = [
+        [f"{limit:g} px", f"{100 * s[f'trusted_fraction_{limit:g}px']:.1f} %"] for limit in TRUST_LEVELS_PX
+    ]
+    em = umap.error_model
+    if em is None:
+        how = (
+            "This calibration has no error model (a file written before oapcal measured one): the "
+            "predicted error is the covariance alone, optimistic beyond the hull. Refit to measure it."
+        )
+    else:
+        how = (
+            "Predicted error = the covariance above, inflated where the model extrapolates, with the "
+            f"model floor added, both measured on the landmarks: floor {em.floor_px:.3g} px (the part "
+            f"of the residuals neighbouring landmarks share; uncorrelated noise {em.noise_px:.3g} px), "
+            f"extrapolation factor {em.extrapolation:.3g} (the worst of {em.sides_used} refits that each "
+            "left one side of the landmarks out and predicted it), growing as "
+            f"(1 + d/R)^{em.growth_exponent:g} beyond {em.probed_distance:.2f} hull radii. "
+            "'oapcal correct' writes only the trust region, where the predicted error is at most "
+            f"{DEFAULT_MAX_ERROR_PX:g} px by default (outlined in red; docs/correct.md)."
+        )
+    return (
+        H.png_figure(
+            png,
+            "predicted error and trust region",
+            "Predicted 1-sigma error of the correction and the trust region.",
+        )  # fmt: skip
+        + H.table(["region", "predicted median [px]", "predicted max [px]"], rows, "Predicted 1-sigma error")
+        + H.table(["max predicted error", "share of the frame trusted"], shares, "The trust region")
+        + H.paragraph(how)
     )
 
 

@@ -153,6 +153,46 @@ def uncertainty_figure(umap):
     return fig
 
 
+def predicted_error_figure(umap, max_error_px: float = 1.0):
+    """The predicted 1-sigma error of the correction (covariance, model floor and
+    extrapolation: :func:`oapcal.uncertainty.predicted_error`) on a log scale, with the
+    trust region's border (predicted error = ``max_error_px``) and the landmarks' hull."""
+    from matplotlib.colors import LogNorm
+
+    fig = _figure(7.5, 5.6)
+    ax = fig.add_subplot()
+    pred = umap.sigma_px if umap.predicted_px is None else umap.predicted_px
+    step_x = umap.x[1] - umap.x[0] if len(umap.x) > 1 else 1.0
+    step_y = umap.y[1] - umap.y[0] if len(umap.y) > 1 else 1.0
+    extent = (
+        umap.x[0] - step_x / 2,
+        umap.x[-1] + step_x / 2,
+        umap.y[-1] + step_y / 2,
+        umap.y[0] - step_y / 2,
+    )
+    finite = pred[np.isfinite(pred) & (pred > 0)]
+    lo = float(finite.min()) if finite.size else 1e-3
+    hi = float(finite.max()) if finite.size else 1.0
+    lo, hi = min(lo, max_error_px / 10), max(hi, max_error_px * 10)
+    shown = np.clip(np.where(np.isfinite(pred), pred, hi), lo, hi)
+    im = ax.imshow(shown, cmap="viridis", norm=LogNorm(lo, hi), extent=extent, interpolation="nearest")
+    _colorbar(fig, im, ax, "predicted 1-sigma error [px]", umap.um_per_px)
+    trusted = umap.trusted(max_error_px)
+    if min(pred.shape) >= 2 and trusted.any() and not trusted.all():
+        ax.contour(umap.x, umap.y, trusted.astype(float), levels=[0.5], colors="red", linewidths=1.6)
+        ax.contourf(umap.x, umap.y, (~trusted).astype(float), levels=[0.5, 1.5], colors="none", hatches=["/"])
+        ax.plot([], [], color="red", lw=1.6, label=f"trust region: predicted error <= {max_error_px:g} px")
+    _hull_outline(ax, umap.hull, color="white", label="hull of the calibration points")
+    ax.legend(loc="lower right", fontsize=8, framealpha=0.7)
+    rows = int(round(umap.y[-1] + step_y / 2 + 0.5))
+    cols = int(round(umap.x[-1] + step_x / 2 + 0.5))
+    _image_axes(ax, umap.um_per_px, (rows, cols))
+    ax.set_title(
+        f"Where the correction is trusted: {100 * trusted.mean():.0f} % of the frame at {max_error_px:g} px"
+    )
+    return fig
+
+
 def before_after_figure(before, after, check_before, check_after, um_per_px=None):
     """The image before and after correction with the fitted edge lines coloured by their
     RMS deviation from straight, and the boxes of the aspect-ratio checks."""

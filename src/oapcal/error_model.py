@@ -1,0 +1,152 @@
+"""The error a calibration's covariance cannot see, measured on its own landmarks.
+
+The fit's covariance (:mod:`oapcal.uncertainty`) is the error of the parameters *if the
+model were exact*.  Two things it misses, both measured here and kept in the calibration
+as an :class:`~oapcal.uncertainty.ErrorModel`:
+
+* **The model floor** ``F``: what the model cannot fit.  A landmark's residual is its own
+  noise (independent from landmark to landmark) plus the misfit of the model (smooth, so
+  neighbouring landmarks share it).  The mean dot product of each landmark's residual
+  vector with those of its :data:`NEIGHBOURS` nearest neighbours estimates the misfit's
+  mean squared length ``F^2`` (noise does not correlate); the rest of the residual
+  variance is noise.  A correction error that the covariance cannot see is then ``F`` per
+  point, not ``F / sqrt(n)``.
+* **Extrapolation**: beyond the landmarks the error grows faster than the propagated
+  uncertainty says (the terms the model lacks grow faster than those it has).  The
+  landmarks are refitted :data:`SIDES` times, each time without the outermost
+  :data:`HOLDOUT_FRACTION` of them in one direction, and the held-out landmarks are
+  predicted: per side, the factor ``kappa^2 = (sum |h|^2 - m (F^2 + noise^2)) / sum sigma^2``
+  (``h`` the held-out residuals, ``sigma`` the refit's propagated uncertainty there,
+  ``m`` points) says by how much the propagated uncertainty underestimates the
+  extrapolation error; the calibration keeps the worst side (``kappa >= 1``), because the
+  side a user extrapolates to may be the worst one.  The refits extrapolate by up to
+  ``t_p`` hull radii (:data:`PROBED_QUANTILE` of the held-out landmarks' distances); beyond,
+  the factor grows as ``((1 + d / R) / (1 + t_p))^g``, :data:`GROWTH_EXPONENT` ``g = 2``:
+  the terms a model lacks are of higher order than those it has (for Eq. 1, the radial
+  ``r^5`` beyond the fitted ``r^3``: two orders).
+
+``benchmarks/uncertainty.py`` measures the coverage this gives (docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from oapcal.uncertainty import ErrorModel, hull_distance, hull_radius, position_covariance
+
+#: Neighbours whose residuals each landmark's is compared with (the floor estimate).
+NEIGHBOURS = 4
+#: Refits, each leaving out one side of the landmarks (directions evenly spread).
+SIDES = 8
+#: Share of the landmarks each refit leaves out (the outermost along its direction).
+HOLDOUT_FRACTION = 0.25
+#: Quantile over the sides' factors kept as the extrapolation factor: 1, the worst side
+#: (the upper quartile left the demo's far extrapolation 3x optimistic: docs/benchmarks.md).
+SIDE_QUANTILE = 1.0
+#: Exponent ``g`` of the growth of the extrapolation factor with the distance ``d`` beyond
+#: the hull, ``(1 + d / R)^g`` (``R`` the hull's radius): the model's missing terms grow
+#: faster than its fitted ones (set from benchmarks/uncertainty.py and the demo).
+GROWTH_EXPONENT = 2.0
+#: Quantile of the held-out landmarks' distances (over the reduced hull's radius) up to
+#: which the extrapolation factor counts as measured.
+PROBED_QUANTILE = 0.9
+#: Fewest landmarks for which the floor and the extrapolation are measured.
+MIN_POINTS = 12
+
+
+def estimate_error_model(xy_u, xy_d, params, mask, **fit_options) -> ErrorModel | None:
+    """The :class:`~oapcal.uncertainty.ErrorModel` of the model ``params`` (free parameters
+    ``mask``) fitted to reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``,
+    in the fit's coordinates (module docstring).  ``fit_options`` are the fit's own (passed
+    to :func:`oapcal.fitting.fit_batch` for the refits).  None with fewer than
+    :data:`MIN_POINTS` landmarks whose correction converges.
+    """
+    from scipy.spatial import cKDTree
+
+    from oapcal.fitting import fit_batch
+    from oapcal.model import family_of, undistort
+
+    xy_u = np.asarray(xy_u, float)
+    xy_d = np.asarray(xy_d, float)
+    params = np.asarray(params, float)
+    mask = np.asarray(mask, bool)
+    family = family_of(params)
+    free = tuple(n for n, m in zip(family.param_names, mask) if m)
+    k = len(free)
+    inv = undistort(xy_d, params)
+    ok = inv.converged & np.isfinite(inv.xy).all(axis=1)
+    xy_u, xy_d, resid = xy_u[ok], xy_d[ok], inv.xy[ok] - xy_u[ok]
+    n = len(xy_u)
+    if n < max(MIN_POINTS, k + 2):
+        return None
+    # the residual variance per point (2-D), with the fit's degrees of freedom
+    ms = float((resid * resid).sum() / max(n - k / 2, 1))
+    tree = cKDTree(xy_u)
+    dist, nb = tree.query(xy_u, min(NEIGHBOURS, n - 1) + 1)
+    floor2 = max(0.0, float((resid[:, None, :] * resid[nb[:, 1:]]).sum(-1).mean()))
+    noise2 = max(ms - floor2, 0.0)
+    spacing = float(np.median(dist[:, 1]))
+
+    keep = _sides(xy_u)
+    keep = keep[keep.sum(axis=1) >= k + 2]
+    ratios, reach = [], []
+    if len(keep):
+        import inspect
+
+        # the fit's own options, as far as the batched solver takes them (covariance: always)
+        accepted = set(inspect.signature(fit_batch).parameters) - {"covariance", "points", "family"}
+        fit_options = {k: v for k, v in fit_options.items() if k in accepted}
+        masks = np.repeat(mask[None], len(keep), 0)
+        starts = np.repeat(params[None], len(keep), 0)
+        batch = fit_batch(xy_u, xy_d, masks, starts, points=keep, family=family, **fit_options)
+        idx = np.flatnonzero(mask)
+        for b in range(len(keep)):
+            if not batch.converged[b]:
+                continue
+            out = ~keep[b]
+            pb = batch.params[b]
+            cov_b = batch.covariance[b][np.ix_(idx, idx)]
+            inv_b = undistort(xy_d[out], pb)
+            good = inv_b.converged & np.isfinite(inv_b.xy).all(axis=1)
+            if not good.any():
+                continue
+            h = inv_b.xy[good] - xy_u[out][good]
+            cv = position_covariance(xy_u[out][good], pb, cov_b, free)
+            sp2 = cv[:, 0, 0] + cv[:, 1, 1]
+            sp2 = np.where(np.isfinite(sp2), sp2, 0.0)
+            hull_b = _hull(xy_u[keep[b]])
+            reach.append(hull_distance(xy_u[out][good], hull_b) / max(hull_radius(hull_b), 1e-300))
+            if sp2.sum() <= 0:
+                continue
+            excess = (h * h).sum() - good.sum() * (floor2 + noise2)
+            ratios.append(float(excess / sp2.sum()))
+    kappa2 = max(1.0, float(np.quantile(ratios, SIDE_QUANTILE))) if ratios else 1.0
+    return ErrorModel(
+        floor_px=float(np.sqrt(floor2)),
+        noise_px=float(np.sqrt(noise2)),
+        extrapolation=float(np.sqrt(kappa2)),
+        ramp_px=spacing if spacing > 0 else 1.0,
+        sides=SIDES,
+        sides_used=len(ratios),
+        holdout_fraction=HOLDOUT_FRACTION,
+        growth_exponent=GROWTH_EXPONENT,
+        probed_distance=float(np.quantile(np.concatenate(reach), PROBED_QUANTILE)) if reach else 0.0,
+    )
+
+
+def _hull(xy: np.ndarray) -> np.ndarray:
+    from scipy.spatial import ConvexHull
+
+    return xy[ConvexHull(xy).vertices]
+
+
+def _sides(xy_u: np.ndarray) -> np.ndarray:
+    """``(SIDES, N)`` bool: the landmarks each refit keeps (all but the outermost
+    :data:`HOLDOUT_FRACTION` along its direction)."""
+    centre = xy_u.mean(axis=0)
+    keep = []
+    for j in range(SIDES):
+        theta = 2 * np.pi * j / SIDES
+        proj = (xy_u - centre) @ np.array([np.cos(theta), np.sin(theta)])
+        keep.append(proj < np.quantile(proj, 1 - HOLDOUT_FRACTION))
+    return np.array(keep)
