@@ -204,10 +204,19 @@ def geometry_options(func):
 )
 @click.option(
     "--dask-format",
-    type=click.Choice(["zarr", "tiff"]),
+    type=click.Choice(["zarr", "ome-zarr", "tiff"]),
     default="zarr",
     show_default=True,
-    help="With --dask: write NAME.zarr or NAME.tif.",
+    help="With --dask: write NAME.zarr, NAME.ome.zarr (OME-Zarr, NGFF 0.4) or NAME.tif.",
+)
+@click.option(
+    "--format",
+    "output_format",
+    type=click.Choice(["same", "tiff", "ome-tiff", "ome-zarr"]),
+    default="same",
+    show_default=True,
+    help="Without --dask: write each input in its own format (same), or as NAME.tif, NAME.ome.tif "
+    "(OME-TIFF with the pixel size and the calibration's provenance) or NAME.ome.zarr.",
 )
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @click.option("--json", "as_json", is_flag=True, help="Print the per-file results as one JSON object.")
@@ -215,7 +224,7 @@ def geometry_options(func):
 def correct_command(
     calib, inputs, out_dir, interp, border, workers, extent, um_per_px, out_size, max_error_px, save_map,
     map_file, allow_size_mismatch, max_pixels, overwrite, use_dask, scheduler, chunk_frames, dask_format,
-    quiet, as_json, allow_unconverged,
+    output_format, quiet, as_json, allow_unconverged,
 ):  # fmt: skip
     """Correct images with a calibration: files, multi-page TIFF stacks, directories, globs.
 
@@ -254,6 +263,9 @@ def correct_command(
             if ctx.get_parameter_source(option) != click.core.ParameterSource.DEFAULT:
                 flag = "--" + option.replace("_", "-")
                 raise click.UsageError(f"{flag} applies to --dask only: add --dask or drop {flag}")
+    output_format = None if output_format == "same" else output_format
+    if use_dask and output_format is not None:
+        raise click.UsageError("with --dask the output format is --dask-format: drop --format")
     size = parse_size(out_size, "--out-size")
     if use_dask and scheduler is not None:  # an address is checked before anything else
         from oapcal.batch.distributed import LOCAL_SCHEDULERS, parse_scheduler_address
@@ -262,7 +274,9 @@ def correct_command(
             parse_scheduler_address(scheduler)
     max_pixels = max_pixels or MAX_PIXELS
     check_output(save_map, calib, map_file, *inputs)
-    plan = _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map) if inputs else None
+    plan = None
+    if inputs:
+        plan = _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map, output_format)
     if inputs:
         from oapcal.io.atomic import check_directory_writable
 
@@ -306,7 +320,7 @@ def correct_command(
             calibration_name=name, protect=[calib] + ([map_file] if map_file else []),
             reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
             progress=update, **({} if cmap else geometry),
-            max_error_px=None if cmap is not None or map_file else limit,
+            max_error_px=None if cmap is not None or map_file else limit, output_format=output_format,
         )  # fmt: skip
     results = [_result(r) for r in report.results]
     return _finish(results, report.summary(), report.count("failed"), as_json, trust)
@@ -325,12 +339,12 @@ def _result(r) -> dict:
     return out
 
 
-def _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map):
+def _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map, output_format=None):
     """Expand the inputs and check every output path before any work: ``(files, failures,
     outputs)``.  Refuses (exit 2) two inputs with one output name, an output that is an input
     or the calibration, and an image output that is the --save-map file."""
     from oapcal.batch.distributed import ZARR_SUFFIX, dask_output_name
-    from oapcal.batch.stack import expand_inputs, plan_outputs
+    from oapcal.batch.stack import expand_inputs, output_name, plan_outputs
     from oapcal.io.images import TIFF_SUFFIXES
 
     if use_dask:
@@ -339,7 +353,10 @@ def _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map):
         files, failures, dirs = expand_inputs(inputs)
     protect = [calib] + ([map_file] if map_file else [])
     reserved = [(save_map, f"the map --save-map {save_map}")] if save_map else []
-    naming = (lambda p: dask_output_name(p, dask_format)) if use_dask else None
+    if use_dask:
+        naming = lambda p: dask_output_name(p, dask_format)  # noqa: E731
+    else:
+        naming = None if output_format is None else (lambda p: output_name(p, output_format))
     outputs = plan_outputs(files, out_dir, dirs, protect, output_name=naming, reserved=reserved)
     return files, failures, outputs
 
@@ -488,6 +505,7 @@ def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json, trust=N
     results = [_result(f) for f in failures]
     n_failed = len(failures)
     frames = 0
+    said = set()
     try:
         with dask_scheduler(settings.scheduler, settings.workers) as session:
             for path in files:
@@ -507,6 +525,9 @@ def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json, trust=N
                                     "message": message})  # fmt: skip
                     continue
                 frames += r.frames
+                if r.note and r.note not in said and not as_json:  # once per batch
+                    said.add(r.note)
+                    click.echo(f"oapcal: note: {r.note}", err=True)
                 results.append({"input": r.input, "output": r.output, "frames": r.frames, "message": "",
                                 "status": "skipped" if r.skipped else "corrected"})  # fmt: skip
     finally:
