@@ -116,3 +116,29 @@ def test_a_calibration_whose_relay_design_images_nothing_names_the_file_and_fiel
     one_error(code, err)
     assert f"{bad.name}: field '{named}'" in err, err
     assert not out.exists()
+
+
+# -- B-class: a local Dask cluster of more workers than the machine can hold ------------------------
+
+
+def test_dask_refuses_a_local_cluster_of_thousands_of_workers(run_cli, tmp_path):
+    pytest.importorskip("distributed", reason="the dask extra is not installed")
+    import numpy as np
+    import tifffile
+
+    from oapcal.batch.distributed import max_local_workers
+    from oapcal.calibration import calibrate
+    from oapcal.io.calibration import save_calibration
+    from oapcal.model import distort
+    from oapcal.synthetic import EXAMPLE_TRUTH
+
+    rng = np.random.default_rng(1)
+    xy_u = rng.uniform((20, 20), (620, 460), (80, 2))
+    save_calibration(calibrate(xy_u, distort(xy_u, EXAMPLE_TRUTH), "paper", rotation="none",
+                               image_size=(640, 480)), tmp_path / "cal.json")  # fmt: skip
+    tifffile.imwrite(tmp_path / "s.tif", np.zeros((2, 480, 640), np.uint8))
+    n = max_local_workers() + 1
+    code, _, err = run_cli("correct", tmp_path / "cal.json", tmp_path / "s.tif", "--out-dir", tmp_path / "o",
+                           "--dask", "--workers", n, "--quiet")  # fmt: skip
+    assert code != 0 and f"at most {n - 1} workers" in err and "--workers" in err, err
+    assert "Traceback" not in err

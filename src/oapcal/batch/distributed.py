@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from oapcal.errors import InputFileError, OutputError
+from oapcal.errors import DataError, InputFileError, OutputError
 from oapcal.imaging.remap import CorrectionMap, OutputGeometry, correct_image, correction_map
 from oapcal.io.images import (
     MAX_PIXELS,
@@ -221,6 +221,12 @@ def streams_locally(scheduler: str | None, workers: int | None, engine: str = "a
     return engine == "auto" and scheduler is None and (workers or 1) <= 1
 
 
+def max_local_workers() -> int:
+    """The most worker processes a local cluster may start: four per core (at least 8).
+    Each is a Python process of about 100 MB; more than the cores only queue."""
+    return max(8, 4 * (os.cpu_count() or 1))
+
+
 def dask_note(scheduler: str | None, workers: int | None, engine: str = "auto") -> str:
     """What to tell the user about where a ``--dask`` run goes, from the measurements in
     ``docs/benchmarks.md``; "" for a cluster given by address.
@@ -279,6 +285,13 @@ def dask_scheduler(
             from distributed import Client, LocalCluster
 
             n = workers or 1
+            most = max_local_workers()
+            if n > most:
+                raise DataError(
+                    f"a local cluster of {n:,} worker processes on a machine with {os.cpu_count() or 1} "
+                    f"cores: give at most {most} workers (or a scheduler address for a cluster)",
+                    param="workers",
+                )
             with _workers_ignore_sigint():
                 cluster = LocalCluster(
                     n_workers=n, threads_per_worker=1, dashboard_address=None, silence_logs=logging.CRITICAL
