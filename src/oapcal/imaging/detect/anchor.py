@@ -105,19 +105,27 @@ def anchor_triplets(anchor: Anchor, ref) -> np.ndarray:
 
 def honours(pose, ref, anchors, image_triplets=None) -> bool:
     """Whether ``pose`` honours every anchor: one of the named triplets is matched to an
-    image triplet and, for an anchor with a position, the pose puts the named element's
-    centre within :data:`POSITION_TOL_W` of its bar widths of that point."""
+    image triplet and, for an anchor with a position, the named element's centre lies within
+    :data:`POSITION_TOL_W` of its bar widths of that point.  The centre is predicted from the
+    matched image triplet (``image_triplets``) through the pose's linear part, so that a
+    distortion of tens of px over the field does not move it; without the image triplets,
+    from the pose alone."""
     if not anchors:
         return True
-    matched = {j for _, j in pose.matches}
+    matched = {j: i for i, j in pose.matches}
     for a in anchors:
-        js = anchor_triplets(a, ref)
-        if not any(int(j) in matched for j in js):
+        js = [int(j) for j in anchor_triplets(a, ref) if int(j) in matched]
+        if not js:
             return False
         if a.xy is not None:
             k = (ref.group == a.group) & (ref.element == a.element)
-            centre_px = pose.apply(ref.centre[k].mean(axis=0)[None])[0]
+            centre_um = ref.centre[k].mean(axis=0)
             w_px = float(ref.width[k][0]) * pose.s
+            if image_triplets is not None:
+                j = js[0]
+                centre_px = image_triplets.centre[matched[j]] + pose.matrix() @ (centre_um - ref.centre[j])
+            else:
+                centre_px = pose.apply(centre_um[None])[0]
             if np.hypot(*(centre_px - np.asarray(a.xy))) > POSITION_TOL_W * w_px:
                 return False
     return True

@@ -385,21 +385,28 @@ def search_pose(
     if anchors:
         from oapcal.imaging.detect.anchor import honours
 
-        refined = [p for p in refined if honours(p, ref, anchors)]
+        # the poses seeded from the named triplets, and the free search's poses (a named
+        # triplet's own bar width may be some 20 % off under distortion, so its seeds alone
+        # may miss the pose the other triplets find): those that honour every anchor
+        free = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets)
+        free_refined = []
+        if free is not None:
+            free_scores = _score_hypotheses(free, ref, img, tree, shape, listed)
+            free_refined = _refined_poses(free, free_scores, ref, img, tree, shape, listed, top)
+        pool = []
+        for p in sorted(refined + free_refined, key=lambda q: -q.score):
+            if honours(p, ref, anchors, img) and not any(_same_pose(p, q) for q in pool):
+                pool.append(p)
+        refined = pool
         if not refined:
             msg = _anchor_unmatched_message(img, anchors, um_per_px)
             return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("anchors",))
         # An anchor decides what the bars leave open; it never overrules what they say
         # clearly: the best pose without the anchors must not beat the best one with them.
-        free = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets)
         anchored = _at_given_scale(refined, um_per_px)
-        free_best = anchored
-        if free is not None:
-            free_scores = _score_hypotheses(free, ref, img, tree, shape, listed)
-            free_refined = _refined_poses(free, free_scores, ref, img, tree, shape, listed, top)
-            free_best = _at_given_scale(free_refined, um_per_px)
+        free_best = _at_given_scale(free_refined, um_per_px) if free_refined else anchored
         margin = max(AMBIGUITY_MARGIN, (1.0 - AMBIGUITY_RATIO) * free_best.score)
-        if not honours(free_best, ref, anchors) and free_best.score - anchored.score >= margin:
+        if not honours(free_best, ref, anchors, img) and free_best.score - anchored.score >= margin:
             msg = _anchor_contradicted_message(free_best, anchored, ref, img, anchors)
             # (the best pose is what the bars say: the layouts are compared on it)
             return PoseResult(free_best, anchored, 1, msg, {}, n_img, refined, "contradicted", ("anchors",))
@@ -407,7 +414,7 @@ def search_pose(
     slips = _slip_scores(best, ref, img, tree, shape, listed)
     if anchors:
         # a slipped copy gives the named element another place: no rival when it breaks an anchor
-        slips_judged = {k: p for k, p in slips.items() if honours(p, ref, anchors)}
+        slips_judged = {k: p for k, p in slips.items() if honours(p, ref, anchors, img)}
     else:
         slips_judged = slips
     res = _judge(best, refined, slips_judged, um_per_px, listed, n_img, ref, img, anchors)
