@@ -303,13 +303,13 @@ def main() -> None:
     if args.pictures is not None:
         args.pictures.mkdir(parents=True, exist_ok=True)
     print("| image | exit | time (s) | peak memory (MB) | right ids / corners of fully visible elements | "
-          "wrong ids | scale found (um/px) | measured (SOURCES.md) | scale error | quadratic-map rms (px) | "
-          "anchor-map rms (px) | reason |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "wrong ids | scale found (um/px) | measured (SOURCES.md) | scale error | pixel size (um/px) | "
+          "quadratic-map rms (px) | anchor-map rms (px) | reason |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for n, (name, groups, measured, extra) in enumerate(RUNS):
         path = REAL / name
         if not path.exists():
-            print(f"| {name} | missing | | | | | | | | | | |")
+            print(f"| {name} | missing | | | | | | | | | | | |")
             continue
         bench, summary, out = run_one(path, groups, extra, workdir, args.pictures, n)
         # the scale the pose search found (with --um-per-px, x_u,y_u use the given one)
@@ -354,8 +354,15 @@ def main() -> None:
         reason = "" if bench["code"] == 0 else summary.get("reason", "")
         found = scale if scale else float("nan")
         label = name + (" " + " ".join(extra) if extra else "")
+        # the pixel-size answer: found (+/- its sigma), or, with a scale given, the measured one
+        psize = ""
+        if bench["code"] == 0 and summary.get("um_per_px_sigma") is not None:
+            psize = f"{summary['um_per_px']:.4g} +/- {summary['um_per_px_sigma']:.2g}"
+        elif bench["code"] == 0 and summary.get("pixel_size"):
+            ps = summary["pixel_size"]
+            psize = f"given; measured {ps['um_per_px']:.4g} (anisotropy {ps['anisotropy']:.2g})"
         print(f"| {label} | {bench['code']} | {bench['time_s']:.1f} | {bench['peak_mb']:.0f} | "
-              f"{right} / {visible} | {wrong} | {found:.4g} | {measured:g} | {err} | "
+              f"{right} / {visible} | {wrong} | {found:.4g} | {measured:g} | {err} | {psize} | "
               f"{qrms:.3f} | {anchor_rms:.2f} | {reason} |", flush=True)  # fmt: skip
 
 
