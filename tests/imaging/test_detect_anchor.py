@@ -220,3 +220,13 @@ def test_cli_refusal_says_which_anchor_would_decide_it(run_cli, tmp_path):
     )
     assert code == 3 and "ambiguous" in err and "--anchor G7E1@" in err and "Traceback" not in err
     assert not (tmp_path / "p.csv").exists()
+
+
+def test_cli_a_bad_anchor_is_one_line_naming_the_flag(run_cli, tmp_path):
+    import cv2
+
+    img = tmp_path / "img.png"
+    cv2.imwrite(str(img), np.zeros((40, 50), np.uint8))
+    code, out, err = run_cli("detect", img, "--anchor", "G4E9", "--out", tmp_path / "p.csv")
+    assert code == 2 and "'G4E9' is not an element name" in err and "(set by --anchor)" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "p.csv").exists()
