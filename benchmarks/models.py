@@ -704,6 +704,126 @@ def print_speed(grid_u):
         print(f"| {name} | {t * 1e3:.1f} ms |")
 
 
+# ------------------------------------------------- few central landmarks (issue 21)
+
+#: Few central landmarks: how many, the share of the field's width and height they cover
+#: (centred), the noise (px per coordinate), and the rms (px over the field) of the smooth
+#: out-of-model field added to the trace (a stand-in for mirror figure, fold-mirror and
+#: sensor effects that no relay subset has).
+FEW_N, FEW_SHARE, FEW_NOISE, FEW_FIGURE_RMS = 40, 0.4, 0.3, 0.1
+
+
+def _figure_field(seed: int, grid_u: np.ndarray):
+    """A smooth random displacement (px) of total degree <= 3 over the field, scaled to
+    :data:`FEW_FIGURE_RMS` rms over the grid: a function of the reference position."""
+    lo, hi = grid_u.min(axis=0), grid_u.max(axis=0)
+    rng = np.random.default_rng([seed, 21])
+    terms = [(i, j) for i in range(4) for j in range(4 - i)]
+    coef = rng.normal(size=(len(terms), 2))
+
+    def raw(xy):
+        t = 2 * (xy - lo) / (hi - lo) - 1
+        basis = np.stack([t[:, 0] ** i * t[:, 1] ** j for i, j in terms], -1)
+        return basis @ coef
+
+    scale = FEW_FIGURE_RMS / np.sqrt((raw(grid_u) ** 2).sum(axis=1).mean())
+    return lambda xy: raw(xy) * scale
+
+
+def few_central(seeds, grid_u):
+    """Per seed: 40 landmarks over the central 40 % of the field's width and height, 0.3 px
+    noise, the truth of :func:`draw_truth` (all 20 values) plus :func:`_figure_field`; the
+    mean error over the 1 mm field of each path: the relay's default subset without and with
+    the default priors, every value with priors, what ``select --families
+    bc,bc+rotation,relay`` recommends without priors (by held-out error, as before) and with
+    the default priors (by the predicted error over the field), and the peers."""
+    from oapcal.calibration import calibrate
+    from oapcal.families import select_families
+    from oapcal.optics.relay_model import DEFAULT_PRIORS, calibrate_relay
+
+    lo, hi = grid_u.min(axis=0), grid_u.max(axis=0)
+    mid, half = 0.5 * (lo + hi), 0.5 * FEW_SHARE * (hi - lo)
+    field = (*lo.tolist(), *hi.tolist())
+    rows = []
+    for seed in seeds:
+        t0 = time.perf_counter()
+        mis, turn = draw_truth(seed)
+        figure = _figure_field(seed, grid_u)
+        grid_d = trace(mis, turn, grid_u) + figure(grid_u)
+        rng = np.random.default_rng([seed, 40])
+        lm_u = rng.uniform(mid - half, mid + half, (FEW_N, 2))
+        lm_d = trace(mis, turn, lm_u) + figure(lm_u) + rng.normal(0, FEW_NOISE, lm_u.shape)
+        row = {"seed": seed}
+
+        def score(params, row=row, key=None, grid_d=grid_d):
+            err = np.hypot(*(undistort(grid_d, params).xy - grid_u).T)
+            row[key] = float(np.nanmean(err))
+            row[key + " failed"] = int((~np.isfinite(err)).sum())
+
+        def fit_spec(spec, family, priors, lm_u=lm_u, lm_d=lm_d):
+            if family.startswith("relay"):
+                return calibrate_relay(lm_u, lm_d, DESIGN, spec, priors=priors).params
+            return calibrate(lm_u, lm_d, spec, rotation="none").params
+
+        score(calibrate_relay(lm_u, lm_d, DESIGN, "default").params, key="relay default")
+        score(calibrate_relay(lm_u, lm_d, DESIGN, "default", priors="default").params,
+              key="relay default + priors")  # fmt: skip
+        score(calibrate_relay(lm_u, lm_d, DESIGN, "all", priors="default").params, key="relay all + priors")
+        for factor in (0.5, 2.0):  # the priors misstated: half and twice the truth's ranges
+            widths = {k: v * factor for k, v in DEFAULT_PRIORS.items()}
+            score(calibrate_relay(lm_u, lm_d, DESIGN, "all", priors=widths).params,
+                  key=f"relay all + priors x{factor:g}")  # fmt: skip
+        families = ("bc", "bc+rotation", "relay")
+        before = select_families(lm_u, lm_d, DESIGN, families, cv=5, cv_top=3, region=field)
+        r = before.heldout_best
+        score(fit_spec(r.spec, r.family, None), key="select, held-out (before)")
+        row["before pick"] = f"{r.family}:{r.spec}"
+        after = select_families(lm_u, lm_d, DESIGN, families, cv=5, cv_top=3, region=field, priors="default")
+        r = after.recommended
+        score(fit_spec(r.spec, r.family, "default"), key="select --priors default, predicted (after)")
+        row["after pick"] = f"{r.family}:{r.spec}"
+        row["notes"] = len(after.notes)
+        for label, fitter in (("poly3 (skimage)", fit_poly3), ("TPS (scipy)", fit_tps)):
+            correct, _ = fitter(lm_u, lm_d)
+            err = np.hypot(*(correct(grid_d) - grid_u).T)
+            row[label] = float(np.nanmean(err))
+        from skimage.transform import PolynomialTransform
+
+        c = np.asarray(DESIGN.centre)
+        tform = PolynomialTransform.from_estimate(lm_d - c, lm_u - c, order=5)
+        row["poly5 (skimage)"] = float(np.nanmean(np.hypot(*(tform(grid_d - c) + c - grid_u).T)))
+        rows.append(row)
+        print(f"few-central seed {seed}: {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    return rows
+
+
+FEW_PATHS = ("relay default", "relay default + priors", "relay all + priors", "relay all + priors x0.5",
+             "relay all + priors x2", "select, held-out (before)",
+             "select --priors default, predicted (after)")  # fmt: skip
+FEW_PEERS = ("poly3 (skimage)", "poly5 (skimage)", "TPS (scipy)")
+
+
+def print_few_central(rows):
+    print(
+        f"\n### Few central landmarks ({FEW_N} over the central {FEW_SHARE:.0%} of width and height, "
+        f"{FEW_NOISE} px noise, + {FEW_FIGURE_RMS} px rms out-of-model field; mean error over the 1 mm "
+        "field, px)\n"
+    )
+    print("| path | median | mean | worst | seeds <= 0.5 px | seeds not worse than the best peer |")
+    print("|---|---|---|---|---|---|")
+    best_peer = np.array([min(r[p] for p in FEW_PEERS) for r in rows])
+    for key in FEW_PATHS + FEW_PEERS:
+        v = np.array([r[key] for r in rows])
+        failed = sum(r.get(key + " failed", 0) for r in rows)
+        print(
+            f"| {key} | {np.median(v):.3f} | {v.mean():.3f} | {v.max():.3f} | {(v <= 0.5).sum()}/{len(v)} "
+            f"| {(v <= best_peer).sum()}/{len(v)} |"
+            + (f" ({failed} grid points uncorrected)" if failed else "")
+        )
+    print("\npicks (before -> after):", "; ".join(f"{r['seed']}: {r['before pick']} -> {r['after pick']}"
+                                                 for r in rows))  # fmt: skip
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -716,11 +836,19 @@ def main():
     ap.add_argument("--seeds", type=_positive_int, default=10, metavar="N", help="truths (seeds 0..N-1)")
     ap.add_argument("--no-plots", action="store_true")
     ap.add_argument("--speed-only", action="store_true", help="only the speed table")
+    ap.add_argument("--first-seed", type=int, default=0, metavar="S",
+                    help="with --few-central-only: seeds S..S+N-1 (relays kept aside)")  # fmt: skip
+    ap.add_argument("--few-central-only", action="store_true",
+                    help="only the few-central-landmarks section (issue 21)")  # fmt: skip
     args = ap.parse_args()
     t_start = time.perf_counter()
     grid_u = reference_grid()
     if args.speed_only:
         print_speed(grid_u)
+        return
+    if args.few_central_only:
+        print_few_central(few_central(list(range(args.first_seed, args.first_seed + args.seeds)), grid_u))
+        print(f"\ntotal {time.perf_counter() - t_start:.0f} s")
         return
     check = normalize_grid(grid_u, grid_u)  # the normalization helper is the paper's
     cu, su = _frame(grid_u)
@@ -791,6 +919,7 @@ def main():
             )
 
     print_speed(grid_u)
+    print_few_central(few_central(seeds, grid_u))
 
     demo = rotation_demo(grid_u)
     print("\n### Turned target on the aligned relay (noise-free, whole grid; mean / max px)\n")

@@ -4,6 +4,10 @@
 #   bash scripts/run.sh test [pytest options]        the default test suite (+ ruff)
 #   bash scripts/run.sh test-slow                    the slow tests only (fuzzing, big stacks)
 #   bash scripts/run.sh bench                        the benchmarks in benchmarks/
+#   bash scripts/run.sh package                      build the wheel and sdist, install and smoke-test them
+#                                                    in clean venvs (scripts/package-check.sh)
+# `demo` installs the core dependencies only; the other tasks add the extras they need
+# (tests, Dask, napari, tables, benchmarks).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY="${PYTHON:-python3}"
@@ -13,11 +17,18 @@ shift || true
 if [ ! -x .venv/bin/python ]; then
     "$PY" -m venv .venv
 fi
-stamp=.venv/.oapcal-installed
-if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+full=.venv/.oapcal-installed       # the package and every extra
+core=.venv/.oapcal-installed-core  # the package and its core dependencies
+fresh() { [ -f "$1" ] && [ ! pyproject.toml -nt "$1" ]; }
+install() {  # install STAMP TARGET
     .venv/bin/python -m pip install --quiet --upgrade pip
-    .venv/bin/python -m pip install --quiet -e ".[test,dask,napari,bench]"
-    touch "$stamp"
+    .venv/bin/python -m pip install --quiet -e "$2"
+    touch "$1"
+}
+if [ "$task" = demo ]; then
+    fresh "$full" || fresh "$core" || install "$core" .
+else
+    fresh "$full" || install "$full" ".[test,dask,napari,bench,tables]"
 fi
 
 case "$task" in
@@ -36,6 +47,9 @@ case "$task" in
         if [ "$rc" -eq 5 ]; then echo "no slow tests are collected"; rc=0; fi
         exit "$rc"
         ;;
+    package)
+        exec bash scripts/package-check.sh "$@"
+        ;;
     bench)
         for b in benchmarks/bench_*.py benchmarks/models.py; do
             echo "== $b"
@@ -43,7 +57,7 @@ case "$task" in
         done
         ;;
     *)
-        echo "usage: bash scripts/run.sh demo|test|test-slow|bench [options]" >&2
+        echo "usage: bash scripts/run.sh demo|test|test-slow|bench|package [options]" >&2
         exit 2
         ;;
 esac

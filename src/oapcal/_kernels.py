@@ -675,9 +675,28 @@ def solve_lu(lhs, rhs, k, out, work):
         out[i] = s / work[i, i]
 
 
+@numba.njit(**_JIT)
+def _prior_rows(p, mu, w, free, a, g, normal):
+    """The prior rows ``w_q (p_q - mu_q)`` of the free parameters (``w`` 0: no row): their
+    cost ``0.5 sum r^2``, and with ``normal`` their terms added to ``a = J^T J`` (``w_q^2``
+    on the diagonal) and ``g = J^T r`` (``w_q r_q``).  A MAP fit with Gaussian priors is
+    least squares on the residuals with these rows appended (``oapcal.fitting.fit_batch``)."""
+    c = 0.0
+    for i in range(free.shape[0]):
+        q = free[i]
+        wq = w[q]
+        if wq > 0.0:
+            r = wq * (p[q] - mu[q])
+            c += r * r
+            if normal:
+                a[i, i] += wq * wq
+                g[i] += wq * r
+    return 0.5 * c
+
+
 @per_family()
 def lm_item(u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, want_jtj, jtj_out,
-            scratch):  # fmt: skip
+            scratch, prior_mu, prior_w, has_prior):  # fmt: skip
     """Levenberg-Marquardt for one item, in place on ``p``; returns (status, n_iter, cost).
 
     MINPACK-style: Marquardt column scaling, damping ``lam`` raised by ``nu`` on a rejected
@@ -685,7 +704,9 @@ def lm_item(u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, wa
     ``gtol`` (status 1), ``ftol`` (2), ``xtol`` (3), zero residuals (4), the iteration cap
     (0), non-finite values (-1) or unbounded damping (-2).  With ``want_jtj``,
     ``jtj_out (P, P)`` receives ``J^T J`` at the final ``p`` (free rows and columns).
-    ``scratch`` is :func:`lm_scratch` (reused from item to item).
+    ``scratch`` is :func:`lm_scratch` (reused from item to item).  With ``has_prior`` the
+    rows of :func:`_prior_rows` (``prior_mu``, ``prior_w``, each ``(P,)``) are part of the
+    residuals and of the returned cost; ``jtj_out`` stays the data's ``J^T J`` alone.
     """
     cols, res_all, jp, pts_all = scratch
     # The item's points, gathered once into contiguous rows (the loops over them vectorise).
@@ -712,6 +733,8 @@ def lm_item(u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, wa
     p_new = p.copy()
 
     cost = _residuals(p, pts, res, jp, mask)
+    if has_prior:
+        cost += _prior_rows(p, prior_mu, prior_w, free, a, g, False)
     status = 0
     n_iter = 0
     if not np.isfinite(cost):
@@ -727,6 +750,8 @@ def lm_item(u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, wa
             # or an accepted trial step).
             _jacobian(p, pts, fd_step, mask, cols)
             _normal_equations(cols, res, n, free, half, a, g)
+            if has_prior:
+                _prior_rows(p, prior_mu, prior_w, free, a, g, True)
             n_iter += 1
             need_jac = False
             rnorm = np.sqrt(2.0 * cost)
@@ -776,6 +801,8 @@ def lm_item(u, d, idx, n, mask, half, p, max_iter, ftol, xtol, gtol, fd_step, wa
             if not np.isfinite(p_new[q]):
                 finite_new = False
         cost_new = _residuals(p_new, pts, res, jp, mask)
+        if has_prior:
+            cost_new += _prior_rows(p_new, prior_mu, prior_w, free, a, g, False)
         actual = cost - cost_new
         rho = actual / predicted if predicted > 0.0 else -1.0
         accept = np.isfinite(cost_new) and actual > 0.0 and rho > 1e-4
@@ -837,20 +864,31 @@ def lm_scratch(n_params, n_max):
 
 @per_family()
 def lm_batch(start, stop, u, d, idx, counts, masks, half, p, max_iter, ftol, xtol, gtol, fd_step,
-             want_jtj, status, n_iter, cost, jtj):  # fmt: skip
+             want_jtj, status, n_iter, cost, jtj, prior_mu=None, prior_w=None, has_prior=False):  # fmt: skip
     """:func:`lm_item` for the items ``start <= b < stop``: points ``u (Bu, N, 2)``,
     ``d (Bd, N, 2)`` (each 1 or B), point indices ``idx (Bi, nmax)`` with ``counts (Bi,)``
     used (``Bi`` 1 or B), free parameters ``masks (B, P)``, starts ``p (B, P)``
     (overwritten with the solutions); with ``want_jtj`` ``jtj (B, P, P)`` receives
-    ``J^T J`` at each solution, else it may be ``(1, P, P)``."""
+    ``J^T J`` at each solution, else it may be ``(1, P, P)``; ``prior_mu``, ``prior_w``
+    ``(Bp, P)`` (``Bp`` 1 or B) the prior rows of each item when ``has_prior``."""
     scratch = lm_scratch(masks.shape[1], idx.shape[1])
+    if prior_w is None:  # no priors (pruned at compile time)
+        mu_all = np.zeros((1, masks.shape[1]))
+        w_all = mu_all
+        use_prior = False
+    else:
+        mu_all = prior_mu
+        w_all = prior_w
+        use_prior = has_prior
     for i in range(start, stop):
         bi = i if idx.shape[0] > 1 else 0
         bu = i if u.shape[0] > 1 else 0
         bd = i if d.shape[0] > 1 else 0
         bj = i if want_jtj else 0
+        bp = i if w_all.shape[0] > 1 else 0
         s, it, c = lm_item(u[bu], d[bd], idx[bi], counts[bi], masks[i], half, p[i], max_iter,
-                           ftol, xtol, gtol, fd_step, want_jtj, jtj[bj], scratch)  # fmt: skip
+                           ftol, xtol, gtol, fd_step, want_jtj, jtj[bj], scratch, mu_all[bp],
+                           w_all[bp], use_prior)  # fmt: skip
         status[i] = s
         n_iter[i] = it
         cost[i] = c

@@ -45,8 +45,9 @@ class FitSummary:
     parameters; ``rss`` the sum of squared forward residuals in the fit's coordinates and
     ``aic``, ``aicc``, ``bic`` from it (:func:`oapcal.stats.information_criteria`);
     ``converged``, ``status`` and ``message`` the solver's verdict after ``n_iter``
-    iterations from the start ``init``, on points normalized by ``normalize``.  Fields a
-    calibration file does not hold are None.
+    iterations from the start ``init``, on points normalized by ``normalize``; ``k_eff`` the
+    effective number of parameters of a fit with priors (AIC, AICc and BIC count it
+    instead of ``k``; None without priors).  Fields a calibration file does not hold are None.
     """
 
     n_points: int
@@ -62,6 +63,7 @@ class FitSummary:
     n_iter: int | None = None
     init: str | None = None
     normalize: str = "none"
+    k_eff: float | None = None
 
 
 @dataclass(frozen=True)
@@ -76,7 +78,10 @@ class Calibration:
     how it was fitted (:class:`FitSummary`); ``residuals`` are the paper's Table-1
     statistics of the corrected calibration points (:class:`oapcal.stats.ResidualStats`).
     ``notes`` are what :func:`calibrate` decided for the user (e.g. that it fitted the
-    target's rotation too); they are printed, not stored in the file.
+    target's rotation too); they are printed, not stored in the file.  ``priors`` the
+    priors of a maximum a posteriori fit
+    (:meth:`oapcal.optics.relay_model.RelayPriors.to_dict`, with the noise used); None
+    without priors.
     """
 
     free: tuple[str, ...]
@@ -95,6 +100,7 @@ class Calibration:
     created_utc: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     relay_design: dict | None = None
     notes: tuple[str, ...] = ()
+    priors: dict | None = None
 
     @property
     def family(self) -> ModelFamily:
@@ -170,6 +176,7 @@ def calibrate(
     source: str | None = None,
     relay_design: dict | None = None,
     rotation: str = "auto",
+    priors: dict | None = None,
     **fit_options,
 ) -> Calibration:
     """Fit ``model`` to reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``.
@@ -190,6 +197,9 @@ def calibrate(
     otherwise absorbed into a distortion centre that runs away, x_off ~ 1e4 px, and the fit
     hits the iteration cap); the record's ``notes`` say so.  ``"fit"`` always adds the
     rotation, ``"none"`` never.
+
+    ``priors`` is recorded only (the priors of a maximum a posteriori relay fit, whose rows
+    come in ``fit_options["prior"]``: :func:`oapcal.optics.relay_model.calibrate_relay`).
     """
     from scipy.spatial import ConvexHull, QhullError
 
@@ -236,6 +246,7 @@ def calibrate(
             n_iter=int(result.n_iter),
             init=init_name,
             normalize=normalization or "none",
+            k_eff=result.k_eff,
         ),
         residuals=residuals,
         um_per_px=scale,
@@ -246,6 +257,7 @@ def calibrate(
         source=source,
         relay_design=relay_design,
         notes=notes,
+        priors=priors,
     )
 
 

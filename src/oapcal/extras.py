@@ -20,7 +20,10 @@ from types import ModuleType
 from oapcal.errors import OapcalError
 
 #: The extras of pyproject.toml and the top-level modules each provides.
-EXTRAS: dict[str, tuple[str, ...]] = {"dask": ("dask", "distributed", "zarr")}
+EXTRAS: dict[str, tuple[str, ...]] = {
+    "dask": ("dask", "distributed", "zarr"),
+    "tables": ("pandas", "pyarrow"),  # parquet tables and DataFrames of points (io.tables)
+}
 
 
 class MissingExtraError(OapcalError, ImportError):

@@ -47,7 +47,15 @@ from oapcal.model import (
     jacobian_params,
     names_from_mask,
 )
-from oapcal.optics.relay_model import RelayDesign, default_centre, identifiability, relay_mask, relay_params
+from oapcal.optics.relay_model import (
+    RelayDesign,
+    default_centre,
+    identifiability,
+    map_fit,
+    parse_priors,
+    relay_mask,
+    relay_params,
+)
 from oapcal.records import finite_or_none
 from oapcal.select import cross_validate, invalid_reasons, score_models
 
@@ -66,6 +74,8 @@ MICROSCOPE_BLOCKS: dict[str, tuple[str, ...]] = {"microscope": ("microscope_k1",
 #: with a microscope, ``relay+microscope``).
 FAMILY_NAMES = {"bc": "brown-conrady", "bc+rotation": "brown-conrady+rotation", "relay": "relay"}
 Progress = Callable[[int, int], None]
+#: The relay subset of every misalignment value (with priors: always cross-validated).
+FULL_RELAY_SPEC = "relay:all"
 #: The start of the reason of a model that ``oapcal fit`` would refuse to write.
 REFUSED_PREFIX = "fit would refuse it"
 
@@ -77,7 +87,11 @@ class Candidate:
     ``--model`` takes to fit it again), ``free`` parameters, ``k`` (free count), ``aicc``
     and ``delta_aicc`` over all families, ``mean_error`` (px) of the corrected calibration
     points, ``cv_mean_error`` (px, the K-fold held-out error;
-    None when not cross-validated), ``valid`` and ``reason``."""
+    None when not cross-validated), ``valid`` and ``reason``; for the cross-validated ones
+    ``region_sigma`` (px: the RMS over the region to be corrected of the 1-sigma position
+    uncertainty propagated from the fit's covariance, :func:`oapcal.uncertainty.position_covariance`)
+    and ``predicted_error = sqrt(cv_mean_error^2 + region_sigma^2)`` (px), and ``k_eff`` the
+    effective number of parameters of a fit with priors."""
 
     family: str
     spec: str
@@ -90,6 +104,9 @@ class Candidate:
     reason: str = ""
     cv_mean_error: float | None = None
     cv_failed: int = 0
+    region_sigma: float | None = None
+    predicted_error: float | None = None
+    k_eff: float | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -97,18 +114,28 @@ class Candidate:
             "aicc": finite_or_none(self.aicc), "delta_aicc": finite_or_none(self.delta_aicc),
             "mean_error": finite_or_none(self.mean_error), "valid": self.valid, "reason": self.reason,
             "cv_mean_error": finite_or_none(self.cv_mean_error), "cv_failed": self.cv_failed,
+            "region_sigma_px": finite_or_none(self.region_sigma),
+            "predicted_error_px": finite_or_none(self.predicted_error), "k_eff": finite_or_none(self.k_eff),
         }  # fmt: skip
 
 
 @dataclass(frozen=True)
 class FamilySelection:
     """Candidates of every family, valid ones by AICc first; ``recommended`` the one with
-    the smallest cross-validated error (None when none could be cross-validated)."""
+    the smallest predicted error over the region to be corrected (:func:`select_families`;
+    None when none could be cross-validated); ``heldout_best`` the one with the smallest
+    cross-validated error alone; ``region`` the region ``(x0, y0, x1, y1)`` px (None: the
+    landmarks' hull); ``notes`` what the choice saw (families indistinguishable on the
+    landmarks but not beyond them); ``priors`` the relay's priors (a dict) or None."""
 
     n_points: int
     cv_folds: int
     candidates: tuple[Candidate, ...]
     recommended: Candidate | None
+    heldout_best: Candidate | None = None
+    region: tuple[float, float, float, float] | None = None
+    notes: tuple[str, ...] = ()
+    priors: dict | None = None
 
     def best_of(self, family: str) -> Candidate | None:
         """The best candidate of one family by AICc (``family``: ``"brown-conrady"``,
@@ -120,6 +147,10 @@ class FamilySelection:
             "n_points": self.n_points, "cv_folds": self.cv_folds,
             "recommended": None if self.recommended is None else self.recommended.spec,
             "candidates": [c.to_dict() for c in self.candidates],
+            "recommended_by": "predicted error over the region",
+            "heldout_best": None if self.heldout_best is None else self.heldout_best.spec,
+            "region": None if self.region is None else [float(v) for v in self.region],
+            "notes": list(self.notes), "priors": self.priors,
         }  # fmt: skip
 
 
@@ -176,17 +207,75 @@ def region_problem(params, xy_u, image_size=None) -> str:
     return ""
 
 
+def region_sigma(xy_u, xy_d, mask, p0, region_points, prior=None, family=None,
+                 fixed_prior=None) -> tuple[float, float | None]:  # fmt: skip
+    """The RMS over ``region_points (M, 2)`` of the 1-sigma position uncertainty (px) of the
+    model ``mask`` fitted to all points from ``p0`` (with ``prior``, the posterior one),
+    propagated by :func:`oapcal.uncertainty.position_covariance`; inf where the map folds
+    everywhere or the fit fails.  ``fixed_prior`` (name -> prior width, deg or mm): the
+    values the model leaves at the design although their prior says they are uncertain;
+    what of their prior variance the fitted values cannot absorb is propagated too and
+    added (:func:`_fixed_variance`), so that a subset does not look surer for fixing what
+    is not known.  Returns ``(sigma, k_eff)``."""
+    from oapcal.fitting import fit_batch
+    from oapcal.uncertainty import position_covariance
+
+    fit = fit_batch(xy_u, xy_d, mask[None], np.asarray(p0)[None], family=family,
+                    **({} if prior is None else {"prior": prior})).item(0)  # fmt: skip
+    if not fit.converged or not np.isfinite(fit.covariance).all():
+        return np.inf, fit.k_eff
+    with np.errstate(all="ignore"):
+        cov = position_covariance(region_points, fit.params, fit.covariance, fit.free)
+        var = cov[..., 0, 0] + cov[..., 1, 1]
+        fixed = {
+            n: w for n, w in (fixed_prior or {}).items() if n not in fit.free and np.isfinite(w) and w > 0
+        }
+        if fixed:
+            var = var + _fixed_variance(xy_u, fit, prior, fixed, region_points)
+    var = var[np.isfinite(var)]
+    return (float(np.sqrt(var.mean())) if var.size else np.inf), fit.k_eff
+
+
+def _fixed_variance(xy_u, fit, prior, fixed: dict, region_points) -> np.ndarray:
+    """The position variance (px^2) at ``region_points`` that values held fixed at the design
+    (``fixed``: name -> prior width) leave after the fit: linearized, an error ``dq`` of them
+    moves the fitted values by ``dp = -G dq`` with ``G = (J_f^T J_f + W^2)^-1 J_f^T J_q`` at
+    the landmarks (``W`` the prior rows' weights), and the corrected position by
+    ``-J_u^-1 (J_q - J_f G) dq``.  Propagated by
+    :func:`oapcal.uncertainty.position_covariance` with the joint covariance of ``(dp, dq)``,
+    ``[[G S G^T, -G S], [-S G^T, S]]``, ``S = diag(width^2)``."""
+    from oapcal.model import jacobian_params
+    from oapcal.uncertainty import position_covariance
+
+    names = fit.family.param_names
+    f = [names.index(n) for n in fit.free]
+    q = [names.index(n) for n in fixed]
+    jac = jacobian_params(xy_u, fit.params).reshape(-1, len(names))
+    jf, jq = jac[:, f], jac[:, q]
+    w2 = np.zeros(len(f))
+    if prior is not None:
+        sigma = np.broadcast_to(prior[1], (1, len(names)))[0][f]
+        with np.errstate(divide="ignore"):
+            w2 = np.where(np.isfinite(sigma), 1.0 / sigma**2, 0.0)
+    g = np.linalg.lstsq(jf.T @ jf + np.diag(w2), jf.T @ jq, rcond=None)[0]
+    big_s = np.diag([w**2 for w in fixed.values()])
+    joint = np.block([[g @ big_s @ g.T, -g @ big_s], [-big_s @ g.T, big_s]])
+    cov = position_covariance(region_points, fit.params, joint, tuple(fit.free) + tuple(fixed))
+    return cov[..., 0, 0] + cov[..., 1, 1]
+
+
 def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, seed: int, progress,
-           image_size=None):  # fmt: skip
+           image_size=None, prior=None, region_points=None, fixed_prior=None):  # fmt: skip
     """Score the models ``subsets`` (``[(spec, mask)]``) of one family from the starts ``p0``
     ``(B, P)``; ``invalid`` lists ``(spec, mask, reason)`` ranked last.  The valid ones are
     checked in AICc order over the output region (:func:`region_problem`) until ``cv_top``
-    pass, and those are cross-validated."""
+    pass, and those are cross-validated.  ``prior``: ``(mean, sigma)`` ``(B, P)`` of the
+    subsets' maximum a posteriori fits (relay priors), or None."""
     rows = [(spec, mask, np.nan, np.nan, False, reason) for spec, mask, reason in invalid]
     fitted = {}
     if subsets:
         masks = np.array([m for _, m in subsets])
-        scores = score_models(xy_u, xy_d, masks, p0, progress=progress)
+        scores = score_models(xy_u, xy_d, masks, p0, progress=progress, prior=prior)
         codes, reasons = invalid_reasons(scores, masks.sum(axis=1), len(xy_u))
         for i, (spec, mask) in enumerate(subsets):
             if codes[i]:
@@ -204,53 +293,191 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
             rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
         else:
             top.append(row)
+    for i, row in enumerate(rows):
+        # with priors every value of the relay is constrained: its full model is always
+        # cross-validated (the Bayesian model; a subset fixes what the priors say is uncertain)
+        if row[0] == FULL_RELAY_SPEC and prior is not None and row[4] and row not in top:
+            problem = region_problem(fitted[row[0]], xy_u, image_size)
+            if problem:
+                rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
+            else:
+                top.append(row)
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))
     cv_err = {}
     if top and cv:
         index = {spec: i for i, (spec, _) in enumerate(subsets)}
         masks_top = np.array([r[1] for r in top])
         starts = np.array([p0[index[r[0]]] for r in top])
-        errs, failed = cross_validate(xy_u, xy_d, masks_top, folds=cv, init=starts, seed=seed)
+        rows_top = [index[r[0]] for r in top]
+        prior_top = None if prior is None else tuple(np.broadcast_to(a, masks.shape)[rows_top] for a in prior)
+        errs, failed = cross_validate(
+            xy_u, xy_d, masks_top, folds=cv, init=starts, seed=seed, prior=prior_top
+        )
         cv_err = {r[0]: (float(e), int(f)) for r, e, f in zip(top, errs, failed)}
+    sigma = {}
+    if region_points is not None:
+        for r in cv_err:
+            i = index[r]
+            one = None if prior is None else tuple(np.broadcast_to(a, masks.shape)[i : i + 1] for a in prior)
+            sigma[r] = region_sigma(xy_u, xy_d, masks[i], p0[i], region_points, one, fixed_prior=fixed_prior)
     out = []
     for spec, mask, aicc, err, valid, reason in rows:
         free = names_from_mask(mask)
         e, f = cv_err.get(spec, (None, 0))
-        out.append(Candidate(family, spec, free, len(free), aicc, np.nan, err, valid, reason, e, f))
+        sig, k_eff = sigma.get(spec, (None, None))
+        pred = None if sig is None or e is None else float(np.hypot(e, sig))
+        out.append(Candidate(family, spec, free, len(free), aicc, np.nan, err, valid, reason, e, f, sig, pred,
+                             k_eff))  # fmt: skip
     return out
 
 
-def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progress, image_size=None):
+def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progress, image_size=None,
+                      priors=None, region_points=None):  # fmt: skip
+    """The relay's subsets; with ``priors`` (:class:`~oapcal.optics.relay_model.RelayPriors`)
+    each a maximum a posteriori fit, ``relay:all`` (every misalignment value) among them, and
+    a value with a prior needs no identifiability from the points."""
     p0 = relay_params(design)
     jac = jacobian_params(xy_u, p0)  # once for the 64 (128) subsets
+    subsets = relay_subset_masks(design.family)
+    constrained = np.zeros(design.family.n_params, bool)
+    if priors is not None:
+        subsets.append((FULL_RELAY_SPEC, relay_mask("all", design.family)))
+        sig = priors.sigma(design)
+        constrained = np.array([np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
     ok, invalid = [], []
-    for spec, mask in relay_subset_masks(design.family):
-        ident = identifiability(xy_u, p0, mask, jac)
+    for spec, mask in subsets:
+        ident = identifiability(xy_u, p0, mask & ~constrained, jac)
         if ident.ok:
             ok.append((spec, mask))
         else:
             groups = "; ".join(" ~ ".join(g) for g in ident.degenerate)
             invalid.append((spec, mask, f"not identifiable: {groups}"))
     starts = np.repeat(p0[None], len(ok), 0)
-    return _score(design.family.name, xy_u, xy_d, ok, starts, invalid, cv, cv_top, seed, progress, image_size)
+    prior = None
+    if priors is not None and ok:
+        # the noise that weighs each subset's priors, from its own all-points MAP fit
+        _, noise = map_fit(xy_u, xy_d, design, np.array([m for _, m in ok]), priors, covariance=False)
+        mean, unit = priors.arrays(design, 1.0)
+        prior = (np.broadcast_to(mean, starts.shape), unit[None] / noise[:, None])
+    fixed_prior = None if priors is None else priors.sigma(design)
+    return _score(design.family.name, xy_u, xy_d, ok, starts, invalid, cv, cv_top, seed, progress, image_size,
+                  prior, region_points, fixed_prior)  # fmt: skip
 
 
-def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None):
+def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
     """Every Eq. (1) subset (all 4,096), fitted from ``init`` on the points as given."""
     masks = all_masks()
     p0 = initial_params_many(init, xy_u, xy_d, masks)
     subsets = [(",".join(names_from_mask(m)), m) for m in masks]
-    return _score(BROWN_CONRADY.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress, image_size)
+    return _score(BROWN_CONRADY.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress, image_size,
+                  region_points=region_points)  # fmt: skip
 
 
-def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None):
+def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
     """Every Eq. (1) subset with the target's rotation free as well."""
     masks = all_masks()
     masks = np.pad(masks, ((0, 0), (0, 1)), constant_values=True)
     p0 = initial_params_many(init, xy_u, xy_d, masks)
     subsets = [(",".join(names_from_mask(m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
     return _score(BROWN_CONRADY_POSE.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress,
-                  image_size)  # fmt: skip
+                  image_size, region_points=region_points)  # fmt: skip
+
+
+#: Points per side of the grid over the region on which the propagated uncertainty is
+#: averaged (:func:`region_points`).
+REGION_GRID = 21
+#: Two families are indistinguishable on the landmarks when their held-out errors differ by
+#: at most this fraction of the smaller.
+INDISTINGUISHABLE = 0.10
+#: ... and differ beyond them when their predicted errors over the region differ by more
+#: than this factor.
+DIFFER_BEYOND = 1.5
+#: The physically constrained families (preferred when the landmarks cannot tell).
+PHYSICAL = ("relay", "relay+microscope")
+
+
+def region_points(xy_u, region=None) -> np.ndarray:
+    """Points ``(M, 2)`` over the region to be corrected: a :data:`REGION_GRID` grid over
+    the box ``region = (x0, y0, x1, y1)`` (px of the reference points), or over the
+    reference points' bounds kept inside their convex hull when ``region`` is None."""
+    from oapcal.uncertainty import inside_hull
+
+    xy_u = np.asarray(xy_u, float)
+    if region is None:
+        lo, hi = xy_u.min(axis=0), xy_u.max(axis=0)
+    else:
+        x0, y0, x1, y1 = (float(v) for v in region)
+        if not (np.isfinite([x0, y0, x1, y1]).all() and x1 > x0 and y1 > y0):
+            raise DataError(f"region must be x0, y0, x1, y1 with x1 > x0 and y1 > y0, got {region}",
+                            param="region")  # fmt: skip
+        lo, hi = np.array([x0, y0]), np.array([x1, y1])
+    g = [np.linspace(lo[j], hi[j], REGION_GRID) for j in (0, 1)]
+    pts = np.stack(np.meshgrid(*g), -1).reshape(-1, 2)
+    if region is None:
+        from scipy.spatial import ConvexHull, QhullError
+
+        try:
+            hull = xy_u[ConvexHull(xy_u).vertices]
+            inside = inside_hull(pts, hull)
+            pts = pts[inside] if inside.any() else pts
+        except QhullError:
+            pass
+    return pts
+
+
+def _disagreement(a: Candidate, b: Candidate, params: dict, points) -> float:
+    """The largest distance (px) between the distorted positions two fitted models give the
+    region's points."""
+    from oapcal.model import distort
+
+    with np.errstate(all="ignore"):
+        d = np.hypot(*(distort(points, params[a.spec]) - distort(points, params[b.spec])).T)
+    return float(np.nanmax(d)) if np.isfinite(d).any() else np.inf
+
+
+def _recommend(candidates, params, points, region_words):
+    """The recommendation (smallest predicted error; among the families indistinguishable
+    from it on the landmarks a physically constrained one is preferred when its predicted
+    error is at most :data:`DIFFER_BEYOND` x larger), and the notes."""
+    scored = [c for c in candidates if c.predicted_error is not None and np.isfinite(c.predicted_error)]
+    if not scored:
+        return None, ()
+    best = min(scored, key=lambda c: c.predicted_error)
+    per_family = {}
+    for c in sorted(scored, key=lambda c: c.predicted_error):
+        per_family.setdefault(c.family, c)
+    notes = []
+    same = [
+        c for c in per_family.values()
+        if c is not best and abs(c.cv_mean_error - best.cv_mean_error)
+        <= INDISTINGUISHABLE * min(c.cv_mean_error, best.cv_mean_error)
+    ]  # fmt: skip
+    for c in same:
+        lo, hi = sorted((c.predicted_error, best.predicted_error))
+        ratio = hi / max(lo, 1e-300)
+        gap = _disagreement(best, c, params, points) if c.spec in params and best.spec in params else np.nan
+        if ratio > DIFFER_BEYOND:
+            notes.append(
+                f"{best.family} ({best.spec}) and {c.family} ({c.spec}) are indistinguishable on the "
+                f"landmarks (held-out {best.cv_mean_error:.3g} and {c.cv_mean_error:.3g} px) but differ "
+                f"over {region_words}: predicted {best.predicted_error:.3g} and {c.predicted_error:.3g} px, "
+                f"the two models {gap:.3g} px apart at most"
+            )
+    if best.family not in PHYSICAL:
+        physical = [
+            c
+            for c in same
+            if c.family in PHYSICAL and c.predicted_error <= DIFFER_BEYOND * best.predicted_error
+        ]
+        if physical:
+            pick = physical[0]
+            notes.append(
+                f"preferred the physically constrained {pick.family} ({pick.spec}, predicted "
+                f"{pick.predicted_error:.3g} px) to {best.family} ({best.predicted_error:.3g} px): the "
+                "landmarks cannot tell them apart and the physics constrains it beyond them"
+            )
+            best = pick
+    return best, tuple(notes)
 
 
 def select_families(
@@ -265,25 +492,53 @@ def select_families(
     seed: int = 0,
     progress: Progress | None = None,
     image_size: tuple[int, int] | None = None,
+    priors=None,
+    region: tuple[float, float, float, float] | str | None = "auto",
 ) -> FamilySelection:
     """Rank Brown-Conrady subsets (all 4,096, fitted from ``init``) and relay subsets (from
     ``design``) together (module docstring).  ``cv`` folds for the ``cv_top`` best of each
     family by AICc that ``oapcal fit`` would write (finite and not folding over on the
-    points' bounds and the ``image_size`` frame); ``progress(done, total)`` over the fits."""
+    points' bounds and the ``image_size`` frame); ``progress(done, total)`` over the fits.
+
+    The recommendation is by the **predicted error over the region to be corrected**:
+    ``sqrt(cv^2 + sigma^2)`` with ``cv`` the held-out error and ``sigma`` the RMS over the
+    region of the position uncertainty propagated from each model's covariance
+    (:func:`region_sigma`).  ``region``: ``"auto"`` (default) the image frame
+    ``(0, 0, w - 1, h - 1)`` with ``image_size``, else the landmarks' hull; ``"hull"``; or a
+    box ``(x0, y0, x1, y1)`` px.  When families are indistinguishable on the landmarks
+    (held-out errors within :data:`INDISTINGUISHABLE`) but not over the region, the notes say
+    so, and a physically constrained family (the relay) is preferred among them unless its
+    predicted error is over :data:`DIFFER_BEYOND` x the best.  ``priors`` (relay priors, as
+    :func:`oapcal.optics.relay_model.parse_priors`) makes the relay's fits maximum a
+    posteriori ones (``relay:all`` among them)."""
     families = parse_families(",".join(families) if not isinstance(families, str) else families)
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
     if int(cv) < 2:
         raise DataError(f"choosing across families needs cross-validation with 2 or more folds, got {cv}",
                         param="cv")  # fmt: skip
+    priors = parse_priors(priors)
+    if isinstance(region, str) and region == "auto":
+        region = (
+            None if image_size is None else (0.0, 0.0, float(image_size[0]) - 1, float(image_size[1]) - 1)
+        )
+    elif isinstance(region, str) and region == "hull":
+        region = None
+    elif isinstance(region, str):
+        raise DataError(f"region must be 'auto', 'hull' or a box x0,y0,x1,y1, got {region!r}", param="region")
+    points = region_points(xy_u, region)
     candidates: list[Candidate] = []
     if "bc" in families:
-        candidates.extend(_bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size))
+        candidates.extend(_bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size, points))
     if "relay" in families:
         design = default_centre(design, xy_u, image_size)
-        candidates.extend(_relay_candidates(xy_u, xy_d, design, cv, cv_top, seed, progress, image_size))
+        candidates.extend(_relay_candidates(xy_u, xy_d, design, cv, cv_top, seed, progress, image_size,
+                                            priors,
+                                            points))  # fmt: skip
     if "bc+rotation" in families:
-        candidates.extend(_rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size))
+        candidates.extend(
+            _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size, points)
+        )
     valid_aicc = [c.aicc for c in candidates if c.valid and np.isfinite(c.aicc)]
     best = min(valid_aicc) if valid_aicc else np.nan
     candidates = [
@@ -291,5 +546,38 @@ def select_families(
     ]
     candidates.sort(key=lambda c: (not c.valid, c.aicc if np.isfinite(c.aicc) else np.inf))
     scored = [c for c in candidates if c.cv_mean_error is not None and np.isfinite(c.cv_mean_error)]
-    recommended = min(scored, key=lambda c: c.cv_mean_error) if scored else None
-    return FamilySelection(len(xy_u), int(cv), tuple(candidates), recommended)
+    heldout = min(scored, key=lambda c: c.cv_mean_error) if scored else None
+    params = _fitted_params(xy_u, xy_d, scored, design, init, priors)
+    words = "the landmarks' hull" if region is None else f"the region {tuple(round(v, 1) for v in region)}"
+    recommended, notes = _recommend(candidates, params, points, words)
+    if recommended is None:
+        recommended = heldout
+    record = None
+    if priors is not None and "relay" in families:
+        record = priors.to_dict(design)
+    return FamilySelection(len(xy_u), int(cv), tuple(candidates), recommended, heldout, region, notes, record)
+
+
+def _fitted_params(xy_u, xy_d, scored, design, init, priors) -> dict:
+    """The parameters of the cross-validated candidates fitted to all points (for comparing
+    two models' maps), by spec."""
+    from oapcal.fitting import fit_batch, initial_params
+    from oapcal.model import parse_any_model
+
+    out = {}
+    for c in scored:
+        try:
+            if c.family in PHYSICAL:
+                mask = relay_mask(c.spec, design.family)
+                if priors is not None:
+                    fits, _ = map_fit(xy_u, xy_d, design, mask[None], priors, covariance=False, max_iter=200)
+                else:
+                    fits = fit_batch(xy_u, xy_d, mask[None], relay_params(design)[None], covariance=False)
+            else:
+                mask = parse_any_model(c.spec)
+                fits = fit_batch(xy_u, xy_d, mask[None], initial_params(init, xy_u, xy_d, mask)[None],
+                                 covariance=False)  # fmt: skip
+            out[c.spec] = fits.params[0]
+        except Exception:  # noqa: BLE001 -- a model that cannot be refitted is not compared
+            continue
+    return out

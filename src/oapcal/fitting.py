@@ -76,6 +76,13 @@ class FitResult:
     ``rss`` is the sum of squared forward residuals, ``n`` the number of residuals (two
     per point) and ``k`` the number of free parameters; ``aic``, ``aicc`` and ``bic``
     follow :mod:`oapcal.stats` (with ``K = k + 1``).
+
+    Fitted with priors (``fit_batch(prior=...)``): ``params`` is the maximum a posteriori
+    estimate, ``rss`` the data's residuals alone (not the prior rows), ``covariance`` the
+    posterior ``s^2 (J^T J + W^2)^-1`` and ``k_eff`` the effective number of parameters,
+    the trace of the hat matrix ``tr((J^T J + W^2)^-1 J^T J)``, which replaces ``k`` in
+    ``s^2 = RSS / (n - k_eff)`` and in AIC, AICc and BIC (``K = k_eff + 1``); None without
+    priors.
     """
 
     free: tuple[str, ...]
@@ -92,6 +99,7 @@ class FitResult:
     status: int
     message: str
     n_iter: int
+    k_eff: float | None = None
 
     @property
     def family(self) -> ModelFamily:
@@ -126,7 +134,9 @@ class BatchFit:
     the sum of squared forward residuals over each item's points, ``n (B,)`` the number of
     residuals of each item (two per point), ``n_iter (B,)`` Jacobian evaluations,
     ``status (B,)`` (see :data:`STATUS_MESSAGES`; positive = converged) and ``masks``.
-    ``item(i)`` is item ``i`` as a :class:`FitResult`.
+    ``item(i)`` is item ``i`` as a :class:`FitResult`.  ``k_eff (B,)``: with priors, each
+    item's effective number of parameters (:class:`FitResult`; ``rss`` is then the data's
+    alone); None without.
     """
 
     masks: np.ndarray
@@ -136,11 +146,12 @@ class BatchFit:
     n: np.ndarray
     n_iter: np.ndarray
     status: np.ndarray
+    k_eff: np.ndarray | None = None
     converged: np.ndarray = field(init=False)
 
     def __post_init__(self):
         object.__setattr__(self, "converged", self.status > 0)
-        for name in ("masks", "params", "covariance", "rss", "n", "n_iter", "status", "converged"):
+        for name in ("masks", "params", "covariance", "rss", "n", "n_iter", "status", "converged", "k_eff"):
             value = getattr(self, name)
             if value is not None:
                 value.setflags(write=False)
@@ -158,7 +169,8 @@ class BatchFit:
         stderr = np.full(mask.shape[0], np.nan)
         stderr[mask] = np.sqrt(np.clip(np.diag(cov), 0, None))
         n = int(self.n[i])
-        ic = information_criteria(self.rss[i], n, k)
+        k_eff = None if self.k_eff is None else float(self.k_eff[i])
+        ic = information_criteria(self.rss[i], n, k if k_eff is None else k_eff)
         status = int(self.status[i])
         return FitResult(
             free=names_from_mask(mask),
@@ -175,6 +187,7 @@ class BatchFit:
             status=status,
             message=STATUS_MESSAGES[status],
             n_iter=int(self.n_iter[i]),
+            k_eff=k_eff,
         )
 
 
@@ -331,6 +344,7 @@ def fit_batch(
     gtol: float = 1e-12,
     scale: float | None = None,
     family: ModelFamily | None = None,
+    prior=None,
 ) -> BatchFit:
     """Fit B models at once by Levenberg-Marquardt (the one solver of oapcal).
 
@@ -351,6 +365,16 @@ def fit_batch(
         vector and a Jacobian column.
     scale : the coordinate factor ``f`` (default: the largest absolute coordinate).
     family : the model family (default Eq. (1)).
+    prior : Gaussian priors, a pair ``(mean, sigma)`` of ``(P,)`` or ``(B, P)`` arrays in
+        the parameters' units: the fit is then the maximum a posteriori estimate, least
+        squares on the residuals with one row ``(p_i - mean_i) / sigma_i`` appended per free
+        parameter (in the compiled solver; ``sigma`` in the units of the distorted points
+        per unit of the parameter, so a row weighs like a residual).  ``sigma`` inf: no
+        row (that parameter free as without priors); 0: the parameter is fixed at its
+        mean (removed from the free ones; for a family whose fixed parameters are 0 the
+        mean must then be 0).  The covariance is the posterior one and ``k_eff`` the
+        effective number of parameters (:class:`FitResult`).  None (default): no priors,
+        the fit exactly as without this argument.
 
     Each item stops when it meets a tolerance, fails, or hits ``max_iter``, and its
     status says which.  Items are independent: a batch gives the same results as a loop of
@@ -379,6 +403,9 @@ def fit_batch(
         if xy.ndim == 3 and xy.shape[0] not in (1, n_models):
             raise ModelSpecError(f"per-item points must have {n_models} rows, got {xy.shape[0]}")
     idx, counts = _point_subsets(points, xy_u.shape[-2], n_models)
+    p0 = np.broadcast_to(np.asarray(p0, dtype=float), masks.shape)
+    if prior is not None:
+        masks, p0, prior_mean, prior_sigma = _priors(prior, masks, p0, family)
 
     exps = family.scale_exponents
     if exps is None:
@@ -391,7 +418,7 @@ def fit_batch(
         )
     u = kernel_array((xy_u / f).reshape((-1,) + xy_u.shape[-2:]))
     d = kernel_array((xy_d / f).reshape((-1,) + xy_d.shape[-2:]))
-    p = np.broadcast_to(np.asarray(p0, dtype=float), masks.shape)
+    p = p0
     if exps is not None:
         p = p * f**exps
     fixed = 0.0 if family.zero_when_fixed else p
@@ -399,15 +426,34 @@ def fit_batch(
     status = np.zeros(n_models, dtype=np.int64)
     n_iter = np.zeros(n_models, dtype=np.int64)
     cost = np.zeros(n_models)
-    jtj = np.zeros((n_models if covariance else 1, n_params, n_params))
+    want_jtj = bool(covariance) or prior is not None  # priors: J^T J for k_eff as well
+    jtj = np.zeros((n_models if want_jtj else 1, n_params, n_params))
     fd = None if family.analytic_jacobian else float(family.fd_step)
-    _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts, masks,
-                        family.half, p, int(max_iter), float(ftol), float(xtol), float(gtol), fd,
-                        bool(covariance), status, n_iter, cost, jtj)  # fmt: skip
+    args = (family.half, p, int(max_iter), float(ftol), float(xtol), float(gtol), fd, want_jtj, status,
+            n_iter, cost, jtj)  # fmt: skip
+    if prior is None:
+        _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts,
+                            masks, *args)  # fmt: skip
+    else:
+        # In the solver's coordinates (p' = p f**e, residuals / f) a row (p - mean) / sigma
+        # of the data's objective is w' (p' - mean') with w' = 1 / (sigma f**(e + 1)).
+        e = np.zeros(n_params) if exps is None else exps
+        mean_s = kernel_array(prior_mean * f**e)
+        with np.errstate(divide="ignore"):
+            w_s = kernel_array(np.where(np.isfinite(prior_sigma), 1.0 / (prior_sigma * f ** (e + 1)), 0.0))
+        _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts,
+                            masks, *args, mean_s, w_s, True)  # fmt: skip
+        w2 = np.broadcast_to(np.where(masks, w_s**2, 0.0), masks.shape)
+        penalty = (w2 * (p - mean_s) ** 2).sum(axis=1)
+        cost = cost - 0.5 * penalty  # the data's part of the cost
     n_res = 2 * np.broadcast_to(counts, (n_models,)).astype(np.int64)
     rss_scaled = 2.0 * cost
     cov = None
-    if covariance:
+    k_eff = None
+    if prior is not None:
+        cov_s, k_eff = _posterior_covariance(jtj, w2, masks, rss_scaled, n_res)
+        cov = cov_s if covariance else None
+    elif covariance:
         cov = _covariance(jtj, masks, rss_scaled, n_res)
     # Back to the data's units: p = p' * f**-e, cov = D cov' D with D = f**-e.
     back = np.ones(n_params) if exps is None else f ** (-exps)
@@ -415,7 +461,61 @@ def fit_batch(
     if cov is not None:
         cov = cov * back[None, :, None] * back[None, None, :]
     return BatchFit(masks=masks.copy(), params=params, covariance=cov, rss=rss_scaled * f * f, n=n_res,
-                    n_iter=n_iter, status=status)  # fmt: skip
+                    n_iter=n_iter, status=status, k_eff=k_eff)  # fmt: skip
+
+
+def _priors(prior, masks, p0, family):
+    """``fit_batch``'s priors checked: ``(masks, p0, mean, sigma)`` with each zero-width
+    prior's parameter fixed at its mean (removed from ``masks``, its start the mean)."""
+    try:
+        mean, sigma = (np.asarray(a, dtype=float) for a in prior)
+        mean, sigma = np.broadcast_to(mean, masks.shape), np.broadcast_to(sigma, masks.shape)
+    except (TypeError, ValueError):
+        raise ModelSpecError(
+            f"prior must be a pair (mean, sigma) of ({masks.shape[1]},) or {masks.shape} arrays"
+        ) from None
+    if np.isnan(mean).any() or np.isinf(mean).any() or np.isnan(sigma).any() or (sigma < 0).any():
+        raise ModelSpecError("prior means must be finite and prior widths (sigma) 0 ... inf")
+    zero = masks & (sigma == 0)
+    if zero.any():
+        for name in family.always_free:
+            if zero[:, family.param_names.index(name)].any():
+                raise ModelSpecError(f"the parameter {name!r} is always free: it takes no zero-width prior")
+        if family.zero_when_fixed and (mean[zero] != 0).any():
+            raise ModelSpecError(
+                f"a zero-width prior fixes its parameter, and fixed parameters of the {family.name} "
+                "model are 0: give it mean 0"
+            )
+        masks = kernel_array(masks & ~zero, bool)
+        p0 = np.where(zero, mean, p0)
+    return masks, p0, mean, sigma
+
+
+def _posterior_covariance(jtj, w2, masks, rss, n_res):
+    """The posterior covariance ``s^2 (J^T J + W^2)^-1`` over each item's free parameters
+    (zero rows and columns for the fixed ones) and the effective number of parameters
+    ``k_eff = tr((J^T J + W^2)^-1 J^T J)`` (the hat matrix's trace), with
+    ``s^2 = RSS / (n - k_eff)``.  Without rows (``W = 0``) it is :func:`_covariance`'s."""
+    n_models, n_params = masks.shape
+    cov = np.zeros((n_models, n_params, n_params))
+    k_eff = np.full(n_models, np.nan)
+    for b in range(n_models):
+        free = np.flatnonzero(masks[b])
+        a = jtj[b][np.ix_(free, free)]
+        post = a + np.diag(w2[b][free])
+        if not np.isfinite(post).all():
+            cov[b][np.ix_(free, free)] = np.nan
+            continue
+        d = np.sqrt(np.diag(post))
+        d = np.where(d > 0, d, 1.0)
+        inv = np.linalg.pinv(post / np.outer(d, d)) / np.outer(d, d)
+        # tr(P^-1 J^T J) = k - tr(P^-1 W^2) for P = J^T J + W^2: the second form is exactly
+        # k without rows even where the pseudo-inverse drops a near-degenerate direction
+        k_eff[b] = float(len(free) - np.sum(np.diag(inv) * w2[b][free]))
+        dof = n_res[b] - k_eff[b]
+        s2 = rss[b] / dof if dof > 0 else np.nan
+        cov[b][np.ix_(free, free)] = inv * s2
+    return cov, k_eff
 
 
 def _covariance(jtj: np.ndarray, masks: np.ndarray, rss: np.ndarray, n_res: np.ndarray) -> np.ndarray:

@@ -173,14 +173,23 @@ def _starts(init, xy_u, xy_d, masks) -> np.ndarray:
 
 
 def score_models(
-    xy_u, xy_d, masks, init=DEFAULT_INIT, *, max_iter: int = 200, progress: Progress | None = None
+    xy_u,
+    xy_d,
+    masks,
+    init=DEFAULT_INIT,
+    *,
+    max_iter: int = 200,
+    progress: Progress | None = None,
+    prior=None,
 ):
     """Fit and score the models ``masks (B, P)`` (any family: ``P`` names it, and ``init``
     is then its ``(B, P)`` starts) on points already normalized.
 
     Returns a dict of arrays over the B models: ``params``, ``status``, ``rss`` (corrected
     residuals), ``mean_error``, ``n_bad`` (points whose inverse failed), ``n_folded``,
-    ``aicc``.  Works in chunks so that ``progress(done, total)`` can be reported.
+    ``aicc``.  Works in chunks so that ``progress(done, total)`` can be reported.  ``prior``
+    (:func:`oapcal.fitting.fit_batch`'s, ``(B, P)`` arrays) makes each fit a maximum a
+    posteriori one, and AICc then counts its effective number of parameters (``k_eff``).
     """
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
@@ -196,9 +205,15 @@ def score_models(
         "n_bad": np.zeros(n_models, dtype=np.int64),
         "n_folded": np.zeros(n_models, dtype=np.int64),
     }
+    k_free = masks.sum(axis=1).astype(float)
     for start in range(0, n_models, chunk):
         sl = slice(start, min(start + chunk, n_models))
-        fits = fit_batch(xy_u, xy_d, masks[sl], p0[sl], covariance=False, max_iter=max_iter)
+        if prior is None:
+            fits = fit_batch(xy_u, xy_d, masks[sl], p0[sl], covariance=False, max_iter=max_iter)
+        else:
+            part = tuple(np.broadcast_to(a, masks.shape)[sl] for a in prior)
+            fits = fit_batch(xy_u, xy_d, masks[sl], p0[sl], covariance=False, max_iter=max_iter, prior=part)
+            k_free[sl] = fits.k_eff
         rss, mean_dist, n_bad, n_folded = correction_errors(fits.params, xy_d, xy_u)
         all_ok = n_bad == 0
         out["rss"][sl] = np.where(all_ok, rss, np.nan)
@@ -210,7 +225,7 @@ def score_models(
         if progress is not None:
             progress(sl.stop, n_models)
     n = 2 * len(xy_u)
-    out["aicc"] = np.asarray(information_criteria(out["rss"], n, masks.sum(axis=1)).aicc, dtype=float)
+    out["aicc"] = np.asarray(information_criteria(out["rss"], n, k_free).aicc, dtype=float)
     return out
 
 
@@ -346,7 +361,7 @@ def select_models(
 
 
 def cross_validate(
-    xy_u, xy_d, masks, *, folds: int = 5, init=DEFAULT_INIT, seed: int = 0, max_iter: int = 200
+    xy_u, xy_d, masks, *, folds: int = 5, init=DEFAULT_INIT, seed: int = 0, max_iter: int = 200, prior=None
 ):
     """K-fold cross-validated mean corrected error of each model ``masks (B, P)`` (``init``
     as in :func:`score_models`).
@@ -357,6 +372,7 @@ def cross_validate(
     reference points.  Returns ``(mean_error (B,), failed (B,))``: the mean Euclidean error
     over every held-out point that could be scored, and the number of held-out points that
     could not (fit did not converge, or inverse failed).  NaN where none could be scored.
+    ``prior``: as in :func:`score_models` (each fold's fit a maximum a posteriori one).
     """
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
@@ -380,7 +396,8 @@ def cross_validate(
     failed = np.zeros(len(masks), dtype=np.int64)
     for held in parts:
         train = np.setdiff1d(np.arange(n_points), held)
-        fits = fit_batch(xy_u, xy_d, masks, p0, points=train[None], covariance=False, max_iter=max_iter)
+        fits = fit_batch(xy_u, xy_d, masks, p0, points=train[None], covariance=False, max_iter=max_iter,
+                         **({} if prior is None else {"prior": prior}))  # fmt: skip
         inv = undistort(xy_d[held], fits.params)
         ok = inv.converged & fits.converged[:, None]
         err = np.hypot(*np.moveaxis(inv.xy - xy_u[held][None], -1, 0))

@@ -39,6 +39,7 @@ from oapcal.io.images import (
     FrameWriter,
     check_frame,
     info_slice,
+    output_kind,
     probe,
     read_tiff_frames,
 )
@@ -47,6 +48,8 @@ from oapcal.progress import Stages
 
 ZARR_SUFFIX = ".zarr"
 LOCAL_SCHEDULERS = ("threads", "synchronous", "processes")
+#: ``DaskSettings.output_format``: a zarr array, an OME-Zarr (NGFF 0.4) group, a TIFF.
+OUTPUT_FORMATS = ("zarr", "ome-zarr", "tiff")
 #: The most chunks one stack may have (a header claiming 1e9 frames would otherwise build a
 #: task graph larger than memory); raise --chunk-frames for longer stacks.
 MAX_CHUNKS = 1_000_000
@@ -67,6 +70,9 @@ class DaskResult:
     frames: int
     chunks: int
     skipped: bool = False
+    #: What the run decided for the user (streamed in this process; a scheduler that is
+    #: slower than streaming on one machine), for the command to print; "" when nothing.
+    note: str = ""
 
 
 # ------------------------------------------------------------------------ lazy input
@@ -95,8 +101,11 @@ def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_P
     if path.suffix.lower() == ZARR_SUFFIX:
         import zarr
 
+        from oapcal.io.ome import ome_zarr_array_path
+
+        ngff = ome_zarr_array_path(path) if path.is_dir() else None
         try:
-            z = zarr.open_array(str(path), mode="r")
+            z = zarr.open_array(str(ngff or path), mode="r")
         except Exception as exc:  # zarr raises several types for a missing or bad store
             raise InputFileError(
                 f"{path}: cannot be opened as a zarr array ({type(exc).__name__}: {exc})"
@@ -120,6 +129,9 @@ def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_P
                 "the store holds no data; the array is empty or its header is corrupt"
             )
         arr = da.from_zarr(z)
+        if ngff is not None and z.ndim == 4:  # NGFF stores colour as (t, c, y, x)
+            arr = arr.transpose(0, 2, 3, 1)
+            shape = tuple(arr.shape)
         if z.ndim == 2:
             arr = arr[None]
         check_frame(path, np.empty((1, 1) + arr.shape[3:], arr.dtype))
@@ -171,27 +183,77 @@ def _correct_block(block: np.ndarray, source, interp: str, border: float, allow:
     return out
 
 
-def _write_zarr_block(block: np.ndarray, path: str, block_info=None) -> np.ndarray:
-    """Write one corrected chunk into the zarr array at ``path``; return its frame count."""
+def _write_zarr_block(block: np.ndarray, path: str, ngff: bool = False, block_info=None) -> np.ndarray:
+    """Write one corrected chunk into the zarr array at ``path`` (with ``ngff``, colour as
+    NGFF's ``(t, c, y, x)``); return its frame count."""
     import zarr
 
     start = block_info[0]["array-location"][0][0]
     z = zarr.open_array(path, mode="r+")
-    z[start : start + len(block)] = block
+    z[start : start + len(block)] = np.moveaxis(block, -1, 1) if ngff and block.ndim == 4 else block
     return np.array([len(block)])
 
 
 # ------------------------------------------------------------------------ schedulers
 
 
+#: ``DaskSettings.engine``: ``auto`` streams the chunks in this process when no scheduler is
+#: given and at most one worker (see :func:`streams_locally`), ``dask`` always runs Dask's
+#: scheduler (a new ``LocalCluster`` when none is given).
+ENGINES = ("auto", "dask")
+#: What :func:`dask_scheduler` yields for a run that streams in this process.
+STREAM = "stream"
+
+
+def streams_locally(scheduler: str | None, workers: int | None, engine: str = "auto") -> bool:
+    """Whether a run streams its frames in this process (read, remapped and written one at a
+    time, as ``oapcal correct`` without ``--dask`` does, into the same output) instead of
+    starting a ``LocalCluster``: with ``engine="auto"``, no
+    scheduler and at most one worker, the default of ``oapcal correct --dask``.  On one
+    machine that is the fastest way (``docs/benchmarks.md``, "Dask against streaming"):
+    a local cluster only adds its start-up and the transfer of frames between processes.
+
+    >>> streams_locally(None, None), streams_locally(None, 2), streams_locally("tcp://h:8786", 1)
+    (True, False, False)
+    """
+    if engine not in ENGINES:
+        raise InputFileError(f"engine {engine!r}: use one of {', '.join(ENGINES)}", param="engine")
+    return engine == "auto" and scheduler is None and (workers or 1) <= 1
+
+
+def dask_note(scheduler: str | None, workers: int | None, engine: str = "auto") -> str:
+    """What to tell the user about where a ``--dask`` run goes, from the measurements in
+    ``docs/benchmarks.md``; "" for a cluster given by address.
+
+    >>> dask_note("tcp://10.0.0.5:8786", None)
+    ''
+    """
+    if streams_locally(scheduler, workers, engine):
+        return (
+            "streamed in this process, frame by frame: on one machine a local cluster of Dask workers "
+            "is slower than streaming (docs/benchmarks.md); give workers > 1 or a scheduler address "
+            "to run Dask workers"
+        )
+    if scheduler is None or scheduler in LOCAL_SCHEDULERS:
+        return (
+            "Dask on this machine alone is slower than correcting without Dask, which streams the "
+            "frames in one process (docs/benchmarks.md); Dask pays on a cluster (a scheduler address) "
+            "whose workers see the files"
+        )
+    return ""
+
+
 @contextlib.contextmanager
 def dask_scheduler(
-    scheduler: str | None = None, workers: int | None = None, worker_timeout: float | None = None
-):
+    scheduler: str | None = None, workers: int | None = None, worker_timeout: float | None = None,
+    *, engine: str = "auto",
+):  # fmt: skip
     """Yield what ``dask.compute(..., scheduler=...)`` takes, and the number of chunks to
-    keep in flight: a new ``LocalCluster`` (default), a ``Client`` of the scheduler at an
-    address (``tcp://host:8786``), or a local scheduler name (threads, synchronous,
-    processes).  Open it once for a batch of stacks.
+    keep in flight: :data:`STREAM` and 1 when the frames stream in this process without
+    Dask (:func:`streams_locally`: the default without a scheduler and with at most one
+    worker, unless ``engine="dask"``), else a new ``LocalCluster`` of ``workers`` processes,
+    a ``Client`` of the scheduler at an address (``tcp://host:8786``), or a local scheduler
+    name (threads, synchronous, processes).  Open it once for a batch of stacks.
 
     An address is checked before any connection (:func:`parse_scheduler_address`); a
     scheduler that has no worker within ``worker_timeout`` seconds (default
@@ -201,6 +263,9 @@ def dask_scheduler(
     off the terminal; oapcal reports the problem in one line.  The local cluster's worker
     processes ignore Ctrl-C (the main process stops them).
     """
+    if streams_locally(scheduler, workers, engine):
+        yield STREAM, 1
+        return
     if scheduler in LOCAL_SCHEDULERS:
         yield scheduler, max(2, workers or os.cpu_count() or 1)
         return
@@ -348,8 +413,16 @@ def _workers_ignore_sigint():
 
 
 def dask_output_name(input_path: str | Path, output_format: str = "zarr") -> str:
-    """The output name of a stack: ``STEM.zarr`` or ``STEM.tif``."""
+    """The output name of a stack: ``STEM.zarr``, ``STEM.tif`` or ``STEM.ome.zarr``.
+
+    >>> dask_output_name("a/run.ome.tif", "ome-zarr"), dask_output_name("run.tif")
+    ('run.ome.zarr', 'run.zarr')
+    """
     input_path = Path(input_path)
+    if output_format == "ome-zarr":
+        from oapcal.batch.stack import output_name
+
+        return output_name(input_path, "ome-zarr")
     suffix = ZARR_SUFFIX if output_format == "zarr" else ".tif"
     return input_path.name.removesuffix(input_path.suffix) + suffix
 
@@ -362,6 +435,7 @@ class DaskSettings:
     when no prebuilt map is given (see :func:`oapcal.imaging.remap.correction_map`).
     """
 
+    #: ``zarr`` (a plain array), ``ome-zarr`` (NGFF 0.4, :mod:`oapcal.io.ome`) or ``tiff``.
     output_format: str = "zarr"
     chunk_frames: int = 16
     interp: str = "linear"
@@ -377,6 +451,9 @@ class DaskSettings:
     overwrite: bool = False
     #: ``progress(done, total, description)`` over the frames written (:mod:`oapcal.progress`).
     progress: object = None
+    #: :data:`ENGINES`: ``auto`` streams in this process when no scheduler and at most one
+    #: worker are given (:func:`streams_locally`), ``dask`` always uses Dask's scheduler.
+    engine: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -430,17 +507,28 @@ def correct_stack_dask(
     }
     if out_path.exists() and not settings.overwrite and resume_complete(out_path, record):
         return DaskResult(str(shown_in), str(shown_out), 0, 0, skipped=True)
-    corrected = _build_graph(stack, plan, settings)
     name = settings.calibration_name or getattr(calibration, "name", None)
-    n_chunks = _run_and_write(corrected, out_path, plan.geometry, name, input_path.name, settings, session)
+    own = (
+        contextlib.nullcontext(session)
+        if session is not None
+        else dask_scheduler(settings.scheduler, settings.workers, engine=settings.engine)
+    )
+    with own as opened:
+        if opened[0] == STREAM:
+            n_chunks = _stream_and_write(stack, input_path, plan, out_path, name, settings, calibration)
+        else:
+            corrected = _build_graph(stack, plan, settings)
+            n_chunks = _run_and_write(corrected, out_path, plan.geometry, name, input_path.name, settings,
+                                      opened, calibration)  # fmt: skip
     write_resume_record(out_path, {**record})
-    return DaskResult(str(shown_in), str(shown_out), corrected.shape[0], n_chunks)
+    note = dask_note(settings.scheduler, settings.workers, settings.engine)
+    return DaskResult(str(shown_in), str(shown_out), int(stack.shape[0]), n_chunks, note=note)
 
 
 def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
     """The output path of ``input_path``; refuses an unknown format or overwriting the input."""
-    if output_format not in ("zarr", "tiff"):
-        raise OutputError(f"unknown output format {output_format!r}: use zarr or tiff")
+    if output_format not in OUTPUT_FORMATS:
+        raise OutputError(f"unknown output format {output_format!r}: use {', '.join(OUTPUT_FORMATS)}")
     out_path = out_dir / dask_output_name(input_path, output_format)
     if out_path.resolve() == input_path.resolve():
         raise OutputError(
@@ -449,7 +537,7 @@ def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
         )
     from oapcal.io.atomic import check_output_target
 
-    check_output_target(out_path, directory=output_format == "zarr")
+    check_output_target(out_path, directory=output_format != "tiff")
     return out_path
 
 
@@ -516,7 +604,9 @@ def _build_graph(stack, plan: _MapPlan, settings: DaskSettings):
     )
 
 
-def _run_and_write(corrected, out_path: Path, geometry, name, label, settings: DaskSettings, session) -> int:
+def _run_and_write(
+    corrected, out_path: Path, geometry, name, label, settings: DaskSettings, session, calibration=None
+) -> int:
     """Compute ``corrected`` a window of chunks at a time into ``out_path``, atomically;
     return the number of chunks."""
     from oapcal.io.atomic import check_free_space, remove_stale_temps
@@ -533,21 +623,139 @@ def _run_and_write(corrected, out_path: Path, geometry, name, label, settings: D
     own = (
         contextlib.nullcontext(session)
         if session is not None
-        else dask_scheduler(settings.scheduler, settings.workers)
+        else dask_scheduler(settings.scheduler, settings.workers, engine=settings.engine)
     )
     try:
         with own as (sched, window), bar:
-            if settings.output_format == "zarr":
-                _write_zarr(corrected, out_path, geometry, name, sched, window, bar)
+            if settings.output_format in ("zarr", "ome-zarr"):
+                from oapcal.io.ome import provenance
+
+                ngff = None
+                if settings.output_format == "ome-zarr":
+                    ngff = provenance(name, geometry.um_per_px, label, calibration)
+                _write_zarr(corrected, out_path, geometry, name, sched, window, bar, ngff)
             else:
-                _write_tiff(corrected, out_path, geometry, name, out_bytes, sched, window, bar)
+                _write_tiff(corrected, out_path, geometry, name, out_bytes, sched, window, bar, label,
+                            calibration)  # fmt: skip
     except OSError as exc:
         raise _os_error(out_path, exc) from None
     return n_chunks
 
 
-def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, bar) -> None:
-    """Each chunk written into a temporary zarr store by the worker that corrected it."""
+def _stream_and_write(stack, input_path: Path, plan: _MapPlan, out_path: Path, name, settings: DaskSettings,
+                      calibration) -> int:  # fmt: skip
+    """The frames of ``stack`` read, remapped and written one at a time in this process,
+    into the output :func:`_run_and_write` would write (the same store, chunks and
+    metadata); return the number of chunks of the input."""
+    from oapcal.io.atomic import atomic_dir, atomic_path, check_free_space, remove_stale_temps
+    from oapcal.io.images import open_frames
+
+    source = plan.source
+    if isinstance(source, tuple):
+        cmap = _worker_map(source)
+    else:
+        cmap = source if isinstance(source, CorrectionMap) else source.compute(scheduler="synchronous")
+    n, chunk = int(stack.shape[0]), int(stack.chunks[0][0])
+    out_shape = (n, *plan.geometry.shape, *stack.shape[3:])
+    dtype = np.dtype(stack.dtype)
+    out_bytes = int(np.prod(out_shape, dtype=np.int64)) * dtype.itemsize
+    out_dir = out_path.parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(out_dir, [out_path])
+    fmt = settings.output_format
+    if fmt == "tiff":
+        check_free_space(out_dir, out_bytes, out_path)
+
+    def frames():
+        if input_path.suffix.lower() in TIFF_SUFFIXES:
+            with open_frames(input_path, settings.max_pixels) as (_, pages):
+                yield from pages
+            return
+        for lo in range(0, n, chunk):  # a zarr input: one chunk at a time
+            yield from stack[lo : lo + chunk].compute(scheduler="synchronous")
+
+    label = input_path.name
+    meta = dict(expected_bytes=out_bytes, n_frames=n, source=label, calibration=calibration)
+    try:
+        with Stages(settings.progress, n, f"{label} frames") as bar:
+            temporary = atomic_path(out_path) if fmt == "tiff" else atomic_dir(out_path)
+            with temporary as tmp:
+                if fmt == "zarr":
+                    writer = _ZarrSlabs(tmp, out_shape, chunk, dtype, name, plan.geometry.um_per_px)
+                else:
+                    kind = output_kind(out_path) if fmt == "tiff" else "ome-zarr"
+                    writer = FrameWriter(tmp, kind, name, plan.geometry.um_per_px, **meta)
+                with writer:
+                    buffer = None
+                    for frame in frames():
+                        buffer = correct_image(frame, cmap, settings.interp, settings.border, out=buffer,
+                                               allow_size_mismatch=settings.allow_size_mismatch)  # fmt: skip
+                        writer.write(buffer.reshape(out_shape[1:]))
+                        bar.advance()
+                if writer.n != n:
+                    raise OutputError(f"{out_path}: {writer.n} of {n} frames were written")
+    except OSError as exc:
+        raise _os_error(out_path, exc) from None
+    return len(stack.chunks[0])
+
+
+class _ZarrSlabs:
+    """Frames gathered into slabs of ``chunk`` frames and written to a new zarr array at
+    ``path`` as :func:`_write_zarr` makes it (its chunks and attributes).  A slab is
+    encoded and written by one background thread while the next is filled (zarr's
+    compression releases the GIL), at most two slabs in memory."""
+
+    def __init__(self, path, shape, chunk: int, dtype, name, um_per_px):
+        import zarr
+
+        chunks = (chunk, *shape[1:])
+        self.z = zarr.create_array(str(path), shape=shape, chunks=chunks, dtype=dtype, overwrite=True)
+        self.z.attrs.update({"oapcal_calibration": name, "um_per_px": um_per_px,
+                             "axes": "TYX" + "C" * (len(shape) == 4)})  # fmt: skip
+        self.chunk, self.shape, self.dtype = chunk, shape, dtype
+        self.slab = np.empty((chunk, *shape[1:]), dtype)
+        self.n = 0
+        self._k = 0
+        self._pool = None
+        self._pending = None
+
+    def __enter__(self):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="oapcal-zarr")
+        return self
+
+    def write(self, frame: np.ndarray) -> None:
+        self.slab[self._k] = frame
+        self._k += 1
+        self.n += 1
+        if self._k == self.chunk:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._k:
+            return
+        if self._pending is not None:
+            self._pending.result()  # the previous slab is written: at most two in memory
+        lo, slab = self.n - self._k, self.slab[: self._k]
+        self._pending = self._pool.submit(self.z.__setitem__, slice(lo, self.n), slab)
+        self.slab = np.empty((self.chunk, *self.shape[1:]), self.dtype)
+        self._k = 0
+
+    def __exit__(self, exc_type, *exc):
+        try:
+            if exc_type is None:
+                self._flush()
+            if self._pending is not None:
+                self._pending.result()
+        finally:
+            self._pool.shutdown(wait=True)
+        return False
+
+
+def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, bar, ngff=None) -> None:
+    """Each chunk written into a temporary zarr store by the worker that corrected it; with
+    ``ngff`` (the provenance) an OME-Zarr group whose array ``0`` the workers write."""
     import zarr
 
     from oapcal.io.atomic import atomic_dir
@@ -556,21 +764,30 @@ def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, b
     n_chunks = len(corrected.chunks[0])
     with atomic_dir(out_path) as tmp:
         try:
-            z = zarr.create_array(
-                str(tmp), shape=out_shape, chunks=(corrected.chunks[0][0], *out_shape[1:]),
-                dtype=corrected.dtype, overwrite=True,
-            )  # fmt: skip
-            z.attrs.update(
-                {
-                    "oapcal_calibration": name,
-                    "um_per_px": geometry.um_per_px,
-                    "axes": "TYX" + "C" * (len(out_shape) == 4),
-                }
-            )
+            target = str(tmp)
+            if ngff is not None:
+                from oapcal.io.ome import create_ome_zarr
+
+                create_ome_zarr(tmp, out_shape[0], out_shape[1:], corrected.dtype, geometry.um_per_px, ngff,
+                                Path(ngff["source"] or out_path.name).name)  # fmt: skip
+                target = str(tmp / "0")
+            else:
+                z = zarr.create_array(
+                    str(tmp), shape=out_shape, chunks=(corrected.chunks[0][0], *out_shape[1:]),
+                    dtype=corrected.dtype, overwrite=True,
+                )  # fmt: skip
+                z.attrs.update(
+                    {
+                        "oapcal_calibration": name,
+                        "um_per_px": geometry.um_per_px,
+                        "axes": "TYX" + "C" * (len(out_shape) == 4),
+                    }
+                )
             drop = list(range(1, corrected.ndim))
             written = corrected.map_blocks(
-                _write_zarr_block, str(tmp), dtype=int, chunks=((1,) * n_chunks,), drop_axis=drop
-            )
+                _write_zarr_block, target, ngff is not None, dtype=int, chunks=((1,) * n_chunks,),
+                drop_axis=drop,
+            )  # fmt: skip
             total = 0
             for j in range(0, n_chunks, window):
                 counts = written[j : j + window].compute(scheduler=sched)
@@ -583,8 +800,12 @@ def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, b
             raise OutputError(f"{out_path}: {total} of {out_shape[0]} frames were written")
 
 
-def _write_tiff(corrected, out_path: Path, geometry, name, out_bytes: int, sched, window: int, bar) -> None:
-    """Chunks gathered in order, a window at a time, and appended to a temporary TIFF."""
+def _write_tiff(
+    corrected, out_path: Path, geometry, name, out_bytes: int, sched, window: int, bar, source=None,
+    calibration=None,
+) -> None:  # fmt: skip
+    """Chunks gathered in order, a window at a time, and appended to a temporary TIFF (an
+    OME-TIFF when ``out_path`` is named ``.ome.tif``)."""
     from oapcal.io.atomic import atomic_path
 
     n_frames = corrected.shape[0]
@@ -593,7 +814,16 @@ def _write_tiff(corrected, out_path: Path, geometry, name, out_bytes: int, sched
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int)
     with (
         atomic_path(out_path) as tmp,
-        FrameWriter(tmp, "tiff", name, geometry.um_per_px, expected_bytes=out_bytes) as writer,
+        FrameWriter(
+            tmp,
+            output_kind(out_path),
+            name,
+            geometry.um_per_px,
+            expected_bytes=out_bytes,
+            n_frames=n_frames,
+            source=source,
+            calibration=calibration,
+        ) as writer,  # fmt: skip
     ):
         for j in range(0, n_chunks, window):
             last = min(n_chunks - 1, j + window - 1)

@@ -38,6 +38,7 @@ import numpy as np
 from oapcal.errors import DataError, InputFileError, OapcalError, OutputError
 from oapcal.imaging.remap import CorrectionMap, check_map_samples, correct_image, correction_map
 from oapcal.io.atomic import (
+    atomic_dir,
     atomic_path,
     check_directory_writable,
     check_free_space,
@@ -49,10 +50,45 @@ from oapcal.io.atomic import (
     safe_output_path,
     write_resume_record,
 )
-from oapcal.io.images import IMAGE_SUFFIXES, MAX_PIXELS, FrameWriter, count_frames, open_frames, probe
+from oapcal.io.images import (
+    BGR_KINDS,
+    IMAGE_SUFFIXES,
+    MAX_PIXELS,
+    FrameWriter,
+    count_frames,
+    open_frames,
+    output_kind,
+    probe,
+)
+from oapcal.io.ome import OME_TIFF_SUFFIXES, OME_ZARR_SUFFIX
 from oapcal.progress import Stages
 
 _GLOB_CHARS = set("*?[")
+#: ``output_format`` of :func:`correct_stack`: None keeps each input's format (a video stays
+#: a video, an ``.ome.tif`` an OME-TIFF); ``ome-tiff`` writes ``STEM.ome.tif``, ``ome-zarr``
+#: ``STEM.ome.zarr`` (NGFF 0.4), ``tiff`` ``STEM.tif``, whatever the input.
+OUTPUT_FORMATS = (None, "tiff", "ome-tiff", "ome-zarr")
+
+
+def output_name(path: str | Path, output_format: str | None = None) -> str:
+    """The output name of an input for ``output_format`` (:data:`OUTPUT_FORMATS`).
+
+    >>> [output_name("a/run.avi", f) for f in OUTPUT_FORMATS]
+    ['run.avi', 'run.tif', 'run.ome.tif', 'run.ome.zarr']
+    >>> output_name("cells.ome.tif", "ome-zarr")
+    'cells.ome.zarr'
+    """
+    if output_format not in OUTPUT_FORMATS:
+        raise DataError(
+            f"output_format {output_format!r}: use one of {', '.join(str(f) for f in OUTPUT_FORMATS)}",
+            param="output_format",
+        )
+    name = Path(path).name
+    if output_format is None:
+        return name
+    lower = name.lower()
+    stem = next((name[: -len(s)] for s in OME_TIFF_SUFFIXES if lower.endswith(s)), Path(name).stem)
+    return stem + {"tiff": ".tif", "ome-tiff": ".ome.tif", "ome-zarr": OME_ZARR_SUFFIX}[output_format]
 
 
 @dataclass(frozen=True)
@@ -239,7 +275,7 @@ def plan_outputs(
                 "choose another path for it"
             )
         ensure_not_input(out, [*files, *protect])
-        check_output_target(out)
+        check_output_target(out, directory=out.suffix.lower() == ".zarr")
         outputs.append(out)
     return outputs
 
@@ -337,6 +373,7 @@ def correct_stack(
     protect: Sequence[str | Path] = (),
     reserved: Sequence[tuple[str | Path, str]] = (),
     progress=None,
+    output_format: str | None = None,
 ) -> StackReport:
     """Correct every image and stack of ``inputs`` into ``out_dir`` (see the module doc).
 
@@ -345,13 +382,18 @@ def correct_stack(
     or ``cmap`` is a prebuilt map.  ``workers`` files are corrected at once (threads;
     OpenCV's remap is itself multi-threaded).  ``protect`` lists further files that no
     output may overwrite, ``reserved`` further outputs ``(path, description)`` no image
-    output may coincide with.  ``progress(done, total, description)`` (optional) hears of
+    output may coincide with.  ``output_format`` (:data:`OUTPUT_FORMATS`) writes every
+    input as OME-TIFF, OME-Zarr or TIFF (:func:`output_name`) instead of its own format;
+    video inputs (AVI, MP4, MOV, MKV) stream frame by frame like TIFF stacks and, in their
+    own format, are written as video.  ``progress(done, total, description)`` (optional) hears of
     every frame corrected (:mod:`oapcal.progress`).  Raises
     :class:`~oapcal.errors.OutputError` before writing anything when the output directory
     is not allowed; per-file problems are results.
     """
     files, failures, dirs = expand_inputs([str(p) for p in inputs])
-    outputs = plan_outputs(files, out_dir, dirs, protect, reserved=reserved)
+    output_name(".", output_format)  # an unknown format is refused before any work
+    naming = None if output_format is None else (lambda p: output_name(p, output_format))
+    outputs = plan_outputs(files, out_dir, dirs, protect, reserved=reserved, output_name=naming)
     check_directory_writable(out_dir)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     remove_stale_temps(out_dir, outputs)
@@ -369,6 +411,7 @@ def correct_stack(
     digest = correction_digest(
         calibration, cmap, interp=interp, border=float(border), extent=extent, um_per_px=um_per_px,
         out_size=None if out_size is None else list(out_size),
+        **({} if output_format is None else {"output_format": output_format}),
     )  # fmt: skip
     jobs = []
     results: dict[int, FileResult] = {}
@@ -414,11 +457,17 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
             cmap = cache.get(info.frame_shape, src)
             pixels_in = info.frame_shape[0] * info.frame_shape[1]
             out_bytes = info.n_frames * info.frame_bytes * cmap.shape[0] * cmap.shape[1] // pixels_in
-            meta = dict(planar=info.planar, expected_bytes=out_bytes)
-            if info.kind == "tiff":  # uncompressed: the size is known; PNG etc. compress
+            kind = output_kind(dst)
+            meta = dict(
+                planar=info.planar and kind == "tiff", expected_bytes=out_bytes, n_frames=info.n_frames,
+                source=src.name, fps=info.fps, bgr=info.kind in BGR_KINDS, calibration=cache.calibration,
+            )  # fmt: skip
+            if kind in ("tiff", "ome-tiff"):  # uncompressed: the size is known; PNG etc. compress
                 check_free_space(dst.parent, out_bytes, dst)
-            with atomic_path(dst, clean=False) as tmp:  # cleaned for the whole batch
-                with FrameWriter(tmp, info.kind, name, cmap.geometry.um_per_px, **meta) as writer:
+            # cleaned for the whole batch
+            temporary = atomic_dir(dst) if kind == "ome-zarr" else atomic_path(dst, clean=False)
+            with temporary as tmp:
+                with FrameWriter(tmp, kind, name, cmap.geometry.um_per_px, **meta) as writer:
                     out = None
                     for frame in frames:
                         out = correct_image(
@@ -428,7 +477,9 @@ def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, nam
                         n += 1
                         bar.advance()
                 written = count_frames(tmp)
-                if n != info.n_frames or written != info.n_frames:
+                # a video's header count is the container's estimate (exact for AVI, checked on reading)
+                expected = n if info.kind == "video" and kind == "video" else info.n_frames
+                if n != expected or written != expected:
                     raise InputFileError(
                         f"{src}: {info.n_frames} frames were expected but {n} were read and {written} "
                         "written; the input may have changed while it was corrected; nothing was written"

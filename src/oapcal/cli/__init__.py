@@ -32,7 +32,7 @@ from oapcal import __version__
 #: name -> "module:attribute" of every subcommand.
 COMMANDS: dict[str, str] = {
     "fit": "oapcal.cli.fit:fit_command",
-    "correct-points": "oapcal.cli.fit:correct_points_command",
+    "correct-points": "oapcal.cli.correct_points:correct_points_command",
     "demo": "oapcal.cli.demo:demo_command",
     "simulate": "oapcal.cli.simulate:simulate_group",
     "correct": "oapcal.cli.correct:correct_command",

@@ -38,6 +38,16 @@ def sanitize(text) -> str:
     return _UNSAFE.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), str(text))
 
 
+#: The Python names of the options that give a relay's design (``fit``, ``select`` and
+#: ``tolerance`` spell them ``relay_*``, ``simulate relay`` without the prefix): an error
+#: whose ``param`` is ``"design"`` names those the command has.
+DESIGN_OPTIONS = (
+    "relay_setup", "relay_d1", "relay_focal_length", "relay_focal_length_2", "relay_stop", "relay_pixel_size",
+    "relay_centre", "microscope_magnification", "setup", "d1", "d1_mm", "focal_length", "focal_length_2",
+    "stop_distance", "pixel_size",
+)  # fmt: skip
+
+
 def flag_hint(command, param) -> str:
     """`` (set by --flag)`` for the options of ``command`` whose Python names are ``param``
     (a name or a tuple of names, as :class:`oapcal.errors.OapcalError` ``.param``); ``""``
@@ -51,6 +61,7 @@ def flag_hint(command, param) -> str:
     ' (set by --out-size, --um-per-px)'
     """
     names = (param,) if isinstance(param, str) else tuple(param or ())
+    names = tuple(n for name in names for n in (DESIGN_OPTIONS if name == "design" else (name,)))
     options = {p.name: p for p in getattr(command, "params", []) if isinstance(p, click.Option)}
     flags = []
     for name in names:

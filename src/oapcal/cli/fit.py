@@ -1,4 +1,4 @@
-"""``oapcal fit`` and ``oapcal correct-points``."""
+"""``oapcal fit`` (``oapcal correct-points`` is in :mod:`oapcal.cli.correct_points`)."""
 
 from __future__ import annotations
 
@@ -6,15 +6,14 @@ import click
 
 from oapcal.cli._common import (
     INIT_HELP,
-    allow_unconverged_option,
     check_output,
     console,
     load_pairs,
-    load_usable_calibration,
     parse_size,
     points_options,
     print_json,
 )
+from oapcal.cli._priors import load_priors, priors_option
 from oapcal.cli._relay import (
     RELAY_MODEL_HELP,
     check_relay_spec,
@@ -76,8 +75,9 @@ from oapcal.cli._relay import (
     "'oapcal correct' then needs --allow-unconverged to use it.",
 )
 @relay_design_options
+@priors_option
 def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json, rotation,
-                keep_unconverged, relay_design):  # fmt: skip
+                keep_unconverged, relay_design, priors="off"):  # fmt: skip
     """Fit a distortion model to point pairs: a CSV with x_u,y_u,x_d,y_d (POINTS), or
     landmark files --distorted FILE --reference FILE (VIA, napari, BigWarp, CSV)."""
     from oapcal.calibration import calibrate
@@ -86,6 +86,9 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
 
     check_output(out, points)
     size = parse_size(image_size)
+    relay_priors = load_priors(priors)
+    if relay_priors is not None and not is_relay(model):
+        raise click.UsageError(f"--priors {priors} applies to a relay model (--model relay); drop it")
     if is_relay(model):
         check_relay_spec(model)  # a bad spec fails before the file is read
         refuse_normalize(normalization, "the relay model fits the target's pose itself, in px")
@@ -94,7 +97,7 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
         from oapcal.optics.relay_model import calibrate_relay
 
         cal = calibrate_relay(pairs.xy_u, pairs.xy_d, design, model, um_per_px=um_per_px, image_size=size,
-                              source=pairs.source)  # fmt: skip
+                              source=pairs.source, priors=relay_priors)  # fmt: skip
     else:
         parse_any_model(model)  # a bad spec fails before the file is read
         pairs = load_pairs(points)
@@ -186,13 +189,22 @@ def _check_fit_usable(cal, source: str) -> None:
         check_model_region(cal, source=source)
     except InputFileError as exc:
         raise FitFailed(f"{exc}; nothing written") from None
+    if cal.relay_design is not None and cal.fit.converged:
+        from oapcal.optics.relay_model import implausible
+
+        problem = implausible(cal)
+        if problem:
+            problem = problem.replace("the priors (priors 'default')", "--priors default")
+            raise FitFailed(f"{source}: {problem}; nothing written")
 
 
 def fit_summary(cal) -> dict:
     """The ``--json`` object of ``oapcal fit``."""
     from oapcal.io.jsonfile import finite_or_none as _finite
 
+    extra = {} if cal.priors is None else {"priors": cal.priors, "k_eff": _finite(cal.fit.k_eff)}
     return {
+        **extra,
         "free": list(cal.free),
         "params": cal.params_dict,
         "stderr": {n: _finite(cal.stderr[i]) for i, n in _free_index(cal)},
@@ -237,6 +249,12 @@ def print_fit(cal) -> None:
         for line in describe(cal):
             out.print("  " + line)
     f = cal.fit
+    if cal.priors is not None:
+        out.print(
+            f"maximum a posteriori fit, priors {cal.priors.get('spec')} (noise "
+            f"{cal.priors.get('noise_used_px', float('nan')):.3g} px; effective parameters "
+            f"{f.k_eff:.3g} of {f.k})"
+        )
     status = "converged" if f.converged else "NOT converged"
     out.print(
         f"{status} after {f.n_iter} iterations ({f.message}); {f.n_points} points, "
@@ -253,44 +271,3 @@ def print_fit(cal) -> None:
     out.print(res)
     if r.get("n_failed"):
         out.print(f"[red]{r['n_failed']} points could not be corrected (inverse did not converge)[/red]")
-
-
-@click.command("correct-points")
-@click.argument("calib", type=click.Path(dir_okay=False))
-@points_options
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    required=True,
-    help="Output CSV: the input columns plus x_c,y_c,converged.",
-)
-@allow_unconverged_option
-def correct_points_command(calib, points, out, allow_unconverged):
-    """Correct distorted points (columns x_d,y_d of POINTS, or the landmarks of --distorted
-    FILE) with a calibration."""
-    from oapcal.io.points import write_points
-    from oapcal.model import undistort
-
-    check_output(out, calib, points)
-    cal = load_usable_calibration(calib, allow_unconverged)
-    pairs = load_pairs(points, require=("x_d", "y_d"))
-    inverse = undistort(pairs.xy_d, cal.params)
-    fields = [f for f in pairs.fieldnames if f not in ("x_c", "y_c", "converged")]
-    fields += ["x_c", "y_c", "converged"]
-    rows = []
-    for row, xy, ok in zip(pairs.rows, inverse.xy, inverse.converged):
-        row = dict(row)
-        row["x_c"] = repr(float(xy[0])) if ok else ""
-        row["y_c"] = repr(float(xy[1])) if ok else ""
-        row["converged"] = int(bool(ok))
-        rows.append(row)
-    write_points(out, fields, rows)
-    n_bad = int((~inverse.converged).sum())
-    if n_bad:
-        click.echo(
-            f"oapcal: warning: {n_bad} of {len(rows)} points could not be corrected "
-            f"({int(inverse.folded.sum())} where the map folds over); their x_c,y_c are empty",
-            err=True,
-        )
-    return 0

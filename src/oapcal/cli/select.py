@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from oapcal.cli._common import check_output, check_work, console, load_pairs, points_options, progress_bar
+from oapcal.cli._priors import load_priors, priors_option
 from oapcal.cli._relay import refuse_normalize, relay_design_options
 
 #: Most robustness trials (and the memory per trial, per point and per model: measured about
@@ -91,9 +92,20 @@ def _fmt(value, spec: str) -> str:
     help="With --families: camera image size WxH in px (the relay's centre, and the region every "
     "recommended model must correct without folding over, as fit checks it).",
 )
+@click.option(
+    "--region",
+    default="auto",
+    show_default=True,
+    metavar="auto|hull|X0,Y0,X1,Y1",
+    help="With --families: the region the correction will cover, over which each model's "
+    "predicted error (held-out error and the propagated parameter uncertainty) decides the "
+    "recommendation: 'auto' the image frame with --image-size, else the landmarks' hull; "
+    "'hull'; or a box in px of the reference points.",
+)
 @relay_design_options
+@priors_option
 def select_command(points, normalization, init, top, cv, seed, json_out, families=None, image_size=None,
-                   relay_design=None, model=None):  # fmt: skip
+                   relay_design=None, model=None, region="auto", priors="off"):  # fmt: skip
     """Rank all 4,096 models of Eq. 1 by AICc of the corrected points (with --families: Eq. 1,
     its rotation variant and the physical relay together)."""
     check_output(json_out, points)
@@ -105,9 +117,15 @@ def select_command(points, normalization, init, top, cv, seed, json_out, familie
                 param_hint="--model",
             )
         families = "relay"
+    relay_priors = load_priors(priors)
+    if families is None and (relay_priors is not None or region != "auto"):
+        flag = "--priors" if relay_priors is not None else "--region"
+        raise click.UsageError(
+            f"{flag} applies to choosing across families: give --families (or --model relay)"
+        )
     if families is not None:
         return _select_families(points, families, normalization, init, top, cv, seed, json_out, image_size,
-                                relay_design)  # fmt: skip
+                                relay_design, _parse_region(region), relay_priors)  # fmt: skip
     pairs = load_pairs(points)
     from oapcal.fitting import initial_params
     from oapcal.select import select_models
@@ -131,8 +149,39 @@ def select_command(points, normalization, init, top, cv, seed, json_out, familie
     return 0
 
 
+def _parse_region(text: str):
+    """``--region``: ``auto``, ``hull`` or ``X0,Y0,X1,Y1`` (px, x1 > x0, y1 > y0)."""
+    import math
+
+    text = (text or "auto").strip()
+    if text in ("auto", "hull"):
+        return text
+    try:
+        box = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        box = ()
+    if len(box) != 4 or not all(math.isfinite(v) for v in box) or box[2] <= box[0] or box[3] <= box[1]:
+        raise click.BadParameter(
+            f"{text!r} is not auto, hull or a box X0,Y0,X1,Y1 with X1 > X0 and Y1 > Y0 (px), "
+            "e.g. 0,0,639,479",
+            param_hint="--region",
+        )
+    return box
+
+
 def _select_families(
-    points, families, normalization, init, top, cv, seed, json_out, image_size, relay_design
+    points,
+    families,
+    normalization,
+    init,
+    top,
+    cv,
+    seed,
+    json_out,
+    image_size,
+    relay_design,
+    region="auto",
+    priors=None,
 ):
     """``oapcal select --families``."""
     from oapcal.cli._common import parse_size
@@ -147,7 +196,8 @@ def _select_families(
     bar, update = progress_bar("fitting the models of " + ", ".join(keys))
     with bar:
         sel = select_families(pairs.xy_u, pairs.xy_d, design, keys, cv=cv or 5, cv_top=min(top, 10),
-                              init=init, seed=seed, progress=update, image_size=size)  # fmt: skip
+                              init=init, seed=seed, progress=update, image_size=size, priors=priors,
+                              region=region)  # fmt: skip
     if json_out is not None:
         from oapcal.io.results import save_family_selection
 
@@ -167,15 +217,21 @@ def print_family_selection(sel, top: int, source: str = "") -> None:
     table = Table(
         title=f"Best models of each family by AICc ({source}, {sel.n_points} points)", title_justify="left"
     )
-    for col in ("family", "model (--model)", "K", "AICc", "dAICc", "mean err", f"{sel.cv_folds}-fold CV err"):
+    for col in ("family", "model (--model)", "K", "AICc", "dAICc", "mean err", f"{sel.cv_folds}-fold CV err",
+                "sigma over region", "predicted err"):  # fmt: skip
         table.add_column(col, justify="left" if col in ("family", "model (--model)") else "right")
     families = list(dict.fromkeys(c.family for c in sel.candidates))
     for family in families:
-        for c in [c for c in sel.candidates if c.family == family and c.valid][:top]:
+        shown = [c for c in sel.candidates if c.family == family and c.valid][:top]
+        if sel.recommended is not None and sel.recommended.family == family and sel.recommended not in shown:
+            shown.append(sel.recommended)  # the recommendation is always in the table
+        for c in shown:
             mark = " [bold green]<- recommended[/bold green]" if c is sel.recommended else ""
-            table.add_row(c.family, c.spec + mark, str(c.k + 1), _fmt(c.aicc, ".2f"),
+            k = str(c.k + 1) if c.k_eff is None else f"{c.k_eff + 1:.3g}"
+            table.add_row(c.family, c.spec + mark, k, _fmt(c.aicc, ".2f"),
                           _fmt(c.delta_aicc, ".2f"), _fmt(c.mean_error, ".4g"),
-                          _fmt(c.cv_mean_error, ".4g"))  # fmt: skip
+                          _fmt(c.cv_mean_error, ".4g"), _fmt(c.region_sigma, ".4g"),
+                          _fmt(c.predicted_error, ".4g"))  # fmt: skip
     out.print(table)
     n_bad = sum(not c.valid for c in sel.candidates)
     n_region = sum(c.reason.startswith(REFUSED_PREFIX) for c in sel.candidates)
@@ -186,9 +242,26 @@ def print_family_selection(sel, top: int, source: str = "") -> None:
             f"{n_region} of them fold over or are not finite on the points' bounds or the image "
             "(fit would refuse to write them)."
         )
-    if sel.recommended is not None:
-        r = sel.recommended
-        out.print(f"Recommended by held-out error: --model {r.spec} ({r.family}, {r.cv_mean_error:.4g} px).")
+    h = getattr(sel, "heldout_best", None) or sel.recommended
+    if h is not None:
+        out.print(f"Recommended by held-out error: --model {h.spec} ({h.family}, {h.cv_mean_error:.4g} px).")
+    for note in getattr(sel, "notes", ()):
+        out.print(f"Note: {note}.")
+    r = sel.recommended
+    if r is not None and r.predicted_error is not None:
+        where = (
+            "the landmarks' hull"
+            if sel.region is None
+            else "the region " + ",".join(f"{v:g}" for v in sel.region)
+        )
+        priors = (
+            " --priors " + str(sel.priors.get("spec")) if sel.priors and r.family.startswith("relay") else ""
+        )
+        out.print(
+            f"[bold]Recommended for correcting {where}[/bold] (held-out error and the propagated "
+            f"uncertainty there): --model {r.spec}{priors} ({r.family}, predicted "
+            f"{r.predicted_error:.4g} px)."
+        )
 
 
 def print_selection(sel, top: int, source: str = "") -> None:

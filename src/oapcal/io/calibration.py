@@ -15,7 +15,8 @@ Layout (``docs/file-formats.md`` has an annotated example)::
                    and "*_um" with a scale},
      "um_per_px": S or null, "image_size": [width, height] or null,
      "bounds": [x_min, y_min, x_max, y_max] of the reference points, or null,
-     "hull": convex hull of the reference points [[x, y], ...], or null}
+     "hull": convex hull of the reference points [[x, y], ...], or null,
+     "priors": the priors of a maximum a posteriori relay fit (only then)}
 
 Version 1 (no ``model_family``: Eq. 1) is still read.  Non-finite numbers are written as
 null.  On reading, every number must be finite (NaN, Infinity and numbers too large for
@@ -100,6 +101,8 @@ def calibration_to_dict(calibration: Calibration) -> dict:
             "image_size": list(calibration.image_size) if calibration.image_size else None,
             "bounds": list(calibration.bounds) if calibration.bounds is not None else None,
             "hull": np.asarray(calibration.hull).tolist() if calibration.hull is not None else None,
+            # written only for a fit with priors: other files are as before
+            **({"priors": calibration.priors} if calibration.priors is not None else {}),
         }
     )
 
@@ -184,6 +187,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         oapcal_version=data.get("oapcal_version", "unknown"),
         created_utc=data.get("created_utc", "unknown"),
         relay_design=data.get("relay_design"),
+        priors=data.get("priors"),
     )
     check_model_region(cal, source=source)
     return cal

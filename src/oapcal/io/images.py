@@ -1,4 +1,6 @@
-"""Reading and writing camera images: PNG, TIFF (single and multi-page), JPEG, BMP.
+"""Reading and writing camera images: PNG, TIFF (single and multi-page), JPEG, BMP, video
+(AVI, MP4, MOV, MKV: :mod:`oapcal.io.video`), and writing OME-TIFF and OME-Zarr
+(:mod:`oapcal.io.ome`).
 
 * The dtype is kept: 8-bit, 16-bit and float images come back as ``uint8``, ``uint16``,
   ``float32``/``float64`` (``int16`` too); grey images are ``(rows, cols)``, colour
@@ -15,7 +17,11 @@
   (:data:`oapcal.imaging.remap.MAX_GROWTH`) and :data:`~oapcal.io.userfile.MAX_UNPACK_RATIO`.
 * TIFF outputs carry metadata: the calibration's name and the pixel size (in the
   ``ImageDescription`` JSON and as the standard ``XResolution``/``YResolution`` tags in
-  pixels per cm).
+  pixels per cm); OME-TIFF and OME-Zarr outputs the pixel size and the calibration's
+  provenance in their OME metadata.
+* Frames stream: a video is decoded, and every output is written, one frame at a time.
+* Colour order: OpenCV's files (PNG, JPEG, BMP, video) hold BGR frames, TIFF and zarr RGB;
+  a :class:`FrameWriter` told the order of its frames (``bgr``) converts between them.
 """
 
 from __future__ import annotations
@@ -29,12 +35,18 @@ from pathlib import Path
 import numpy as np
 
 from oapcal.errors import InputFileError
+from oapcal.io.ome import OME_ZARR_SUFFIX, is_ome_tiff_path
 from oapcal.io.userfile import MAX_PIXELS, check_input_file
+from oapcal.io.video import VIDEO_SUFFIXES
 from oapcal.validate import IMAGE_DTYPES
 
 TIFF_SUFFIXES = (".tif", ".tiff")
 OPENCV_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
-IMAGE_SUFFIXES = TIFF_SUFFIXES + OPENCV_SUFFIXES
+IMAGE_SUFFIXES = TIFF_SUFFIXES + OPENCV_SUFFIXES + VIDEO_SUFFIXES
+#: The writers of :class:`FrameWriter`: the input's own formats and the OME outputs.
+WRITER_KINDS = ("tiff", "opencv", "video", "ome-tiff", "ome-zarr")
+#: Kinds whose colour frames are BGR (OpenCV's order); the others hold RGB.
+BGR_KINDS = ("opencv", "video")
 #: Files that keep every value of an 8- or 16-bit grey image (no JPEG, no 8-bit-only BMP).
 LOSSLESS_SUFFIXES = (".png",) + TIFF_SUFFIXES
 #: dtypes that ``cv2.remap`` can correct.
@@ -54,12 +66,13 @@ class ImageInfo:
     """
 
     path: Path
-    kind: str  # "tiff" or "opencv"
+    kind: str  # "tiff", "opencv" or "video"
     n_frames: int
     frame_shape: tuple[int, ...]
     dtype: np.dtype | None  # None until decoded for PNG/JPEG/BMP
     planar: bool = False
     segments: tuple = field(default=(), repr=False, compare=False)
+    fps: float | None = None  # videos: frames per second
 
     @property
     def frame_bytes(self) -> int:
@@ -277,6 +290,12 @@ def probe(path: str | Path, max_pixels: int = MAX_PIXELS) -> ImageInfo:
             raise _tiff_error(path, exc) from None
         _check_pixels(path, frame[1], frame[0], max_pixels)
         return ImageInfo(path, "tiff", n_frames, frame, dtype, planar, segments)
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        from oapcal.io.video import video_header
+
+        width, height, n_frames, fps = video_header(path)
+        _check_pixels(path, width, height, max_pixels)
+        return ImageInfo(path, "video", n_frames, (height, width, 3), np.dtype(np.uint8), fps=fps)
     width, height = header_size(path)
     _check_pixels(path, width, height, max_pixels)
     return ImageInfo(path, "opencv", 1, (height, width), None)
@@ -308,6 +327,11 @@ def open_frames(
     path = info.path
     if info.kind == "opencv":
         yield info, iter([_read_opencv(path)])
+        return
+    if info.kind == "video":
+        from oapcal.io.video import video_frames
+
+        yield info, video_frames(path, info.n_frames)
         return
     import tifffile
 
@@ -447,43 +471,94 @@ def tiff_metadata(calibration_name: str | None, um_per_px: float | None) -> dict
 
 
 class FrameWriter:
-    """Write frames one by one to ``path`` (same format as the input); use as a context
-    manager with an already-temporary path (:func:`oapcal.io.atomic.atomic_path`).
+    """Write frames one by one to ``path``; use as a context manager with an
+    already-temporary path (:func:`oapcal.io.atomic.atomic_path`, or for ``ome-zarr``
+    :func:`oapcal.io.atomic.atomic_dir`).
 
-    TIFF frames are appended to one contiguous series (a multi-page stack) with the
-    metadata of :func:`tiff_metadata`, colour samples interleaved or, with ``planar``, in
-    separate planes (as the input had them); the file is a BigTIFF when ``expected_bytes``
-    (the pixel data to be written) could pass the 4 GiB limit of classic TIFF.
-    PNG/JPEG/BMP take exactly one frame.
+    ``kind`` is one of :data:`WRITER_KINDS`. TIFF frames are appended to one contiguous
+    series (a multi-page stack) with the metadata of :func:`tiff_metadata`, colour samples
+    interleaved or, with ``planar``, in separate planes (as the input had them); the file is
+    a BigTIFF when ``expected_bytes`` (the pixel data to be written) could pass the 4 GiB
+    limit of classic TIFF.  PNG/JPEG/BMP take exactly one frame; videos any number
+    (:class:`oapcal.io.video.VideoWriter`, at ``fps``).  ``ome-tiff`` and ``ome-zarr``
+    (:mod:`oapcal.io.ome`) need ``n_frames``, the number of frames that will be written,
+    and record ``source`` (the input) and ``calibration`` (the record) in their provenance
+    (:func:`oapcal.io.ome.provenance`).  ``bgr`` says the frames'
+    colour order (True: BGR, as OpenCV decodes; False: RGB, as tifffile does; None: the
+    writer's own), so that a video corrected into a TIFF keeps its colours.
     """
 
     def __init__(
-        self, path: Path, kind: str, calibration_name=None, um_per_px=None, *, planar=False, expected_bytes=0
-    ):
+        self, path: Path, kind: str, calibration_name=None, um_per_px=None, *, planar=False, expected_bytes=0,
+        n_frames=None, source=None, fps=None, bgr=None, calibration=None,
+    ):  # fmt: skip
+        if kind not in WRITER_KINDS:
+            kinds = ", ".join(WRITER_KINDS)
+            raise InputFileError(f"{path}: unknown output kind {kind!r}; use one of {kinds}")
+        if kind in ("ome-tiff", "ome-zarr") and n_frames is None:
+            raise InputFileError(f"{path}: an {kind} output needs the number of frames before the first")
         self.path = Path(path)
         self.kind = kind
         self.n = 0
         self.planar = planar
         self.bigtiff = expected_bytes > BIGTIFF_BYTES
+        self.calibration_name = calibration_name
+        self.um_per_px = um_per_px
+        self.n_frames = n_frames
+        self.source = source
+        self.calibration = calibration
+        self._swap = bgr is not None and bgr != (kind in BGR_KINDS)
         self._meta = tiff_metadata(calibration_name, um_per_px)
         self._tw = None
+        self._other = None
+        self._fps = fps
+
+    def _description(self) -> dict:
+        from oapcal.io.ome import provenance
+
+        return provenance(self.calibration_name, self.um_per_px, self.source, self.calibration)
 
     def __enter__(self):
-        if self.kind == "tiff":
+        if self.kind in ("tiff", "ome-tiff"):
             import tifffile
 
             self._tw = tifffile.TiffWriter(self.path, bigtiff=self.bigtiff)
+        elif self.kind == "video":
+            from oapcal.io.video import VideoWriter
+
+            self._other = VideoWriter(self.path, self._fps)
+        elif self.kind == "ome-zarr":
+            from oapcal.io.ome import OmeZarrWriter
+
+            name = "oapcal" if self.source is None else Path(self.source).name
+            self._other = OmeZarrWriter(self.path, self.n_frames, self.um_per_px, self._description(), name)
         return self
 
     def write(self, frame: np.ndarray) -> None:
+        colour = frame.ndim == 3 and frame.shape[2] in (3, 4)
+        if self._swap and colour:
+            frame = frame[..., [2, 1, 0, 3][: frame.shape[2]]]
         if self.kind == "tiff":
-            colour = frame.ndim == 3 and frame.shape[2] in (3, 4)
             photometric = "rgb" if colour else "minisblack"
             extra = dict(self._meta) if self.n == 0 else {}
             if self.planar and colour:
                 frame = np.moveaxis(frame, -1, 0)
                 extra["planarconfig"] = "separate"
             self._tw.write(frame, contiguous=True, photometric=photometric, **extra)
+        elif self.kind == "ome-tiff":
+            extra = {}
+            if self.n == 0:
+                from oapcal.io.ome import ome_xml
+
+                name = Path(self.source).name if self.source is not None else self.path.name
+                xml = ome_xml(
+                    self.n_frames, frame.shape, frame.dtype, self.um_per_px, self._description(), name
+                )
+                extra = {k: v for k, v in self._meta.items() if k != "metadata"}
+                extra.update(description=xml, metadata=None)
+            self._tw.write(frame, contiguous=True, photometric="rgb" if colour else "minisblack", **extra)
+        elif self._other is not None:
+            self._other.write(frame)
         else:
             if self.n:
                 raise InputFileError(f"{self.path}: a {self.path.suffix} file holds one frame only")
@@ -500,12 +575,42 @@ class FrameWriter:
     def __exit__(self, *exc):
         if self._tw is not None:
             self._tw.close()
+        if self._other is not None and hasattr(self._other, "close"):
+            self._other.close()
         return False
 
 
-def count_frames(path: str | Path) -> int:
-    """Frames in a written output (pages of a TIFF; 1 for other images), from the headers."""
+def output_kind(path: str | Path) -> str:
+    """The :class:`FrameWriter` kind for an output path, from its name.
+
+    >>> [output_kind(p) for p in ("a.tif", "a.ome.tif", "a.png", "a.avi", "a.ome.zarr")]
+    ['tiff', 'ome-tiff', 'opencv', 'video', 'ome-zarr']
+    """
     path = Path(path)
+    suffix = path.suffix.lower()
+    if path.name.lower().endswith(OME_ZARR_SUFFIX):
+        return "ome-zarr"
+    if is_ome_tiff_path(path):
+        return "ome-tiff"
+    if suffix in TIFF_SUFFIXES:
+        return "tiff"
+    if suffix in VIDEO_SUFFIXES:
+        return "video"
+    return "opencv"
+
+
+def count_frames(path: str | Path) -> int:
+    """Frames in a written output (pages of a TIFF, a video's frame count, the frames of an
+    OME-Zarr; 1 for other images), from the headers."""
+    path = Path(path)
+    if path.is_dir():
+        from oapcal.io.ome import ome_zarr_frames
+
+        return ome_zarr_frames(path)
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        from oapcal.io.video import count_video_frames
+
+        return count_video_frames(path)
     if path.suffix.lower() not in TIFF_SUFFIXES:
         return 1
     import tifffile
@@ -515,21 +620,25 @@ def count_frames(path: str | Path) -> int:
 
 
 def write_image(
-    path: str | Path, image: np.ndarray, *, stack: bool = False, calibration_name=None, um_per_px=None
-) -> None:
+    path: str | Path, image: np.ndarray, *, stack: bool = False, calibration_name=None, um_per_px=None,
+    fps: float | None = None, bgr: bool | None = None,
+) -> None:  # fmt: skip
     """Write one frame, or with ``stack=True`` frames ``(frames, rows, cols[, ch])`` as a
-    multi-page TIFF, atomically."""
-    from oapcal.io.atomic import atomic_path
+    multi-page TIFF, an OME-TIFF (``.ome.tif``), a video (``.avi`` ...) or an OME-Zarr
+    (``.ome.zarr``), atomically; the kind comes from the name (:func:`output_kind`)."""
+    from oapcal.io.atomic import atomic_dir, atomic_path
 
     path = Path(path)
-    kind = "tiff" if path.suffix.lower() in TIFF_SUFFIXES else "opencv"
-    if stack and kind != "tiff":
-        raise InputFileError(f"{path}: only TIFF files hold a stack of frames")
+    kind = output_kind(path)
+    if stack and kind == "opencv":
+        raise InputFileError(f"{path}: a {path.suffix} file holds one frame; write a stack to TIFF or video")
     frames = image if stack else [image]
     size = int(np.asarray(image).nbytes)
+    temporary = atomic_dir(path) if kind == "ome-zarr" else atomic_path(path)
     with (
-        atomic_path(path) as tmp,
-        FrameWriter(tmp, kind, calibration_name, um_per_px, expected_bytes=size) as writer,
-    ):
+        temporary as tmp,
+        FrameWriter(tmp, kind, calibration_name, um_per_px, expected_bytes=size, n_frames=len(frames),
+                    source=path.name, fps=fps, bgr=bgr) as writer,
+    ):  # fmt: skip
         for frame in frames:
             writer.write(frame)

@@ -5,6 +5,9 @@
   metadata (:func:`oapcal.napari_plugin._layers.calibration_layers`);
 * ``*.csv`` / ``*.tsv`` point-pair files (``x_u, y_u, x_d, y_d``, optional ``id``): the
   ``distorted`` and ``reference`` points layers with ``id`` as a feature;
+* ``*.zarr`` OME-Zarr directories (what ``oapcal correct`` writes as OME-Zarr, or any NGFF
+  image): the full-resolution array as an image layer, read lazily (Dask), scaled in um
+  by its ``multiscales`` transform, with the provenance in the layer's metadata;
 * writing: two points layers (one ``distorted``, one ``reference``, told apart by their
   ``oapcal_role`` metadata or their names) paired by ``id``, through
   :func:`oapcal.write_point_pairs` (atomic).
@@ -49,11 +52,54 @@ def napari_get_reader(path):
         path = path[0]
     p = Path(path)
     suffix = p.suffix.lower()
+    if suffix == ".zarr" and _ome_zarr_array(p) is not None:
+        return read_ome_zarr
     if suffix == ".json" and _is_calibration(p):
         return read_calibration
     if suffix in (".csv", ".tsv") and _is_point_pairs(p):
         return read_point_pairs
     return None
+
+
+def _ome_zarr_array(path: Path):
+    """The full-resolution array of an OME-Zarr directory, or None for anything else."""
+    from oapcal.errors import OapcalError
+    from oapcal.io.ome import ome_zarr_array_path
+
+    try:
+        return ome_zarr_array_path(path) if path.is_dir() else None
+    except (OapcalError, OSError):
+        return None
+
+
+def read_ome_zarr(path) -> list[tuple]:
+    """The image layer of an OME-Zarr (module docstring): ``(t[, c], y, x)`` data, the
+    channel axis split into layers, the scale of ``multiscales[0].datasets[0]``."""
+    from oapcal.extras import require
+
+    da = require("dask.array")
+    zarr = require("zarr")
+    path = Path(path[0] if isinstance(path, list | tuple) else path)
+    group = zarr.open_group(str(path), mode="r")
+    attrs = group.attrs.asdict()
+    ms = (attrs.get("ome") or attrs)["multiscales"][0]
+    dataset = ms["datasets"][0]
+    data = da.from_zarr(group[str(dataset["path"])])
+    axes = [a if isinstance(a, dict) else {"name": str(a)} for a in ms.get("axes", [])]
+    names = [a.get("name") for a in axes]
+    transforms = dataset.get("coordinateTransformations", [])
+    scale = next((t["scale"] for t in transforms if t.get("type") == "scale"), [1.0] * data.ndim)
+    name = path.name.removesuffix(".zarr").removesuffix(".ome")
+    kwargs = {"name": name, "metadata": {"oapcal": attrs.get("oapcal")}}
+    if "c" in names:
+        channel = names.index("c")
+        kwargs["channel_axis"] = channel
+        scale = [v for i, v in enumerate(scale) if i != channel]
+    kwargs["scale"] = tuple(float(v) for v in scale)
+    unit = next((a.get("unit") for a in axes if a.get("name") == "x"), None)
+    if unit:
+        kwargs["metadata"]["unit"] = unit
+    return [(data, kwargs, "image")]
 
 
 def read_calibration(path) -> list[tuple]:

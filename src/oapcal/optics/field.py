@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oapcal import validate
 from oapcal.errors import GeometrySpecError
 from oapcal.optics.relay import Relay, apply_matrix, chief_rays, oap_relay, paraxial_map
 
@@ -279,8 +280,17 @@ def relay_distortion(
     w, h = (int(v) for v in image_size)
     if w < 2 or h < 2:
         raise GeometrySpecError(f"the image size must be at least 2x2 px, got {w}x{h}")
-    if int(grid) < 8:
+    n_long = validate.whole_number(grid, "grid", -(2**63))
+    if n_long < 8:
         raise GeometrySpecError(f"the distortion grid needs at least 8 nodes a side, got {grid}")
+    n_short = max(8, int(np.ceil(n_long * min(w, h) / max(w, h))))
+    # About 1.1 kB per node measured (grid 201 and 401, 640 x 480): 2 kB allows for the rest.
+    validate.memory(
+        2048.0 * n_long * n_short,
+        f"a traced grid of {n_long:,} x {n_short:,} nodes",
+        "give a smaller grid (the default 97 is enough for the inverse of a camera image)",
+        param="grid",
+    )
     relay = oap_relay(
         setup, d1_mm=d1_mm, orientation=orientation, stop_distance_mm=stop_distance_mm,
         focal_length_mm=focal_length_mm, focal_length_2_mm=focal_length_2_mm, misalignment=misalignment,
@@ -300,8 +310,6 @@ def relay_distortion(
     ])  # fmt: skip
     shift = np.hypot(*(probe.traced(border) - border).T).max()
     margin = 16.0 + 1.1 * shift
-    n_long = int(grid)
-    n_short = max(8, int(np.ceil(n_long * min(w, h) / max(w, h))))
     nx, ny = (n_long, n_short) if w >= h else (n_short, n_long)
     xs = np.linspace(lo[0] - margin, hi[0] + margin, nx)
     ys = np.linspace(lo[1] - margin, hi[1] + margin, ny)

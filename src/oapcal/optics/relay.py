@@ -233,6 +233,11 @@ def oap_relay(
             ex, ey = np.asarray(stop_plane.ex), np.asarray(stop_plane.ey)
             point = np.asarray(stop_plane.point) + mis.stop_decentre_x * ex + mis.stop_decentre_y * ey
             stop_plane = _moved_plane(stop_plane, np.eye(3), point)
+        if not f2 + mis.camera_defocus > 0:  # the sensor sits at the design focus, f2 after the mirror
+            raise GeometrySpecError(
+                f"a camera defocus of {mis.camera_defocus:g} mm puts the image plane at or behind the second "
+                f"mirror (the camera sits {f2:g} mm after it): give a defocus above {-f2:g} mm"
+            )
         image = _tilted_plane(image, mis.camera_tilt_x, mis.camera_tilt_y, mis.camera_defocus)
         obj = _tilted_plane(obj, mis.object_tilt_x, mis.object_tilt_y)
     return Relay(

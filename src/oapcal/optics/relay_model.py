@@ -289,7 +289,10 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
             f"says the model is {family.name!r} ({family.n_params} parameters) but the file holds "
             f"{len(params)}; restore the design or refit",
         )
-    expected = relay_params(design)
+    try:
+        expected = relay_params(design)
+    except DataError as exc:  # e.g. no paraxial image: name the file's field
+        raise bad("relay_design", f"describes no working relay: {exc}") from None
     for name in family.never_free:
         i = family.param_names.index(name)
         if not abs(params[i] - expected[i]) <= 1e-9 * max(1.0, abs(expected[i])):
@@ -425,6 +428,193 @@ def default_centre(design: RelayDesign, xy_u, image_size=None) -> RelayDesign:
 #: The iteration cap of a relay fit (:func:`calibrate_relay`; the solver's default is 200).
 RELAY_MAX_ITER = 1000
 
+# ------------------------------------------------------------------------------ priors
+
+#: The default priors (``--priors default``): one Gaussian per misalignment value, centred
+#: on the design, its width (1 sigma) the tolerance of its group in the words of
+#: ``oapcal tolerance`` (:data:`oapcal.optics.tolerance.GROUPS`): mirror tip/tilt and
+#: clocking 0.05 deg (kinematic mounts after alignment), mirror and stop decentres 0.2 mm,
+#: focal lengths 0.2 mm (0.4 % of a 50.8 mm OAP), d1 5 % of the design's (a rail set by a
+#: ruler), camera and object-plane tilt 1 deg (a C-mount and a stage), camera defocus
+#: 0.2 mm; and the target's scale 1 % (the reference points of a relay fit are the target's
+#: ideal image in px at the design's magnification: a target printed or measured to 1 %).
+#: The target's placement (rotation, shift) and the microscope's values take no prior.
+DEFAULT_PRIORS: dict[str, float] = {
+    "scale": 1.0,
+    "tilt": 0.05, "decentre": 0.2, "clock": 0.05, "focal_length": 0.2, "d1": 5.0, "stop_decentre": 0.2,
+    "camera_tilt": 1.0, "defocus": 0.2, "object_tilt": 1.0,
+}  # fmt: skip
+#: The words of :data:`DEFAULT_PRIORS` with their units (``d1`` in % of the design's d1).
+PRIOR_UNITS = {"scale": "%", "tilt": "deg", "decentre": "mm", "clock": "deg", "focal_length": "mm", "d1": "%",
+               "stop_decentre": "mm", "camera_tilt": "deg", "defocus": "mm",
+               "object_tilt": "deg"}  # fmt: skip
+#: The noise-scale iterations of a MAP fit without a given noise (:func:`map_fit`).
+NOISE_ITERATIONS = 4
+
+
+@dataclass(frozen=True)
+class RelayPriors:
+    """Gaussian priors on a relay's misalignment (:func:`parse_priors`).
+
+    ``widths``: the 1-sigma width of each group of :data:`DEFAULT_PRIORS` (``d1`` in % of
+    the design's d1, ``scale`` in % of the target's scale) or of one misalignment value by
+    its name (deg or mm; ``d1_mm`` for d1 in mm); ``inf``: no prior (that value as free as
+    without priors); ``0``: fixed at the design.  Every prior is centred on the design (no
+    misalignment, scale 1).  ``noise_px``: the landmarks' noise (px per coordinate) that
+    weighs the priors against the residuals; None (default): estimated from the fit's own
+    residuals, ``sqrt(RSS / (n - k_eff))``.
+    """
+
+    widths: Mapping[str, float]
+    noise_px: float | None = None
+    spec: str = "default"
+
+    def sigma(self, design: RelayDesign) -> dict[str, float]:
+        """The width (deg or mm) of every misalignment value of :data:`PARAMETERS`, and of the
+        target's ``scale`` (a fraction) when it has one."""
+        from oapcal.optics.tolerance import GROUPS
+
+        d1_mm = design.relay().d1_mm
+        out = {name: np.inf for name in PARAMETERS}
+        for key, value in self.widths.items():
+            if key in GROUPS:
+                for name in GROUPS[key]:
+                    out[name] = value * d1_mm / 100.0 if key == "d1" else value
+        for key, value in self.widths.items():
+            if key == "scale":  # in %: the target's scale is 1 when the reference is its ideal image
+                out["scale"] = value / 100.0
+            elif key == "d1_mm":
+                out["d1"] = value
+            elif key in PARAMETERS and key not in GROUPS:
+                out[key] = value
+        return out
+
+    def arrays(self, design: RelayDesign, noise_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(mean, sigma)`` over the family's parameters for :func:`oapcal.fitting.fit_batch`
+        (its ``prior``): the design's vector, and each width over ``noise_px`` (a prior row
+        ``(p - p0) / width`` weighs like a residual of ``noise_px``); inf where none."""
+        family = design.family
+        sig = self.sigma(design)
+        sigma = np.array([sig.get(n, np.inf) / float(noise_px) for n in family.param_names])
+        return relay_params(design), sigma
+
+    def to_dict(self, design: RelayDesign | None = None) -> dict:
+        """The record a calibration keeps: ``spec``, ``widths`` (the user's words), the
+        ``noise_px`` given, and with ``design`` the ``sigma`` of every value with a finite
+        prior (deg or mm)."""
+        out = {"spec": self.spec, "widths": {k: float(v) for k, v in self.widths.items() if np.isfinite(v)},
+               "free_of_prior": sorted(k for k, v in self.widths.items() if not np.isfinite(v)),
+               "noise_px": None if self.noise_px is None else float(self.noise_px)}  # fmt: skip
+        if design is not None:
+            out["sigma"] = {k: float(v) for k, v in self.sigma(design).items() if np.isfinite(v)}
+        return out
+
+
+def _prior_value(key, value) -> float:
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if text in ("inf", "none", "off", "free"):
+            return np.inf
+        try:
+            value = float(text)
+        except ValueError:
+            raise ModelSpecError(
+                f"prior {key!r}: {value!r} is not a number; give a width (>= 0) or inf", param="priors"
+            ) from None
+    if isinstance(value, bool) or not isinstance(value, int | float) or np.isnan(value) or value < 0:
+        raise ModelSpecError(f"prior {key!r}: {value!r} must be a width >= 0 (inf: no prior)", param="priors")
+    return float(value)
+
+
+def priors_from_dict(data: Mapping, spec: str = "file") -> RelayPriors:
+    """:class:`RelayPriors` from ``{"tilt": 0.05, ..., "noise_px": 0.3}`` (the defaults for
+    the words not given; ``{"default": false}`` or ``"base": "none"`` starts from no priors
+    instead), or ``{"widths": {...}, "noise_px": ...}``; unknown words raise
+    :class:`~oapcal.errors.ModelSpecError` naming them."""
+    if not isinstance(data, Mapping):
+        raise ModelSpecError('priors must be an object of widths such as {"tilt": 0.05}', param="priors")
+    data = dict(data)
+    if isinstance(data.get("widths"), Mapping):
+        data = {**data.pop("widths"), **data}
+    noise = data.pop("noise_px", data.pop("noise", None))
+    base = data.pop("base", "default")
+    if base not in ("default", "none"):
+        raise ModelSpecError(f"prior 'base' must be 'default' or 'none', got {base!r}", param="priors")
+    widths = dict(DEFAULT_PRIORS) if base == "default" else {}
+    known = set(DEFAULT_PRIORS) | (set(PARAMETERS) - {"d1"}) | {"d1_mm", "scale"}
+    for key, value in data.items():
+        if key not in known:
+            raise ModelSpecError(
+                f"unknown prior {key!r}: use {', '.join(DEFAULT_PRIORS)} (d1 and scale in %), a "
+                "misalignment name of oapcal.optics.misalign.PARAMETERS, d1_mm, or noise_px",
+                param="priors",
+            )
+        widths[key] = _prior_value(key, value)
+    if noise is not None:
+        noise = _prior_value("noise_px", noise)
+        if not 0 < noise < np.inf:
+            raise ModelSpecError(f"prior 'noise_px' must be a positive number of px, got {noise!r}",
+                                 param="priors")  # fmt: skip
+    return RelayPriors(widths, noise, spec)
+
+
+def parse_priors(text) -> RelayPriors | None:
+    """``"off"`` (None: no priors, the fit as without them), ``"default"``
+    (:data:`DEFAULT_PRIORS`), or ``"key=value,..."`` over the defaults
+    (``"tilt=0.1,d1=2,noise_px=0.3"``; ``base=none`` starts from no priors); a mapping as
+    :func:`priors_from_dict`.  (A JSON file is read by the command line into a mapping.)"""
+    if text is None or isinstance(text, RelayPriors):
+        return text
+    if isinstance(text, Mapping):
+        return priors_from_dict(text)
+    text = str(text).strip()
+    if text in ("off", "none", ""):
+        return None
+    if text == "default":
+        return RelayPriors(dict(DEFAULT_PRIORS))
+    values = {}
+    for item in (t.strip() for t in text.split(",") if t.strip()):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ModelSpecError(
+                f"bad prior {item!r}: use 'off', 'default', a JSON file or key=value pairs such as "
+                "'tilt=0.1,d1=2'",
+                param="priors",
+            )
+        values[key.strip()] = value.strip()
+    return priors_from_dict(values, spec=text)
+
+
+def map_fit(xy_u, xy_d, design: RelayDesign, masks, priors: RelayPriors, *, p0=None, points=None,
+            covariance: bool = True, max_iter: int = RELAY_MAX_ITER, noise_px=None):  # fmt: skip
+    """The maximum a posteriori fit of relay subsets ``masks (B, P)`` under ``priors``:
+    :func:`oapcal.fitting.fit_batch` with the priors' rows.  Without a noise in the priors
+    (or ``noise_px``, one per item or shared) the landmarks' noise that weighs the rows is
+    estimated from the fit itself: from 1 px, refitted at ``sqrt(RSS / (n - k_eff))`` until
+    it changes by under 5 % (at most :data:`NOISE_ITERATIONS` fits).  Returns
+    ``(BatchFit, noise_px (B,))``."""
+    from oapcal.fitting import fit_batch
+
+    masks = np.atleast_2d(np.asarray(masks, bool))
+    start = relay_params(design) if p0 is None else np.asarray(p0, float)
+    start = np.broadcast_to(start, masks.shape)
+    given = priors.noise_px if noise_px is None else noise_px
+    noise = np.broadcast_to(np.asarray(1.0 if given is None else given, float), (len(masks),)).copy()
+    mean, unit = priors.arrays(design, 1.0)
+    rounds = 1 if given is not None else NOISE_ITERATIONS
+    for _ in range(rounds):
+        used = noise
+        fits = fit_batch(xy_u, xy_d, masks, start, points=points, covariance=covariance, max_iter=max_iter,
+                         family=design.family, prior=(mean, unit[None] / used[:, None]))  # fmt: skip
+        if given is not None:
+            break
+        with np.errstate(invalid="ignore", divide="ignore"):
+            new = np.sqrt(fits.rss / np.maximum(fits.n - fits.k_eff, 1.0))
+        noise = np.where(np.isfinite(new) & (new > 0), new, used)
+        if np.all(np.abs(noise / used - 1.0) < 0.05):
+            break
+    return fits, used
+
 
 def calibrate_relay(
     xy_u,
@@ -436,6 +626,7 @@ def calibrate_relay(
     image_size: tuple[int, int] | None = None,
     name: str | None = None,
     source: str | None = None,
+    priors: RelayPriors | str | Mapping | None = None,
     **fit_options,
 ):
     """Fit the relay model (``free``: a subset for :func:`relay_mask`) to reference points
@@ -447,6 +638,12 @@ def calibrate_relay(
     um per reference px) defaults to the pixel size over the design's magnification.
     Raises :class:`~oapcal.errors.DataError` when the points do not determine the subset
     (:func:`identifiability`), naming the parameters that cannot be told apart.
+
+    ``priors`` (:func:`parse_priors`: ``"default"``, key=value pairs, a mapping or a
+    :class:`RelayPriors`; None or ``"off"``: none) makes it the maximum a posteriori fit
+    (:func:`map_fit`): the values with a prior need not be identifiable from the points
+    (their prior determines them), the covariance is the posterior one, AICc counts the
+    effective number of parameters, and the calibration records the priors (``priors``).
     """
     from oapcal.calibration import calibrate
     from oapcal.errors import DataError
@@ -468,7 +665,12 @@ def calibrate_relay(
             "there): check the design values (d1, focal lengths, pixel size, centre) and the points' units",
             param="design",
         )
-    ident = identifiability(xy_u, p0, mask)
+    priors = parse_priors(priors)
+    unconstrained = mask.copy()
+    if priors is not None:
+        sig = priors.sigma(design)
+        unconstrained &= np.array([not np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
+    ident = identifiability(xy_u, p0, unconstrained)
     if not ident.ok:
         raise DataError(f"{source or 'the point data'}: {ident.message()}", param="free")
     if um_per_px is None:
@@ -477,8 +679,57 @@ def calibrate_relay(
     # creeps along the scale-defocus-d1 valley: 228 iterations in one of six cases of
     # benchmarks/microscope.py.  The cap only ends fits that would not stop by themselves.
     fit_options.setdefault("max_iter", RELAY_MAX_ITER)
+    record = None
+    if priors is not None:
+        _, noise = map_fit(xy_u, xy_d, design, mask[None], priors, covariance=False,
+                           max_iter=fit_options["max_iter"])  # fmt: skip
+        fit_options["prior"] = priors.arrays(design, float(noise[0]))
+        record = {**priors.to_dict(design), "noise_used_px": float(noise[0])}
     return calibrate(xy_u, xy_d, mask, init=p0, um_per_px=um_per_px, image_size=image_size, name=name,
-                     source=source, relay_design=design.to_dict(), **fit_options)  # fmt: skip
+                     source=source, relay_design=design.to_dict(), priors=record, **fit_options)  # fmt: skip
+
+
+#: Largest misalignment angle (deg) of a plausible fit: what ``oapcal simulate relay``
+#: accepts (beyond it the value describes another relay, not a misaligned one).
+PLAUSIBLE_ANGLE_DEG = 45.0
+
+
+def implausible(calibration) -> str:
+    """Why a relay calibration is not a plausible fit, or ``""``: a fitted angle beyond
+    +/- :data:`PLAUSIBLE_ANGLE_DEG` deg, a decentre, defocus or focal-length change beyond the
+    mirrors' focal length, a d1 change beyond the design's d1 (or leaving none), or the
+    inverse failing at more than half of the calibration points.  Points in the wrong unit
+    (mm given as px) fit that way: the misalignment runs off to absorb a scale the design
+    cannot have."""
+    design = RelayDesign.from_dict(calibration.relay_design)
+    f1, f2 = design.relay().focal_lengths_mm
+    d1 = design.relay().d1_mm
+    values = calibration.params_dict
+    problems = []
+    for name in calibration.free:
+        if name not in PARAMETERS:
+            continue
+        unit = PARAMETERS[name][0]
+        v = values[name]
+        if unit == "deg":
+            limit, words = PLAUSIBLE_ANGLE_DEG, f"+/- {PLAUSIBLE_ANGLE_DEG:g} deg"
+        elif name == "d1":
+            limit, words = 0.999 * d1, f"the design's d1 of {d1:g} mm"
+        else:
+            limit, words = min(f1, f2), f"the focal length of {min(f1, f2):g} mm"
+        if not abs(v) <= limit:
+            problems.append(f"{name} = {v:.4g} {unit} is beyond {words}")
+    failed = int(getattr(calibration.residuals, "n_failed", 0) or 0)
+    n = int(calibration.fit.n_points)
+    if failed * 2 > n:
+        problems.append(f"{failed} of {n} calibration points cannot be corrected through it")
+    if not problems:
+        return ""
+    return (
+        "the relay fit is not a plausible misalignment (" + "; ".join(problems[:3]) + "): check the points' "
+        "units (reference and distorted points in px) and the design, or fit with the priors (priors "
+        "'default')"
+    )
 
 
 def describe(calibration) -> list[str]:
@@ -510,4 +761,5 @@ def describe(calibration) -> list[str]:
 
 __all__ = ["RELAY", "RELAY_MICROSCOPE", "RelayDesign", "relay_params", "relay_mask", "DEFAULT_FREE",
            "DEFAULT_FREE_MICROSCOPE", "ALIASES", "identifiability", "Identifiability", "calibrate_relay",
-           "describe"]  # fmt: skip
+           "describe", "DEFAULT_PRIORS", "RelayPriors", "parse_priors", "priors_from_dict",
+           "map_fit", "implausible", "PLAUSIBLE_ANGLE_DEG"]  # fmt: skip

@@ -1,0 +1,118 @@
+"""Hardening, round three (issue 24), the last items: a camera placed behind the second
+mirror (A7), a traced grid too large to hold (C16), relay design errors that name their
+flag or their file's field (D21).  Every failure is one line on stderr, exit 2."""
+
+import json
+
+import pytest
+
+from oapcal.errors import DataError, GeometrySpecError
+from oapcal.optics.relay import oap_relay
+
+
+def one_error(code, err, expect_code=2):
+    assert code == expect_code, err
+    assert err.startswith("oapcal: error: ") and err.count("\n") == 1, repr(err)
+    assert "internal error" not in err
+
+
+# -- A7: an image plane at or behind the second mirror ----------------------------------------------
+
+
+@pytest.mark.parametrize("f2", [None, 25.0, 100.0])
+@pytest.mark.parametrize("beyond", [0.0, 1e-9, 0.5, 49.0, 1e6])
+def test_a_defocus_that_puts_the_camera_behind_the_second_mirror_is_refused(f2, beyond):
+    focus = 50.8 if f2 is None else f2  # the camera sits at the second mirror's focus
+    with pytest.raises(GeometrySpecError, match="behind the second mirror"):
+        oap_relay(1, focal_length_2_mm=f2, misalignment={"camera_defocus": -focus - beyond})
+
+
+@pytest.mark.parametrize("f2", [None, 100.0])
+def test_a_defocus_that_keeps_the_camera_after_the_mirror_is_traced(f2):
+    focus = 50.8 if f2 is None else f2
+    relay = oap_relay(1, focal_length_2_mm=f2, misalignment={"camera_defocus": -0.9 * focus})
+    assert relay.misalignment.camera_defocus == pytest.approx(-0.9 * focus)
+
+
+def test_simulate_relay_refuses_a_camera_behind_the_mirror_in_one_line(run_cli, tmp_path):
+    out = tmp_path / "grid.csv"
+    code, _, err = run_cli("simulate", "relay", "--camera-defocus", "-100", "--out", str(out))
+    one_error(code, err)
+    assert "-100 mm" in err and "above -50.8 mm" in err, err
+    assert not out.exists()
+
+
+# -- C16: relay_distortion with a grid it cannot hold or that is not a number -----------------------
+
+
+@pytest.mark.parametrize(
+    "grid, error, words",
+    [
+        (10**6, DataError, "over the 4 GiB limit"),
+        (10**5, DataError, "smaller grid"),
+        (2**70, DataError, "smaller grid"),
+        (97.0, DataError, "whole number"),
+        ("97", DataError, "whole number"),
+        (True, DataError, "whole number"),
+        (7, GeometrySpecError, "at least 8 nodes"),
+        (-(2**80), DataError, "whole number from"),
+    ],
+)
+def test_relay_distortion_refuses_a_grid_before_tracing(grid, error, words):
+    from oapcal.optics import relay_distortion
+
+    with pytest.raises(error, match=words):
+        relay_distortion(1, grid=grid)
+
+
+# -- D21: relay design errors name the flag or the file's field -------------------------------------
+
+
+@pytest.fixture(scope="module")
+def relay_files(tmp_path_factory):
+    from click.testing import CliRunner
+
+    from oapcal.cli import cli
+
+    d = tmp_path_factory.mktemp("d21")
+    runner = CliRunner()
+    for args in (["simulate", "relay", "--units", "px", "--out", str(d / "grid.csv")],
+                 ["fit", str(d / "grid.csv"), "--model", "relay", "--out", str(d / "cal.json")]):  # fmt: skip
+        result = runner.invoke(cli, args)
+        assert result.exit_code == 0, result.output
+    return d
+
+
+@pytest.mark.parametrize(
+    "args, flag",
+    [
+        (["--focal-length", "1e-10"], "--focal-length"),
+        (["--d1", "0.001"], "--d1"),
+        (["--relay-centre", "1e308,1e308"], "--relay-centre"),
+    ],
+)
+def test_a_relay_design_from_options_that_images_nothing_names_its_flags(run_cli, relay_files, args, flag):
+    out = relay_files / "never.json"
+    code, _, err = run_cli("fit", str(relay_files / "grid.csv"), "--model", "relay", *args, "--out", str(out))
+    one_error(code, err)
+    assert "(set by " in err and flag in err.split("(set by ")[-1], err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "field, value, named",
+    [("focal_length_mm", 1e-10, "relay_design"), ("focal_length_2_mm", 1e-12, "params.f2_mm")],
+)
+def test_a_calibration_whose_relay_design_images_nothing_names_the_file_and_field(
+    run_cli, relay_files, field, value, named
+):
+    data = json.loads((relay_files / "cal.json").read_text())
+    data["relay_design"][field] = value
+    bad = relay_files / f"bad_{field}.json"
+    bad.write_text(json.dumps(data))
+    out = relay_files / "corrected.csv"
+    code, _, err = run_cli("correct-points", str(bad), "--distorted", str(relay_files / "grid.csv"),
+                           "--out", str(out))  # fmt: skip
+    one_error(code, err)
+    assert f"{bad.name}: field '{named}'" in err, err
+    assert not out.exists()
