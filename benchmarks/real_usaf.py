@@ -1,6 +1,7 @@
 """Detection on the real USAF-1951 images in ../shared/real/usaf/ (issue 11's measured goals).
 
 Run: .venv/bin/python benchmarks/real_usaf.py [--pictures docs/img]
+     .venv/bin/python benchmarks/real_usaf.py --poses [--only NAME]   (turned, mirrored, binned)
 
 Each image is detected by the CLI (``oapcal detect IMAGE --groups ... --json``, without
 ``--um-per-px``: the scale is found) in a subprocess of its own, which reports its wall time
@@ -146,12 +147,154 @@ def run_one(path: Path, groups: str, extra: list, workdir: Path, pictures: Path 
     return bench, summary, out
 
 
+#: --poses: the element a user reads on each image (named with --anchor when the image alone
+#: is refused), and the options every run of that image gets.
+POSE_ANCHORS = {
+    "fpm_brightfield.png": ("G4E2", {}),
+    "labumk_negative.tif": ("G4E3", {}),
+    "whole_target.png": ("G-2E2", {}),
+    "highmag_g7e1.jpg": ("G7E1", {"mirror_of_base": "no"}),
+}
+#: --poses: the transforms (cv2): turned counter-clockwise on screen by 30, 90 and 135 degrees
+#: onto a canvas that holds the whole image (the rest filled with the image's median),
+#: mirrored left-right, mirrored and turned by 30 degrees, binned 2 x 2 (INTER_AREA).
+POSES = ("rot30", "rot90", "rot135", "mirror", "rot30m", "bin2")
+
+
+def transform(img: np.ndarray, kind: str):
+    """``img`` transformed by ``kind`` (:data:`POSES`, or ``"none"``) and the 2x3 affine map
+    from its pixel coordinates to the new image's (pixel centres, docs/conventions.md)."""
+    import cv2
+
+    h, w = img.shape
+    img = img.astype(np.float32)
+    if kind == "none":
+        return img, np.array([[1.0, 0, 0], [0, 1.0, 0]])
+    if kind == "bin2":
+        out = cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+        return out, np.array([[0.5, 0, -0.25], [0, 0.5, -0.25]])
+    if kind == "mirror":
+        return img[:, ::-1].copy(), np.array([[-1.0, 0, w - 1], [0, 1.0, 0]])
+    mirror = kind.endswith("m")
+    angle = float(kind.rstrip("m").removeprefix("rot"))
+    src = img[:, ::-1].copy() if mirror else img
+    flip = np.array([[-1.0, 0, w - 1], [0, 1, 0], [0, 0, 1]]) if mirror else np.eye(3)
+    c = ((w - 1) / 2, (h - 1) / 2)
+    m = cv2.getRotationMatrix2D(c, angle, 1.0)
+    nw = int(np.ceil(w * abs(m[0, 0]) + h * abs(m[0, 1])))
+    nh = int(np.ceil(h * abs(m[0, 0]) + w * abs(m[0, 1])))
+    m[0, 2] += (nw - 1) / 2 - c[0]
+    m[1, 2] += (nh - 1) / 2 - c[1]
+    out = cv2.warpAffine(src, m, (nw, nh), flags=cv2.INTER_LINEAR, borderValue=float(np.median(src)))
+    return out, (np.vstack([m, [0, 0, 1]]) @ flip)[:2]
+
+
+def check_turned(base, det, groups, affine, shape) -> dict:
+    """Ids of ``det`` (a transformed image's detection) against ``base`` (the image's own),
+    mapped through ``affine``.  A corner's expected place is the base's corner of that id, or,
+    for ids the base did not keep, a cubic map target um -> base px through the base's corners.
+    Wrong: nearer to another id's expected place than to its own, or more than 3 px from it.
+    ``strict`` counts those farther than min(3 px, half the distance to the nearest other
+    expected corner), as ``e2e_real.py`` counts wrong ids (a corner of a bar under 2 px is
+    0.9 px from its neighbour).  Corners whose place lies outside the source image (the turned
+    canvas shows the bars cut by the source's edge) are counted apart (``off_source``)."""
+    from scipy.spatial import cKDTree
+
+    from oapcal.imaging.usaf import usaf_target
+
+    t = usaf_target(groups, layout_name=base.pose.get("layout"))
+    index = {i: k for k, i in enumerate(t.corner_ids)}
+    um = t.corners_um[[index[i] for i in base.ids]]
+    c, sc = um.mean(axis=0), float(np.ptp(um, axis=0).max()) / 2
+
+    def design(u):
+        z = (u - c) / sc
+        return np.column_stack([z[:, 0] ** i * z[:, 1] ** (n - i) for n in range(4) for i in range(n + 1)])
+
+    coef, *_ = np.linalg.lstsq(design(um), base.xy_d, rcond=None)
+    expected = design(t.corners_um) @ coef
+    bidx = {i: n for n, i in enumerate(base.ids)}
+    for i, n in bidx.items():
+        expected[index[i]] = base.xy_d[n]
+    mapped = expected @ affine[:, :2].T + affine[:, 2]
+    tree = cKDTree(mapped)
+    nn = tree.query(mapped, k=2)[0][:, 1]
+    h, w = shape
+    out = {"found": len(det.ids), "in_base": 0, "off_source": 0, "wrong": 0, "strict": 0, "errors": []}
+    for cid, xy in zip(det.ids, det.xy_d):
+        k = index[cid]
+        e = expected[k]
+        if not (3 <= e[0] <= w - 4 and 3 <= e[1] <= h - 4):
+            out["off_source"] += 1
+            continue
+        d = float(np.hypot(*(xy - mapped[k])))
+        nearest = int(tree.query(xy)[1])
+        out["in_base"] += cid in bidx
+        out["wrong"] += int(d > 3.0 or nearest != k)
+        out["strict"] += int(d > min(3.0, 0.5 * nn[k]))
+        out["errors"].append(d)
+    out["median_px"] = float(np.median(out.pop("errors"))) if out["found"] else float("nan")
+    return out
+
+
+def run_poses(only: str | None) -> None:
+    """Detection of every real image turned, mirrored and binned (:data:`POSES`), in this
+    process (``detect_usaf`` with the command's defaults): without an anchor, and, when
+    refused, with the element of :data:`POSE_ANCHORS` named (``--anchor``)."""
+    import time
+
+    from oapcal.imaging.detect import detect_usaf
+    from oapcal.imaging.usaf import parse_groups
+
+    print("| image | transform | anchor | exit | corners | wrong ids | strict | beyond the source | "
+          "median (px) | um/px +/- sigma | time (s) | reason |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, groups, _, _ in RUNS[:4]:
+        if only and only not in name:
+            continue
+        img = read_image(REAL / name)
+        g = parse_groups(groups)
+        anchor, opts = POSE_ANCHORS[name]
+        base_kw = {"um_per_px": 0.11, "mirror": "no"} if opts.get("mirror_of_base") else {}
+        base = detect_usaf(img, g, **base_kw)
+        if not base.ok:
+            print(f"| {name} | none | | the unturned image is refused: {base.message} |")
+            continue
+        for kind in POSES:
+            im2, affine = transform(img, kind)
+            runs = [None, anchor]
+            for a in runs:
+                kw = {}
+                if a is not None:
+                    kw["anchors"] = a
+                    if opts.get("mirror_of_base"):  # one element: its mirror is the user's to say
+                        mirrored = kind in ("mirror", "rot30m")
+                        kw["mirror"] = "yes" if mirrored else "no"
+                t0 = time.perf_counter()
+                det = detect_usaf(im2, g, **kw)
+                dt = time.perf_counter() - t0
+                label = "" if a is None else a + (f" --mirror {kw['mirror']}" if "mirror" in kw else "")
+                if det.ok:
+                    r = check_turned(base, det, g, affine, img.shape)
+                    sig = f" +/- {det.um_per_px_sigma:.2g}" if det.um_per_px_sigma is not None else ""
+                    print(f"| {name} | {kind} | {label} | 0 | {r['found']} | {r['wrong']} | {r['strict']} | "
+                          f"{r['off_source']} | {r['median_px']:.3f} | {det.um_per_px:.4g}{sig} | "
+                          f"{dt:.1f} | |", flush=True)  # fmt: skip
+                    break
+                print(f"| {name} | {kind} | {label} | 3 | | | | | | | {dt:.1f} | {det.message} |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--pictures", type=Path, default=None, help="write the --plot pictures here")
+    ap.add_argument("--poses", action="store_true", help="the images turned, mirrored and binned (run_poses)")
+    ap.add_argument("--only", default=None, help="--poses: only the images whose name contains this text")
     args = ap.parse_args()
     if not REAL.is_dir():
         sys.exit(f"{REAL}: not found (the real images are kept beside the repository)")
+    if args.poses:
+        run_poses(args.only)
+        return
     import tempfile
 
     from oapcal.io.points import read_points
@@ -160,13 +303,13 @@ def main() -> None:
     if args.pictures is not None:
         args.pictures.mkdir(parents=True, exist_ok=True)
     print("| image | exit | time (s) | peak memory (MB) | right ids / corners of fully visible elements | "
-          "wrong ids | scale found (um/px) | measured (SOURCES.md) | scale error | quadratic-map rms (px) | "
-          "anchor-map rms (px) | reason |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "wrong ids | scale found (um/px) | measured (SOURCES.md) | scale error | pixel size (um/px) | "
+          "quadratic-map rms (px) | anchor-map rms (px) | reason |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for n, (name, groups, measured, extra) in enumerate(RUNS):
         path = REAL / name
         if not path.exists():
-            print(f"| {name} | missing | | | | | | | | | | |")
+            print(f"| {name} | missing | | | | | | | | | | | |")
             continue
         bench, summary, out = run_one(path, groups, extra, workdir, args.pictures, n)
         # the scale the pose search found (with --um-per-px, x_u,y_u use the given one)
@@ -211,8 +354,15 @@ def main() -> None:
         reason = "" if bench["code"] == 0 else summary.get("reason", "")
         found = scale if scale else float("nan")
         label = name + (" " + " ".join(extra) if extra else "")
+        # the pixel-size answer: found (+/- its sigma), or, with a scale given, the measured one
+        psize = ""
+        if bench["code"] == 0 and summary.get("um_per_px_sigma") is not None:
+            psize = f"{summary['um_per_px']:.4g} +/- {summary['um_per_px_sigma']:.2g}"
+        elif bench["code"] == 0 and summary.get("pixel_size"):
+            ps = summary["pixel_size"]
+            psize = f"given; measured {ps['um_per_px']:.4g} (anisotropy {ps['anisotropy']:.2g})"
         print(f"| {label} | {bench['code']} | {bench['time_s']:.1f} | {bench['peak_mb']:.0f} | "
-              f"{right} / {visible} | {wrong} | {found:.4g} | {measured:g} | {err} | "
+              f"{right} / {visible} | {wrong} | {found:.4g} | {measured:g} | {err} | {psize} | "
               f"{qrms:.3f} | {anchor_rms:.2f} | {reason} |", flush=True)  # fmt: skip
 
 

@@ -99,3 +99,15 @@ def test_the_detect_widget_says_what_is_wrong_with_a_group_text(viewer):
         w.run()
         assert not w.busy and w.last_error is not None and why in w.last_error, w.last_error
         assert "OverflowError" not in w.last_error
+
+
+def test_the_detect_widget_says_what_is_wrong_with_an_anchor_text(viewer):
+    from oapcal.napari_plugin._widgets import DetectWidget
+
+    viewer.add_image(np.zeros((40, 50), np.uint8), name="img")
+    w = DetectWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Detect")
+    for text, why in (("G4E9", "not an element name"), ("G4E2 G4E2@3,4", "named twice")):
+        w.anchor.value = text
+        w.run()
+        assert not w.busy and w.last_error is not None and why in w.last_error, w.last_error

@@ -42,6 +42,22 @@ def test_detect_adds_the_corners_with_ids(viewer, demo, wait):
     assert "288 of 288 corners" in w.status
 
 
+def test_detect_with_an_anchor_names_the_same_corners(viewer, demo, wait):
+    from oapcal.napari_plugin._widgets import DetectWidget
+
+    viewer.add_image(demo["image"], **demo["kwargs"])
+    w = _add(viewer, DetectWidget(viewer), "Detect")
+    x, y = dict(zip(demo["ids"], demo["xy_d"]))["G4E2H1C0"]
+    w.anchor.value = f"G4E2@{x:.0f},{y:.0f}"
+    w.run()
+    wait(w)
+    assert w.last_error is None, w.status
+    dist = viewer.layers["distorted"]
+    truth = dict(zip(demo["ids"], demo["xy_d"]))
+    err = np.hypot(*(dist.data[:, ::-1] - np.array([truth[i] for i in dist.features["id"]])).T)
+    assert len(err) >= 0.8 * 288 and err.max() < 0.5 and "+/-" in w.status
+
+
 def test_detect_failure_is_a_message_not_a_traceback(viewer, wait):
     from oapcal.napari_plugin._widgets import DetectWidget
 

@@ -72,15 +72,25 @@ ORIENTATION_CHOICES = (
     show_default=True,
     help="Whether the image is mirrored (auto: find it; a single element in view cannot tell).",
 )
+@click.option(
+    "--anchor",
+    "anchors",
+    multiple=True,
+    metavar="GgEe[H|V][@X,Y]",
+    help="An element you can read on the target, e.g. G6E3 (group 6, element 3), optionally with "
+    "where it is in the image, G6E3@512,300 (camera px), or one triplet, G6E3V.  It decides the "
+    "scale and the element that the bars alone may leave open; repeat for more elements.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
 def detect_command(
-    image, target, groups, um_per_px, out, truth, plot, max_stderr_px, orientation, mirror, as_json
+    image, target, groups, um_per_px, out, truth, plot, max_stderr_px, orientation, mirror, anchors, as_json
 ):
     """Detect the bar corners of a USAF-1951 target and match them to the reference target.
 
     Exit 0 with the points written, or exit 3 with the reason (and, with --plot, a picture
     of what was found) when the target is not found or its identity is not certain."""
     from oapcal.imaging.detect import detect_usaf, evaluate_detection
+    from oapcal.imaging.detect.anchor import parse_anchors
     from oapcal.imaging.usaf import parse_groups
     from oapcal.io.imagefile import read_image_grey
     from oapcal.io.points import write_point_pairs
@@ -88,6 +98,7 @@ def detect_command(
     check_output(out, image, truth)
     check_output(plot, image, truth, out)
     group_list = parse_groups(groups)
+    anchor_list = parse_anchors(anchors)
     _check_size(image)
     img = read_image_grey(image)
     score = _read_truth(truth) if truth else None
@@ -107,8 +118,13 @@ def detect_command(
     with bar:
         det = detect_usaf(
             img, group_list, um_per_px, orientation=orientation, mirror=mirror, max_stderr_px=max_stderr_px,
-            progress=update,
+            progress=update, anchors=anchor_list,
         )  # fmt: skip
+    from dataclasses import replace
+
+    from oapcal.io.digest import file_sha256
+
+    det = replace(det, image_sha256=file_sha256(image))
     summary = det.summary()
     if score is not None:
         summary["truth"] = evaluate_detection(det, *score)
@@ -117,7 +133,8 @@ def detect_command(
             from oapcal.report.detect_plots import plot_detection
 
             plot_detection(img, det, plot, groups=groups)
-        click.echo(with_flag_hint(f"oapcal: detection failed: {image}: {det.message}", det.param), err=True)
+        click.echo(with_flag_hint(f"oapcal: detection failed: {image}: {_cli_words(det.message)}", det.param),
+                   err=True)  # fmt: skip
         if score is not None and not as_json:
             _print_summary(summary)
         if as_json:
@@ -139,6 +156,16 @@ def detect_command(
     elif out != "-":
         _print_summary(summary)
     return 0
+
+
+def _cli_words(message: str) -> str:
+    """The library's advice in this command's words: ``in anchors, e.g. 'G4E2@x,y'`` is
+    ``with --anchor, e.g. --anchor G4E2@x,y``."""
+    import re
+
+    message = re.sub(r"in anchors, e\.g\. '([^']+)'", r"with --anchor, e.g. --anchor \1", message)
+    message = message.replace("the anchors given", "the --anchor given")
+    return message.replace(" in anchors", " with --anchor")
 
 
 def _check_size(path):
@@ -182,6 +209,30 @@ def _read_truth(path):
     return pairs.ids, pairs.xy_d, np.array(visible)
 
 
+def _print_pixel_size(out, s: dict) -> None:
+    """The pixel-size answer: um per px with its uncertainty, the field of view, the digest."""
+    ps = s.get("pixel_size")
+    fov = s.get("field_of_view_um")
+    if not s.get("found"):
+        return
+    if s.get("um_per_px_sigma") is not None:
+        line = f"pixel size {s['um_per_px']:.5g} +/- {s['um_per_px_sigma']:.2g} um/px (found)"
+    else:
+        line = f"pixel size {s['um_per_px']:.5g} um/px (given)"
+        if ps:
+            line += f", measured {ps['um_per_px']:.5g} um/px"
+    if ps:
+        line += (
+            f" from {ps['corners']} corners (statistical {ps['statistical']:.2g}, anisotropy "
+            f"{ps['anisotropy']:.2g}, over the field {ps['field']:.2g} um/px)"
+        )
+    if fov:
+        line += f"; field of view {fov[0]:.5g} x {fov[1]:.5g} um"
+    out.print(line)
+    if s.get("image_sha256"):
+        out.print(f"image sha256 {s['image_sha256']}")
+
+
 def _print_summary(s: dict) -> None:
     out = console()
     m = s["orientation_matrix"]
@@ -210,6 +261,7 @@ def _print_summary(s: dict) -> None:
         f"(coverage {100 * s['coverage']:.1f} %); {s['polarity']} bars, "
         f"fitted blur sigma {s['sigma_px']:.2f} px, model-image correlation {s['ncc']:.3f}"
     )
+    _print_pixel_size(out, s)
     c = s["consistency"]
     if c.get("model"):
         out.print(

@@ -200,10 +200,13 @@ class DetectWidget(_OapcalWidget):
         self.orient = ComboBox(label="orientation", choices=["auto", *ORIENTATIONS], value="auto")
         self.mirror = ComboBox(label="mirror", choices=["auto", "yes", "no"], value="auto")
         self.max_stderr_px = FloatSpinBox(label="max stderr (px)", value=0.3, min=0.01, max=10.0, step=0.05)
+        # the command's --anchor: elements the user reads on the target, e.g. "G4E2@512,300"
+        # (where it is, in the image's px: x then y); several separated by spaces
+        self.anchor = LineEdit(label="anchor (e.g. G4E2@x,y)", value="")
         self.button = PushButton(text="Detect")
         self.button.changed.connect(self.run)
-        super().__init__(napari_viewer, [self.image, self.groups, self.um_per_px, self.orient,
-                                         self.mirror, self.max_stderr_px, self.button])  # fmt: skip
+        fields = [self.image, self.groups, self.um_per_px, self.orient, self.mirror, self.max_stderr_px]
+        super().__init__(napari_viewer, [*fields, self.anchor, self.button])
         self.detection = None
 
     def run(self, _=None) -> None:
@@ -213,26 +216,32 @@ class DetectWidget(_OapcalWidget):
         layer = self._chosen_image()
         if layer is None:
             return
+        from oapcal.imaging.detect.anchor import parse_anchors
+
         try:
             groups = parse_groups(self.groups.value)
+            anchors = parse_anchors(self.anchor.value.replace(";", " ").split())
         except Exception as exc:
             self._fail(_message(exc))
             return
         image = _plane(layer, self.viewer)
         kwargs = {"um_per_px": self.um_per_px.value or None, "orientation": self.orient.value,
-                  "mirror": self.mirror.value, "max_stderr_px": self.max_stderr_px.value}  # fmt: skip
+                  "mirror": self.mirror.value, "max_stderr_px": self.max_stderr_px.value,
+                  "anchors": anchors}  # fmt: skip
 
         def done(det):
             self.detection = det
             if det.status != 0:
-                self._fail(det.message)
+                # the library's advice names the parameter; here it is the anchor field
+                self._fail(det.message.replace(" in anchors", " in the anchor field"))
                 return
             layers = L.points_layers(det.xy_u, det.xy_d, det.ids, um_per_px=det.um_per_px,
                                      source=layer.name, extra={"stderr_px": det.stderr_px})  # fmt: skip
             for t in layers:
                 _replace_layer(self.viewer, t)
+            sigma = f" +/- {det.um_per_px_sigma:.2g}" if det.um_per_px_sigma is not None else ""
             self._set_status(
-                f"{len(det.ids)} of {det.n_expected} corners, {det.um_per_px:.4g} um/px, "
+                f"{len(det.ids)} of {det.n_expected} corners, {det.um_per_px:.4g}{sigma} um/px, "
                 f"orientation {det.orientation}, blur {det.sigma_px:.2f} px"
             )
 

@@ -104,6 +104,12 @@ class Detection:
     detection suggests changing (``um_per_px``, ``groups``, ``orientation``), else ``()``;
     ``reason`` a code for a failure the caller acts on (``"registrations_disagree"``: two
     registrations put a corner id in different places), else ``""``.
+
+    The pixel-size answer (:mod:`.pixel_size`): ``um_per_px_sigma`` the 1-sigma uncertainty
+    of a found ``um_per_px`` (None when it was given), ``field_of_view_um`` the image's
+    width and height in object um, ``pixel_size`` the measurement from the kept corners
+    (``um_per_px``, its ``statistical``, ``anisotropy`` and ``estimator`` parts, ...);
+    ``image_sha256`` the digest of the image file (set by the command; ``""`` for an array).
     """
 
     ids: tuple[str, ...]
@@ -128,6 +134,10 @@ class Detection:
     debug: dict = field(default_factory=dict, repr=False)
     param: tuple[str, ...] = ()
     reason: str = ""
+    um_per_px_sigma: float | None = None
+    field_of_view_um: tuple[float, float] | None = None
+    pixel_size: dict | None = None
+    image_sha256: str = ""
 
     @property
     def ok(self) -> bool:
@@ -159,6 +169,10 @@ class Detection:
             "pose": dict(self.pose),
             "triplets_found": self.triplets_found,
             "work": dict(self.work),
+            "um_per_px_sigma": self.um_per_px_sigma,
+            "field_of_view_um": list(self.field_of_view_um) if self.field_of_view_um is not None else None,
+            "pixel_size": dict(self.pixel_size) if self.pixel_size is not None else None,
+            "image_sha256": self.image_sha256,
         }
 
 
@@ -193,6 +207,7 @@ def detect_usaf(
     orientation_ratio: float = ORIENTATION_RATIO,
     consistency_model: str | None = "auto",
     progress=None,
+    anchors=None,
 ) -> Detection:
     """Find, match and refine the bar corners of USAF ``groups`` in ``image`` (module docstring).
 
@@ -211,6 +226,11 @@ def detect_usaf(
     pairs to check the global alignment (:func:`check_consistency`); ``"auto"`` uses
     ``full`` from 40 corners, ``paper`` from 16, and skips the check below; ``None`` skips it.
 
+    ``anchors`` (optional): elements the user can read, e.g. ``"G6E3"``, ``["G6E3", "G4E2"]``
+    or ``"G6E3@512,300"`` with where the element is (camera px; :mod:`.anchor`): the pose
+    search then lays a named triplet onto an image triplet and keeps only poses that honour
+    every anchor, which decides the scale and the slips that the bars alone leave open.
+
     ``progress(done, total, description)`` (optional) hears of each stage and refined
     triplet (:mod:`oapcal.progress`).
 
@@ -226,6 +246,9 @@ def detect_usaf(
     if mirror not in ("auto", "yes", "no"):
         raise DataError(f"mirror {mirror!r}: use auto, yes or no")
     groups = parse_groups(groups)
+    from oapcal.imaging.detect.anchor import parse_anchors
+
+    anchors = parse_anchors(anchors)
     img = _to_float_image(image)
     if img is None:
         return Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1,
@@ -240,8 +263,10 @@ def detect_usaf(
     # Detection does many small dense solves; a multithreaded BLAS only adds contention on
     # them (measured on 2 cores: 1.2-1.9 s with one BLAS thread, 12-14 s at random with two).
     with threadpool_limits(limits=1, user_api="blas"):
-        return _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stderr_px,
-                       ambiguity_ratio, orientation_ratio, consistency_model, progress)  # fmt: skip
+        det = _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stderr_px,
+                      ambiguity_ratio, orientation_ratio, consistency_model, progress, anchors)  # fmt: skip
+    det = _with_anchor_hint(det, anchors)
+    return _with_pixel_size(det, groups, um_per_px is not None, (w, h))
 
 
 def work_estimate(shape: tuple[int, int]) -> dict:
@@ -261,7 +286,7 @@ def work_estimate(shape: tuple[int, int]) -> dict:
 
 
 def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stderr_px, ambiguity_ratio,
-            orientation_ratio, consistency_model, progress) -> Detection:  # fmt: skip
+            orientation_ratio, consistency_model, progress, anchors=()) -> Detection:  # fmt: skip
     from oapcal.imaging.detect.bars import find_triplets
     from oapcal.imaging.detect.pose import search_pose
 
@@ -284,7 +309,7 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
             res = search_pose(
                 trips, ref, (h, w), um_per_px=um_per_px, listed=listed,
                 orientation=None if orientation == "auto" else orientation,
-                mirror=None if mirror == "auto" else mirror == "yes",
+                mirror=None if mirror == "auto" else mirror == "yes", anchors=anchors,
             )  # fmt: skip
             score = res.pose.score if res.pose is not None else -np.inf
             tried.append((score, res.status == 0, layout, ref, res))
@@ -299,7 +324,8 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
         debug = {"image_triplets": trips, "ref": ref, "pose": pres.pose, "runner_up": pres.runner_up}
         pose_info = dict(_pose_summary(pres, um_per_px), layout=layout)
         empty = _replace(empty, pose=pose_info, debug=debug, triplets_found=len(trips))
-        if pres.status != 0 and um_per_px is None:
+        if pres.status != 0 and (um_per_px is None or anchors):
+            # (with anchors, the correlation search below could not honour them)
             return _replace(empty, message=pres.message, param=pres.param)
         det_p = None
         init = None
@@ -348,6 +374,57 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
                              triplets_found=len(trips), work=work)  # fmt: skip
             det = _combine([det_p, det_d, det_c])
     return det
+
+
+def _with_pixel_size(det: Detection, groups, given: bool, size) -> Detection:
+    """``det`` with the pixel-size answer (:func:`~.pixel_size.pixel_size_answer`) measured
+    from its kept corners."""
+    from oapcal.imaging.detect.pixel_size import measure_pixel_size, pixel_size_answer
+
+    measured = None
+    if det.ok and len(det.ids):
+        target = usaf_target(groups, layout_name=det.pose.get("layout"))
+        index = {cid: k for k, cid in enumerate(target.corner_ids)}
+        um = target.corners_um[[index[i] for i in det.ids]]
+        mirrored = float(np.linalg.det(orientation_matrix(det.orientation))) < 0
+        elements = [i[: max(i.find("H"), i.find("V"))] for i in det.ids]
+        measured = measure_pixel_size(um, det.xy_d, mirrored, elements)
+    ans = pixel_size_answer(measured, det.um_per_px, given, size)
+    fov = tuple(ans["field_of_view_um"]) if ans["field_of_view_um"] is not None else None
+    return _replace(
+        det, um_per_px_sigma=ans["um_per_px_sigma"], field_of_view_um=fov, pixel_size=ans["pixel_size"]
+    )
+
+
+#: Refusals about the target's identity or pose, which an anchor may decide (the others,
+#: e.g. a scale no target fits or an image without bars, it cannot).
+ANCHOR_DECIDES = (
+    "ambiguous", "scale differs", "disagree", "not found reliably", "explains only",
+    "left the pose's matched triplets", "finds only",
+)  # fmt: skip
+
+
+def _with_anchor_hint(det: Detection, anchors) -> Detection:
+    """A refusal that does not yet say which anchor would decide it gets the generic advice
+    (the pose search's own refusals name the triplet to read)."""
+    decided_elsewhere = bool(anchors) and bool({"mirror", "orientation"} & set(det.param))
+    if det.status == 0 or "anchors" in det.message or decided_elsewhere:
+        return det
+    if not any(words in det.message for words in ANCHOR_DECIDES):
+        return det
+    trips = det.debug.get("image_triplets")
+    where = ""
+    if trips is not None and len(trips):
+        i = int(np.argmax(trips.width))
+        where = f" (the widest bar triplet found is at ({trips.centre[i][0]:.0f}, {trips.centre[i][1]:.0f}))"
+    if anchors:
+        hint = f"; the anchors given ({', '.join(a.text() for a in anchors)}) did not decide it{where}"
+    else:
+        hint = (
+            f"; name one element you can read, with where it is, in anchors, e.g. 'G4E2@x,y' for group 4, "
+            f"element 2 at camera px x,y{where}"
+        )
+    return _replace(det, message=det.message + hint, param=tuple(dict.fromkeys((*det.param, "anchors"))))
 
 
 def _at_scale(det: Detection, um_per_px, size) -> Detection:

@@ -36,6 +36,9 @@ WIDTH_TOL = 1.4
 #: The best pose must find at least this fraction of the named groups' triplets that it
 #: expects in the image (resolvable, inside); below, its evidence is too thin to trust.
 MIN_FOUND_FRACTION = 0.5
+#: ... with anchors (the identity named by the user, and checked against the bars), this
+#: fraction: the evidence then only has to place the target, not to name it.
+MIN_FOUND_FRACTION_ANCHORED = 0.25
 #: Matched triplets from which the pose's correction is quadratic (else affine).  Why 8,
 #: not 12: under a setup-1-like field (~40 px) the rows of triplets bend by 5-10 px between
 #: neighbours, which an affine correction leaves, so the pose stalled at 8 of 20 triplets
@@ -346,11 +349,14 @@ def search_pose(
     top: int = 40,
     orientation: str | None = None,
     mirror: bool | None = None,
+    anchors=(),
 ) -> PoseResult:
     """Find the pose (module docstring).  ``listed`` marks the reference triplets of the
     groups the user named (weighted 1; others 0.25).  ``orientation`` (a key of
     :data:`~oapcal.imaging.usaf.ORIENTATIONS`) keeps only the poses nearest to it;
-    ``mirror`` True/False only mirrored / unmirrored poses.
+    ``mirror`` True/False only mirrored / unmirrored poses.  ``anchors``
+    (:class:`~oapcal.imaging.detect.anchor.Anchor`, elements the user named) seed poses only
+    from the named triplets and keep only poses that honour them (:mod:`.anchor`).
 
     The steps: every pairing of an image triplet with a reference triplet proposes poses
     (:func:`_hypotheses`); each is scored (:func:`_score_hypotheses`); the best are
@@ -364,8 +370,11 @@ def search_pose(
     if n_img == 0:
         msg = "no bar triplet (three parallel bars side by side) was found in the image"
         return PoseResult(None, None, 1, msg, {}, 0, kind="not_found")
-    hyps = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets)
+    hyps = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets, anchors)
     if hyps is None:
+        if anchors:
+            msg = _anchor_unmatched_message(img, anchors, um_per_px)
+            return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("anchors",))
         if um_per_px is None:
             return PoseResult(None, None, 1, "no pose fits the options given", {}, n_img, kind="not_found")
         msg = _no_scale_message(img, um_per_px)
@@ -373,9 +382,44 @@ def search_pose(
     tree = cKDTree(img.centre)
     scores = _score_hypotheses(hyps, ref, img, tree, shape, listed)
     refined = _refined_poses(hyps, scores, ref, img, tree, shape, listed, top)
+    if anchors:
+        from oapcal.imaging.detect.anchor import honours
+
+        # the poses seeded from the named triplets, and the free search's poses (a named
+        # triplet's own bar width may be some 20 % off under distortion, so its seeds alone
+        # may miss the pose the other triplets find): those that honour every anchor
+        free = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets)
+        free_refined = []
+        if free is not None:
+            free_scores = _score_hypotheses(free, ref, img, tree, shape, listed)
+            free_refined = _refined_poses(free, free_scores, ref, img, tree, shape, listed, top)
+        pool = []
+        for p in sorted(refined + free_refined, key=lambda q: -q.score):
+            if honours(p, ref, anchors, img) and not any(_same_pose(p, q) for q in pool):
+                pool.append(p)
+        refined = pool
+        if not refined:
+            msg = _anchor_unmatched_message(img, anchors, um_per_px)
+            return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("anchors",))
+        # An anchor decides what the bars leave open; it never overrules what they say
+        # clearly: the best pose without the anchors must not beat the best one with them.
+        anchored = _at_given_scale(refined, um_per_px)
+        free_best = _at_given_scale(free_refined, um_per_px) if free_refined else anchored
+        margin = max(AMBIGUITY_MARGIN, (1.0 - AMBIGUITY_RATIO) * free_best.score)
+        if not honours(free_best, ref, anchors, img) and free_best.score - anchored.score >= margin:
+            msg = _anchor_contradicted_message(free_best, anchored, ref, img, anchors)
+            # (the best pose is what the bars say: the layouts are compared on it)
+            return PoseResult(free_best, anchored, 1, msg, {}, n_img, refined, "contradicted", ("anchors",))
     best = _at_given_scale(refined, um_per_px)
     slips = _slip_scores(best, ref, img, tree, shape, listed)
-    return _judge(best, refined, slips, um_per_px, listed, n_img)
+    if anchors:
+        # a slipped copy gives the named element another place: no rival when it breaks an anchor
+        slips_judged = {k: p for k, p in slips.items() if honours(p, ref, anchors, img)}
+    else:
+        slips_judged = slips
+    res = _judge(best, refined, slips_judged, um_per_px, listed, n_img, ref, img, anchors)
+    res.slip_scores = {k: v.score for k, v in slips.items()}
+    return res
 
 
 @dataclass(frozen=True)
@@ -389,15 +433,27 @@ class _Hypotheses:
     anchor: np.ndarray
 
 
-def _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets) -> _Hypotheses | None:
+def _hypotheses(
+    img, ref, um_per_px, orientation, mirror, max_image_triplets, anchors=()
+) -> _Hypotheses | None:
     """Every pose that maps a reference triplet onto one of the ``max_image_triplets``
     widest image triplets (both mirrors, both half turns), kept when it agrees with the
-    given scale, orientation and mirror; None when none does."""
+    given scale, orientation and mirror (and, with ``anchors``, lays a named triplet onto
+    the image triplet); None when none does."""
     from oapcal.imaging.usaf import ORIENTATIONS
 
     names = list(ORIENTATIONS)
     mats = np.array([ORIENTATIONS[k] for k in names], float)
     order = np.argsort(-img.width)[:max_image_triplets]
+    seed = None
+    if anchors:
+        from oapcal.imaging.detect.anchor import seed_mask
+
+        seed = np.zeros((len(img), len(ref.width)), bool)
+        for a in anchors:
+            seed |= seed_mask(a, ref, img)
+        # every image triplet that may be a named one, however narrow
+        order = np.unique(np.concatenate([order, np.flatnonzero(seed.any(axis=1))]))
     hyps_s, hyps_lin, hyps_t, hyps_anchor = [], [], [], []
     for i in order:
         for mir in (1.0, -1.0):
@@ -409,9 +465,9 @@ def _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets) ->
                 lin = _rot(phi) @ m
                 s = img.width[i] / ref.width
                 t = img.centre[i] - s[:, None] * np.einsum("hij,hj->hi", lin, ref.centre)
-                keep = np.ones(len(s), bool)
+                keep = np.ones(len(s), bool) if seed is None else seed[i].copy()
                 if um_per_px is not None:
-                    keep = np.abs(np.log(s * um_per_px)) < np.log(SCALE_PRIOR_RANGE)
+                    keep &= np.abs(np.log(s * um_per_px)) < np.log(SCALE_PRIOR_RANGE)
                 if orientation is not None:
                     d = ((lin[:, None] - mats[None]) ** 2).sum(axis=(2, 3))
                     keep &= np.array(names)[np.argmin(d, axis=1)] == orientation
@@ -472,23 +528,28 @@ def _at_given_scale(refined: list[Pose], um_per_px) -> Pose:
     return best
 
 
-def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, listed, n_img: int) -> PoseResult:
+def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, listed, n_img: int, ref=None, img=None,
+           anchors=()) -> PoseResult:  # fmt: skip
     """The result for ``best``: not found when it explains too little, ambiguous when
     another pose or a slipped copy scores about as well (and the given scale does not
-    decide), else found."""
+    decide), else found.  Every refusal says which anchor would decide it
+    (:func:`anchor_hint`)."""
     slip_scores = {k: v.score for k, v in slips.items()}
     runner = next((p for p in refined[1:] if not _same_pose(best, p)), None)
     n_named = sum(1 for _, j in best.matches if listed is None or listed[j])
-    if n_named < MIN_FOUND_FRACTION * best.n_expected and best.score >= 1.9:
+    min_found = MIN_FOUND_FRACTION_ANCHORED if anchors else MIN_FOUND_FRACTION
+    if n_named < min_found * best.n_expected and best.score >= 1.9:
         msg = (
             f"the target was not found reliably: the best pose finds only {n_named} of the "
             f"{best.n_expected} triplets of the named groups that it expects in the image"
         )
-        return PoseResult(best, runner, 1, msg, slip_scores, n_img, refined, "not_found")
+        msg += anchor_hint(best, None, ref, img, anchors)
+        return PoseResult(best, runner, 1, msg, slip_scores, n_img, refined, "not_found", ("anchors",))
     if best.score < 1.9 or len(best.matches) < 2:
         msg = (f"the target was not found: the best pose explains only {len(best.matches)} of the "
                f"{n_img} bar triplets found (score {best.score:.1f})")  # fmt: skip
-        return PoseResult(best, runner, 1, msg, slip_scores, n_img, refined, "not_found")
+        msg += anchor_hint(best, None, ref, img, anchors)
+        return PoseResult(best, runner, 1, msg, slip_scores, n_img, refined, "not_found", ("anchors",))
     others = [p for p in refined if p is not best and not _same_pose(best, p)]
     rivals = [("another pose", p) for p in others]
     rivals += [(f"the pose slipped by {k}", p) for k, p in slips.items()]
@@ -505,16 +566,92 @@ def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, listed, n_im
             if near_best and not near_rival:
                 continue
         if close:
+            how = "rotation" if rival.mirrored == best.mirrored else "mirror"
             msg = (
                 f"the target's identity is ambiguous: the best pose (scale {1 / best.s:.4g} um/px, "
+                f"turned {best.angle_deg:.0f} degrees{', mirrored' if best.mirrored else ''}, "
                 f"{len(best.matches)} triplets) scores {best.score:.1f} and {name} "
-                f"(scale {1 / rival.s:.4g} um/px, {len(rival.matches)} triplets) {rival.score:.1f}; "
-                f"give um_per_px (to within 6 %) or list every group in view in groups"
+                f"(scale {1 / rival.s:.4g} um/px, turned {rival.angle_deg:.0f} degrees"
+                f"{', mirrored' if rival.mirrored else ''}, {len(rival.matches)} triplets) {rival.score:.1f}"
             )
-            return PoseResult(
-                best, rival, 1, msg, slip_scores, n_img, refined, "ambiguous", ("um_per_px", "groups")
-            )
+            hint = anchor_hint(best, rival, ref, img, anchors)
+            param = ("anchors", "um_per_px", "groups")
+            if hint:
+                msg += hint
+            else:
+                # the same triplets carry the same ids in both: only the mirror (or turn) differs
+                msg += f"; both give the triplets found the same ids, only the {how} differs: give the {how}"
+                param = ("mirror",) if how == "mirror" else ("orientation",)
+            if um_per_px is None and hint:
+                msg += ", or um_per_px (to within 6 %)"
+            return PoseResult(best, rival, 1, msg, slip_scores, n_img, refined, "ambiguous", param)
     return PoseResult(best, runner, 0, "ok", slip_scores, n_img, refined)
+
+
+def anchor_hint(best: Pose, rival: Pose | None, ref, img, anchors=()) -> str:
+    """The part of a refusal that says which anchor would decide it (``""`` when none
+    would): the widest image triplet to which ``best`` and ``rival`` give different ids,
+    with both readings; without a rival, the widest triplet found, to be read by eye."""
+    if ref is None or img is None or len(img) == 0:
+        return ""
+    if rival is None:
+        i = int(np.argmax(img.width))
+        x, y = img.centre[i]
+        if anchors:
+            named = ", ".join(a.text() for a in anchors)
+            return (
+                f"; the anchors given ({named}) do not decide it: check them, or name another element "
+                f"you can read in anchors (the widest bar triplet found is at ({x:.0f}, {y:.0f}))"
+            )
+        return (
+            f"; name one element you can read, with where it is, in anchors, e.g. 'G4E2@{x:.0f},{y:.0f}' if "
+            f"the numbers printed at the widest bar triplet found, ({x:.0f}, {y:.0f}), say group 4, element 2"
+        )
+    ids_b = {i: j for i, j in best.matches}
+    ids_r = {i: j for i, j in rival.matches}
+    differ = [i for i in ids_b if i not in ids_r or _elem(ref, ids_r[i]) != _elem(ref, ids_b[i])]
+    # the same element, but its other triplet (a quarter turn): name the triplet, H or V
+    triplet = not differ
+    if triplet:
+        differ = [i for i in ids_b if ids_r[i] != ids_b[i]]
+    if not differ:
+        return ""
+    i = max(differ, key=lambda k: img.width[k])
+    x, y = img.centre[i]
+
+    def name(j):
+        return f"G{ref.group[j]}E{ref.element[j]}" + (str(ref.orient[j]) if triplet else "")
+
+    a = name(ids_b[i])
+    other = name(ids_r[i]) if i in ids_r else "no element"
+    return (
+        f"; the bar triplet at ({x:.0f}, {y:.0f}) is {a} in the best pose and {other} in the other: "
+        f"name the element you read there in anchors, e.g. '{a}@{x:.0f},{y:.0f}'"
+    )
+
+
+def _elem(ref, j) -> tuple[int, int]:
+    return int(ref.group[j]), int(ref.element[j])
+
+
+def _anchor_contradicted_message(free: Pose, anchored: Pose, ref, img, anchors) -> str:
+    named = ", ".join(a.text() for a in anchors)
+    hint = anchor_hint(free, anchored, ref, img)
+    hint = hint.replace("name the element you read there", "check the element")
+    return (
+        f"the anchors given ({named}) contradict the bars: the best pose that honours them scores "
+        f"{anchored.score:.1f} ({len(anchored.matches)} triplets), the best without them {free.score:.1f} "
+        f"({len(free.matches)} triplets){hint}"
+    )
+
+
+def _anchor_unmatched_message(img: Triplets, anchors, um_per_px) -> str:
+    named = ", ".join(a.text() for a in anchors)
+    scale = f" at um_per_px {um_per_px:g}" if um_per_px is not None else ""
+    return (
+        f"no pose{scale} lays the element named in anchors ({named}) onto a bar triplet found in the image "
+        f"({len(img)} triplets found): check the name (and position), or name another element"
+    )
 
 
 def _element_index(g, e):
