@@ -328,10 +328,10 @@ def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, valid):
     small_a, factor = _reduce(a8, FLOW_MAX_SIDE)
     small_b, _ = _reduce(bs, FLOW_MAX_SIDE)
     flow = dis.calc(small_a, small_b, None)
-    margin = LK_WINDOW + 2
+    margin = LK_WINDOW // 2 + 2
     x0, x1 = max(0.0, -dx) + margin, min(w, w - dx) - margin
     y0, y1 = max(0.0, -dy) + margin, min(h, h - dy) - margin
-    if x1 - x0 < 4 * margin or y1 - y0 < 4 * margin:
+    if x1 - x0 < 2 * margin or y1 - y0 < 2 * margin:
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
     eig = cv2.cornerMinEigenVal(a8, 7)
     # only where the (pre-)correction has data, a window's width from its edge
