@@ -70,6 +70,8 @@ MIN_OUTLIER_PX = 0.25
 #: A column of the normalized Jacobian whose singular value is below this fraction of the
 #: largest is not determined by the matches.
 RANK_TOL = 1e-7
+#: At least this many residuals (two per match) per unknown (model and moves).
+MIN_RESIDUALS_PER_UNKNOWN = 10
 
 
 @dataclass(frozen=True)
@@ -321,7 +323,7 @@ def _check_frames(prob: _Problem, matches: Matches, t0: np.ndarray) -> None:
             param="frames",
         )
     k = int(prob.solved.sum()) + (2 * (n - 1) if prob.steps is None else int(prob.stage_rotation))
-    if 2 * len(matches) < 4 * k:
+    if 2 * len(matches) < MIN_RESIDUALS_PER_UNKNOWN * k:
         raise SelfcalRefused(
             f"{len(matches)} matches are too few for {k} unknowns (the model and the frames' moves): "
             "give more overlapping frames or a smaller model",
