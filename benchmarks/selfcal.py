@@ -39,6 +39,7 @@ matching and solving 9 frames.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import sys
 import time
 from pathlib import Path
@@ -88,9 +89,19 @@ def positions(layout: str, seed: int) -> np.ndarray:
     return rng.uniform(-1, 1, (5, 2)) * step
 
 
-def render_frames(truth: np.ndarray, moves_um: np.ndarray, seed: int, texture) -> list[np.ndarray]:
+def render_frames(
+    truth: np.ndarray, moves_um: np.ndarray, seed: int, texture, cache=None
+) -> list[np.ndarray]:
     """The camera frames of the texture moved by ``moves_um``: a move of the scene's image by
-    ``+x`` columns is a source point ``x`` um further left on the axis."""
+    ``+x`` columns is a source point ``x`` um further left on the axis (cached in ``cache``:
+    the relay's render takes ~15 s a frame)."""
+    if cache is not None:
+        key = (
+            Path(cache)
+            / f"frames-{seed}-{len(moves_um)}-{hashlib.sha1(moves_um.tobytes()).hexdigest()[:10]}.npy"
+        )
+        if key.exists():
+            return list(np.load(key))
     rows, cols = texture.shape[:2]
     centre = np.array([(cols - 1) / 2.0, (rows - 1) / 2.0])
     scene0 = Scene(truth, Placement(TEXTURE_UM_PER_PX, tuple(centre)), Camera(size=SIZE))
@@ -102,6 +113,9 @@ def render_frames(truth: np.ndarray, moves_um: np.ndarray, seed: int, texture) -
         src = centre - obj / TEXTURE_UM_PER_PX
         scene = Scene(truth, Placement(TEXTURE_UM_PER_PX, tuple(src)), Camera(size=SIZE))
         frames.append(render_scene(texture, scene, seed=seed * 100 + i).image)
+    if cache is not None:
+        Path(cache).mkdir(parents=True, exist_ok=True)
+        np.save(key, np.array(frames))
     return frames
 
 
@@ -166,7 +180,7 @@ def scale_aspect(result, truth) -> tuple[float, float]:
     return float(np.sqrt(fx * fy / (tx * ty)) - 1), float((fx / fy) / (tx / ty) - 1)
 
 
-def run(seeds, quick: bool, plots: bool):
+def run(seeds, quick: bool, plots: bool, cache=None):
     import cv2
 
     texture = cv2.imread(str(TEXTURE), cv2.IMREAD_GRAYSCALE)
@@ -178,9 +192,9 @@ def run(seeds, quick: bool, plots: bool):
         row = {"seed": seed}
         for layout in ("grid",) if quick else ("grid", "random"):
             moves = positions(layout, seed)
-            frames = render_frames(truth, moves, seed, texture)
+            frames = render_frames(truth, moves, seed, texture, cache)
             t = time.perf_counter()
-            matches = find_matches(frames)
+            matches = find_matches(frames, prior=relay_params(DESIGN))
             t_match = time.perf_counter() - t
             res = self_calibrate(matches, "relay", design=DESIGN)
             t_all = time.perf_counter() - t
@@ -211,9 +225,8 @@ def run(seeds, quick: bool, plots: bool):
 
 
 def _plots(res, frames):
-    from oapcal.report.selfcal_plots import matches_figure, residual_figure
-
     from oapcal.report.plots import save_figure
+    from oapcal.report.selfcal_plots import matches_figure, residual_figure
 
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     save_figure(matches_figure(res, frames[4]), OUT_DIR / "matches.png")
@@ -256,9 +269,10 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--quick", action="store_true", help="one seed, the grid layout only")
     ap.add_argument("--plots", action="store_true", help="write docs/img/selfcal/*.png")
+    ap.add_argument("--cache", default=None, help="keep the rendered frames in this directory")
     args = ap.parse_args(argv)
     seeds = [0] if args.quick else list(range(args.seeds))
-    rows = run(seeds, args.quick, args.plots)
+    rows = run(seeds, args.quick, args.plots, args.cache)
     table(rows, args.quick)
 
 

@@ -34,8 +34,18 @@ def grid_moves(step=(50.0, 37.5)) -> np.ndarray:
 def truth_params(centre=(101.0, 73.0)) -> np.ndarray:
     """An Eq. (1) truth with ~3 px of radial and decentring distortion over the frame."""
     c = np.asarray(centre)
-    return params_from_dict({"k1": 2.0e-6, "p1": 4e-6, "s3": 2e-6, "x_off": -c[0], "y_off": -c[1],
-                             "c_x": c[0], "c_y": c[1], "m": 1.0})  # fmt: skip
+    return params_from_dict(
+        {
+            "k1": 2.0e-6,
+            "p1": 4e-6,
+            "s3": 2e-6,
+            "x_off": -c[0],
+            "y_off": -c[1],
+            "c_x": c[0],
+            "c_y": c[1],
+            "m": 1.0,
+        }
+    )
 
 
 def render_moves(params, moves_px, tex, *, snr=200.0, seed=0, size=SIZE) -> list[np.ndarray]:

@@ -27,8 +27,19 @@ def test_selfcal_writes_a_calibration_that_correct_uses(run_cli, tmp_path, frame
     out = tmp_path / "calib.json"
     res = tmp_path / "res.csv"
     plot = tmp_path / "matches.png"
-    code, stdout, err = run_cli("selfcal", frame_dir, "--model", "radial", "--out", out, "--residuals", res,
-                                "--plot", plot, "--no-progress")  # fmt: skip
+    code, stdout, err = run_cli(
+        "selfcal",
+        frame_dir,
+        "--model",
+        "radial",
+        "--out",
+        out,
+        "--residuals",
+        res,
+        "--plot",
+        plot,
+        "--no-progress",
+    )
     assert code == 0, err
     assert "Self-calibration" in stdout and "Gauge" in stdout
     data = json.loads(out.read_text())
@@ -66,8 +77,19 @@ def test_selfcal_stack_with_steps_json(run_cli, tmp_path, frames):
     ]
     steps.write_text("\n".join(lines) + "\n")
     out = tmp_path / "c.json"
-    code, stdout, err = run_cli("selfcal", stack, "--model", "radial", "--steps", steps, "--um-per-px", PIXEL_UM,
-                                "--out", out, "--json")  # fmt: skip
+    code, stdout, err = run_cli(
+        "selfcal",
+        stack,
+        "--model",
+        "radial",
+        "--steps",
+        steps,
+        "--um-per-px",
+        PIXEL_UM,
+        "--out",
+        out,
+        "--json",
+    )
     assert code == 0, err
     summary = json.loads(stdout)
     assert summary["frames"] == 9 and abs(summary["stage_rotation_deg"]) < 0.05
@@ -99,8 +121,9 @@ def test_refusals_are_one_line(run_cli, tmp_path, frame_dir, frames):
     # a steps file without one of the frames
     steps = tmp_path / "steps.csv"
     steps.write_text("frame,x_um,y_um\n0,0,0\n1,10,0\n")
-    code, _, err = run_cli("selfcal", frame_dir, "--model", "radial", "--steps", steps, "--um-per-px", "4.8",
-                           "--out", out)  # fmt: skip
+    code, _, err = run_cli(
+        "selfcal", frame_dir, "--model", "radial", "--steps", steps, "--um-per-px", "4.8", "--out", out
+    )
     assert code == 2 and "steps.csv: no position for frame 2" in _one_line(err)
     # an Eq. (1) model with steps needs the scale
     steps.write_text("frame,x_um,y_um\n" + "".join(f"{i},{i},{i % 3}\n" for i in range(9)))

@@ -72,6 +72,7 @@ def test_steps_of_the_wrong_sign_are_refused(tex):
     right = self_calibrate(matches, "radial", steps_um=grid_moves() * PIXEL_UM, um_per_px=PIXEL_UM)
     assert right.calibration.residuals.rms_px < 0.1
     with pytest.raises(SelfcalRefused) as info:
-        self_calibrate(matches, "radial", steps_um=-grid_moves() * PIXEL_UM, um_per_px=PIXEL_UM,
-                       stage_rotation=False)  # fmt: skip
+        self_calibrate(
+            matches, "radial", steps_um=-grid_moves() * PIXEL_UM, um_per_px=PIXEL_UM, stage_rotation=False
+        )
     assert info.value.reason == "moving"

@@ -61,8 +61,11 @@ def test_pure_translation_unknown_moves_paper_is_the_identity_up_to_an_affine(fl
     u = undistort(d, result.calibration.params).xy
     assert affine_error(u, d).max() < 0.03
     assert result.gauge_left["aspect"] < 0.1
-    assert any(line.startswith("aspect: weakly determined") or "not determined" in line
-               for line in result.gauge if line.startswith("aspect"))  # fmt: skip
+    assert any(
+        line.startswith("aspect: weakly determined") or "not determined" in line
+        for line in result.gauge
+        if line.startswith("aspect")
+    )
 
 
 @pytest.mark.parametrize("model", ["radial", "paper"])
