@@ -6,12 +6,12 @@ import json
 import cv2
 import numpy as np
 import pytest
-from selfcal_scenes import PIXEL_UM, grid_moves, render_moves, texture, truth_params
+from selfcal_scenes import PIXEL_UM, grid_moves
 
 
-@pytest.fixture(scope="module")
-def frames():
-    return render_moves(truth_params(), grid_moves(), texture(2))
+@pytest.fixture
+def frames(scene_frames):
+    return scene_frames[:9]
 
 
 @pytest.fixture

@@ -2,36 +2,11 @@
 
 import numpy as np
 import pytest
-from selfcal_scenes import (
-    PIXEL_UM,
-    affine_error,
-    frame_points,
-    grid_moves,
-    render_moves,
-    texture,
-    truth_params,
-)
+from selfcal_scenes import PIXEL_UM, affine_error, frame_points, grid_moves, truth_params
 
-from oapcal.model import identity_params, undistort
-from oapcal.selfcal import find_matches, self_calibrate
+from oapcal.model import undistort
+from oapcal.selfcal import SelfcalRefused, self_calibrate
 from oapcal.selfcal.solve import initial_translations
-
-
-@pytest.fixture(scope="module")
-def tex():
-    return texture(0)
-
-
-@pytest.fixture(scope="module")
-def distorted(tex):
-    """Matches of 9 frames through the Eq. (1) truth, moved on a 3 x 3 grid."""
-    return find_matches(render_moves(truth_params(), grid_moves(), tex))
-
-
-@pytest.fixture(scope="module")
-def flat(tex):
-    """Matches of 9 frames without distortion: the frames differ by pure translations."""
-    return find_matches(render_moves(identity_params(), grid_moves(), tex))
 
 
 def _moves(result):
@@ -53,6 +28,7 @@ def test_pure_translation_gives_the_identity(flat):
         assert result.calibration.residuals.rms_px < 0.05
 
 
+@pytest.mark.slow  # the centre runs away: ~200 iterations (4-9 s)
 def test_pure_translation_unknown_moves_paper_is_the_identity_up_to_an_affine(flat):
     # paper can absorb most of an aspect change (its centre running away): the frames leave
     # it nearly free, and the gauge report says so
@@ -144,3 +120,14 @@ def test_initial_translations_from_matches(distorted):
     t = initial_translations(distorted)
     # within the distortion (a few px) of the true moves
     assert np.abs(t - (grid_moves() - grid_moves()[0])).max() < 3.0
+
+
+def test_steps_of_the_wrong_sign_are_refused(distorted):
+    """The sign convention: steps are where the sample's image moves; their negatives do not fit."""
+    right = self_calibrate(distorted, "radial", steps_um=grid_moves() * PIXEL_UM, um_per_px=PIXEL_UM)
+    assert right.calibration.residuals.rms_px < 0.1
+    with pytest.raises(SelfcalRefused) as info:
+        self_calibrate(
+            distorted, "radial", steps_um=-grid_moves() * PIXEL_UM, um_per_px=PIXEL_UM, stage_rotation=False
+        )
+    assert info.value.reason == "moving"

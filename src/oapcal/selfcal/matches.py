@@ -335,7 +335,8 @@ def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, valid):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
     eig = cv2.cornerMinEigenVal(a8, 7)
     # only where the (pre-)correction has data, a window's width from its edge
-    inside_a = cv2.erode(valid.astype(np.uint8), np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)) > 0
+    edge = 2 * LK_WINDOW + 1  # the window and its coarser pyramid levels clear of the border streaks
+    inside_a = cv2.erode(valid.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)) > 0
     eig = np.where(inside_a, eig, 0.0)
     k = max(2, int(np.ceil(np.sqrt(max_points * (x1 - x0) / (y1 - y0)))))
     m = max(2, int(np.ceil(max_points / k)))

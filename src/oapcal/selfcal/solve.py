@@ -360,6 +360,24 @@ def _check_rank(res: _Residual, x0: np.ndarray) -> None:
     )
 
 
+def _plausible(prob: _Problem, matches: Matches, t0: np.ndarray) -> np.ndarray:
+    """The matches whose residual at the start lies near its pair's median (within 3 px or
+    six robust deviations): a gross mismatch would otherwise pull the first solve."""
+    u = undistort(np.concatenate([matches.xy_a, matches.xy_b]), prob.params0).xy
+    m = len(matches)
+    e = u[:m] - t0[matches.frame_a] - u[m:] + t0[matches.frame_b]
+    keep = np.isfinite(e).all(axis=1)
+    pair = matches.frame_a * matches.n_frames + matches.frame_b
+    for key in np.unique(pair):
+        sel = (pair == key) & keep
+        if not sel.any():
+            continue
+        dev = np.linalg.norm(e[sel] - np.median(e[sel], axis=0), axis=1)
+        limit = max(3.0, 6 * 1.4826 * float(np.median(dev)))
+        keep[np.flatnonzero(sel)[dev > limit]] = False
+    return keep
+
+
 def self_calibrate(
     matches: Matches,
     model="paper",
@@ -402,7 +420,7 @@ def self_calibrate(
     prob = _problem(model, matches.image_size, design, steps_um, um_per_px, stage_rotation)
     t0 = initial_translations(matches, prob.params0)
     _check_frames(prob, matches, t0)
-    use = np.ones(len(matches), bool)
+    use = _plausible(prob, matches, t0)
     x0 = np.concatenate(
         [
             prob.params0[prob.solved],
@@ -426,7 +444,8 @@ def self_calibrate(
         e, ok = res.raw(fit.x)
         dist = np.linalg.norm(e, axis=1)
         sigma = 1.4826 * float(np.median(dist[ok])) / np.sqrt(2 * np.log(2))  # Rayleigh median -> sigma
-        inlier = ok & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
+        inlier = np.zeros(len(matches), bool)
+        inlier[use] = ok & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
         stages.advance(description="self-calibration: inliers")
         res = _Residual(prob, matches, inlier)
         fit = least_squares(
