@@ -50,7 +50,7 @@ from oapcal.imaging.render import Camera, Placement, Scene, render_scene
 from oapcal.model import undistort
 from oapcal.optics.misalign import PARAMETERS
 from oapcal.optics.relay_model import RelayDesign, calibrate_relay, relay_params
-from oapcal.selfcal import find_matches, self_calibrate
+from oapcal.selfcal import SelfcalRefused, find_matches, self_calibrate
 
 TEXTURE = Path("/work/shared/real/usaf/fpm_brightfield.png")
 TEXTURE_UM_PER_PX = 3.6
@@ -193,11 +193,22 @@ def run(seeds, quick: bool, plots: bool, cache=None):
         for layout in ("grid",) if quick else ("grid", "random"):
             moves = positions(layout, seed)
             frames = render_frames(truth, moves, seed, texture, cache)
-            t = time.perf_counter()
-            matches = find_matches(frames, prior=relay_params(DESIGN))
-            t_match = time.perf_counter() - t
-            res = self_calibrate(matches, "relay", design=DESIGN)
+            t, cpu = time.perf_counter(), time.process_time()
+            try:
+                matches = find_matches(frames, prior=relay_params(DESIGN))
+                t_match = time.perf_counter() - t
+                res = self_calibrate(matches, "relay", design=DESIGN)
+            except SelfcalRefused as exc:  # reported in the table, not hidden
+                print(f"seed {seed} {layout}: refused: {exc}", flush=True)
+                row[f"{layout} refused"] = exc.reason
+                for key in ("mean", "max", "time", "cpu"):
+                    row[f"{layout} {key}"] = float("nan")
+                if layout == "grid":
+                    for key in ("mean", "max", "scale", "aspect"):
+                        row[f"steps {key}"] = float("nan")
+                continue
             t_all = time.perf_counter() - t
+            row[f"{layout} cpu"] = time.process_time() - cpu
             row[f"{layout} mean"], row[f"{layout} max"], _ = frame_error(
                 res.calibration.params, truth, "affine"
             )
@@ -206,7 +217,14 @@ def run(seeds, quick: bool, plots: bool, cache=None):
             row[f"{layout} matches"] = len(matches)
             row[f"{layout} rms"] = res.calibration.residuals.rms_px
             if layout == "grid":
-                steps = self_calibrate(matches, "relay", design=DESIGN, steps_um=moves)
+                try:
+                    steps = self_calibrate(matches, "relay", design=DESIGN, steps_um=moves)
+                except SelfcalRefused as exc:
+                    print(f"seed {seed} steps: refused: {exc}", flush=True)
+                    row["steps refused"] = exc.reason
+                    for key in ("mean", "max", "scale", "aspect"):
+                        row[f"steps {key}"] = float("nan")
+                    continue
                 m, x, _ = frame_error(steps.calibration.params, truth, "similarity")
                 row["steps mean"], row["steps max"] = m, x
                 row["steps scale"], row["steps aspect"] = scale_aspect(steps, truth)
@@ -237,7 +255,7 @@ def table(rows, quick: bool):
     cols = ["grid mean", "grid max", "steps mean", "steps max", "steps scale", "steps aspect"]
     if not quick:
         cols += ["random mean", "random max"]
-    cols += ["250 lm mean", "250 lm max", "40 central mean", "40 central max", "grid time"]
+    cols += ["250 lm mean", "250 lm max", "40 central mean", "40 central max", "grid time", "grid cpu"]
     print("| seed | " + " | ".join(cols) + " |")
     print("|---" * (len(cols) + 1) + "|")
     for r in rows:
@@ -254,13 +272,17 @@ def table(rows, quick: bool):
     )
     scale = all(abs(r["steps scale"]) <= 1e-3 and abs(r["steps aspect"]) <= 1e-3 for r in rows)
     fast = all(r["grid time"] <= 10 for r in rows)
-    for text, ok in (
+    extra = []
+    if not quick:
+        ok = all(r["random mean"] <= 0.1 and r["random max"] <= 0.5 for r in rows)
+        extra = [("5 random frames, unknown moves: mean <= 0.1 px and max <= 0.5 px (beyond the goals)", ok)]
+    for text, ok in extra + [
         ("9 frames, unknown moves: mean <= 0.1 px and max <= 0.5 px after the best affine", grid_ok),
         ("better than 40 central landmarks (mean and max)", better),
         ("within 1.5x of 250 landmarks over 1 mm (mean and max)", within),
         ("known steps: scale and aspect to 0.1 %", scale),
-        ("9 frames of 640 x 480 in <= 10 s", fast),
-    ):
+        ("9 frames of 640 x 480 in <= 10 s (wall, on this machine's load)", fast),
+    ]:
         print(f"- {text}: {'met' if ok else 'NOT met'}")
 
 

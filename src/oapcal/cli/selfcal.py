@@ -53,23 +53,71 @@ from oapcal.cli._relay import (
     show_default=True,
     help="With --steps: fit the stage's turn against the camera's axes.",
 )
-@click.option("--residuals", "residuals_out", type=click.Path(dir_okay=False), default=None,
-              help="Write every match and its residual (CSV) here.")  # fmt: skip
-@click.option("--plot", "plot_out", type=click.Path(dir_okay=False), default=None,
-              help="Write a picture of the matches here (PNG); the residual field goes beside it "
-              "(NAME-residuals.png).")  # fmt: skip
-@click.option("--max-matches-per-pair", type=click.IntRange(20, 5000), default=150, show_default=True,
-              help="At most this many matches per overlapping pair of frames.")  # fmt: skip
-@click.option("--min-overlap", type=click.FloatRange(0.05, 0.95), default=0.2, show_default=True,
-              help="Frames overlap when they share at least this fraction of the frame.")  # fmt: skip
-@click.option("--max-rms", type=click.FloatRange(min=0, min_open=True), default=0.3, show_default=True,
-              help="Refuse (a moving sample) when the inlier matches' RMS is above this, px.")  # fmt: skip
-@click.option("--progress/--no-progress", default=True, show_default=True,
-              help="A progress bar on a terminal.")  # fmt: skip
+@click.option(
+    "--residuals",
+    "residuals_out",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write every match and its residual (CSV) here.",
+)
+@click.option(
+    "--plot",
+    "plot_out",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write a picture of the matches here (PNG); the residual field goes beside it (NAME-residuals.png).",
+)
+@click.option(
+    "--max-matches-per-pair",
+    type=click.IntRange(20, 5000),
+    default=150,
+    show_default=True,
+    help="At most this many matches per overlapping pair of frames.",
+)
+@click.option(
+    "--min-overlap",
+    type=click.FloatRange(0.05, 0.95),
+    default=0.2,
+    show_default=True,
+    help="Frames overlap when they share at least this fraction of the frame.",
+)
+@click.option(
+    "--max-rms",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.3,
+    show_default=True,
+    help="Refuse (a moving sample) when the inlier matches' RMS is above this, px.",
+)
+@click.option(
+    "--min-inliers",
+    type=click.FloatRange(0, 1),
+    default=0.9,
+    show_default=True,
+    help="Refuse (a moving sample) when fewer of the matches than this fraction agree with "
+    "one model and set of moves.",
+)
+@click.option(
+    "--progress/--no-progress", default=True, show_default=True, help="A progress bar on a terminal."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of text.")
 @relay_design_options
-def selfcal_command(frames, out, model, um_per_px, steps_file, stage_rotation, residuals_out, plot_out,
-                    max_matches_per_pair, min_overlap, max_rms, progress, as_json, relay_design):  # fmt: skip
+def selfcal_command(
+    frames,
+    out,
+    model,
+    um_per_px,
+    steps_file,
+    stage_rotation,
+    residuals_out,
+    plot_out,
+    max_matches_per_pair,
+    min_overlap,
+    max_rms,
+    min_inliers,
+    progress,
+    as_json,
+    relay_design,
+):
     """Calibrate from FRAMES (images, directories of images, or stacks) of one static, textured
     sample, each taken after a stage move; unknown moves unless --steps gives them."""
     from oapcal.batch.stack import expand_inputs
@@ -102,11 +150,25 @@ def selfcal_command(frames, out, model, um_per_px, steps_file, stage_rotation, r
     try:
         with bar:
             prior = _prior(design, images[0].shape[:2])
-            matches = find_matches(images, max_per_pair=max_matches_per_pair, min_overlap=min_overlap,
-                                   prior=prior, progress=update)  # fmt: skip
-            result = self_calibrate(matches, model, design=design, steps_um=steps, um_per_px=um_per_px,
-                                    stage_rotation=stage_rotation, max_rms_px=max_rms, source=source,
-                                    progress=update)  # fmt: skip
+            matches = find_matches(
+                images,
+                max_per_pair=max_matches_per_pair,
+                min_overlap=min_overlap,
+                prior=prior,
+                progress=update,
+            )
+            result = self_calibrate(
+                matches,
+                model,
+                design=design,
+                steps_um=steps,
+                um_per_px=um_per_px,
+                stage_rotation=stage_rotation,
+                max_rms_px=max_rms,
+                source=source,
+                min_inlier_fraction=min_inliers,
+                progress=update,
+            )
     except SelfcalRefused as exc:
         if exc.reason == "frames":
             raise
@@ -172,13 +234,21 @@ def _write_residuals(path, result) -> None:
     rows = []
     for i in range(len(m)):
         e = result.residuals[i]
-        rows.append({
-            "frame_a": int(m.frame_a[i]), "frame_b": int(m.frame_b[i]),
-            "x_a": repr(float(m.xy_a[i, 0])), "y_a": repr(float(m.xy_a[i, 1])),
-            "x_b": repr(float(m.xy_b[i, 0])), "y_b": repr(float(m.xy_b[i, 1])),
-            "weight": f"{m.weight[i]:.6g}", "e_x": f"{e[0]:.6g}", "e_y": f"{e[1]:.6g}",
-            "e": f"{float((e**2).sum()) ** 0.5:.6g}", "inlier": int(bool(result.inlier[i])),
-        })  # fmt: skip
+        rows.append(
+            {
+                "frame_a": int(m.frame_a[i]),
+                "frame_b": int(m.frame_b[i]),
+                "x_a": repr(float(m.xy_a[i, 0])),
+                "y_a": repr(float(m.xy_a[i, 1])),
+                "x_b": repr(float(m.xy_b[i, 0])),
+                "y_b": repr(float(m.xy_b[i, 1])),
+                "weight": f"{m.weight[i]:.6g}",
+                "e_x": f"{e[0]:.6g}",
+                "e_y": f"{e[1]:.6g}",
+                "e": f"{float((e**2).sum()) ** 0.5:.6g}",
+                "inlier": int(bool(result.inlier[i])),
+            }
+        )
     write_points(path, fields, rows)
 
 

@@ -121,7 +121,7 @@ def texture_ratio(g: np.ndarray) -> float:
     above 1 for a textured scene; 0 for a constant frame."""
     import cv2
 
-    small, _ = _reduce(g, FLOW_MAX_SIDE)
+    small, _ = _reduce(g, 1024)
     smooth = cv2.GaussianBlur(small, (0, 0), 2.0)
     noise = 1.4826 * float(np.median(np.abs(small - cv2.GaussianBlur(small, (0, 0), 1.0))))
     signal = float(smooth[8:-8, 8:-8].std())

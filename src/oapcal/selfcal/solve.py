@@ -387,7 +387,7 @@ def self_calibrate(
     um_per_px: float | None = None,
     stage_rotation: bool = True,
     max_rms_px: float = 0.3,
-    min_inlier_fraction: float = 0.7,
+    min_inlier_fraction: float = 0.9,
     name: str | None = None,
     source: str | None = None,
     progress=None,
@@ -438,7 +438,7 @@ def self_calibrate(
         res = _Residual(prob, matches, use)
         _check_rank(res, x0)
         fit = least_squares(
-            res, x0, jac=res.jac, loss="soft_l1", f_scale=1.0, x_scale="jac", method="trf", max_nfev=100
+            res, x0, jac=res.jac, loss="cauchy", f_scale=0.5, x_scale="jac", method="trf", max_nfev=100
         )
         # outliers against the robust spread of the first solve, then the inliers alone
         e, ok = res.raw(fit.x)
