@@ -175,24 +175,25 @@ def find_matches(
 
     from oapcal.progress import Stages
 
-    frames = [grey(f) for f in frames]
+    frames = list(frames)
     if len(frames) < 2:
         raise SelfcalRefused(
             f"{len(frames)} frame given: self-calibration needs at least 3 frames of the moved scene",
             "frames",
             param="frames",
         )
-    shape = frames[0].shape
-    for i, f in enumerate(frames):
+    # one frame in float at a time (two passes: the levels, then 8 bits), so 50 frames of
+    # 2048 x 2048 hold 200 MB rather than 800
+    shape = grey(frames[0]).shape
+    levels = []
+    for i, frame in enumerate(frames):
+        f = grey(frame)
         if f.shape != shape:
             raise DataError(
                 f"frame {i} is {f.shape[1]}x{f.shape[0]} px but frame 0 is "
                 f"{shape[1]}x{shape[0]}: all frames must have one size",
                 param="frames",
             )
-    h, w = shape
-    n = len(frames)
-    for i, f in enumerate(frames):
         ratio = texture_ratio(f)
         if ratio < MIN_TEXTURE_RATIO:
             raise SelfcalRefused(
@@ -201,9 +202,12 @@ def find_matches(
                 "texture",
                 param="frames",
             )
-    lo = float(min(np.percentile(f, 0.5) for f in frames))
-    hi = float(max(np.percentile(f, 99.5) for f in frames))
-    frames8 = [_to_uint8(f, lo, hi) for f in frames]
+        levels.append(np.percentile(f, [0.5, 99.5]))
+    h, w = shape
+    n = len(frames)
+    lo = float(min(v[0] for v in levels))
+    hi = float(max(v[1] for v in levels))
+    frames8 = [_to_uint8(grey(f), lo, hi) for f in frames]
     del frames
     valid = np.ones((h, w), bool)
     if prior is not None:
