@@ -48,4 +48,10 @@ def test_relay_truth_recovered_and_its_gauge():
     names = result.calibration.family.param_names
     assert result.calibration.params[names.index("scale")] == 1.0
     steps = self_calibrate(matches, "relay", design=DESIGN, steps_um=moves * DESIGN.object_um_per_px)
-    assert steps.calibration.params[names.index("scale")] == pytest.approx(1.0, abs=2e-3)
+    # the known steps give the truth's object um per px at the centre (its inverse's Jacobian)
+    c, h = np.array([[79.5, 59.5]]), 1e-3
+    jx = (undistort(c + [h, 0], truth).xy - undistort(c - [h, 0], truth).xy)[0] / (2 * h)
+    jy = (undistort(c + [0, h], truth).xy - undistort(c - [0, h], truth).xy)[0] / (2 * h)
+    ux, uy = steps.um_per_px_centre
+    assert ux == pytest.approx(DESIGN.object_um_per_px * np.linalg.norm(jx), rel=2e-3)
+    assert uy == pytest.approx(DESIGN.object_um_per_px * np.linalg.norm(jy), rel=2e-3)

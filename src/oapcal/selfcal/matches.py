@@ -9,7 +9,7 @@ overlapping pair, each with a weight from its local texture.
    (``cv2.phaseCorrelate`` with a Hanning window, on frames reduced to at most
    :data:`PHASE_MAX_SIDE` px); a pair overlaps when the shift leaves at least
    ``min_overlap`` of the frame in common and the correlation peak is clear
-   (``min_response``).  Each frame keeps its ``max_pairs_per_frame`` largest overlaps, so
+   (``min_response``).  Each frame keeps its ``max_pairs_per_frame`` clearest peaks, so
    50 frames cost at most ``50 * max_pairs_per_frame / 2`` pairs.
 3. In an overlapping pair ``(a, b)`` the dense flow of ``cv2.DISOpticalFlow`` (on ``b``
    shifted back by the phase-correlation shift, at most :data:`FLOW_MAX_SIDE` px) gives
@@ -225,12 +225,12 @@ def find_matches(
                 dx, dy = shifts[a, b]
                 overlap = max(0.0, (w - abs(dx)) * (h - abs(dy)) / (w * h))
                 if overlap >= min_overlap and response[a, b] >= min_response:
-                    candidates.append((overlap, a, b))
+                    candidates.append((float(response[a, b]), overlap, a, b))
         keep = _bounded_pairs(candidates, n, max_pairs_per_frame)
         stages.total = len(keep) + 1
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
         out_a, out_b, xa, xb, wt, pairs = [], [], [], [], [], []
-        for overlap, a, b in keep:
+        for _, overlap, a, b in keep:
             pa, pb, eig = _match_pair(
                 frames8[a], frames8[b], shifts[a, b], dis, max_per_pair, max_fb_px, valid
             )
@@ -285,14 +285,16 @@ def _apodize(f8, soft):
 
 
 def _bounded_pairs(candidates, n: int, per_frame: int):
-    """The pairs to match: each frame's ``per_frame`` largest overlaps (a pair is kept when
-    either frame keeps it)."""
+    """The pairs to match: each frame's ``per_frame`` clearest phase-correlation peaks (a
+    pair is kept when either frame keeps it).  By the peak, not the overlap: a spurious peak
+    near zero shift claims a large overlap (50 frames of 2048 x 2048: such pairs took every
+    place of 8 frames, which then overlapped no other)."""
     best: dict[int, list] = {i: [] for i in range(n)}
     for c in sorted(candidates, reverse=True):
-        for i in c[1:]:
+        for i in c[2:]:
             best[i].append(c)
     chosen = {c for i in range(n) for c in best[i][:per_frame]}
-    return sorted(chosen, key=lambda c: (c[1], c[2]))
+    return sorted(chosen, key=lambda c: (c[2], c[3]))
 
 
 def _check_connected(pairs, n: int, min_overlap: float) -> None:
@@ -339,7 +341,8 @@ def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, valid):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
     eig = cv2.cornerMinEigenVal(a8, 7)
     # only where the (pre-)correction has data, a window's width from its edge
-    edge = 2 * LK_WINDOW + 1  # the window and its coarser pyramid levels clear of the border streaks
+    # the window and its coarser pyramid levels clear of the border streaks (less in small frames)
+    edge = min(2 * LK_WINDOW + 1, max(margin, min(h, w) // 12))
     inside_a = cv2.erode(valid.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)) > 0
     eig = np.where(inside_a, eig, 0.0)
     k = max(2, int(np.ceil(np.sqrt(max_points * (x1 - x0) / (y1 - y0)))))
