@@ -230,28 +230,38 @@ def find_matches(
         stages.total = len(keep) + 1
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
         out_a, out_b, xa, xb, wt, pairs = [], [], [], [], [], []
-        for _, overlap, a, b in keep:
+
+        def match(candidate) -> None:
+            _, overlap, a, b = candidate
             pa, pb, eig = _match_pair(
                 frames8[a], frames8[b], shifts[a, b], dis, max_per_pair, max_fb_px, valid
             )
             stages.advance(description=f"matching frames {a} and {b}")
             if len(pa) < MIN_PAIR_MATCHES:
-                continue
-            pairs.append(
-                Pair(
-                    a,
-                    b,
-                    (float(shifts[a, b, 0]), float(shifts[a, b, 1])),
-                    float(response[a, b]),
-                    float(overlap),
-                    len(pa),
-                )
-            )
+                return
+            shift = (float(shifts[a, b, 0]), float(shifts[a, b, 1]))
+            pairs.append(Pair(a, b, shift, float(response[a, b]), float(overlap), len(pa)))
             out_a.append(np.full(len(pa), a))
             out_b.append(np.full(len(pa), b))
             xa.append(pa)
             xb.append(pb)
             wt.append(eig)
+
+        for candidate in keep:
+            match(candidate)
+        # frames cut off (their clearest peaks were spurious or their pairs gave too few
+        # matches): their further candidates, clearest first, until they join the rest
+        tried = set(keep)
+        for candidate in sorted(candidates, reverse=True):
+            labels = _components(pairs, n)
+            if (labels == labels[0]).all():
+                break
+            _, _, a, b = candidate
+            if candidate in tried or labels[a] == labels[b]:
+                continue
+            tried.add(candidate)
+            stages.total += 1
+            match(candidate)
     _check_connected(pairs, n, min_overlap)
     xa, xb = np.concatenate(xa), np.concatenate(xb)
     if prior is not None:  # back to the frames' own pixels
@@ -297,16 +307,21 @@ def _bounded_pairs(candidates, n: int, per_frame: int):
     return sorted(chosen, key=lambda c: (c[2], c[3]))
 
 
-def _check_connected(pairs, n: int, min_overlap: float) -> None:
-    """Refuse frames that overlap no other, or groups of frames with no overlap between them."""
+def _components(pairs, n: int) -> np.ndarray:
+    """The connected component of every frame in the graph of the matched pairs."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    if pairs:
-        graph = coo_matrix((np.ones(len(pairs)), ([p.a for p in pairs], [p.b for p in pairs])), shape=(n, n))
-        count, labels = connected_components(graph, directed=False)
-    else:
-        count, labels = n, np.arange(n)
+    if not pairs:
+        return np.arange(n)
+    graph = coo_matrix((np.ones(len(pairs)), ([p.a for p in pairs], [p.b for p in pairs])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def _check_connected(pairs, n: int, min_overlap: float) -> None:
+    """Refuse frames that overlap no other, or groups of frames with no overlap between them."""
+    labels = _components(pairs, n)
+    count = len(np.unique(labels))
     if count > 1:
         sizes = np.bincount(labels)
         lonely = [i for i in range(n) if sizes[labels[i]] < sizes.max()] or list(range(1, n))
