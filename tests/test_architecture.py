@@ -16,7 +16,7 @@ LAYERS = [
     {"stats", "normalize", "synthetic", "uncertainty"},
     {"fitting"},
     {"select", "subsampling", "calibration", "error_model"},
-    {"imaging", "optics", "families"},
+    {"imaging", "optics", "families", "selfcal"},
     {"io"},
     {"batch"},
     {"report"},

@@ -44,6 +44,7 @@ COMMANDS: dict[str, str] = {
     "select": "oapcal.cli.select:select_command",
     "robustness": "oapcal.cli.select:robustness_command",
     "tolerance": "oapcal.cli.tolerance:tolerance_command",
+    "selfcal": "oapcal.cli.selfcal:selfcal_command",
 }
 
 
