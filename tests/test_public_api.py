@@ -42,6 +42,8 @@ PUBLIC = {
     "usaf_target",
     "simulate_image",
     "detect_usaf",
+    "find_matches",
+    "self_calibrate",
     "OapcalError",
     "InputFileError",
     "DataError",

@@ -59,6 +59,9 @@ _API: dict[str, str] = {
     "usaf_target": "oapcal.imaging.usaf:usaf_target",
     "simulate_image": "oapcal.imaging.simulate:simulate_image",
     "detect_usaf": "oapcal.imaging.detect:detect_usaf",
+    # calibration in place, without a target
+    "find_matches": "oapcal.selfcal.matches:find_matches",
+    "self_calibrate": "oapcal.selfcal.solve:self_calibrate",
     # errors
     "OapcalError": "oapcal.errors:OapcalError",
     "InputFileError": "oapcal.errors:InputFileError",
