@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from oapcal import __version__
+from oapcal import __version__, validate
 from oapcal.errors import DataError, InputFileError
 from oapcal.model import N_PARAMS, ROTATION_SUFFIX, ModelFamily, family_of
 from oapcal.normalize import normalize
@@ -217,6 +217,10 @@ def calibrate(
             f"normalization {normalization!r} cannot be used with the relay model: it fits the "
             "target's pose itself, in px (use normalization 'none')"
         )
+    if um_per_px is not None:
+        um_per_px = validate.positive(um_per_px, "um_per_px")
+    if image_size is not None:
+        image_size = validate.image_size(image_size)
     if rotation not in ROTATION_CHOICES:
         choices = ", ".join(ROTATION_CHOICES)
         raise DataError(f"rotation must be one of {choices}, got {rotation!r}", param="rotation")

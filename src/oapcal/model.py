@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.errors import ModelSpecError
+from oapcal.errors import DataError, ModelSpecError
 
 #: The 13 parameters of Eq. (1), in the one order used everywhere in oapcal.
 PARAM_NAMES: tuple[str, ...] = (
@@ -373,8 +373,14 @@ def kernel_array(a, dtype=float) -> np.ndarray:
 def _as_batches(xy: np.ndarray, params: np.ndarray, n_params: int):
     """Flatten points ``(..., N, 2)`` and parameters ``(..., P)`` to ``(Bx, N, 2)`` and
     ``(Bp, P)`` (each of ``Bx, Bp`` 1 or B) plus the broadcast leading shape."""
-    xy = np.asarray(xy, dtype=float)
-    params = np.asarray(params, dtype=float)
+    try:
+        xy = np.asarray(xy, dtype=float)
+    except (TypeError, ValueError):
+        raise DataError(f"points must be numbers of shape (..., N, 2), got {type(xy).__name__}") from None
+    try:
+        params = np.asarray(params, dtype=float)
+    except (TypeError, ValueError):
+        raise DataError(f"parameters must be numbers, got {type(params).__name__}") from None
     if xy.ndim < 2 or xy.shape[-1] != 2:
         raise ModelSpecError(f"points must have shape (..., N, 2), got {xy.shape}")
     if params.shape[-1:] != (n_params,):

@@ -113,6 +113,28 @@ def whole_number(value, name: str, lo: int, hi: int | None = None) -> int:
     return n
 
 
+def positive(value, name: str) -> float:
+    """``value`` as a finite float above 0 (a bool or a string is refused)."""
+    try:
+        if isinstance(value, (bool, np.bool_, str, bytes)):
+            raise TypeError
+        x = float(value)
+    except (TypeError, ValueError):
+        raise DataError(f"{name} must be a positive number, got {value!r}", param=name) from None
+    if not (np.isfinite(x) and x > 0):
+        raise DataError(f"{name} must be a positive finite number, got {x:g}", param=name)
+    return x
+
+
+def image_size(value, name: str = "image_size") -> tuple[int, int]:
+    """An image size ``(width, height)`` in px: two whole numbers of at least 1."""
+    try:
+        w, h = value
+    except (TypeError, ValueError):
+        raise DataError(f"{name} must be (width, height) in px, got {value!r}", param=name) from None
+    return whole_number(w, f"{name} width", 1), whole_number(h, f"{name} height", 1)
+
+
 def seed(value, name: str = "seed") -> int:
     """A random seed: a whole number from 0 to :data:`MAX_SEED`."""
     try:

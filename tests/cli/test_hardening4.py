@@ -142,3 +142,51 @@ def test_dask_refuses_a_local_cluster_of_thousands_of_workers(run_cli, tmp_path)
                            "--dask", "--workers", n, "--quiet")  # fmt: skip
     assert code != 0 and f"at most {n - 1} workers" in err and "--workers" in err, err
     assert "Traceback" not in err
+
+
+# -- C16, fresh values: public calls that took nonsense or raised raw exceptions --------------------
+
+
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [
+        ({"um_per_px": -1}, "um_per_px must be a positive finite number"),
+        ({"um_per_px": float("nan")}, "um_per_px must be a positive finite number"),
+        ({"um_per_px": "4.8"}, "um_per_px must be a positive number"),
+        ({"image_size": (0, 0)}, "image_size width must be a whole number from 1"),
+        ({"image_size": (640,)}, "image_size must be \\(width, height\\)"),
+        ({"image_size": (640.5, 480)}, "whole number"),
+    ],
+)
+def test_calibrate_refuses_a_scale_or_image_size_that_is_not_one(kwargs, words):
+    import numpy as np
+
+    from oapcal.calibration import calibrate
+    from oapcal.model import distort
+    from oapcal.synthetic import EXAMPLE_TRUTH
+
+    xy_u = np.random.default_rng(0).uniform(0, 600, (40, 2))
+    with pytest.raises(DataError, match=words):
+        calibrate(xy_u, distort(xy_u, EXAMPLE_TRUTH), "paper", rotation="none", error_model=False, **kwargs)
+
+
+@pytest.mark.parametrize("xy", ["abc", [["a", "b"]], object()])
+def test_distort_of_points_that_are_not_numbers_is_a_data_error(xy):
+    from oapcal.model import distort, identity_params
+
+    with pytest.raises(DataError, match="points must be numbers"):
+        distort(xy, identity_params())
+
+
+def test_saving_a_calibration_onto_a_directory_names_it(tmp_path):
+    import numpy as np
+
+    from oapcal.calibration import calibrate
+    from oapcal.errors import OutputError
+    from oapcal.io.calibration import save_calibration
+
+    xy = np.random.default_rng(0).uniform(0, 600, (30, 2))
+    cal = calibrate(xy, xy, "paper", rotation="none", error_model=False)
+    with pytest.raises(OutputError, match="is a directory; give the path of a file"):
+        save_calibration(cal, tmp_path)
+    assert list(tmp_path.iterdir()) == []

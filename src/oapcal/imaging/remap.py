@@ -407,8 +407,9 @@ def mask_untrusted(cmap: CorrectionMap, predicted: np.ndarray, max_error_px: flo
             f"{'no' if not trusted.any() else 'almost no'} output pixel (under {MIN_SAMPLED_FRACTION:.1%}) "
             f"has a predicted error of {max_error_px:g} px or less (the smallest is "
             f"{float(np.nanmin(predicted)):.3g} px): the calibration does not support a correction this "
-            "accurate here; raise max_error_px, or give max_error_px=None for the whole output",
-            param="max_error_px",
+            "accurate here; raise the threshold, or correct the whole output without a trust region "
+            "(max_error_px None; on the command line an explicit extent)",
+            param=("max_error_px", "extent"),
         )
     map_x = np.where(trusted, cmap.map_x, np.float32(MASKED)).astype(np.float32)
     map_y = np.where(trusted, cmap.map_y, np.float32(MASKED)).astype(np.float32)

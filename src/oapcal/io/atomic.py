@@ -84,6 +84,8 @@ def check_output_target(path: str | os.PathLike, *, directory: bool = False) -> 
         return
     if stat.S_ISREG(mode) or (directory and stat.S_ISDIR(mode)):
         return
+    if stat.S_ISDIR(mode):
+        raise OutputError(f"{os.fsdecode(path)}: is a directory; give the path of a file to write")
     for test, kind in _SPECIAL_KINDS:
         if test(mode):
             link = "a link to " if os.path.islink(path) else ""
