@@ -141,7 +141,7 @@ def test_tests_mirror_the_source_tree():
 #: The modules that read files: ``io.userfile`` opens every user file (text and JSON read
 #: there; binary files checked there by ``check_input_file``), then the binary readers
 #: decode what it let through; ``io.atomic`` writes.
-FILE_READERS = {"io.userfile", "io.images", "io.maps", "io.atomic"}
+FILE_READERS = {"io.userfile", "io.images", "io.maps", "io.atomic", "io.digest"}
 #: Modules that read files of the package itself, never a user's: the kernels digest the
 #: relay tracer's source to name their cache entries (``_kernels._source_tag``).
 PACKAGE_READERS = {"_kernels"}
