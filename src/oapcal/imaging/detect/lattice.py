@@ -76,6 +76,41 @@ def _design(rc: np.ndarray, kind: str) -> np.ndarray:
     return np.stack([one, r, c], axis=1)
 
 
+def _local_solver(offsets: tuple):
+    """The least-squares solver of :func:`local_fit` for neighbours at the relative indices
+    ``offsets``: ``(design, pseudo-inverse, dof)`` of the richest model they determine, or
+    None.  It depends only on which offsets are present, so it is computed once per pattern
+    (:data:`_SOLVERS`)."""
+    hit = _SOLVERS.get(offsets)
+    if hit is not None or offsets in _SOLVERS:
+        return hit
+    d = np.array(offsets, float).reshape(-1, 2)
+    n = len(d)
+    out = None
+    if n >= 3:
+        rows, cols = len(np.unique(d[:, 0])), len(np.unique(d[:, 1]))
+        for kind, k in (("quadratic", 6), ("bilinear", 4), ("affine", 3)):
+            if n < k + (2 if kind != "affine" else 0):
+                continue
+            if kind == "quadratic" and (rows < 3 or cols < 3):
+                continue
+            if kind != "affine" and (rows < 2 or cols < 2):
+                continue
+            a = _design(d, kind)
+            sv = np.linalg.svd(a, compute_uv=False)
+            if sv[-1] < 1e-6 * sv[0]:
+                continue
+            out = (a, np.linalg.pinv(a), max(n - k, 1), n > k)
+            break
+    if len(_SOLVERS) < 100_000:
+        _SOLVERS[offsets] = out
+    return out
+
+
+#: The solvers of :func:`_local_solver` by neighbour pattern.
+_SOLVERS: dict = {}
+
+
 def local_fit(rc_nb: np.ndarray, xy_nb: np.ndarray, at: np.ndarray):
     """Predict the position of node ``at`` (row, col) from indexed neighbours ``rc_nb`` with
     positions ``xy_nb``: ``(xy, pitch, rms)`` or None when they do not determine it.
@@ -144,9 +179,17 @@ class _Grower:
             nb = self.neighbours(node, NEIGHBOURHOOD + 1, exclude_self=exclude_self)
         if len(nb) < 3:
             return None
-        rc = np.array([n for n, _ in nb])
+        r0, c0 = node
+        offsets = tuple(v for (r, c), _ in nb for v in (r - r0, c - c0))
+        solver = _local_solver(offsets)
+        if solver is None:
+            return None
+        a, pinv, dof, redundant = solver
         xy = self.xy[[p for _, p in nb]]
-        return local_fit(rc, xy, np.asarray(node))
+        coef = pinv @ xy
+        rms = float(np.sqrt(((xy - a @ coef) ** 2).sum() / dof)) if redundant else 0.0
+        pitch = 0.5 * (np.hypot(*coef[1]) + np.hypot(*coef[2]))
+        return coef[0], float(pitch), rms
 
     def expected_parity(self, node):
         return self.parity0 * (1 if (node[0] + node[1]) % 2 == 0 else -1)
@@ -181,29 +224,40 @@ class _Grower:
             (r0 + dr, c0 + dc) in self.point_of_node for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc
         )
 
+    def near_assigned(self, node, radius=2):
+        r0, c0 = node
+        return any(
+            (r0 + dr, c0 + dc) in self.point_of_node
+            for dr in range(-radius, radius + 1)
+            for dc in range(-radius, radius + 1)
+        )
+
     def grow(self, max_nodes):
+        """Grow until no node can be added.  A node is queued when it has indexed
+        8-neighbours, or when it lies next to a node that stayed empty and within two steps
+        of an indexed one (to bridge a missing dot); each node is tried again only when its
+        support grew, so the growth ends."""
         heap = []
 
-        def push_around(node):
+        def consider(nb):
+            if nb in self.point_of_node:
+                return
+            s = self.support(nb)
+            if self.failed.get(nb, -1) >= s:
+                return
+            if s == 0 and not self.near_assigned(nb):
+                return
+            heapq.heappush(heap, (-s, nb))
+
+        def around(node):
             r0, c0 = node
-            for dr in range(-2, 3):
-                for dc in range(-2, 3):
-                    nb = (r0 + dr, c0 + dc)
-                    if nb in self.point_of_node:
-                        continue
-                    s = self.support(nb)
-                    if s == 0 and max(abs(dr), abs(dc)) > 1:
-                        # two steps away: only across an empty node (a missing dot)
-                        if not any(
-                            (nb[0] + a, nb[1] + b) in self.failed for a in (-1, 0, 1) for b in (-1, 0, 1)
-                        ):
-                            continue
-                    if self.failed.get(nb, -1) >= s:
-                        continue
-                    heapq.heappush(heap, (-s, nb))
+            for dr in (-1, 0, 1):
+                for dc in (-1, 0, 1):
+                    if dr or dc:
+                        consider((r0 + dr, c0 + dc))
 
         for node in list(self.point_of_node):
-            push_around(node)
+            around(node)
         while heap and len(self.point_of_node) < max_nodes:
             negs, node = heapq.heappop(heap)
             if node in self.point_of_node:
@@ -213,10 +267,9 @@ class _Grower:
                 continue  # stale entry
             if self.try_node(node):
                 self.failed.pop(node, None)
-                push_around(node)
             else:
                 self.failed[node] = s
-                push_around(node)
+            around(node)
 
 
 def _seed_basis(xy, tree, pitch, p, parity=None):
