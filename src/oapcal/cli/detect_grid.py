@@ -162,7 +162,8 @@ def _print_summary(s: dict) -> None:
     )
     out.print(f"image sha256 {s['image_sha256']}")
     c = s["counts"]
-    dropped = {k: c[k] for k in ("loo_dropped", "dirty_dropped", "ambiguous", "conflicts", "parity") if c.get(k)}
+    dropped = {k: c[k] for k in ("loo_dropped", "dirty_dropped", "unconverged_dropped", "position_dropped", "ambiguous", "conflicts",
+                         "parity") if c.get(k)}
     if dropped:
         out.print("left out: " + ", ".join(f"{k} {v}" for k, v in dropped.items()))
     t = s.get("truth")

@@ -172,14 +172,15 @@ def render_grid(
     Eq. (1) field of :mod:`oapcal.imaging.field`) at ``camera`` (default the paper's:
     :class:`oapcal.imaging.render.Camera`), the target turned by ``rotation_deg`` (and
     mirrored) with its centre ``offset_um`` from the optical axis; the source is drawn at
-    ``source_um_per_px`` (default: a tenth of the smallest feature, at most 1 um)."""
+    ``source_um_per_px`` (default: a tenth of the dot or square, each source pixel area-sampled
+    by 4 x 4 samples)."""
     from oapcal.imaging.field import SETUP1_LIKE
     from oapcal.imaging.render import Camera, Placement, Scene, render_scene
 
     camera = Camera() if camera is None else camera
     params = SETUP1_LIKE if params is None else np.asarray(params, float)
     feature = target.dot_um if target.kind == "dots" else target.pitch_um
-    step = float(source_um_per_px) if source_um_per_px else min(1.0, feature / 10.0)
+    step = float(source_um_per_px) if source_um_per_px else feature / 10.0
     src, centre = target.source(step)
     # the target's centre sits offset_um from the axis: the source point on the axis is the
     # target point at -offset

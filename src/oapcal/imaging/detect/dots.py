@@ -131,10 +131,12 @@ def find_dots(
     xy0 = cents[keep]
     # each dot's window stays clear of its nearest neighbour (whose blurred edge reaches
     # about r_dot + 2.5 px towards it): a compressed part of the field has a smaller pitch
-    if len(xy0) >= 2:
+    big = area[keep] >= 0.5 * med  # dust specks do not shrink a dot's window
+    if big.sum() >= 2:
         from scipy.spatial import cKDTree
 
-        nn = cKDTree(xy0).query(xy0, k=2)[0][:, 1]
+        d, i = cKDTree(xy0[big]).query(xy0, k=2)
+        nn = np.where(d[:, 0] < 1e-9, d[:, 1], d[:, 0])  # the nearest other dot-sized candidate
         radius = np.clip(np.minimum(radius, nn - r_dot - 2.5), 1.5, None)
     xy, se, conv, amp, ell = centroids(sig, xy0, radius, noise)
     ok = np.isfinite(xy).all(axis=1)

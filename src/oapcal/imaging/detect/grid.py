@@ -36,6 +36,9 @@ GRID_TARGETS = ("dots", "chessboard")
 DOT_AREA_FACTOR = 1.6
 #: ... or its ellipticity (1 - minor/major) by more than this.
 DOT_ELLIPTICITY_TOL = 0.15
+#: A landmark is dropped when its distance from the leave-one-out prediction of its
+#: neighbours exceeds this factor times the typical (1.4826 x median) one, and this many px.
+POSITION_OUTLIER_FACTOR, POSITION_OUTLIER_MIN_PX = 6.0, 0.15
 #: Fewer indexed landmarks than this is refused.
 MIN_LANDMARKS = 16
 #: Polynomial degree of the image -> grid map of the pixel size (and the check degree).
@@ -203,8 +206,37 @@ def detect_grid(
     rc, pts = lat.rc, lat.point
     keep = np.ones(len(rc), bool)
     if target == "dots":
-        keep = _similar_to_neighbours(rc, cand.area[pts], cand.ellipticity[pts]) & cand.converged[pts]
-        counts["dirty_dropped"] = int((~keep).sum())
+        similar = _similar_to_neighbours(rc, cand.area[pts], cand.ellipticity[pts])
+        keep = similar & cand.converged[pts]
+        counts["dirty_dropped"] = int((~similar).sum())
+        counts["unconverged_dropped"] = int((similar & ~cand.converged[pts]).sum())
+    # a landmark off its neighbours' smooth course by far more than the others (dust on a dot
+    # that pulls its centre, a damaged corner) is left out
+    # (compared within nodes of the same number of neighbours: an edge node's prediction
+    # is an extrapolation, less certain than an inner one's)
+    where = {tuple(n): i for i, n in enumerate(rc)}
+    loo = _loo_residuals(rc, xy[pts], where)
+    finite = np.isfinite(loo)
+    support = np.array([sum((r + a, c + b) in where for a in (-1, 0, 1) for b in (-1, 0, 1)) - 1 for r, c in rc])
+    group = np.digitize(support, [5, 8])  # <= 4, 5-7, 8 neighbours
+    off = np.zeros(len(rc), bool)
+    for gi in range(3):
+        sel = finite & (group == gi)
+        if sel.sum() >= 8:
+            typical = 1.4826 * float(np.median(loo[sel]))
+            off |= sel & (loo > max(POSITION_OUTLIER_MIN_PX, POSITION_OUTLIER_FACTOR * typical))
+    if off.any():
+        # once the suspects are out of their neighbours' fits, a clean node next to a dirty
+        # one is predicted well again (its first prediction leaned on the dirty one)
+        suspects = set(np.flatnonzero(off).tolist())
+        again = _loo_residuals(rc, xy[pts], where, exclude=suspects, only=suspects)
+        limit = {gi: max(POSITION_OUTLIER_MIN_PX, POSITION_OUTLIER_FACTOR * 1.4826 * float(np.median(loo[finite & (group == gi)])))
+                 for gi in range(3) if (finite & (group == gi)).sum() >= 8}  # fmt: skip
+        for i in suspects:
+            if np.isfinite(again[i]) and again[i] <= limit.get(group[i], np.inf):
+                off[i] = False
+    counts["position_dropped"] = int((off & keep).sum())
+    keep &= ~off
     rc, pts = rc[keep], pts[keep]
     if len(rc) < MIN_LANDMARKS:
         return _fail(target, f"only {len(rc)} grid landmarks were indexed, fewer than {MIN_LANDMARKS}", "too_few",
@@ -242,6 +274,27 @@ def detect_grid(
         um_per_px_given=um_per_px is not None,
         pitch_px=lat.pitch_px, polarity=pol, counts=counts,
     )  # fmt: skip
+
+
+def _loo_residuals(rc, xy, where, exclude=(), only=None) -> np.ndarray:
+    """Each node's distance (px) from the prediction of its indexed neighbours within two
+    steps (three when they are few), without the nodes in ``exclude`` (:func:`~oapcal.imaging.detect.lattice.local_fit`);
+    NaN where they do not determine one, and for nodes not in ``only`` (when given)."""
+    from oapcal.imaging.detect.lattice import local_fit
+
+    out = np.full(len(rc), np.nan)
+    for i, (r, c) in enumerate(rc):
+        if only is not None and i not in only:
+            continue
+        for radius in (2, 3):
+            nb = [where[(r + a, c + b)] for a in range(-radius, radius + 1) for b in range(-radius, radius + 1)
+                  if (a or b) and (r + a, c + b) in where and where[(r + a, c + b)] not in exclude]  # fmt: skip
+            if len(nb) >= 6:
+                break
+        pred = local_fit(rc[nb], xy[nb], np.array([r, c])) if len(nb) >= 3 else None
+        if pred is not None:
+            out[i] = float(np.hypot(*(xy[i] - pred[0])))
+    return out
 
 
 def _similar_to_neighbours(rc, area, ell) -> np.ndarray:

@@ -47,6 +47,9 @@ MAX_LOO_FAIL_FRACTION = 0.05
 MIN_NODES = 9
 #: Local fits use indexed nodes within this many index steps (Chebyshev) of the node.
 NEIGHBOURHOOD = 2
+#: A seed block is nearly square: its basis vectors within acos(0.25) = 76 deg of each other
+#: at least, and of lengths within 25 %.
+SEED_MAX_COS, SEED_MAX_RATIO = 0.25, 1.25
 
 
 @dataclass(frozen=True)
@@ -55,7 +58,8 @@ class Lattice:
     ``point`` ``(M,)`` the index of its candidate; ``pitch_px`` the median local pitch;
     ``ok`` with ``message`` and ``reason`` (``no_seed``, ``too_few``, ``inconsistent``,
     ``seeds_disagree``); ``counts`` of the checks (``loo_dropped``, ``ambiguous``,
-    ``conflicts``, ``shared_with_second_seed``)."""
+    ``conflicts``, ``shared_with_second_seed``); ``loo_px`` each node's distance (px) from
+    its leave-one-out prediction (NaN where its neighbours do not determine one)."""
 
     rc: np.ndarray
     point: np.ndarray
@@ -64,6 +68,7 @@ class Lattice:
     message: str = "ok"
     reason: str = ""
     counts: dict = field(default_factory=dict)
+    loo_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _design(rc: np.ndarray, kind: str) -> np.ndarray:
@@ -116,8 +121,8 @@ def local_fit(rc_nb: np.ndarray, xy_nb: np.ndarray, at: np.ndarray):
     positions ``xy_nb``: ``(xy, pitch, rms)`` or None when they do not determine it.
 
     The model is the richest of quadratic / bilinear / affine in the indices (centred on
-    ``at``) that the neighbours determine with two points to spare; ``pitch`` is the mean
-    length of the two local basis vectors (the fit's derivatives at ``at``), ``rms`` the
+    ``at``) that the neighbours determine with two points to spare; ``pitch`` is the length of
+    the shorter of the two local basis vectors (the fit's derivatives at ``at``), ``rms`` the
     fit's residual."""
     n = len(rc_nb)
     if n < 3:
@@ -138,7 +143,7 @@ def local_fit(rc_nb: np.ndarray, xy_nb: np.ndarray, at: np.ndarray):
         res = xy_nb - a @ coef
         dof = max(n - k, 1)
         rms = float(np.sqrt((res**2).sum() / dof)) if n > k else 0.0
-        pitch = 0.5 * (np.hypot(*coef[1]) + np.hypot(*coef[2]))
+        pitch = min(np.hypot(*coef[1]), np.hypot(*coef[2]))  # the shorter basis vector
         return coef[0], float(pitch), rms
     return None
 
@@ -188,8 +193,21 @@ class _Grower:
         xy = self.xy[[p for _, p in nb]]
         coef = pinv @ xy
         rms = float(np.sqrt(((xy - a @ coef) ** 2).sum() / dof)) if redundant else 0.0
-        pitch = 0.5 * (np.hypot(*coef[1]) + np.hypot(*coef[2]))
+        pitch = min(np.hypot(*coef[1]), np.hypot(*coef[2]))  # the shorter basis vector
         return coef[0], float(pitch), rms
+
+    def square_at(self, node) -> bool:
+        """Whether the local basis at ``node`` (fitted to its indexed neighbours) is nearly
+        square (:data:`SEED_MAX_COS`, :data:`SEED_MAX_RATIO`)."""
+        nb = self.neighbours(node, exclude_self=False)
+        r0, c0 = node
+        solver = _local_solver(tuple(v for (r, c), _ in nb for v in (r - r0, c - c0)))
+        if solver is None:
+            return False
+        coef = solver[1] @ self.xy[[p for _, p in nb]]
+        a, b = coef[1], coef[2]
+        la, lb = np.hypot(*a), np.hypot(*b)
+        return abs(a @ b) / (la * lb) < SEED_MAX_COS and 1 / SEED_MAX_RATIO < la / lb < SEED_MAX_RATIO
 
     def expected_parity(self, node):
         return self.parity0 * (1 if (node[0] + node[1]) % 2 == 0 else -1)
@@ -298,7 +316,9 @@ def _seed_basis(xy, tree, pitch, p, parity=None):
     b = 0.5 * (vec[pairs[1][0]] - vec[pairs[1][1]])
     la, lb = np.hypot(*a), np.hypot(*b)
     cos = abs(a @ b) / (la * lb)
-    if cos > 0.5 or not 0.7 < la / lb < 1.43:
+    # a nearly square block only: where the field shears the grid strongly, a diagonal may be
+    # as short as an axis and the local block alone cannot tell them apart
+    if cos > SEED_MAX_COS or not 1 / SEED_MAX_RATIO < la / lb < SEED_MAX_RATIO:
         return None
     # the diagonals where the sums predict
     used = {i for pr in pairs for i in pr}
@@ -344,15 +364,19 @@ def _grow_from(xy, tree, pitch, p, basis, parity, max_nodes):
     return g
 
 
-def _loo(g: _Grower) -> list:
-    """Nodes farther from their leave-one-out prediction than :data:`LOO_FRACTION` pitch."""
+def _loo(g: _Grower, residuals: dict | None = None) -> list:
+    """Nodes farther from their leave-one-out prediction than :data:`LOO_FRACTION` pitch
+    (and each node's distance from it in ``residuals``, when given)."""
     bad = []
     for node, p in g.point_of_node.items():
         pred = g.predict(node, exclude_self=True)
         if pred is None:
             continue
         xy, pitch, _ = pred
-        if np.hypot(*(g.xy[p] - xy)) > LOO_FRACTION * pitch:
+        d = float(np.hypot(*(g.xy[p] - xy)))
+        if residuals is not None:
+            residuals[node] = d
+        if d > LOO_FRACTION * pitch:
             bad.append(node)
     return bad
 
@@ -415,7 +439,8 @@ def index_lattice(
         return _fail(empty, "no_seed", "no candidate has eight neighbours in a clean 3 x 3 block of the grid")
     p1, basis1 = first
     g1 = _grow_from(xy, tree, pitch_px, p1, basis1, parity, len(xy))
-    bad = _loo(g1)
+    loo: dict = {}
+    bad = _loo(g1, loo)
     counts = dict(g1.counts)
     counts["loo_dropped"] = len(bad)
     n1 = len(g1.point_of_node)
@@ -432,10 +457,11 @@ def index_lattice(
     if len(g1.point_of_node) < MIN_NODES:
         return _fail(empty, "too_few", f"the grid grew to only {len(g1.point_of_node)} nodes", counts)
     # the second seed: far from the first, among the indexed candidates
+    # the farthest block that the first growth finds nearly square (where the field shears the
+    # grid strongly, a block's own shape cannot tell an axis from a diagonal)
     dist = {p: float(np.hypot(*(xy[p] - xy[p1]))) for p in g1.node_of_point}
-    reach = max(dist.values())
-    far = sorted(dist, key=lambda p: abs(dist[p] - 0.6 * reach))
-    second = next(_find_seeds(xy, tree, pitch_px, np.array(far), parity, skip={p1}, limit=200), None)
+    far = [p for p in sorted(dist, key=lambda p: -dist[p]) if g1.square_at(g1.node_of_point[p])]
+    second = next(_find_seeds(xy, tree, pitch_px, np.array(far, int), parity, skip={p1}, limit=len(far)), None)
     if second is not None:
         g2 = _grow_from(xy, tree, pitch_px, second[0], second[1], parity, len(xy))
         for node in _loo(g2):
@@ -454,13 +480,15 @@ def index_lattice(
         counts["shared_with_second_seed"] = 0
     nodes = np.array(list(g1.point_of_node), int)
     points = np.array([g1.point_of_node[tuple(n)] for n in nodes], int)
-    nodes -= nodes.min(axis=0)
+    base = nodes.min(axis=0)
+    nodes -= base
     pitches = []
     for node in list(g1.point_of_node)[:: max(1, len(g1.point_of_node) // 200)]:
         pred = g1.predict(node, exclude_self=False)
         if pred is not None:
             pitches.append(pred[1])
-    return Lattice(nodes, points, float(np.median(pitches)) if pitches else pitch_px, counts=counts)
+    loo_px = np.array([loo.get(tuple(n + base), np.nan) for n in nodes])
+    return Lattice(nodes, points, float(np.median(pitches)) if pitches else pitch_px, counts=counts, loo_px=loo_px)
 
 
 def _fail(empty: Lattice, reason: str, message: str, counts=None) -> Lattice:
