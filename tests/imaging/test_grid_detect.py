@@ -62,8 +62,9 @@ def test_pixel_size_at_the_image_centre(dots25):
 
     c = np.array([[319.5, 239.5]])
     eps = 1e-3
-    jac = np.stack([(distort(c + [eps, 0], SETUP1_LIKE) - distort(c - [eps, 0], SETUP1_LIKE))[0],
-                    (distort(c + [0, eps], SETUP1_LIKE) - distort(c - [0, eps], SETUP1_LIKE))[0]], 1) / (2 * eps)  # fmt: skip
+    dx = (distort(c + [eps, 0], SETUP1_LIKE) - distort(c - [eps, 0], SETUP1_LIKE))[0]
+    dy = (distort(c + [0, eps], SETUP1_LIKE) - distort(c - [0, eps], SETUP1_LIKE))[0]
+    jac = np.stack([dx, dy], 1) / (2 * eps)
     true = 4.8 / np.sqrt(abs(np.linalg.det(jac)))
     det = detect_grid(dots25.image, "dots", pitch_um=50.0, dot_um=25.0)
     assert det.found_um_per_px == pytest.approx(true, rel=0.003)
@@ -159,7 +160,9 @@ def deviation_from_affine(r):
 
 def test_grid_cut_by_the_image_edges():
     """A 41 x 33 grid off the axis, cut by the right and bottom edges, 32 px from affine."""
-    r = render_grid(GridTarget("dots", 33, 41, pitch_um=50.0, dot_um=25.0), camera=FAST, offset_um=(900, 700), seed=3)
+    r = render_grid(
+        GridTarget("dots", 33, 41, pitch_um=50.0, dot_um=25.0), camera=FAST, offset_um=(900, 700), seed=3
+    )
     assert deviation_from_affine(r) >= 30.0
     assert r.in_view.sum() < r.in_view.size  # cut
     det = detect_grid(r.image, "dots", pitch_um=50.0, dot_um=25.0, rows=33, cols=41)
@@ -221,7 +224,12 @@ def test_bad_arguments_are_data_errors():
 
 def test_target_specs_say_where_their_numbers_come_from():
     specs = grid_specs()
-    assert {"thorlabs-r2l2s3p1", "thorlabs-r2l2s3p3", "oapcal-dots-50um-25um", "oapcal-chessboard-50um"} <= set(specs)
+    assert {
+        "thorlabs-r2l2s3p1",
+        "thorlabs-r2l2s3p3",
+        "oapcal-dots-50um-25um",
+        "oapcal-chessboard-50um",
+    } <= set(specs)
     for s in specs.values():
         assert s.kind in ("dots", "chessboard") and s.pitch_um > 0 and len(s.source) > 20
         assert s.dot_um is None or 0 < s.dot_um < s.pitch_um

@@ -20,7 +20,9 @@ def warped_lattice(rows, cols, pitch=12.0, turn_deg=0.0, seed=0, noise=0.05, ben
     half = np.abs(xy).max(axis=0)
     u = xy / half
     # quadratic + cubic, different in x and y: not radial
-    xy = xy + bend * np.stack([0.6 * u[:, 1] ** 2 + 0.4 * u[:, 0] ** 3, 0.8 * u[:, 0] ** 2 - 0.2 * u[:, 0] * u[:, 1]], 1)
+    xy = xy + bend * np.stack(
+        [0.6 * u[:, 1] ** 2 + 0.4 * u[:, 0] ** 3, 0.8 * u[:, 0] ** 2 - 0.2 * u[:, 0] * u[:, 1]], 1
+    )
     xy = xy + 400 + rng.normal(0, noise, xy.shape)
     return xy, rc
 

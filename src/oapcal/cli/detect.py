@@ -73,22 +73,54 @@ ORIENTATION_CHOICES = (
     help="Whether the image is mirrored (auto: find it; a single element in view cannot tell).",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
-@click.option("--pitch-um", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="--target dots: the dot pitch (um).")
-@click.option("--dot-um", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="--target dots: the dot diameter (um), optional.")
-@click.option("--square-um", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="--target chessboard: the square's side (um).")
-@click.option("--rows", type=click.IntRange(min=2), default=None,
-              help="Dots (or chessboard squares) per column of the target, optional: a check, and ids from "
-              "the grid's own corner when all are in view.")
-@click.option("--cols", type=click.IntRange(min=2), default=None, help="Dots (or squares) per row, with --rows.")
-@click.option("--target-spec", default=None,
-              help="A named grid target (its kind, pitch, dot and size), e.g. thorlabs-r2l2s3p3 (docs/detection.md).")
+@click.option(
+    "--pitch-um",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="--target dots: the dot pitch (um).",
+)
+@click.option(
+    "--dot-um",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="--target dots: the dot diameter (um), optional.",
+)
+@click.option(
+    "--square-um",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="--target chessboard: the square's side (um).",
+)
+@click.option(
+    "--rows",
+    type=click.IntRange(min=2),
+    default=None,
+    help="Dots (or chessboard squares) per column of the target, optional: a check, and ids from "
+    "the grid's own corner when all are in view.",
+)
+@click.option(
+    "--cols", type=click.IntRange(min=2), default=None, help="Dots (or squares) per row, with --rows."
+)
+@click.option(
+    "--target-spec",
+    default=None,
+    help="A named grid target (its kind, pitch, dot and size), e.g. thorlabs-r2l2s3p3 (docs/detection.md).",
+)
 @click.option("--polarity", type=click.Choice(["auto", "dark", "bright"]), default="auto", show_default=True,
               help="--target dots: dark dots on a bright field, bright on dark, or find out.")  # fmt: skip
 def detect_command(
-    image, target, groups, um_per_px, out, truth, plot, max_stderr_px, orientation, mirror, as_json, **grid_options
+    image,
+    target,
+    groups,
+    um_per_px,
+    out,
+    truth,
+    plot,
+    max_stderr_px,
+    orientation,
+    mirror,
+    as_json,
+    **grid_options,
 ):
     """Detect the bar corners of a USAF-1951 target and match them to the reference target.
 

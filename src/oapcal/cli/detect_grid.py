@@ -19,7 +19,9 @@ def check_usaf_options() -> None:
     for name in GRID_ONLY:
         if ctx.get_parameter_source(name) not in (None, click.core.ParameterSource.DEFAULT):
             flag = "--" + name.replace("_", "-")
-            raise click.UsageError(f"{flag} applies to --target dots or chessboard: drop it or choose that target")
+            raise click.UsageError(
+                f"{flag} applies to --target dots or chessboard: drop it or choose that target"
+            )
 
 
 def _resolve(target, options):
@@ -35,20 +37,28 @@ def _resolve(target, options):
     if spec is not None and ctx.get_parameter_source("target") == click.core.ParameterSource.DEFAULT:
         target = spec.kind
     if spec is not None and spec.kind != target:
-        raise click.UsageError(f"--target-spec {spec.name} is a {spec.kind} target, not {target}: drop --target")
+        raise click.UsageError(
+            f"--target-spec {spec.name} is a {spec.kind} target, not {target}: drop --target"
+        )
     if target == "dots":
         if options.get("square_um") is not None:
             raise click.UsageError("--square-um is for --target chessboard; a dot grid takes --pitch-um")
         pitch = options.get("pitch_um") or (spec.pitch_um if spec else None)
         if pitch is None:
-            raise click.UsageError("--target dots needs the dot pitch: give --pitch-um (or --target-spec NAME)")
+            raise click.UsageError(
+                "--target dots needs the dot pitch: give --pitch-um (or --target-spec NAME)"
+            )
         dot = options.get("dot_um") if options.get("dot_um") is not None else (spec.dot_um if spec else None)
     else:
         if options.get("pitch_um") is not None or options.get("dot_um") is not None:
-            raise click.UsageError("--pitch-um and --dot-um are for --target dots; a chessboard takes --square-um")
+            raise click.UsageError(
+                "--pitch-um and --dot-um are for --target dots; a chessboard takes --square-um"
+            )
         pitch = options.get("square_um") or (spec.pitch_um if spec else None)
         if pitch is None:
-            raise click.UsageError("--target chessboard needs the square's side: give --square-um (or --target-spec NAME)")
+            raise click.UsageError(
+                "--target chessboard needs the square's side: give --square-um (or --target-spec NAME)"
+            )
         dot = None
     rows, cols = options.get("rows"), options.get("cols")
     if rows is None and cols is None and spec is not None:
@@ -62,12 +72,11 @@ def _resolve(target, options):
 
 def detect_grid_command(image, target, um_per_px, out, truth, plot, as_json, options) -> int:
     """Detect a dot grid or chessboard in ``image`` and write the point pairs (``oapcal detect``)."""
+    from oapcal.cli.detect import _check_size
     from oapcal.imaging.detect.grid import detect_grid, score_grid
     from oapcal.io.digest import file_sha256
     from oapcal.io.imagefile import read_image_grey
     from oapcal.io.points import write_point_pairs
-
-    from oapcal.cli.detect import _check_size
 
     target, pitch, dot, rows, cols = _resolve(target, options)
     check_output(out, image, truth)
@@ -139,14 +148,20 @@ def _read_grid_truth(path):
     for i in ids:
         m = re.fullmatch(r"R(\d+)C(\d+)", i)
         if m is None:
-            raise InputFileError(f"{path}: id {i!r} is not a grid id R<row>C<col>; is it the truth of a grid target?")
+            raise InputFileError(
+                f"{path}: id {i!r} is not a grid id R<row>C<col>; is it the truth of a grid target?"
+            )
         rc.append((int(m.group(1)), int(m.group(2))))
     return np.array(rc, int), xy, visible
 
 
 def _print_summary(s: dict) -> None:
     out = console()
-    absolute = "ids from the grid's own corner" if s["ids_absolute"] else "ids counted from the first row and column found"
+    absolute = (
+        "ids from the grid's own corner"
+        if s["ids_absolute"]
+        else "ids counted from the first row and column found"
+    )
     out.print(
         f"{s['target']}: found {s['found']} of {s['expected']} landmarks expected in view "
         f"(coverage {100 * s['coverage']:.1f} %), grid {s['grid_rows']} x {s['grid_cols']}, {absolute}; "
@@ -162,8 +177,19 @@ def _print_summary(s: dict) -> None:
     )
     out.print(f"image sha256 {s['image_sha256']}")
     c = s["counts"]
-    dropped = {k: c[k] for k in ("loo_dropped", "dirty_dropped", "unconverged_dropped", "position_dropped", "ambiguous", "conflicts",
-                         "parity") if c.get(k)}
+    dropped = {
+        k: c[k]
+        for k in (
+            "loo_dropped",
+            "dirty_dropped",
+            "unconverged_dropped",
+            "position_dropped",
+            "ambiguous",
+            "conflicts",
+            "parity",
+        )
+        if c.get(k)
+    }
     if dropped:
         out.print("left out: " + ", ".join(f"{k} {v}" for k, v in dropped.items()))
     t = s.get("truth")

@@ -99,7 +99,9 @@ class GridTarget:
         half = self.extent_um()
         n = int(np.ceil(2 * half / um_per_px))
         if n * n > 64_000_000:
-            raise DataError(f"a source of {n} x {n} px is too large: use a coarser um_per_px", param="um_per_px")
+            raise DataError(
+                f"a source of {n} x {n} px is too large: use a coarser um_per_px", param="um_per_px"
+            )
         centre = (n - 1) / 2.0
         sub = 4  # 4 x 4 samples per source pixel: area sampling of the edges
         off = (np.arange(sub) + 0.5) / sub - 0.5
@@ -185,7 +187,13 @@ def render_grid(
     # the target's centre sits offset_um from the axis: the source point on the axis is the
     # target point at -offset
     off = np.asarray(offset_um, float)
-    placement0 = Placement(step, centre, rotation_deg=rotation_deg, mirror=mirror, background=1.0 if target.dark_features else DARK_LEVEL)
+    placement0 = Placement(
+        step,
+        centre,
+        rotation_deg=rotation_deg,
+        mirror=mirror,
+        background=1.0 if target.dark_features else DARK_LEVEL,
+    )
     axis_src = np.asarray(centre) - placement0.matrix() @ off
     placement = Placement(step, tuple(axis_src), rotation_deg=rotation_deg, mirror=mirror,
                           background=placement0.background)  # fmt: skip

@@ -115,12 +115,16 @@ class GridDetection:
                 "um_per_px_sigma": finite_or_none(self.um_per_px_sigma),
                 "at_px": [float(v) for v in self.um_per_px_at],
                 "given": self.um_per_px_given,
-            } if self.ok else None,
+            }
+            if self.ok
+            else None,
             "counts": dict(self.counts),
         }
 
 
-def _fail(target, message, reason, param=(), counts=None, polarity="", pitch_px=float("nan")) -> GridDetection:
+def _fail(
+    target, message, reason, param=(), counts=None, polarity="", pitch_px=float("nan")
+) -> GridDetection:
     e = np.zeros((0, 2))
     return GridDetection(target, (), np.zeros((0, 2), int), e, e.copy(), e.copy(), ok=False, message=message,
                          reason=reason, param=tuple(param), counts=dict(counts or {}), polarity=polarity,
@@ -131,9 +135,13 @@ def _check_args(target, pitch_um, dot_um, rows, cols, um_per_px, polarity):
     if target not in GRID_TARGETS:
         raise DataError(f"target {target!r}: use one of {', '.join(GRID_TARGETS)}", param="target")
     if not (isinstance(pitch_um, (int, float)) and np.isfinite(pitch_um) and pitch_um > 0):
-        raise DataError(f"pitch_um {pitch_um!r}: give the grid's pitch (or square) in um, > 0", param="pitch_um")
+        raise DataError(
+            f"pitch_um {pitch_um!r}: give the grid's pitch (or square) in um, > 0", param="pitch_um"
+        )
     if dot_um is not None and not (np.isfinite(dot_um) and 0 < dot_um < pitch_um):
-        raise DataError(f"dot_um {dot_um!r}: must be > 0 and smaller than the pitch {pitch_um} um", param="dot_um")
+        raise DataError(
+            f"dot_um {dot_um!r}: must be > 0 and smaller than the pitch {pitch_um} um", param="dot_um"
+        )
     for name, v in (("rows", rows), ("cols", cols)):
         if v is not None and (int(v) != v or v < 2):
             raise DataError(f"{name} {v!r}: must be a whole number >= 2", param=name)
@@ -176,14 +184,14 @@ def detect_grid(
         period = pitch_um / um_per_px
         if np.isfinite(found_period) and not 0.7 < found_period / period < 1.43:
             # the given scale disagrees with the image's own period: say so rather than guess
-            return _fail(target, f"the image's period is {found_period:.2f} px, but pitch_um / um_per_px gives "
-                         f"{period:.2f} px: check the pitch and the pixel size", "scale_mismatch",
-                         ("um_per_px", "pitch_um"))  # fmt: skip
+            msg = (f"the image's period is {found_period:.2f} px, but pitch_um / um_per_px gives "
+                   f"{period:.2f} px: check the pitch and the pixel size")  # fmt: skip
+            return _fail(target, msg, "scale_mismatch", ("um_per_px", "pitch_um"))
     else:
         period = found_period
     if not (np.isfinite(period) and 3.0 <= period <= min(h, w) / 3.0):
-        return _fail(target, "no periodic pattern of 3 px or more, with 3 periods across the image, was found",
-                     "no_period", ("um_per_px",))  # fmt: skip
+        msg = "no periodic pattern of 3 px or more, with 3 periods across the image, was found"
+        return _fail(target, msg, "no_period", ("um_per_px",))
     counts: dict = {}
     parity = None
     if target == "dots":
@@ -217,7 +225,9 @@ def detect_grid(
     where = {tuple(n): i for i, n in enumerate(rc)}
     loo = _loo_residuals(rc, xy[pts], where)
     finite = np.isfinite(loo)
-    support = np.array([sum((r + a, c + b) in where for a in (-1, 0, 1) for b in (-1, 0, 1)) - 1 for r, c in rc])
+    support = np.array(
+        [sum((r + a, c + b) in where for a in (-1, 0, 1) for b in (-1, 0, 1)) - 1 for r, c in rc]
+    )
     group = np.digitize(support, [5, 8])  # <= 4, 5-7, 8 neighbours
     off = np.zeros(len(rc), bool)
     for gi in range(3):
@@ -230,7 +240,8 @@ def detect_grid(
         # one is predicted well again (its first prediction leaned on the dirty one)
         suspects = set(np.flatnonzero(off).tolist())
         again = _loo_residuals(rc, xy[pts], where, exclude=suspects, only=suspects)
-        limit = {gi: max(POSITION_OUTLIER_MIN_PX, POSITION_OUTLIER_FACTOR * 1.4826 * float(np.median(loo[finite & (group == gi)])))
+        limit = {gi: max(POSITION_OUTLIER_MIN_PX,
+                         POSITION_OUTLIER_FACTOR * 1.4826 * float(np.median(loo[finite & (group == gi)])))
                  for gi in range(3) if (finite & (group == gi)).sum() >= 8}  # fmt: skip
         for i in suspects:
             if np.isfinite(again[i]) and again[i] <= limit.get(group[i], np.inf):
@@ -239,7 +250,8 @@ def detect_grid(
     keep &= ~off
     rc, pts = rc[keep], pts[keep]
     if len(rc) < MIN_LANDMARKS:
-        return _fail(target, f"only {len(rc)} grid landmarks were indexed, fewer than {MIN_LANDMARKS}", "too_few",
+        msg = f"only {len(rc)} grid landmarks were indexed, fewer than {MIN_LANDMARKS}"
+        return _fail(target, msg, "too_few",
                      counts=counts, polarity=pol, pitch_px=lat.pitch_px)  # fmt: skip
     rc = rc - rc.min(axis=0)
     order = np.lexsort((rc[:, 1], rc[:, 0]))
@@ -250,7 +262,9 @@ def detect_grid(
     if rows is not None:
         shape = (rows, cols) if target == "dots" else (rows - 1, cols - 1)
         found = tuple(int(v) + 1 for v in rc.max(axis=0))
-        fits = (found[0] <= shape[0] and found[1] <= shape[1]) or (found[0] <= shape[1] and found[1] <= shape[0])
+        fits = (found[0] <= shape[0] and found[1] <= shape[1]) or (
+            found[0] <= shape[1] and found[1] <= shape[0]
+        )
         if not fits:
             return _fail(
                 target,
@@ -264,7 +278,9 @@ def detect_grid(
     grid_centre = scale["grid_at_centre"]  # (row, col) of the image centre
     xy_u = centre + (rc[:, ::-1] - grid_centre[::-1]) * (pitch_um / ref_um_per_px)
     ids = tuple(f"R{r}C{c}" for r, c in rc)
-    margin = 2.0 + (0.5 * dot_um / pitch_um * lat.pitch_px if (target == "dots" and dot_um) else 0.25 * lat.pitch_px)
+    margin = 2.0 + (
+        0.5 * dot_um / pitch_um * lat.pitch_px if (target == "dots" and dot_um) else 0.25 * lat.pitch_px
+    )
     n_expected = _expected(scale["forward"], rc, (w, h), margin, ids_absolute)
     fov = (w * ref_um_per_px, h * ref_um_per_px)
     return GridDetection(
@@ -278,7 +294,8 @@ def detect_grid(
 
 def _loo_residuals(rc, xy, where, exclude=(), only=None) -> np.ndarray:
     """Each node's distance (px) from the prediction of its indexed neighbours within two
-    steps (three when they are few), without the nodes in ``exclude`` (:func:`~oapcal.imaging.detect.lattice.local_fit`);
+    steps (three when they are few), without the nodes in ``exclude``
+    (:func:`~oapcal.imaging.detect.lattice.local_fit`);
     NaN where they do not determine one, and for nodes not in ``only`` (when given)."""
     from oapcal.imaging.detect.lattice import local_fit
 
@@ -287,8 +304,9 @@ def _loo_residuals(rc, xy, where, exclude=(), only=None) -> np.ndarray:
         if only is not None and i not in only:
             continue
         for radius in (2, 3):
-            nb = [where[(r + a, c + b)] for a in range(-radius, radius + 1) for b in range(-radius, radius + 1)
-                  if (a or b) and (r + a, c + b) in where and where[(r + a, c + b)] not in exclude]  # fmt: skip
+            span = range(-radius, radius + 1)
+            near = [where.get((r + a, c + b)) for a in span for b in span if a or b]
+            nb = [j for j in near if j is not None and j not in exclude]
             if len(nb) >= 6:
                 break
         pred = local_fit(rc[nb], xy[nb], np.array([r, c])) if len(nb) >= 3 else None
@@ -308,7 +326,10 @@ def _similar_to_neighbours(rc, area, ell) -> np.ndarray:
         if len(nb) < 4:
             continue
         ma, me = np.median(area[nb]), np.median(ell[nb])
-        if not (ma / DOT_AREA_FACTOR <= area[i] <= ma * DOT_AREA_FACTOR) or abs(ell[i] - me) > DOT_ELLIPTICITY_TOL:
+        if (
+            not (ma / DOT_AREA_FACTOR <= area[i] <= ma * DOT_AREA_FACTOR)
+            or abs(ell[i] - me) > DOT_ELLIPTICITY_TOL
+        ):
             keep[i] = False
     return keep
 
@@ -391,7 +412,9 @@ def _expected(forward, rc, size, margin, absolute) -> int:
     q = np.stack([rr.ravel(), cc.ravel()], axis=1)
     p = forward(q)
     w, h = size
-    inside = (p[:, 0] >= margin) & (p[:, 0] <= w - 1 - margin) & (p[:, 1] >= margin) & (p[:, 1] <= h - 1 - margin)
+    inside = (
+        (p[:, 0] >= margin) & (p[:, 0] <= w - 1 - margin) & (p[:, 1] >= margin) & (p[:, 1] <= h - 1 - margin)
+    )
     found = {tuple(n) for n in rc}
     return int(inside.sum() + sum(1 for n in found if not inside[n[0] * (c_max + 1) + n[1]]))
 
@@ -468,10 +491,20 @@ def grid_specs() -> dict:
     import json
     from importlib import resources
 
-    data = json.loads(resources.files("oapcal.imaging.detect").joinpath("grid_targets.json").read_text("utf-8"))
+    data = json.loads(
+        resources.files("oapcal.imaging.detect").joinpath("grid_targets.json").read_text("utf-8")
+    )
     return {
-        name: GridSpec(name, v["kind"], float(v["pitch_um"]), v.get("dot_um"), v.get("rows"), v.get("cols"),
-                       v["source"], bool(v["verified"]))  # fmt: skip
+        name: GridSpec(
+            name,
+            v["kind"],
+            float(v["pitch_um"]),
+            v.get("dot_um"),
+            v.get("rows"),
+            v.get("cols"),
+            v["source"],
+            bool(v["verified"]),
+        )  # fmt: skip
         for name, v in data["targets"].items()
     }
 
@@ -480,8 +513,18 @@ def grid_spec(name: str) -> GridSpec:
     """The named grid target; an unknown name is a :class:`~oapcal.errors.DataError` listing the names."""
     specs = grid_specs()
     if name not in specs:
-        raise DataError(f"unknown grid target {name!r}: use one of {', '.join(sorted(specs))}", param="target_spec")
+        raise DataError(
+            f"unknown grid target {name!r}: use one of {', '.join(sorted(specs))}", param="target_spec"
+        )
     return specs[name]
 
 
-__all__ = ["GRID_TARGETS", "GridDetection", "GridSpec", "detect_grid", "grid_spec", "grid_specs", "score_grid"]
+__all__ = [
+    "GRID_TARGETS",
+    "GridDetection",
+    "GridSpec",
+    "detect_grid",
+    "grid_spec",
+    "grid_specs",
+    "score_grid",
+]

@@ -461,7 +461,9 @@ def index_lattice(
     # grid strongly, a block's own shape cannot tell an axis from a diagonal)
     dist = {p: float(np.hypot(*(xy[p] - xy[p1]))) for p in g1.node_of_point}
     far = [p for p in sorted(dist, key=lambda p: -dist[p]) if g1.square_at(g1.node_of_point[p])]
-    second = next(_find_seeds(xy, tree, pitch_px, np.array(far, int), parity, skip={p1}, limit=len(far)), None)
+    second = next(
+        _find_seeds(xy, tree, pitch_px, np.array(far, int), parity, skip={p1}, limit=len(far)), None
+    )
     if second is not None:
         g2 = _grow_from(xy, tree, pitch_px, second[0], second[1], parity, len(xy))
         for node in _loo(g2):
@@ -488,7 +490,9 @@ def index_lattice(
         if pred is not None:
             pitches.append(pred[1])
     loo_px = np.array([loo.get(tuple(n + base), np.nan) for n in nodes])
-    return Lattice(nodes, points, float(np.median(pitches)) if pitches else pitch_px, counts=counts, loo_px=loo_px)
+    return Lattice(
+        nodes, points, float(np.median(pitches)) if pitches else pitch_px, counts=counts, loo_px=loo_px
+    )
 
 
 def _fail(empty: Lattice, reason: str, message: str, counts=None) -> Lattice:
@@ -521,6 +525,7 @@ def lattice_period(img: np.ndarray, diagonal: bool = False) -> float:
     if not power.flat[k] > 0:
         return float("nan")
     iy, ix = np.unravel_index(k, power.shape)
+
     # parabolic refinement of the peak along each axis
     def refine(vals, i, n):
         y0, y1, y2 = vals

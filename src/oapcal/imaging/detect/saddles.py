@@ -133,7 +133,9 @@ def saddle_points(img: np.ndarray, xy: np.ndarray, sigma: float, iterations: int
     conv = np.zeros(len(pts), bool)
     h, w = g.shape
     for _ in range(iterations):
-        vals = map_coordinates(g, [pts[:, 1, None] + dy[None], pts[:, 0, None] + dx[None]], order=3, mode="nearest")
+        vals = map_coordinates(
+            g, [pts[:, 1, None] + dy[None], pts[:, 0, None] + dx[None]], order=3, mode="nearest"
+        )
         c = vals @ pinv.T
         hxx, hxy, hyy = 2 * c[:, 3], c[:, 4], 2 * c[:, 5]
         det = hxx * hyy - hxy**2
