@@ -135,7 +135,9 @@ class GridTarget:
 @dataclass(frozen=True)
 class GridRendering:
     """A rendered target: ``image``, the truth ``ids``, ``rc`` (row, col on the target),
-    ``xy_d`` (camera px) and ``in_view`` per landmark, the ``scene`` and the target."""
+    ``xy_d`` (camera px) and ``in_view`` per landmark, the ``scene`` and the target, the
+    noise-free ``clean`` image and ``object_um`` the true object point (um, about the axis)
+    of every pixel centre ``(h, w, 2)`` (NaN where the model's inverse failed)."""
 
     image: np.ndarray
     ids: tuple[str, ...]
@@ -145,6 +147,7 @@ class GridRendering:
     scene: object
     target: GridTarget
     clean: np.ndarray
+    object_um: np.ndarray
 
 
 def paper_relays() -> dict:
@@ -215,7 +218,7 @@ def render_grid(
             & (xy_d[:, 1] >= margin)
             & (xy_d[:, 1] <= h - 1 - margin)
         )
-    return GridRendering(r.image, target.ids, target.rc, xy_d, in_view, scene, target, r.clean)
+    return GridRendering(r.image, target.ids, target.rc, xy_d, in_view, scene, target, r.clean, r.object_um)
 
 
 __all__ = ["GridRendering", "GridTarget", "MISALIGNED", "paper_relays", "render_grid"]
