@@ -92,6 +92,34 @@ def opencv_circles(img, shape, dot_px, tuned: bool):
     return found, centres
 
 
+#: OpenCV's grid searches can take very long (findCirclesGrid's search grows steeply with the
+#: number of blobs); each call runs in its own process and is stopped after this many seconds.
+OPENCV_TIMEOUT_S = 60.0
+
+
+def _opencv_worker(queue, fn, args):
+    found, pts = fn(*args)
+    queue.put((bool(found), None if pts is None else np.asarray(pts, float)))
+
+
+def with_timeout(fn, *args):
+    """``fn(*args)`` in a child process: ``(found, points, seconds, timed_out)``."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_opencv_worker, args=(queue, fn, args))
+    t0 = time.perf_counter()
+    proc.start()
+    proc.join(OPENCV_TIMEOUT_S)
+    if proc.is_alive():
+        proc.terminate()
+        proc.join()
+        return False, None, time.perf_counter() - t0, True
+    found, pts = queue.get() if not queue.empty() else (False, None)
+    return found, pts, time.perf_counter() - t0, False
+
+
 def opencv_chessboard(img, shape):
     import cv2
 
@@ -186,14 +214,12 @@ def run_case(relay, tname, turn, workdir: Path, seed: int):
         dot_px = target.dot_um / r.scene.camera_um_per_px
         for tuned in (False, True):
             name = "OpenCV tuned" if tuned else "OpenCV default"
-            t0 = time.perf_counter()
-            found, centres = opencv_circles(r.image, shape, dot_px, tuned)
-            row[f"{name}_s"] = time.perf_counter() - t0
+            found, centres, secs, late = with_timeout(opencv_circles, r.image, shape, dot_px, tuned)
+            row[f"{name}_s"], row[f"{name}_timed_out"] = secs, late
             dets[name] = as_detection("dots", centres, shape, pitch_px) if found else None
     else:
-        t0 = time.perf_counter()
-        found, corners = opencv_chessboard(r.image, shape)
-        row["OpenCV SB_s"] = time.perf_counter() - t0
+        found, corners, secs, late = with_timeout(opencv_chessboard, r.image, shape)
+        row["OpenCV SB_s"], row["OpenCV SB_timed_out"] = secs, late
         dets["OpenCV SB"] = as_detection("chessboard", corners, shape, pitch_px) if found else None
     row["detectors"] = {}
     for name, d in dets.items():
@@ -240,7 +266,8 @@ def tables(rows, timings) -> str:
     for row in rows:
         for name, e in row["detectors"].items():
             if not e["found"]:
-                lines.append(f"| {row['relay']} | {row['target']} | {row['turn_deg']:g} | {name} | not found | | | | |")
+                why = f"no result in {OPENCV_TIMEOUT_S:g} s" if row.get(f"{name}_timed_out") else "not found"
+                lines.append(f"| {row['relay']} | {row['target']} | {row['turn_deg']:g} | {name} | {why} | | | | |")
                 continue
             fits = {f["model"]: f for f in e["fits"]}
 
@@ -298,6 +325,11 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="write the rows as JSON")
     ap.add_argument("--seed", type=int, default=1)
     a = ap.parse_args(argv)
+    import cv2
+
+    # one OpenCV thread: the machine is shared, and OpenCV's calls run in forked children
+    # (with_timeout), where a thread pool started in the parent could hang
+    cv2.setNumThreads(1)
     t_all = time.perf_counter()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

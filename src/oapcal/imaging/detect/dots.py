@@ -25,7 +25,7 @@ import numpy as np
 #: A component is a candidate when its signal exceeds this fraction of the local peak level.
 THRESHOLD_FRACTION = 0.4
 #: Iterations of the centroid's fixed point, and the shift (px) that ends them.
-MAX_ITER, SHIFT_TOL = 30, 1e-4
+MAX_ITER, SHIFT_TOL = 100, 1e-4
 
 
 @dataclass(frozen=True)
