@@ -109,5 +109,5 @@ def test_lattice_period_of_a_dot_image():
     img, _ = GridTarget("dots", 30, 30, pitch_um=10.0, dot_um=5.0).source(1.0)  # 10 px pitch
     assert lattice_period(img) == pytest.approx(10.0, rel=0.02)
     board, _ = GridTarget("chessboard", 20, 20, pitch_um=12.0).source(1.0)
-    assert lattice_period(board, diagonal=True) == pytest.approx(12.0, rel=0.03)
+    assert lattice_period(board) == pytest.approx(12.0, rel=0.03)
     assert np.isnan(lattice_period(np.zeros((64, 64))))

@@ -1,7 +1,8 @@
 """Detection of dot grids and chessboards: :func:`detect_grid` (``docs/detection.md``).
 
 1. **Scale**: the lattice period in px from the image's power spectrum
-   (:func:`~oapcal.imaging.detect.lattice.lattice_period`), or from ``um_per_px`` when given.
+   gradient (:func:`~oapcal.imaging.detect.lattice.lattice_period`), or from ``um_per_px``
+   when given.
 2. **Candidates**: dots (:mod:`.dots`: background-subtracted, windowed-moment centres) or
    chessboard corners (:mod:`.saddles`: verified X-junctions, ``cv2.cornerSubPix``).
 3. **Indexing** from local neighbourhoods, grown from two seeds that must agree
@@ -39,6 +40,10 @@ DOT_ELLIPTICITY_TOL = 0.15
 #: A landmark is dropped when its distance from the leave-one-out prediction of its
 #: neighbours exceeds this factor times the typical (1.4826 x median) one, and this many px.
 POSITION_OUTLIER_FACTOR, POSITION_OUTLIER_MIN_PX = 6.0, 0.15
+#: A dot is dropped when the background changes across its window by more than this
+#: fraction of its amplitude (a steep vignette edge: the background estimate does not
+#: follow it there, and the centre moves by up to half a pitch; on the real X-ray image).
+MAX_SHADING = 0.25
 #: Fewer indexed landmarks than this is refused.
 MIN_LANDMARKS = 16
 #: Polynomial degree of the image -> grid map of the pixel size (and the check degree).
@@ -179,7 +184,7 @@ def detect_grid(
         return _fail(target, "the image is uniform: there is no grid in it", "uniform")
     h, w = img.shape
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    found_period = lattice_period(img, diagonal=target == "chessboard")
+    found_period = lattice_period(img)
     if um_per_px is not None:
         period = pitch_um / um_per_px
         if np.isfinite(found_period) and not 0.7 < found_period / period < 1.43:
@@ -218,6 +223,9 @@ def detect_grid(
         keep = similar & cand.converged[pts]
         counts["dirty_dropped"] = int((~similar).sum())
         counts["unconverged_dropped"] = int((similar & ~cand.converged[pts]).sum())
+        shaded = ~(cand.shading[pts] <= MAX_SHADING)
+        counts["shaded_dropped"] = int((keep & shaded).sum())
+        keep &= ~shaded
     # a landmark off its neighbours' smooth course by far more than the others (dust on a dot
     # that pulls its centre, a damaged corner) is left out
     # (compared within nodes of the same number of neighbours: an edge node's prediction

@@ -7,8 +7,8 @@ around it (a local polynomial in the indices, so the local basis vectors follow 
 distortion), and a candidate is accepted only when it is the one clear match of the
 prediction:
 
-1. **Seed**: a candidate whose eight neighbours make a clean 3 x 3 block (two pairs of
-   opposite vectors of about one pitch, roughly perpendicular, the four diagonals where
+1. **Seed**: a candidate whose eight neighbours make a clean, nearly square 3 x 3 block
+   (two pairs of opposite vectors of about one pitch, within 14 degrees of perpendicular, the four diagonals where
    their sums predict, nothing else within 1.5 pitches).
 2. **Growth**: the unindexed node with the most indexed neighbours is predicted next from
    the indexed nodes within two index steps (quadratic in the indices when they span three
@@ -47,8 +47,8 @@ MAX_LOO_FAIL_FRACTION = 0.05
 MIN_NODES = 9
 #: Local fits use indexed nodes within this many index steps (Chebyshev) of the node.
 NEIGHBOURHOOD = 2
-#: A seed block is nearly square: its basis vectors within acos(0.25) = 76 deg of each other
-#: at least, and of lengths within 25 %.
+#: A seed block is nearly square: its basis vectors at least acos(0.25) = 76 deg apart, and
+#: of lengths within 25 %.
 SEED_MAX_COS, SEED_MAX_RATIO = 0.25, 1.25
 
 
@@ -500,15 +500,21 @@ def _fail(empty: Lattice, reason: str, message: str, counts=None) -> Lattice:
                    counts=dict(counts or {}))  # fmt: skip
 
 
-def lattice_period(img: np.ndarray, diagonal: bool = False) -> float:
-    """The period (px) of the strongest periodic pattern in ``img``: the highest peak of the
-    power spectrum (Hann window) with between 4 periods across the image's shorter side and a
-    period of 2.5 px; NaN for an image without one.  With ``diagonal`` (a chessboard, whose
-    fundamental lies on the diagonals at period ``S / sqrt(2)`` for squares of ``S`` px) the
-    square's side is returned instead."""
+def lattice_period(img: np.ndarray) -> float:
+    """The period (px) of the strongest periodic pattern in ``img``'s gradient magnitude: the
+    highest peak of its power spectrum (Hann window) among those that stand 20 times above
+    the median of their ring, with between 4 periods across the image's shorter side and a
+    period of 2.5 px; NaN for an image without one.  The gradient repeats at the dot pitch of
+    a dot grid and at the square of a chessboard (edges every square along both axes), and a
+    target's outline, which dominates the spectrum of the intensity (it once gave a
+    chessboard's period as 57 px instead of 10), is a single edge in it."""
     import cv2
 
     a = np.asarray(img, np.float32)
+    # the gradient magnitude: a target's outline is one edge, its squares or dots many, so
+    # its period dominates; a chessboard's edges repeat at one square along each axis
+    g = cv2.GaussianBlur(a, (0, 0), 1.0)
+    a = np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3))
     h, w = a.shape
     win = np.outer(np.hanning(h), np.hanning(w)).astype(np.float32)
     a = (a - a.mean()) * win
@@ -518,9 +524,25 @@ def lattice_period(img: np.ndarray, diagonal: bool = False) -> float:
     fx = np.fft.fftfreq(w)[None, :]
     f = np.hypot(fx, fy)
     band = (f >= 4.0 / min(h, w)) & (f <= 1.0 / 2.5)
-    if not band.any():
+    if not band.any() or not power[band].max() > 0:
         return float("nan")
-    power = np.where(band, power, 0.0)
+    # whitened: each frequency over the median power of its ring, so that the lattice's few
+    # sharp peaks per ring stand out and the broad low-frequency content of the target's
+    # outline, the illumination or the scene does not (it once took a chessboard's outline
+    # for its period)
+    ring = np.rint(np.hypot(fx * w, fy * h)).astype(int)
+    med = np.zeros(ring.max() + 1)
+    order = np.argsort(ring, axis=None)
+    r_sorted = ring.ravel()[order]
+    p_sorted = power.ravel()[order]
+    edges = np.searchsorted(r_sorted, np.arange(ring.max() + 2))
+    for i in range(ring.max() + 1):
+        seg = p_sorted[edges[i] : edges[i + 1]]
+        if len(seg):
+            med[i] = np.median(seg)
+    white = np.where(band, power / (med[ring] + 1e-12 * power.max()), 0.0)
+    sharp = white > 20.0  # a peak well above its ring
+    power = np.where(sharp, power, 0.0) if sharp.any() else white
     k = int(np.argmax(power))
     if not power.flat[k] > 0:
         return float("nan")
@@ -537,7 +559,7 @@ def lattice_period(img: np.ndarray, diagonal: bool = False) -> float:
     fyv = (pyx if pyx < h / 2 else pyx - h) / h
     fxv = (pxx if pxx < w / 2 else pxx - w) / w
     period = 1.0 / float(np.hypot(fxv, fyv))
-    return period / np.sqrt(2.0) if diagonal else period
+    return period
 
 
 __all__ = ["Lattice", "index_lattice", "lattice_period", "local_fit"]
