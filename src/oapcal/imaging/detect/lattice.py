@@ -8,8 +8,8 @@ distortion), and a candidate is accepted only when it is the one clear match of 
 prediction:
 
 1. **Seed**: a candidate whose eight neighbours make a clean, nearly square 3 x 3 block
-   (two pairs of opposite vectors of about one pitch, within 14 degrees of perpendicular, the four diagonals where
-   their sums predict, nothing else within 1.5 pitches).
+   (two pairs of opposite vectors of about one pitch, within 14 degrees of perpendicular,
+   the four diagonals where their sums predict, nothing else within 1.5 pitches).
 2. **Growth**: the unindexed node with the most indexed neighbours is predicted next from
    the indexed nodes within two index steps (quadratic in the indices when they span three
    rows and columns, else bilinear or affine); the nearest candidate is accepted when it is
