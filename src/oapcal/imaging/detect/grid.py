@@ -186,12 +186,9 @@ def detect_grid(
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
     found_period = lattice_period(img)
     if um_per_px is not None:
+        # the given scale sets the search; the grid found must then measure it (below): the
+        # image's own period can be a turned grid's outline, so it does not overrule it
         period = pitch_um / um_per_px
-        if np.isfinite(found_period) and not 0.7 < found_period / period < 1.43:
-            # the given scale disagrees with the image's own period: say so rather than guess
-            msg = (f"the image's period is {found_period:.2f} px, but pitch_um / um_per_px gives "
-                   f"{period:.2f} px: check the pitch and the pixel size")  # fmt: skip
-            return _fail(target, msg, "scale_mismatch", ("um_per_px", "pitch_um"))
     else:
         period = found_period
     if not (np.isfinite(period) and 3.0 <= period <= min(h, w) / 3.0):
@@ -282,6 +279,10 @@ def detect_grid(
             )  # fmt: skip
         ids_absolute = found in (shape, shape[::-1])
     scale = _pixel_size(xy_d, rc, pitch_um, centre)
+    if um_per_px is not None and not 0.7 < scale["um_per_px"] / um_per_px < 1.43:
+        msg = (f"the grid found measures {scale['um_per_px']:.4g} um/px, but um_per_px is {um_per_px:g} "
+               f"(image period {found_period:.2f} px): check the pitch and the pixel size")  # fmt: skip
+        return _fail(target, msg, "scale_mismatch", ("um_per_px", "pitch_um"), counts, pol, lat.pitch_px)
     ref_um_per_px = float(um_per_px) if um_per_px is not None else scale["um_per_px"]
     grid_centre = scale["grid_at_centre"]  # (row, col) of the image centre
     xy_u = centre + (rc[:, ::-1] - grid_centre[::-1]) * (pitch_um / ref_um_per_px)
