@@ -277,3 +277,17 @@ def test_through_the_relay(relay):
         s = score(r, det)
         assert s["wrong"] == 0 and s["found_fraction"] >= found_min, (relay, kind, s)
         assert s["median_error_px"] <= med_max, (relay, kind, s)
+
+
+@pytest.mark.slow
+def test_relay_turned_30_degrees_without_a_scale():
+    """The turned grid's outline outshines its lattice in the spectrum (the strongest peak at
+    87 px): the next candidate periods are tried, and the grid is found."""
+    from oapcal.imaging.grid_targets import paper_relays
+
+    params = paper_relays()["aligned"]
+    for target, kind in ((DOTS25, "dots"), (BOARD, "chessboard")):
+        r = render_grid(target, params, rotation_deg=30.0, seed=1)
+        det = detect_grid(r.image, kind, pitch_um=50.0, dot_um=target.dot_um)
+        s = score(r, det)
+        assert s["wrong"] == 0 and s["found_fraction"] >= 0.99, (kind, s)

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.imaging.detect.lattice import index_lattice, lattice_period
+from oapcal.imaging.detect.lattice import index_lattice, lattice_periods
 
 #: Kinds of grid target.
 GRID_TARGETS = ("dots", "chessboard")
@@ -184,13 +184,28 @@ def detect_grid(
         return _fail(target, "the image is uniform: there is no grid in it", "uniform")
     h, w = img.shape
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    found_period = lattice_period(img)
+    periods = lattice_periods(img)
+    found_period = periods[0] if periods else float("nan")
     if um_per_px is not None:
         # the given scale sets the search; the grid found must then measure it (below): the
         # image's own period can be a turned grid's outline, so it does not overrule it
-        period = pitch_um / um_per_px
-    else:
-        period = found_period
+        args = (pitch_um, dot_um, rows, cols, um_per_px, polarity, centre)
+        return _detect_at(img, target, pitch_um / um_per_px, found_period, *args)
+    # the spectrum's strongest peak first; when no grid is indexed at it, the next ones (the
+    # outline of a turned grid can outshine its lattice: through the relay turned 30 degrees)
+    det = None
+    for period in periods or [float("nan")]:
+        det = _detect_at(
+            img, target, period, found_period, pitch_um, dot_um, rows, cols, None, polarity, centre
+        )
+        if det.ok or det.reason not in ("no_seed", "too_few", "no_period"):
+            break
+    return det
+
+
+def _detect_at(img, target, period, found_period, pitch_um, dot_um, rows, cols, um_per_px, polarity, centre):
+    """:func:`detect_grid` at one lattice period (px)."""
+    h, w = img.shape
     if not (np.isfinite(period) and 3.0 <= period <= min(h, w) / 3.0):
         msg = "no periodic pattern of 3 px or more, with 3 periods across the image, was found"
         return _fail(target, msg, "no_period", ("um_per_px",))

@@ -500,11 +500,12 @@ def _fail(empty: Lattice, reason: str, message: str, counts=None) -> Lattice:
                    counts=dict(counts or {}))  # fmt: skip
 
 
-def lattice_period(img: np.ndarray) -> float:
-    """The period (px) of the strongest periodic pattern in ``img``'s gradient magnitude: the
-    highest peak of its power spectrum (Hann window) among those that stand 20 times above
-    the median of their ring, with between 4 periods across the image's shorter side and a
-    period of 2.5 px; NaN for an image without one.  The gradient repeats at the dot pitch of
+def lattice_periods(img: np.ndarray, count: int = 3) -> list:
+    """Up to ``count`` candidate periods (px) of the periodic pattern in ``img``'s gradient
+    magnitude, strongest first, each more than 30 % from the others: the highest peaks of its
+    power spectrum (Hann window) among those that stand 20 times above the median of their
+    ring, with between 4 periods across the image's shorter side and a period of 2.5 px;
+    empty for an image without one.  The gradient repeats at the dot pitch of
     a dot grid and at the square of a chessboard (edges every square along both axes), and a
     target's outline, which dominates the spectrum of the intensity (it once gave a
     chessboard's period as 57 px instead of 10), is a single edge in it."""
@@ -525,7 +526,7 @@ def lattice_period(img: np.ndarray) -> float:
     f = np.hypot(fx, fy)
     band = (f >= 4.0 / min(h, w)) & (f <= 1.0 / 2.5)
     if not band.any() or not power[band].max() > 0:
-        return float("nan")
+        return []
     # whitened: each frequency over the median power of its ring, so that the lattice's few
     # sharp peaks per ring stand out and the broad low-frequency content of the target's
     # outline, the illumination or the scene does not (it once took a chessboard's outline
@@ -543,23 +544,37 @@ def lattice_period(img: np.ndarray) -> float:
     white = np.where(band, power / (med[ring] + 1e-12 * power.max()), 0.0)
     sharp = white > 20.0  # a peak well above its ring
     power = np.where(sharp, power, 0.0) if sharp.any() else white
-    k = int(np.argmax(power))
-    if not power.flat[k] > 0:
-        return float("nan")
-    iy, ix = np.unravel_index(k, power.shape)
 
-    # parabolic refinement of the peak along each axis
-    def refine(vals, i, n):
+    # parabolic refinement of a peak along each axis
+    def refine(vals, i):
         y0, y1, y2 = vals
         den = y0 - 2 * y1 + y2
         return i + (0.5 * (y0 - y2) / den if den < 0 else 0.0)
 
-    pyx = refine([power[(iy - 1) % h, ix], power[iy, ix], power[(iy + 1) % h, ix]], iy, h)
-    pxx = refine([power[iy, (ix - 1) % w], power[iy, ix], power[iy, (ix + 1) % w]], ix, w)
-    fyv = (pyx if pyx < h / 2 else pyx - h) / h
-    fxv = (pxx if pxx < w / 2 else pxx - w) / w
-    period = 1.0 / float(np.hypot(fxv, fyv))
-    return period
+    periods = []
+    left = power.copy()
+    while len(periods) < count:
+        k = int(np.argmax(left))
+        if not left.flat[k] > 0:
+            break
+        iy, ix = np.unravel_index(k, power.shape)
+        pyx = refine([power[(iy - 1) % h, ix], power[iy, ix], power[(iy + 1) % h, ix]], iy)
+        pxx = refine([power[iy, (ix - 1) % w], power[iy, ix], power[iy, (ix + 1) % w]], ix)
+        fyv = (pyx if pyx < h / 2 else pyx - h) / h
+        fxv = (pxx if pxx < w / 2 else pxx - w) / w
+        period = 1.0 / float(np.hypot(fxv, fyv))
+        periods.append(period)
+        # the next candidate: a period more than 30 % away from those taken
+        with np.errstate(divide="ignore"):
+            pf = 1.0 / f
+        left[(pf > period / 1.3) & (pf < period * 1.3)] = 0.0
+    return periods
 
 
-__all__ = ["Lattice", "index_lattice", "lattice_period", "local_fit"]
+def lattice_period(img: np.ndarray) -> float:
+    """The period of :func:`lattice_periods`' strongest peak (NaN for an image without one)."""
+    periods = lattice_periods(img, 1)
+    return periods[0] if periods else float("nan")
+
+
+__all__ = ["Lattice", "index_lattice", "lattice_period", "lattice_periods", "local_fit"]
