@@ -17,10 +17,10 @@ ORIENTATION_CHOICES = (
 @click.argument("image", type=click.Path(dir_okay=False))
 @click.option(
     "--target",
-    type=click.Choice(["usaf"]),
+    type=click.Choice(["usaf", "dots", "chessboard"]),
     default="usaf",
     show_default=True,
-    help="The target in the image.",
+    help="The target in the image (dots, chessboard: docs/detection.md, 'Dot grids and chessboards').",
 )
 @click.option("--groups", default="4-5", show_default=True, help="USAF groups in the image, e.g. 4-5.")
 @click.option(
@@ -82,13 +82,72 @@ ORIENTATION_CHOICES = (
     "scale and the element that the bars alone may leave open; repeat for more elements.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
+@click.option(
+    "--pitch-um",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="--target dots: the dot pitch (um).",
+)
+@click.option(
+    "--dot-um",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="--target dots: the dot diameter (um), optional.",
+)
+@click.option(
+    "--square-um",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="--target chessboard: the square's side (um).",
+)
+@click.option(
+    "--rows",
+    type=click.IntRange(min=2),
+    default=None,
+    help="Dots (or chessboard squares) per column of the target, optional: a check, and ids from "
+    "the grid's own corner when all are in view.",
+)
+@click.option(
+    "--cols", type=click.IntRange(min=2), default=None, help="Dots (or squares) per row, with --rows."
+)
+@click.option(
+    "--target-spec",
+    default=None,
+    help="A named grid target (its kind, pitch, dot and size), e.g. thorlabs-r2l2s3p3 (docs/detection.md).",
+)
+@click.option("--polarity", type=click.Choice(["auto", "dark", "bright"]), default="auto", show_default=True,
+              help="--target dots: dark dots on a bright field, bright on dark, or find out.")  # fmt: skip
 def detect_command(
-    image, target, groups, um_per_px, out, truth, plot, max_stderr_px, orientation, mirror, anchors, as_json
+    image,
+    target,
+    groups,
+    um_per_px,
+    out,
+    truth,
+    plot,
+    max_stderr_px,
+    orientation,
+    mirror,
+    anchors,
+    as_json,
+    **grid_options,
 ):
     """Detect the bar corners of a USAF-1951 target and match them to the reference target.
 
     Exit 0 with the points written, or exit 3 with the reason (and, with --plot, a picture
-    of what was found) when the target is not found or its identity is not certain."""
+    of what was found) when the target is not found or its identity is not certain.
+    --target dots / chessboard: a dot grid or chessboard, ids R<row>C<col>."""
+    if target != "usaf" or grid_options.get("target_spec"):
+        from oapcal.cli.detect_grid import detect_grid_command
+
+        if anchors:
+            raise click.BadParameter("names an element of a USAF-1951 target: drop it for a grid target",
+                                     param_hint="--anchor")  # fmt: skip
+
+        return detect_grid_command(image, target, um_per_px, out, truth, plot, as_json, grid_options)
+    from oapcal.cli.detect_grid import check_usaf_options
+
+    check_usaf_options()
     from oapcal.imaging.detect import detect_usaf, evaluate_detection
     from oapcal.imaging.detect.anchor import parse_anchors
     from oapcal.imaging.usaf import parse_groups
