@@ -286,7 +286,8 @@ def correct_command(
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
     # the sequential path builds a trust-region map per input size itself; --dask gets one map
     prebuild = limit if (use_dask or save_map) else None
-    cmap = _prepare_map(cal, plan[0] if plan else [], map_file, save_map, geometry, max_pixels, prebuild)
+    files = plan[0] if plan else []
+    cmap = _prepare_map(cal, files, map_file, save_map, geometry, max_pixels, prebuild, calib)
     if inputs:
         _check_samples(cal, cmap, plan[0], geometry, max_pixels)
     if use_dask:  # a missing extra is one clear error, before anything else is said
@@ -294,7 +295,7 @@ def correct_command(
 
         for module in EXTRAS["dask"]:
             require(module, "dask")
-    trust = _trust(cal, cmap, plan[0] if plan else [], geometry, max_pixels, limit, border)
+    trust = _trust(cal, cmap, plan[0] if plan else [], geometry, max_pixels, limit, border, calib)
     if not inputs:
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
         return 0
@@ -361,7 +362,9 @@ def _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map, out
     return files, failures, outputs
 
 
-def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels, limit=None):
+def _prepare_map(
+    cal, files, map_file, save_map, geometry, max_pixels, limit=None, calib_name="the calibration"
+):
     """The map given by --map, or built for --save-map or a trust region (``limit``, the
     --max-error-px in effect; for the calibration's image size or the first input's), or
     None (built per input size while correcting)."""
@@ -399,7 +402,12 @@ def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels, limit=Non
                 "--save-map needs the input image size: refit with 'oapcal fit --image-size WxH' "
                 "or give an input image"
             )
-        cmap = correction_map(cal, shape, **geometry, max_error_px=limit)
+        try:
+            cmap = correction_map(cal, shape, **geometry, max_error_px=limit)
+        except DataError as exc:  # e.g. no pixel trusted: the calibration's doing, name it
+            if "predicted error" not in str(exc):
+                raise
+            raise DataError(f"{calib_name}: {exc}", param=exc.param) from None
     else:
         return None
     if save_map:
@@ -407,10 +415,12 @@ def _prepare_map(cal, files, map_file, save_map, geometry, max_pixels, limit=Non
     return cmap
 
 
-def _trust(cal, cmap, files, geometry, max_pixels, limit, border) -> dict | None:
+def _trust(
+    cal, cmap, files, geometry, max_pixels, limit, border, calib_name="the calibration"
+) -> dict | None:
     """Say on stderr how far the output lies beyond the landmarks' hull and with what
     predicted error (:func:`trust_message`); the summary for --json, or None when the output
-    size is unknown."""
+    size is unknown.  Refuses, naming the calibration, a trust region with no pixel in it."""
     from oapcal.errors import DataError
     from oapcal.imaging.remap import output_geometry, trust_summary
 
@@ -442,6 +452,7 @@ def _trust(cal, cmap, files, geometry, max_pixels, limit, border) -> dict | None
             from oapcal.imaging.remap import predicted_error_map
 
             predicted = predicted_error_map(cal, geo)
+            _refuse_empty_trust(predicted, limit, calib_name)
     from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
 
     summary = trust_summary(cal, geo, limit if limit is not None else DEFAULT_MAX_ERROR_PX, predicted)
@@ -450,6 +461,30 @@ def _trust(cal, cmap, files, geometry, max_pixels, limit, border) -> dict | None
     if line:
         click.echo(line, err=True)
     return summary
+
+
+def _refuse_empty_trust(predicted, limit, calib_name) -> None:
+    """One error naming the calibration, before any work, when (almost) no output pixel
+    has a predicted error within ``limit``."""
+    import numpy as np
+
+    from oapcal.errors import DataError
+    from oapcal.imaging.remap import MIN_SAMPLED_FRACTION
+
+    finite = np.isfinite(predicted)
+    if (finite & (predicted <= limit)).mean() >= MIN_SAMPLED_FRACTION:
+        return
+    if not finite.any():
+        raise DataError(
+            f"{calib_name}: its predicted error is not finite anywhere in the output (the covariance or "
+            "the error model does not describe a fit): refit, or give --extent input to correct without "
+            "a trust region"
+        )
+    raise DataError(
+        f"{calib_name}: no output pixel (under {MIN_SAMPLED_FRACTION:.1%}) has a predicted error of "
+        f"{limit:g} px or less (the smallest is {float(predicted[finite].min()):.3g} px): raise "
+        "--max-error-px, or give --extent input to correct the whole output without a trust region"
+    )
 
 
 def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
