@@ -73,7 +73,7 @@ def parse_model(spec: str | Mapping | np.ndarray | tuple | list) -> np.ndarray:
 
     ``spec`` is a preset name (``full``, ``paper``, ``radial``), a comma-separated list of
     parameter names (``"k1,p1,s3,y_off,c_x,c_y"``; ``m`` is added if missing), a sequence
-    of names, or a boolean mask.
+    of names, a mapping ``{name: True/False}`` (the names marked True), or a boolean mask.
 
     >>> names_from_mask(parse_model("k1, c_x"))
     ('k1', 'c_x', 'm')
@@ -94,7 +94,16 @@ def parse_model(spec: str | Mapping | np.ndarray | tuple | list) -> np.ndarray:
                         "empty model specification: give a preset "
                         f"({', '.join(PRESETS)}) or a comma list of parameter names"
                     )
-        elif isinstance(spec, np.ndarray | tuple | list | Mapping):
+        elif isinstance(spec, Mapping):  # {name: True/False}: the names marked free
+            for name, free in spec.items():
+                if not isinstance(free, bool | np.bool_):
+                    raise ModelSpecError(
+                        f"a model given as a mapping marks each parameter free with True or False, "
+                        f"got {name!r}: {free!r}",
+                        param="model",
+                    )
+            names = tuple(name for name, free in spec.items() if free)
+        elif isinstance(spec, np.ndarray | tuple | list):
             names = tuple(spec)
         else:
             raise ModelSpecError(

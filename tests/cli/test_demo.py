@@ -35,6 +35,7 @@ def test_demo_numbers(demo):
     assert demo.calibration.residuals.mean_px < 1.0
 
 
+@pytest.mark.slow  # a second run of the demo; the default suite runs it once (the fixture above)
 def test_demo_command(run_cli, tmp_path):
     code, out, err = run_cli("demo", "--out-dir", tmp_path / "d", "--trials", "0", "--no-report")
     assert code == 0, err

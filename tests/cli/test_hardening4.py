@@ -190,3 +190,18 @@ def test_saving_a_calibration_onto_a_directory_names_it(tmp_path):
     with pytest.raises(OutputError, match="is a directory; give the path of a file"):
         save_calibration(cal, tmp_path)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("spec", [{"k1": "no"}, {"k1": 0.0}, {"k1": None}])
+def test_a_model_mapping_whose_values_are_not_true_or_false_is_refused(spec):
+    from oapcal.errors import ModelSpecError
+    from oapcal.model import parse_model
+
+    with pytest.raises(ModelSpecError, match="True or False"):
+        parse_model(spec)
+
+
+def test_a_model_mapping_frees_only_the_names_marked_true():
+    from oapcal.model import names_from_mask, parse_model
+
+    assert names_from_mask(parse_model({"k1": True, "p1": False, "c_x": True})) == ("k1", "c_x", "m")

@@ -121,6 +121,7 @@ def test_pixel_size_found_on_an_undistorted_target(flat):
     assert s["image_sha256"] == ""  # an array has no file to digest
 
 
+@pytest.mark.slow  # the default suite keeps the refusal of a wrong anchor and the real turned image
 def test_a_right_anchor_gives_the_same_detection(flat):
     sim, det = flat
     k = list(sim.ids).index("G4E2H1C0")

@@ -85,6 +85,7 @@ def _goal(sim, det):
     return score
 
 
+@pytest.mark.slow  # setup 1 runs in the default suite (test_cli_relay_setup_1_simulate_detect_fit)
 def test_relay_setup_2_meets_the_goal_and_fits_with_m_near_one():
     from oapcal.fitting import fit
     from oapcal.optics import relay_distortion

@@ -42,6 +42,7 @@ def test_detect_adds_the_corners_with_ids(viewer, demo, wait):
     assert "288 of 288 corners" in w.status
 
 
+@pytest.mark.slow  # the anchor itself is tested on the library (tests/imaging/test_detect_anchor.py)
 def test_detect_with_an_anchor_names_the_same_corners(viewer, demo, wait):
     from oapcal.napari_plugin._widgets import DetectWidget
 

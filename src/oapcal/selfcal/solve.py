@@ -458,7 +458,7 @@ def self_calibrate(
         if not ok.any():
             raise SelfcalRefused(
                 "the model's correction failed at every match (it folds over or does not converge): "
-                "the frames do not fit the model; try another --model or check the design",
+                "the frames do not fit the model; try another model or check the design",
                 "moving",
                 param="model",
             )
