@@ -598,3 +598,18 @@ def progress_bar(description: str = "", enabled: bool = True):
             bar.update(task, completed=done, total=total, description=description)
 
     return bar, update
+
+
+def write_detected_points(out, det, plot, draw) -> None:
+    """Write a detection's point pairs to ``out`` and, with ``plot``, its picture
+    (``draw(path)``): both or neither (the picture is published only with the points)."""
+    from oapcal.io.points import write_point_pairs
+
+    if not plot:
+        write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)
+        return
+    from oapcal.io.atomic import atomic_path
+
+    with atomic_path(plot) as tmp_plot:
+        draw(tmp_plot)
+        write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, print_json, with_flag_hint
+from oapcal.cli._common import check_output, console, print_json, with_flag_hint, write_detected_points
 
 #: ``auto`` and the keys of ``oapcal.imaging.usaf.ORIENTATIONS`` (written out so that this
 #: module imports only click; a test checks that they agree).
@@ -152,7 +152,6 @@ def detect_command(
     from oapcal.imaging.detect.anchor import parse_anchors
     from oapcal.imaging.usaf import parse_groups
     from oapcal.io.imagefile import read_image_grey
-    from oapcal.io.points import write_point_pairs
 
     check_output(out, image, truth)
     check_output(plot, image, truth, out)
@@ -199,17 +198,15 @@ def detect_command(
         if as_json:
             print_json(summary)
         return 3
+
     # All outputs or none: the picture is drawn to a temporary file first, then the points
     # are written, then the picture is moved into place.
-    if plot:
-        from oapcal.io.atomic import atomic_path
+    def draw(path):
         from oapcal.report.detect_plots import plot_detection
 
-        with atomic_path(plot) as tmp_plot:
-            plot_detection(img, det, tmp_plot, groups=groups)
-            write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)
-    else:
-        write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)
+        plot_detection(img, det, path, groups=groups)
+
+    write_detected_points(out, det, plot, draw)
     if as_json:
         print_json(summary)
     elif out != "-":

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, print_json, with_flag_hint
+from oapcal.cli._common import check_output, console, print_json, with_flag_hint, write_detected_points
 
 #: Options of ``detect`` that belong to the USAF target only.
 USAF_ONLY = ("groups", "orientation", "mirror", "max_stderr_px")
@@ -76,7 +76,6 @@ def detect_grid_command(image, target, um_per_px, out, truth, plot, as_json, opt
     from oapcal.imaging.detect.grid import detect_grid, score_grid
     from oapcal.io.digest import file_sha256
     from oapcal.io.imagefile import read_image_grey
-    from oapcal.io.points import write_point_pairs
 
     target, pitch, dot, rows, cols = _resolve(target, options)
     check_output(out, image, truth)
@@ -101,14 +100,7 @@ def detect_grid_command(image, target, um_per_px, out, truth, plot, as_json, opt
         if as_json:
             print_json(summary)
         return 3
-    if plot:
-        from oapcal.io.atomic import atomic_path
-
-        with atomic_path(plot) as tmp_plot:
-            _plot(img, det, tmp_plot)
-            write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)
-    else:
-        write_point_pairs(out, det.xy_u, det.xy_d, ids=det.ids)
+    write_detected_points(out, det, plot, lambda path: _plot(img, det, path))
     if as_json:
         print_json(summary)
     elif out != "-":

@@ -119,18 +119,18 @@ def distortion_field_figure(params, shape, hull=None, um_per_px=None, n_arrows: 
     return fig
 
 
+def _map_extent(umap) -> tuple[float, float, float, float]:
+    """``imshow``'s extent of an uncertainty map's grid (pixel edges, rows downwards)."""
+    step_x = umap.x[1] - umap.x[0] if len(umap.x) > 1 else 1.0
+    step_y = umap.y[1] - umap.y[0] if len(umap.y) > 1 else 1.0
+    return (umap.x[0] - step_x / 2, umap.x[-1] + step_x / 2, umap.y[-1] + step_y / 2, umap.y[0] - step_y / 2)
+
+
 def uncertainty_figure(umap):
     """The 1-sigma positional uncertainty of the correction; extrapolated region hatched."""
     fig = _figure(7.5, 5.6)
     ax = fig.add_subplot()
-    step_x = umap.x[1] - umap.x[0] if len(umap.x) > 1 else 1.0
-    step_y = umap.y[1] - umap.y[0] if len(umap.y) > 1 else 1.0
-    extent = (
-        umap.x[0] - step_x / 2,
-        umap.x[-1] + step_x / 2,
-        umap.y[-1] + step_y / 2,
-        umap.y[0] - step_y / 2,
-    )
+    extent = _map_extent(umap)
     im = ax.imshow(umap.sigma_px, cmap="magma", extent=extent, interpolation="nearest")
     _colorbar(fig, im, ax, "1-sigma position uncertainty [px]", umap.um_per_px)
     if umap.outside_hull.any():
@@ -144,8 +144,7 @@ def uncertainty_figure(umap):
             ax, umap.hull, color="cyan", label="hull of the calibration points (outside: extrapolated)"
         )
         ax.legend(loc="lower right", fontsize=8, framealpha=0.7)
-    rows = int(round(umap.y[-1] + step_y / 2 + 0.5))
-    cols = int(round(umap.x[-1] + step_x / 2 + 0.5))
+    rows, cols = int(round(extent[2] + 0.5)), int(round(extent[1] + 0.5))
     _image_axes(ax, umap.um_per_px, (rows, cols))
     inside = umap.sigma_px[~umap.outside_hull]
     med = float(np.nanmedian(inside)) if inside.size else float("nan")
@@ -162,14 +161,7 @@ def predicted_error_figure(umap, max_error_px: float = 1.0):
     fig = _figure(7.5, 5.6)
     ax = fig.add_subplot()
     pred = umap.sigma_px if umap.predicted_px is None else umap.predicted_px
-    step_x = umap.x[1] - umap.x[0] if len(umap.x) > 1 else 1.0
-    step_y = umap.y[1] - umap.y[0] if len(umap.y) > 1 else 1.0
-    extent = (
-        umap.x[0] - step_x / 2,
-        umap.x[-1] + step_x / 2,
-        umap.y[-1] + step_y / 2,
-        umap.y[0] - step_y / 2,
-    )
+    extent = _map_extent(umap)
     finite = pred[np.isfinite(pred) & (pred > 0)]
     lo = float(finite.min()) if finite.size else 1e-3
     hi = float(finite.max()) if finite.size else 1.0
@@ -184,8 +176,7 @@ def predicted_error_figure(umap, max_error_px: float = 1.0):
         ax.plot([], [], color="red", lw=1.6, label=f"trust region: predicted error <= {max_error_px:g} px")
     _hull_outline(ax, umap.hull, color="white", label="hull of the calibration points")
     ax.legend(loc="lower right", fontsize=8, framealpha=0.7)
-    rows = int(round(umap.y[-1] + step_y / 2 + 0.5))
-    cols = int(round(umap.x[-1] + step_x / 2 + 0.5))
+    rows, cols = int(round(extent[2] + 0.5)), int(round(extent[1] + 0.5))
     _image_axes(ax, umap.um_per_px, (rows, cols))
     ax.set_title(
         f"Where the correction is trusted: {100 * trusted.mean():.0f} % of the frame at {max_error_px:g} px"
