@@ -205,3 +205,17 @@ def test_a_model_mapping_frees_only_the_names_marked_true():
     from oapcal.model import names_from_mask, parse_model
 
     assert names_from_mask(parse_model({"k1": True, "p1": False, "c_x": True})) == ("k1", "c_x", "m")
+
+
+@pytest.mark.parametrize(
+    "values",
+    [{"pixel_size_um": float("nan")}, {"pixel_size_um": float("inf")}, {"pixel_size_um": -4.8},
+     {"d1_mm": 0.0}, {"focal_length_mm": "50.8"}, {"stop_distance_mm": -1.0},
+     {"centre": (float("nan"), 0.0)}, {"centre": ("a", 1)}, {"centre": 5}],
+)  # fmt: skip
+def test_a_relay_design_value_out_of_its_range_is_refused_when_made(values):
+    from oapcal.optics.relay_model import RelayDesign
+
+    with pytest.raises(DataError, match="relay design") as info:
+        RelayDesign(**values)
+    assert info.value.param == "design"

@@ -75,6 +75,15 @@ ALIASES: dict[str, tuple[str, ...]] = {
 }
 
 
+def _two_finite(xy) -> bool:
+    try:
+        return len(xy) == 2 and all(
+            not isinstance(c, bool | str | bytes) and np.isfinite(float(c)) for c in xy
+        )
+    except (TypeError, ValueError):
+        return False
+
+
 @dataclass(frozen=True)
 class RelayDesign:
     """The nominal relay a fit starts from (as ``oapcal simulate relay`` takes it).
@@ -99,6 +108,26 @@ class RelayDesign:
     pixel_size_um: float = 4.8
     centre: tuple[float, float] | None = None
     microscope_magnification: float | None = None
+
+    def __post_init__(self):
+        """Refuse, naming the field, a design value that is not a number in its range
+        (:data:`DESIGN_RANGES`): a NaN or negative pixel size would otherwise show only as a
+        relay that images nothing."""
+        for name, (lo, hi, lo_open, nullable) in DESIGN_RANGES.items():
+            value = getattr(self, name)
+            if value is None and nullable:
+                continue
+            ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+            if ok:
+                x = float(value)
+                ok = bool(np.isfinite(x)) and (x > lo if lo_open else x >= lo) and x <= hi
+            if not ok:
+                low = f"({lo:g}" if lo_open else f"[{lo:g}"
+                raise DataError(f"relay design {name} is {value!r}; it must be a number in {low}, {hi:g}]",
+                                param="design")  # fmt: skip
+        if self.centre is not None and not _two_finite(self.centre):
+            raise DataError(f"relay design centre is {self.centre!r}; it must be two finite numbers (px)",
+                            param="design")  # fmt: skip
 
     @property
     def family(self):
