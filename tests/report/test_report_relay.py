@@ -188,3 +188,23 @@ def test_report_shows_a_cross_family_selection():
     assert '<tr class="best"><td>relay</td><td>relay</td>' in page
     assert "Recommended by the held-out error: relay:tilt2,camera (relay, 0.0628 px)." in page
     assert "1 models could not be scored" in page and "From fam.json." in page
+
+
+def test_the_region_based_recommendation_is_named_so():
+    from dataclasses import replace
+
+    from oapcal.families import Candidate, FamilySelection
+    from oapcal.model import PRESETS
+    from oapcal.report import build_report
+
+    cal = relay_calibration()
+    ours = Candidate("relay", "relay", cal.free, len(cal.free), -3000.0, 0.0, 0.2, True, "", 0.0631)
+    ours = replace(ours, region_sigma=0.05, predicted_error=0.0805)
+    paper = Candidate("brown-conrady", "paper", PRESETS["paper"], 8, 1200.0, 4200.0, 0.2, True, "", 0.0601)
+    paper = replace(paper, region_sigma=3.1, predicted_error=3.1006)
+    sel = FamilySelection(441, 5, (ours, paper), ours)
+    page, _ = build_report(cal, selection=sel, selection_source="f.json")
+    assert (
+        "Recommended by the predicted error over the region to be corrected: relay (relay, 0.0805 px: "
+        "the held-out error 0.0631 px with the uncertainty propagated over the region, 0.05 px)."
+    ) in page

@@ -672,8 +672,14 @@ def _family_selection_html(sel: FamilySelection, cal, source: str | None = None)
                    f"{sel.cv_folds}-fold held-out error [px]", ""], rows, caption, classes)  # fmt: skip
     if sel.recommended is not None:
         r = sel.recommended
-        verdict = (f"Recommended by the held-out error: {r.spec} ({r.family}, "
-                   f"{H.fmt(_shown(r.cv_mean_error))} px).")  # fmt: skip
+        if getattr(r, "predicted_error", None) is not None:  # the choice over the region to be corrected
+            verdict = (f"Recommended by the predicted error over the region to be corrected: {r.spec} "
+                       f"({r.family}, {H.fmt(_shown(r.predicted_error))} px: the held-out error "
+                       f"{H.fmt(_shown(r.cv_mean_error))} px with the uncertainty propagated over the "
+                       f"region, {H.fmt(_shown(r.region_sigma))} px).")  # fmt: skip
+        else:  # a selection file written before the region-based choice
+            verdict = (f"Recommended by the held-out error: {r.spec} ({r.family}, "
+                       f"{H.fmt(_shown(r.cv_mean_error))} px).")  # fmt: skip
     else:
         verdict = "No model could be cross-validated, so none is recommended."
     text = (
