@@ -58,6 +58,7 @@ def test_default_streams_in_this_process_with_a_note(tmp_path, clusters):
     _check(tmp_path / "o", stack)
 
 
+@pytest.mark.slow  # starts two local clusters; the engine's choice is tested in the default suite
 def test_a_local_cluster_when_asked_for(tmp_path, clusters):
     cal = known_calibration(params=SMALL, image_size=(256, 256))
     stack = _stack(tmp_path)

@@ -192,6 +192,7 @@ def test_simulate_relay_returns_typed_numbers_that_the_summary_renders():
     assert [len(v) for v in sim.spots.values()] == [4, 4] and sim.paper is None
 
 
+@pytest.mark.slow  # draws every relay figure
 def test_relay_figures_keep_the_callers_matplotlib_backend(tmp_path):
     """The figures are built with Figure + FigureCanvasAgg: pyplot is never loaded and a
     notebook's backend stays as it was."""

@@ -63,7 +63,7 @@ def paper_like_unhinted(paper_like):
     return detect_usaf(sim.image, (4, 5))
 
 
-@pytest.mark.parametrize("factor", [1.09, 0.91])
+@pytest.mark.parametrize("factor", [1.09, pytest.param(0.91, marks=pytest.mark.slow)])
 def test_a_scale_hint_a_few_percent_off_removes_no_corner(paper_like, paper_like_unhinted, factor):
     """A ``um_per_px`` 9 % off the image's own scale (a misaligned relay's best-similarity
     scale differs by 7-11 % from the paraxial one) only narrows the search: every corner
@@ -119,6 +119,7 @@ def test_fit_on_detected_points_recovers_the_distortion(paper_like):
     assert model_err.max() < 3 * score["rms_error_px"]
 
 
+@pytest.mark.slow  # a variant of the paper-like detection kept in the default suite
 def test_dark_bars_sixteen_bits_heavier_blur():
     sim = simulate_image((4, 5), setup1_like_field(), sigma_px=1.5, snr=30, bits=16, polarity="dark",
                          oversample=2, seed=3)  # fmt: skip
@@ -170,6 +171,7 @@ def simulated_files(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow  # the command's contract stays in the default suite (test_cli_detect_json)
 def test_cli_simulate_then_detect(run_cli, simulated_files, tmp_path):
     d = simulated_files
     with open(d / "truth.csv") as fh:

@@ -101,6 +101,7 @@ def test_relay_setup_2_meets_the_goal_and_fits_with_m_near_one():
     assert det.consistency["model"] == "full" and det.consistency["inconsistent"] == 0
 
 
+@pytest.mark.slow  # setup 1 through the relay stays in the default suite
 def test_a_turned_camera_image_is_found_with_matching_ids():
     # np.rot90 of the image turns the target counter-clockwise: orientation rot90. A pixel
     # (x, y) of the 640 x 480 image goes to (y, 639 - x) in the 480 x 640 result.

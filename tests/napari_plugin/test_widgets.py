@@ -256,6 +256,7 @@ needs_real = pytest.mark.skipif(
 
 
 @needs_real
+@pytest.mark.slow  # the widget's detect and fit run in the default suite on the demo's image
 def test_detect_and_fit_on_a_real_image(viewer, wait):
     from oapcal.io.imagefile import read_image_grey
     from oapcal.napari_plugin._widgets import DetectWidget, FitWidget

@@ -180,6 +180,7 @@ def test_user_errors_exit_2_one_line_nothing_written(run_cli, tmp_path, inputs, 
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
+@pytest.mark.slow  # the report's sections are tested in the default suite
 def test_report_is_computed_then_rendered_with_progress_through_a_callback(inputs):
     from oapcal.io.points import read_points
     from oapcal.report import build_report, compute_report, render_report
