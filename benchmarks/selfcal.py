@@ -8,7 +8,7 @@ lengths +/- 0.2 mm, d1 +/- 5 %, camera tilt <= 1 deg, defocus <= 0.2 mm, object 
 misaligned relay by oapcal's compiled tracer, checked against the NumPy tracer to 1e-8 px
 in ``tests/optics/test_relay_model.py``).
 
-Texture: the real USAF image ``/work/shared/real/usaf/fpm_brightfield.png`` (1440 x 1080,
+Texture: the real USAF image ``../shared/real/usaf/fpm_brightfield.png`` (1440 x 1080,
 used only as texture, laid at 3.6 um per source px: 5.2 x 3.9 mm, larger than the 3.1 x
 2.3 mm field plus the moves), rendered through the truth by
 :func:`oapcal.imaging.render.render_scene` (area sampling, PSF sigma 0.8 px, shot and read
@@ -45,6 +45,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from models import tolerance  # the truth's ranges: one table for the benchmarks
 
 from oapcal.imaging.render import Camera, Placement, Scene, render_scene
 from oapcal.model import undistort
@@ -52,24 +53,13 @@ from oapcal.optics.misalign import PARAMETERS
 from oapcal.optics.relay_model import RelayDesign, calibrate_relay, relay_params
 from oapcal.selfcal import SelfcalRefused, find_matches, self_calibrate
 
-TEXTURE = Path("/work/shared/real/usaf/fpm_brightfield.png")
+TEXTURE = Path(__file__).resolve().parents[2] / "shared" / "real" / "usaf" / "fpm_brightfield.png"
 TEXTURE_UM_PER_PX = 3.6
 DESIGN = RelayDesign(setup=1, pixel_size_um=4.8, centre=(319.5, 239.5))
 SIZE = (640, 480)
 FIELD_UM = (SIZE[0] * 4.8, SIZE[1] * 4.8)
 NOISE_PX = 0.05
 OUT_DIR = Path(__file__).resolve().parents[1] / "docs" / "img" / "selfcal"
-
-
-def tolerance(name: str, d1_mm: float) -> float:
-    """The truth's half-range of a misalignment value (as ``benchmarks/models.py``)."""
-    if name == "d1":
-        return 0.05 * d1_mm
-    if name.startswith(("camera_tilt", "object_tilt")):
-        return 1.0
-    if name == "camera_defocus":
-        return 0.2
-    return 0.05 if PARAMETERS[name][0] == "deg" else 0.2
 
 
 def draw_truth(seed: int) -> np.ndarray:
