@@ -62,14 +62,10 @@ def measure_pixel_size(object_um: np.ndarray, xy_px: np.ndarray, mirrored: bool,
                 if fit is not None and np.hypot(fit[0], fit[1]) > 0:
                     local.append(1.0 / np.hypot(fit[0], fit[1]))
     field_sd = float(np.std(local, ddof=1)) if len(local) >= 2 else 0.0
-    uc = u - u.mean(axis=0)
-    xc = x - x.mean(axis=0)
-    su = float((uc**2).sum())
-    if not su > 0:
+    whole = _similarity_scale(u, x)
+    if whole is None:
         return None
-    # similarity x = [[a, -b], [b, a]] u + t in closed form (Umeyama without the SVD)
-    a = float((uc[:, 0] * xc[:, 0] + uc[:, 1] * xc[:, 1]).sum()) / su
-    b = float((uc[:, 0] * xc[:, 1] - uc[:, 1] * xc[:, 0]).sum()) / su
+    a, b, uc, xc, su = whole
     s = float(np.hypot(a, b))
     if not s > 0:
         return None
