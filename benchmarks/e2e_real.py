@@ -525,7 +525,11 @@ def run_fit(model, pts, scale, scene, rendering, image_path, grid, stem: Path, s
     if not images:
         return fit
     outdir = stem.with_name(stem.name + "_img")
-    code_i, _, err_i = run_cli(["correct", cal, image_path, "--out-dir", outdir, "--quiet"])
+    # the whole frame (as before the trust region became correct's default): the image error
+    # compares every pixel with the truth, and a masked pixel would count as an error
+    code_i, _, err_i = run_cli(
+        ["correct", cal, image_path, "--out-dir", outdir, "--quiet", "--extent", "input"]
+    )
     fit["correct_code"] = code_i
     files = sorted(p for p in outdir.glob("*") if not p.name.startswith(".")) if outdir.exists() else []
     if code_i != 0 or not files:
