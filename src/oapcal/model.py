@@ -577,3 +577,141 @@ def correction_errors(params: np.ndarray, xy_d: np.ndarray, xy_u: np.ndarray, *,
     k.run_blocks(k.invert_score, n_items, k.CHUNK, family.code, params, d, u, float(tol), int(max_iter), rss,
                  mean_dist, n_bad, n_folded)  # fmt: skip
     return rss, mean_dist, n_bad, n_folded
+
+
+# ----------------------------------------------------------------------- the value
+
+
+def family_named(name: str | ModelFamily) -> ModelFamily:
+    """The family of :data:`FAMILIES` called ``name`` (a :class:`ModelFamily` is returned
+    as it is): the one way a family is found, by its name, never by a vector's length."""
+    if isinstance(name, ModelFamily):
+        return name
+    try:
+        return FAMILIES[str(name)]
+    except KeyError:
+        raise ModelSpecError(
+            f"unknown model family {name!r}: use one of {', '.join(FAMILIES)}", param="family"
+        ) from None
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """A distortion model as a value: its family (carried by name), its whole parameter
+    vector and the names of its free parameters.
+
+    Calling it distorts (undistorted -> distorted px, :func:`distort`); :meth:`inverse`
+    corrects (:func:`undistort`, an :class:`InverseResult`); :meth:`jacobian` is the 2x2
+    point Jacobian; :meth:`with_pose` composes the model with the target's in-plane pose.
+    Every function that evaluates a model takes one (``docs/architecture.md``).
+
+    >>> m = Model("brown-conrady", params_from_dict({"k1": 1e-2}), ("k1", "m"))
+    >>> m(np.array([[1.0, 0.0]]))
+    array([[1.01, 0.  ]])
+    >>> bool(np.allclose(m.inverse(np.array([[1.01, 0.0]])).xy, [[1.0, 0.0]]))
+    True
+    """
+
+    family: ModelFamily
+    params: np.ndarray
+    free: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        family = family_named(self.family)
+        try:
+            params = np.array(self.params, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            raise DataError(f"parameters must be numbers, got {type(self.params).__name__}") from None
+        if params.shape != (family.n_params,):
+            raise ModelSpecError(
+                f"a {family.name} model has {family.n_params} parameters, got {np.shape(self.params)}",
+                param="params",
+            )
+        free = tuple(self.free)
+        unknown = [n for n in free if n not in family.param_names]
+        if unknown:
+            raise ModelSpecError(
+                f"unknown parameter(s) {', '.join(unknown)} of the {family.name} family", param="free"
+            )
+        params.setflags(write=False)
+        object.__setattr__(self, "family", family)
+        object.__setattr__(self, "params", params)
+        object.__setattr__(self, "free", tuple(n for n in family.param_names if n in free))
+
+    # ---- construction
+    @classmethod
+    def identity(cls, family: str | ModelFamily = BROWN_CONRADY) -> Model:
+        """The identity of Eq. (1) (all terms 0, ``m = 1``), with or without the rotation;
+        the relay families have no identity (their design sets the map)."""
+        family = family_named(family)
+        if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE):
+            raise ModelSpecError(f"the {family.name} family has no identity model", param="family")
+        params = identity_params() if family is BROWN_CONRADY else np.append(identity_params(), 0.0)
+        return cls(family, params, family.always_free)
+
+    @classmethod
+    def from_mask(cls, family: str | ModelFamily, params, mask) -> Model:
+        """A model from a parameter vector and a free-parameter mask of its family."""
+        family = family_named(family)
+        mask = np.asarray(mask, bool)
+        return cls(family, params, tuple(n for n, f in zip(family.param_names, mask) if f))
+
+    def with_params(self, params) -> Model:
+        """The same family and free parameters with other values."""
+        return Model(self.family, params, self.free)
+
+    # ---- what it is
+    @property
+    def mask(self) -> np.ndarray:
+        """The free-parameter mask ``(P,)`` in the family's order."""
+        return np.array([n in self.free for n in self.family.param_names])
+
+    @property
+    def params_dict(self) -> dict[str, float]:
+        return {n: float(v) for n, v in zip(self.family.param_names, self.params)}
+
+    def value(self, name: str) -> float:
+        """One parameter's value, by name."""
+        if name not in self.family.param_names:
+            raise ModelSpecError(f"the {self.family.name} family has no parameter {name!r}", param="name")
+        return float(self.params[self.family.param_names.index(name)])
+
+    # ---- what it does
+    def __call__(self, xy_u: np.ndarray) -> np.ndarray:
+        """Distorted points ``(..., N, 2)`` from undistorted ones (:func:`distort`)."""
+        return distort(xy_u, self.params, family=self.family)
+
+    def inverse(self, xy_d: np.ndarray, **options) -> InverseResult:
+        """Corrected (undistorted) points of observed ones: :func:`undistort` with its
+        ``tol``, ``max_iter`` and ``xy_start``."""
+        return undistort(xy_d, self.params, family=self.family, **options)
+
+    def jacobian(self, xy_u: np.ndarray) -> np.ndarray:
+        """``d(x_d, y_d) / d(x_u, y_u)``, ``(..., N, 2, 2)`` (:func:`jacobian_point`)."""
+        return jacobian_point(xy_u, self.params, family=self.family)
+
+    def jacobian_params(self, xy_u: np.ndarray, *, finite_difference: bool = False) -> np.ndarray:
+        """``d(x_d, y_d) / d(params)``, ``(..., N, 2, P)`` (:func:`jacobian_params`)."""
+        return jacobian_params(xy_u, self.params, family=self.family, finite_difference=finite_difference)
+
+    def with_pose(self, rotation_deg: float) -> Model:
+        """This Eq. (1) model after the target's in-plane rotation by ``rotation_deg``
+        (counter-clockwise about the origin of the model's coordinates): a model of
+        :data:`BROWN_CONRADY_POSE`, whose own ``m`` and offsets carry the pose's scale and
+        shift.  A model that already has the rotation gets the rotations added."""
+        if self.family is BROWN_CONRADY:
+            params = np.append(self.params, float(rotation_deg))
+            return Model(BROWN_CONRADY_POSE, params, self.free + ("rotation",))
+        if self.family is BROWN_CONRADY_POSE:
+            params = self.params.copy()
+            params[-1] += float(rotation_deg)
+            return Model(BROWN_CONRADY_POSE, params, self.free)
+        raise ModelSpecError(
+            f"the {self.family.name} family carries the target's pose in its own parameters "
+            "(scale, rotation, shift_x, shift_y): set them with with_params",
+            param="rotation_deg",
+        )
+
+    def __repr__(self) -> str:
+        values = ", ".join(f"{n}={self.value(n):.6g}" for n in self.free)
+        return f"Model({self.family.name!r}, {values})"
