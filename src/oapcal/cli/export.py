@@ -37,6 +37,36 @@ def _say_trust(cal, geometry) -> None:
         click.echo(line, err=True)
 
 
+def _say_written(out, side, family, export) -> None:
+    """Say what was written and, for a family without exact coefficients, how far the
+    coefficients (the best Eq. (1) approximation) are from the exact maps."""
+    from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE
+
+    approx = export.get("approximation")
+    w, h = export["new_image_size"]
+    if family is BROWN_CONRADY:
+        click.echo(f"wrote {out}: pass new_image_size {w}x{h} to cv2.initUndistortRectifyMap")
+    elif family is BROWN_CONRADY_POSE:
+        click.echo(
+            f"wrote {out} (exact for the {family.name} model): pass R and new_image_size {w}x{h} "
+            "to cv2.initUndistortRectifyMap"
+        )
+    else:
+        where = f"{out} and {side}" if side is not None else str(out)
+        click.echo(f"wrote {where}: the exact correction is cv2.remap with map_x, map_y ({w}x{h})")
+        cal_part = ""
+        if approx["calibrated_mean_px"] is not None:
+            cal_part = (
+                f"; {approx['calibrated_mean_px']:.3g} px mean, {approx['calibrated_max_px']:.3g} px max "
+                "over the calibrated region"
+            )
+        click.echo(
+            f"no OpenCV coefficient set is exact for the {family.name} model: camera_matrix, dist_coeffs "
+            f"and new_camera_matrix are the best Brown-Conrady approximation, off by {approx['mean_px']:.3g} "
+            f"px mean, {approx['max_px']:.3g} px max over the image{cal_part}"
+        )
+
+
 #: The longest image side accepted (the pixel count is limited too).
 MAX_SIDE = 2**20
 
@@ -68,8 +98,9 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, a
     from pathlib import Path
 
     from oapcal.errors import DataError
+    from oapcal.imaging.opencv import opencv_export
     from oapcal.imaging.remap import output_geometry
-    from oapcal.io.opencv_export import maps_path, opencv_export, save_opencv
+    from oapcal.io.opencv_export import maps_path, save_opencv
     from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE
 
     check_output(out, calib)
@@ -97,26 +128,5 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, a
         return 3
     save_opencv(export, out, cal.name or Path(calib).name)
     _say_trust(cal, geometry)
-    w, h = export["new_image_size"]
-    if family is BROWN_CONRADY:
-        click.echo(f"wrote {out}: pass new_image_size {w}x{h} to cv2.initUndistortRectifyMap")
-    elif family is BROWN_CONRADY_POSE:
-        click.echo(
-            f"wrote {out} (exact for the {family.name} model): pass R and new_image_size {w}x{h} "
-            "to cv2.initUndistortRectifyMap"
-        )
-    else:
-        where = f"{out} and {side}" if side is not None else str(out)
-        click.echo(f"wrote {where}: the exact correction is cv2.remap with map_x, map_y ({w}x{h})")
-        cal_part = ""
-        if approx["calibrated_mean_px"] is not None:
-            cal_part = (
-                f"; {approx['calibrated_mean_px']:.3g} px mean, {approx['calibrated_max_px']:.3g} px max "
-                "over the calibrated region"
-            )
-        click.echo(
-            f"no OpenCV coefficient set is exact for the {family.name} model: camera_matrix, dist_coeffs "
-            f"and new_camera_matrix are the best Brown-Conrady approximation, off by {approx['mean_px']:.3g} "
-            f"px mean, {approx['max_px']:.3g} px max over the image{cal_part}"
-        )
+    _say_written(out, side, family, export)
     return 0
