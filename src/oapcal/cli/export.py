@@ -102,6 +102,7 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, a
     from oapcal.imaging.remap import output_geometry
     from oapcal.io.opencv_export import maps_path, save_opencv
     from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE
+    from oapcal.records import ImageSize
 
     check_output(out, calib)
     size = parse_size(image_size) or None
@@ -116,7 +117,9 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, a
     if not size:
         raise DataError(f"{calib}: the calibration has no image_size; give --image-size WxH")
     _check_size(size, "--image-size" if image_size else f"{calib}: image_size")
-    geometry = output_geometry(cal, (size[1], size[0]), extent=extent, um_per_px=um_per_px, out_size=fit_size)
+    geometry = output_geometry(
+        cal, ImageSize(*size).shape, extent=extent, um_per_px=um_per_px, out_size=fit_size
+    )
     export = opencv_export(cal, size, geometry)
     approx = export.get("approximation")
     if approx is not None and not all(math.isfinite(v) for v in (approx["mean_px"], approx["max_px"])):

@@ -38,6 +38,7 @@ import numpy as np
 from oapcal.errors import DataError
 from oapcal.imaging.remap import CorrectionMap, OutputGeometry
 from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE, INDEX, N_PARAMS, family_of, scale_params
+from oapcal.records import ImageSize
 
 #: Memory of a relay export per output pixel: the exact maps (8 B), the approximation's maps
 #: and their error in float64 (about 30 B): measured 41 B (290 MB at 1024 x 1024, 420 MB at
@@ -73,9 +74,10 @@ def opencv_parameters(params, image_size: tuple[int, int], geometry: OutputGeome
     rotation = None
     if family is BROWN_CONRADY_POSE:
         params, rotation = _rectification(params)
-    width, height = int(image_size[0]), int(image_size[1])
+    size = _image_size(image_size)
+    width, height = size
     if geometry is None:
-        geometry = OutputGeometry((height, width))
+        geometry = OutputGeometry(size.shape)
     f = float(max(width, height))
     # scale_params(p, f) is the model for coordinates divided by f: exactly OpenCV's units.
     q = scale_params(params, f)
@@ -100,12 +102,17 @@ def opencv_parameters(params, image_size: tuple[int, int], geometry: OutputGeome
         "dist_coeffs": [k1, k2, p1, p2, 0.0, 0.0, 0.0, 0.0, s1, s2, s3, s4],
         "new_camera_matrix": new,
         "image_size": [width, height],
-        "new_image_size": [int(geometry.shape[1]), int(geometry.shape[0])],
+        "new_image_size": list(ImageSize.of(geometry)),
         "um_per_px": geometry.um_per_px,
     }
     if rotation is not None:
         out = {"model_family": family.name, "exact": True, **out, "R": rotation}
     return out
+
+
+def _image_size(image_size) -> ImageSize:
+    """``image_size`` ``(width, height)`` as whole px."""
+    return ImageSize(int(image_size[0]), int(image_size[1]))
 
 
 def _rectification(params: np.ndarray) -> tuple[np.ndarray, list]:
@@ -179,7 +186,7 @@ def _check_samples(calibration_or_params, params, image_size, geometry: OutputGe
 
     made_for = getattr(calibration_or_params, "image_size", None)
     try:
-        check_model_samples(params, (int(image_size[1]), int(image_size[0])), geometry)
+        check_model_samples(params, _image_size(image_size).shape, geometry)
     except EmptyMapError as exc:
         if made_for is None or tuple(made_for) == tuple(image_size):
             raise
@@ -210,7 +217,7 @@ def _approximation_samples(calibration_or_params, image_size, geometry: OutputGe
     if keep.sum() >= APPROX_MIN_SAMPLES:
         return xy_u, xy_d, keep
     found = f"{int(keep.sum())} of {len(keep)} samples"
-    is_input = (geometry.shape == (height, width) and geometry.x0 == 0 and geometry.y0 == 0
+    is_input = (geometry.shape == ImageSize(width, height).shape and geometry.x0 == 0 and geometry.y0 == 0
                 and geometry.scale == 1)  # fmt: skip
     if is_input:  # the output already is the input's region: the image is the wrong size
         made = getattr(calibration_or_params, "image_size", None)
@@ -248,16 +255,16 @@ def brown_conrady_approximation(
     from oapcal.imaging.remap import correction_map
 
     params = np.asarray(getattr(calibration_or_params, "params", calibration_or_params), float)
-    width, height = int(image_size[0]), int(image_size[1])
-    xy_u, xy_d, keep = _approximation_samples(calibration_or_params, (width, height), geometry)
+    size = _image_size(image_size)
+    xy_u, xy_d, keep = _approximation_samples(calibration_or_params, size, geometry)
     if exact is None:
-        exact = correction_map(params, (height, width), geometry=geometry)
+        exact = correction_map(params, size.shape, geometry=geometry)
     rows, cols = geometry.shape
     result = fit(xy_u[keep], xy_d[keep], "full")
     approx = np.asarray(result.params, float)
-    inside = _inside(exact.map_x, exact.map_y, (width, height))
+    inside = _inside(exact.map_x, exact.map_y, size)
     if np.isfinite(approx).all():
-        ax, ay = correction_map(approx, (height, width), geometry=geometry, check=False)
+        ax, ay = correction_map(approx, size.shape, geometry=geometry, check=False)
         err = np.hypot(ax.astype(float) - exact.map_x, ay.astype(float) - exact.map_y)
     else:
         err = np.full(exact.shape, np.nan)
@@ -303,13 +310,13 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
 
     params = np.asarray(getattr(calibration_or_params, "params", calibration_or_params), float)
     family = family_of(params)
-    width, height = int(image_size[0]), int(image_size[1])
+    size = _image_size(image_size)
     if geometry is None:
-        geometry = OutputGeometry((height, width))
+        geometry = OutputGeometry(size.shape)
     if family in (BROWN_CONRADY, BROWN_CONRADY_POSE):
         # coefficients only, but a calibration whose map samples nothing of the image is refused
-        _check_samples(calibration_or_params, params, (width, height), geometry)
-        return opencv_parameters(params, (width, height), geometry)
+        _check_samples(calibration_or_params, params, size, geometry)
+        return opencv_parameters(params, size, geometry)
     rows, cols = geometry.shape
     need = EXPORT_BYTES_PER_PX * rows * cols
     if need > MAX_EXPORT_BYTES:
@@ -319,11 +326,11 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
             "give a smaller image size or output (the maps hold every output pixel)",
             param=("image_size", "out_size", "um_per_px"),
         )
-    _check_samples(calibration_or_params, params, (width, height), geometry)  # a map of nothing: refused
-    _approximation_samples(calibration_or_params, (width, height), geometry)  # cheap: before the maps
-    exact = correction_map(params, (height, width), geometry=geometry)
-    approx = brown_conrady_approximation(calibration_or_params, (width, height), geometry, exact)
-    coefficients = opencv_parameters(approx.params, (width, height), geometry)
+    _check_samples(calibration_or_params, params, size, geometry)  # a map of nothing: refused
+    _approximation_samples(calibration_or_params, size, geometry)  # cheap: before the maps
+    exact = correction_map(params, size.shape, geometry=geometry)
+    approx = brown_conrady_approximation(calibration_or_params, size, geometry, exact)
+    coefficients = opencv_parameters(approx.params, size, geometry)
     note = (
         f"no OpenCV coefficient set reproduces the {family.name} model: the exact correction is "
         "cv2.remap with map_x, map_y; camera_matrix, dist_coeffs and new_camera_matrix are the best "
