@@ -15,7 +15,6 @@ from __future__ import annotations
 import csv
 import difflib
 import io
-import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,7 @@ import numpy as np
 
 from oapcal.errors import DataError, InputFileError
 from oapcal.io.atomic import atomic_write
-from oapcal.io.userfile import parse_number, read_text
+from oapcal.io.userfile import checked_coordinate, parse_number, read_text
 from oapcal.validate import point_pairs
 
 PAIR_COLUMNS = ("x_u", "y_u", "x_d", "y_d")
@@ -69,17 +68,8 @@ def _parse_float(text: str, name: str, line: int, column: str) -> float:
             f"{name}: line {line}, column {column!r}: {shown} is not a number (give ASCII decimal or "
             "scientific notation, e.g. 47.5 or 4.75e1)"
         ) from None
-    if not math.isfinite(value):
-        raise InputFileError(
-            f"{name}: line {line}, column {column!r}: {text.strip()} is not a finite number; "
-            "remove or fix this row"
-        )
-    if abs(value) > MAX_COORD:
-        raise InputFileError(
-            f"{name}: line {line}, column {column!r}: {text.strip()} is far outside any image "
-            f"(limit {MAX_COORD:g}); remove or fix this row"
-        )
-    return value
+    at = f"{name}: line {line}, column {column!r}"
+    return checked_coordinate(value, MAX_COORD, at, text.strip(), "remove or fix this row")
 
 
 def read_points(

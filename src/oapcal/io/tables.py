@@ -34,7 +34,7 @@ import numpy as np
 
 from oapcal.errors import DataError, InputFileError
 from oapcal.io.landmarks._base import MAX_COORD, csv_rows, first_row, read_text, sniff_delimiter
-from oapcal.io.userfile import parse_number
+from oapcal.io.userfile import checked_coordinate, parse_number
 
 #: Suffixes read as parquet (through pandas and pyarrow).
 PARQUET_SUFFIXES = (".parquet", ".pq")
@@ -217,17 +217,10 @@ def _value(text: str, name: str, line: int, column: str) -> float:
 
 
 def _finite(value: float, name: str, where: str, column: str) -> float:
-    if not math.isfinite(value):
-        raise InputFileError(
-            f"{name}: {where}, column {column!r}: {value} is not a finite number; give a number, or "
-            "leave the cell empty / NaN where a row has no point"
-        )
-    if abs(value) > MAX_COORD:
-        raise InputFileError(
-            f"{name}: {where}, column {column!r}: {value:g} is far outside any image (limit "
-            f"{MAX_COORD:g}); fix or remove the row"
-        )
-    return value
+    # str(value) of nan and inf is value:g
+    fix = "give a number, or leave the cell empty / NaN where a row has no point"
+    return checked_coordinate(value, MAX_COORD, f"{name}: {where}, column {column!r}", f"{value:g}", fix,
+                              "fix or remove the row")  # fmt: skip
 
 
 def _column(header, wanted: str, name: str, param: str) -> int:
