@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import allow_unconverged_option, check_output, load_usable_calibration, parse_size
+from oapcal.cli._common import (
+    allow_unconverged_option,
+    check_output,
+    load_usable_calibration,
+    out_option,
+    parse_size,
+)
 from oapcal.cli.correct import geometry_options
 
 
@@ -73,13 +79,7 @@ MAX_SIDE = 2**20
 
 @click.command("export-opencv")
 @click.argument("calib", type=click.Path(dir_okay=False))
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False),
-    required=True,
-    help="FILE.json, or FILE.yml / FILE.yaml / FILE.xml (OpenCV FileStorage).",
-)
+@out_option("FILE.json, or FILE.yml / FILE.yaml / FILE.xml (OpenCV FileStorage).", dash=False)
 @click.option(
     "--image-size",
     default=None,
