@@ -489,6 +489,9 @@ class FrameWriter:
     writer's own), so that a video corrected into a TIFF keeps its colours.
     """
 
+    # 12 parameters: the output's format and the metadata every kind records, keywords that
+    # batch.stack, batch.distributed and the napari plugin pass by name (one per property of
+    # the output; a record of them would only be unpacked here again).
     def __init__(
         self, path: Path, kind: str, calibration_name=None, um_per_px=None, *, planar=False, expected_bytes=0,
         n_frames=None, source=None, fps=None, bgr=None, calibration=None,

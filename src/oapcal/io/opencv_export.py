@@ -73,35 +73,41 @@ def save_opencv(export: dict, path: str | Path, calibration_name: str | None = N
                 with atomic_path(side) as tmp:  # the maps are renamed first, the JSON after them
                     save_map(cmap, tmp)
         return
+    with atomic_path(path) as tmp:
+        _write_filestorage(export, tmp, calibration_name)
+
+
+def _write_filestorage(export: dict, path: Path, calibration_name: str | None) -> None:
+    """Write an export as OpenCV FileStorage (YAML or XML by ``path``'s suffix)."""
     import cv2
 
-    with atomic_path(path) as tmp:
-        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
-        try:
-            if "model_family" in export:
-                fs.write("model_family", str(export["model_family"]))
-                fs.write("exact", int(bool(export["exact"])))
-            fs.write("camera_matrix", np.array(export["camera_matrix"], float))
-            fs.write("dist_coeffs", np.array(export["dist_coeffs"], float).reshape(1, -1))
-            fs.write("new_camera_matrix", np.array(export["new_camera_matrix"], float))
-            fs.write("image_size", np.array(export["image_size"], np.int32).reshape(1, 2))
-            fs.write("new_image_size", np.array(export["new_image_size"], np.int32).reshape(1, 2))
-            if export.get("um_per_px"):
-                fs.write("um_per_px", float(export["um_per_px"]))
-            if calibration_name:
-                fs.write("calibration", str(calibration_name))
-            if export.get("R") is not None:
-                fs.write("R", np.array(export["R"], float))
-            approx = export.get("approximation")
-            if approx is not None:
-                for key in ("mean_px", "max_px", "calibrated_mean_px", "calibrated_max_px"):
-                    if approx.get(key) is not None:
-                        fs.write(f"approximation_{key}", float(approx[key]))
-                fs.write("approximation_n_pixels", int(approx["n_pixels"]))
-            if export.get("note"):
-                fs.write("note", str(export["note"]))
-            if cmap is not None:
-                fs.write("map_x", np.ascontiguousarray(cmap.map_x, np.float32))
-                fs.write("map_y", np.ascontiguousarray(cmap.map_y, np.float32))
-        finally:
-            fs.release()
+    cmap = export.get("maps")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        if "model_family" in export:
+            fs.write("model_family", str(export["model_family"]))
+            fs.write("exact", int(bool(export["exact"])))
+        fs.write("camera_matrix", np.array(export["camera_matrix"], float))
+        fs.write("dist_coeffs", np.array(export["dist_coeffs"], float).reshape(1, -1))
+        fs.write("new_camera_matrix", np.array(export["new_camera_matrix"], float))
+        fs.write("image_size", np.array(export["image_size"], np.int32).reshape(1, 2))
+        fs.write("new_image_size", np.array(export["new_image_size"], np.int32).reshape(1, 2))
+        if export.get("um_per_px"):
+            fs.write("um_per_px", float(export["um_per_px"]))
+        if calibration_name:
+            fs.write("calibration", str(calibration_name))
+        if export.get("R") is not None:
+            fs.write("R", np.array(export["R"], float))
+        approx = export.get("approximation")
+        if approx is not None:
+            for key in ("mean_px", "max_px", "calibrated_mean_px", "calibrated_max_px"):
+                if approx.get(key) is not None:
+                    fs.write(f"approximation_{key}", float(approx[key]))
+            fs.write("approximation_n_pixels", int(approx["n_pixels"]))
+        if export.get("note"):
+            fs.write("note", str(export["note"]))
+        if cmap is not None:
+            fs.write("map_x", np.ascontiguousarray(cmap.map_x, np.float32))
+            fs.write("map_y", np.ascontiguousarray(cmap.map_y, np.float32))
+    finally:
+        fs.release()

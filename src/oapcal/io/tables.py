@@ -452,6 +452,8 @@ def correct_points_frame(
     >>> out[["x", "x_c", "y_c"]].to_dict("list"), out["converged"].isna().tolist()
     ({'x': [20.0, 5.0], 'x_c': [19.0, nan], 'y_c': [10.0, nan]}, [False, True])
     """
+    # 8 parameters: the frame, the calibration and the public keywords of ``correct-points``
+    # (one per option: columns, preset, units, pixel size, origin).
     table = _table_from_frame(frame, "the DataFrame", *preset_columns(preset, x_column, y_column))
     xy_c, converged, present = correct_xy(table.xy, calibration, units=units,
                                           table_um_per_px=table_um_per_px, origin=origin)  # fmt: skip
