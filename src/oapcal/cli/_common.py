@@ -116,6 +116,16 @@ def count_option(*decls: str, help: str, least: int, default: int):
     return click.option(*decls, type=click.IntRange(min=least), default=default, show_default=True, help=help)
 
 
+def choice_option(*decls: str, choices, default, help: str):
+    """One of ``choices`` (``click.Choice``), its default shown."""
+    return click.option(*decls, type=click.Choice(choices), default=default, show_default=True, help=help)
+
+
+def flag_option(*decls: str, help: str):
+    """An on/off flag, off by default."""
+    return click.option(*decls, is_flag=True, help=help)
+
+
 #: ``--init`` of ``fit`` and ``select``.
 INIT_HELP = (
     "Starting values: 'auto' (default: the data's own centre, scale and turn; a fit also "

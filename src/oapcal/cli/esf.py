@@ -9,6 +9,7 @@ from oapcal.cli._common import (
     console,
     count_option,
     file_option,
+    flag_option,
     json_option,
     positive_option,
     print_json,
@@ -23,10 +24,9 @@ from oapcal.cli._common import (
     "rois_file",
     help="CSV of rectangles x0,y0,x1,y1 (px, inclusive; optional label), one edge each.",
 )
-@click.option(
+@flag_option(
     "--auto",
     "auto",
-    is_flag=True,
     help="Find the edges of the bars and squares of a target image (the default without --rois).",
 )
 @positive_option("--um-per-px", help="Object-space size of one image px (um), for sigma in um.")
