@@ -442,7 +442,9 @@ def correct_points_frame(
     ``calibration`` is a :class:`~oapcal.calibration.Calibration` (``load_calibration``);
     ``preset`` (``"trackpy"``, ``"trackmate"``) names the columns; ``units`` ``"px"`` or
     ``"um"`` (see the module doc); ``origin="corner"`` for tables whose top-left pixel
-    centre is (0.5, 0.5) px.  Needs pandas (``pip install -e '.[tables]'``).
+    centre is (0.5, 0.5) px.  Needs pandas (``pip install -e '.[tables]'``).  A DataFrame
+    without the columns, or with coordinates that are not finite numbers, raises
+    :class:`~oapcal.errors.DataError`.
 
     >>> import pandas as pd
     >>> from oapcal.model import params_from_dict
@@ -454,7 +456,10 @@ def correct_points_frame(
     """
     # 8 parameters: the frame, the calibration and the public keywords of ``correct-points``
     # (one per option: columns, preset, units, pixel size, origin).
-    table = _table_from_frame(frame, "the DataFrame", *preset_columns(preset, x_column, y_column))
+    try:
+        table = _table_from_frame(frame, "the DataFrame", *preset_columns(preset, x_column, y_column))
+    except InputFileError as exc:  # a value in memory, not a file: the same message as a DataError
+        raise DataError(str(exc), param=exc.param) from None
     xy_c, converged, present = correct_xy(table.xy, calibration, units=units,
                                           table_um_per_px=table_um_per_px, origin=origin)  # fmt: skip
     return add_columns(frame, xy_c, converged, present)
