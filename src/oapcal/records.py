@@ -7,11 +7,19 @@ infinity, which are not valid JSON).
 {'a': 1.5, 'b': [None, 2], 'c': [True]}
 >>> finite_or_none(float("inf")) is None
 True
+
+An image's size is one type, :class:`ImageSize` ``(width, height)``; an array's shape is
+``(rows, cols) = (height, width)``:
+
+>>> size = ImageSize.of(np.zeros((480, 640)))
+>>> size, size.shape, size == (640, 480)
+(ImageSize(width=640, height=480), (480, 640), True)
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -34,3 +42,23 @@ def json_safe(value):
     if isinstance(value, (float, np.floating)):
         return finite_or_none(value)
     return value
+
+
+class ImageSize(NamedTuple):
+    """An image's size in px, ``(width, height)``: a tuple wherever one is expected (the
+    ``image_size`` of calibrations, options and files), with :attr:`shape` the NumPy shape
+    ``(rows, cols) = (height, width)`` and :meth:`of` the size of an array."""
+
+    width: int
+    height: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(height, width)``: the ``(rows, cols)`` of an array of this size."""
+        return (self.height, self.width)
+
+    @classmethod
+    def of(cls, array_or_shape) -> ImageSize:
+        """The size of an array (or of a shape ``(rows, cols, ...)``): ``(shape[1], shape[0])``."""
+        shape = getattr(array_or_shape, "shape", array_or_shape)
+        return cls(int(shape[1]), int(shape[0]))

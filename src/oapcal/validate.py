@@ -18,6 +18,7 @@ import operator
 import numpy as np
 
 from oapcal.errors import DataError
+from oapcal.records import ImageSize
 
 #: Pixel types ``cv2.remap`` corrects (and the image readers accept).
 IMAGE_DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
@@ -126,13 +127,14 @@ def positive(value, name: str) -> float:
     return x
 
 
-def image_size(value, name: str = "image_size") -> tuple[int, int]:
-    """An image size ``(width, height)`` in px: two whole numbers of at least 1."""
+def image_size(value, name: str = "image_size") -> ImageSize:
+    """An image size ``(width, height)`` in px: two whole numbers of at least 1, as an
+    :class:`~oapcal.records.ImageSize`."""
     try:
         w, h = value
     except (TypeError, ValueError):
         raise DataError(f"{name} must be (width, height) in px, got {value!r}", param=name) from None
-    return whole_number(w, f"{name} width", 1), whole_number(h, f"{name} height", 1)
+    return ImageSize(whole_number(w, f"{name} width", 1), whole_number(h, f"{name} height", 1))
 
 
 def seed(value, name: str = "seed") -> int:

@@ -202,47 +202,9 @@ def _main(argv: list[str] | None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     try:
         result = cli.main(args=args, prog_name="oapcal", standalone_mode=False)
-    except click.exceptions.Exit as exc:
-        return exc.exit_code
-    except click.UsageError as exc:
-        if type(exc).__name__ == "NoArgsIsHelpError" or exc.ctx is None:
-            exc.show()
-        else:  # one line, as every other error
-            message = sanitize(exc.format_message()).rstrip(".")
-            click.echo(f"oapcal: error: {message} (see '{exc.ctx.command_path} --help')", err=True)
-        return exc.exit_code
-    except click.ClickException as exc:
-        exc.message = sanitize(exc.message)
-        exc.show()
-        return exc.exit_code
-    except click.exceptions.Abort as exc:
-        if isinstance(exc.__cause__, Terminated):
-            return _terminated(exc.__cause__)
-        click.echo("oapcal: aborted", err=True)
-        return 130
-    except _Interrupted as exc:
-        if isinstance(exc.args[0], Terminated):
-            return _terminated(exc.args[0])
-        click.echo("oapcal: interrupted", err=True)
-        return 130
-    except OapcalError as exc:
-        click.echo(f"oapcal: error: {sanitize(exc)}{_flag_hint(exc, args)}", err=True)
-        return 2
-    except Terminated as exc:
-        return _terminated(exc)
-    except KeyboardInterrupt:
-        click.echo("oapcal: interrupted", err=True)
-        return 130
-    except OSError as exc:  # the environment's: permissions, a full disk, a vanished file
-        click.echo(f"oapcal: error: {sanitize(environment_message(exc))}", err=True)
-        return 2
-    except MemoryError:
-        click.echo(
-            "oapcal: error: not enough memory for this command; choose smaller options "
-            "(image size, grid, trials) or free memory",
-            err=True,
-        )
-        return 2
+    except (click.exceptions.Exit, click.ClickException, click.exceptions.Abort, _Interrupted, OapcalError,
+            KeyboardInterrupt, OSError, MemoryError) as exc:  # fmt: skip
+        return _error_code(exc, args)
     except Exception as exc:  # an internal error, not the user's
         if os.environ.get("OAPCAL_DEBUG"):
             raise
@@ -260,6 +222,53 @@ def _main(argv: list[str] | None) -> int:
         click.echo(f"oapcal: error: standard output: cannot be written ({exc.strerror})", err=True)
         return 2
     return code
+
+
+def _error_code(exc: BaseException, args: list[str]) -> int:
+    """Say a user's or the environment's error in one line on stderr; its exit code."""
+    from oapcal.cli._common import sanitize
+    from oapcal.errors import OapcalError
+
+    if isinstance(exc, click.exceptions.Exit):
+        return exc.exit_code
+    if isinstance(exc, click.UsageError):
+        if type(exc).__name__ == "NoArgsIsHelpError" or exc.ctx is None:
+            exc.show()
+        else:  # one line, as every other error
+            message = sanitize(exc.format_message()).rstrip(".")
+            click.echo(f"oapcal: error: {message} (see '{exc.ctx.command_path} --help')", err=True)
+        return exc.exit_code
+    if isinstance(exc, click.ClickException):
+        exc.message = sanitize(exc.message)
+        exc.show()
+        return exc.exit_code
+    if isinstance(exc, click.exceptions.Abort):
+        if isinstance(exc.__cause__, Terminated):
+            return _terminated(exc.__cause__)
+        click.echo("oapcal: aborted", err=True)
+        return 130
+    if isinstance(exc, _Interrupted):
+        if isinstance(exc.args[0], Terminated):
+            return _terminated(exc.args[0])
+        click.echo("oapcal: interrupted", err=True)
+        return 130
+    if isinstance(exc, OapcalError):
+        click.echo(f"oapcal: error: {sanitize(exc)}{_flag_hint(exc, args)}", err=True)
+        return 2
+    if isinstance(exc, Terminated):
+        return _terminated(exc)
+    if isinstance(exc, KeyboardInterrupt):
+        click.echo("oapcal: interrupted", err=True)
+        return 130
+    if isinstance(exc, OSError):  # the environment's: permissions, a full disk, a vanished file
+        click.echo(f"oapcal: error: {sanitize(environment_message(exc))}", err=True)
+        return 2
+    click.echo(  # MemoryError
+        "oapcal: error: not enough memory for this command; choose smaller options "
+        "(image size, grid, trials) or free memory",
+        err=True,
+    )
+    return 2
 
 
 def _silence_stdout() -> None:

@@ -14,14 +14,6 @@ from dataclasses import dataclass
 
 import click
 
-INIT_HELP = (
-    "Starting values: 'auto' (default: the data's own centre, scale and turn; a fit also "
-    "tries the next two and keeps the best), 'zero' (all 0, m = 1; the paper's choice for "
-    "normalized data), 'pixel' (the paper's pixel-scale guesses), or name=value pairs such "
-    "as 'k1=1e-6,m=1'."
-)
-
-
 #: Characters that must not reach a terminal raw: C0 and C1 controls (escape sequences can
 #: set the title, move the cursor, rewrite the screen), DEL, and Unicode line separators and
 #: bidirectional overrides (which can make text read differently than it is).
@@ -91,6 +83,56 @@ class PointsUsageError(click.ClickException):
 
     def show(self, file=None):
         click.echo(f"oapcal: error: {sanitize(self.format_message())}", err=True)
+
+
+# One declaration per kind of option; each command gives its flag, Python name and help.
+
+
+def file_option(*decls: str, help: str, dash: bool = False, required: bool = False):
+    """An option naming a file (``click.Path(dir_okay=False)``; ``dash``: ``-`` means
+    stdin/stdout), ``required`` or else None by default."""
+    given = {"required": True} if required else {"default": None}
+    return click.option(*decls, type=click.Path(dir_okay=False, allow_dash=dash), **given, help=help)
+
+
+def out_option(help: str, *, required: bool = True, dash: bool = True):
+    """``--out FILE`` (Python name ``out``)."""
+    return file_option("--out", "out", help=help, dash=dash, required=required)
+
+
+def json_option(help: str = "Print one JSON object instead of tables."):
+    """The ``--json`` flag (Python name ``as_json``)."""
+    return click.option("--json", "as_json", is_flag=True, help=help)
+
+
+def positive_option(*decls: str, help: str, **given):
+    """A positive number (``FloatRange(min=0, min_open=True)``), None by default."""
+    given.setdefault("default", None)
+    return click.option(*decls, type=click.FloatRange(min=0, min_open=True), **given, help=help)
+
+
+def count_option(*decls: str, help: str, least: int, default: int):
+    """A whole number of at least ``least`` (``IntRange(min=least)``), its default shown."""
+    return click.option(*decls, type=click.IntRange(min=least), default=default, show_default=True, help=help)
+
+
+def choice_option(*decls: str, choices, default, help: str):
+    """One of ``choices`` (``click.Choice``), its default shown."""
+    return click.option(*decls, type=click.Choice(choices), default=default, show_default=True, help=help)
+
+
+def flag_option(*decls: str, help: str):
+    """An on/off flag, off by default."""
+    return click.option(*decls, is_flag=True, help=help)
+
+
+#: ``--init`` of ``fit`` and ``select``.
+INIT_HELP = (
+    "Starting values: 'auto' (default: the data's own centre, scale and turn; a fit also "
+    "tries the next two and keeps the best), 'zero' (all 0, m = 1; the paper's choice for "
+    "normalized data), 'pixel' (the paper's pixel-scale guesses), or name=value pairs such "
+    "as 'k1=1e-6,m=1'."
+)
 
 
 #: ``correct``, ``correct-points`` and ``export-opencv``: use a calibration whose fit did not

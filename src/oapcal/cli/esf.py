@@ -4,45 +4,37 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, print_json, progress_bar
+from oapcal.cli._common import (
+    check_output,
+    console,
+    count_option,
+    file_option,
+    flag_option,
+    json_option,
+    positive_option,
+    print_json,
+    progress_bar,
+)
 
 
 @click.command("esf")
 @click.argument("image", type=click.Path(dir_okay=False))
-@click.option(
+@file_option(
     "--rois",
     "rois_file",
-    type=click.Path(dir_okay=False),
-    default=None,
     help="CSV of rectangles x0,y0,x1,y1 (px, inclusive; optional label), one edge each.",
 )
-@click.option(
+@flag_option(
     "--auto",
     "auto",
-    is_flag=True,
     help="Find the edges of the bars and squares of a target image (the default without --rois).",
 )
-@click.option(
-    "--um-per-px",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="Object-space size of one image px (um), for sigma in um.",
+@positive_option("--um-per-px", help="Object-space size of one image px (um), for sigma in um.")
+@count_option(
+    "--half-width", least=2, default=10, help="With --auto: at most this many px each side of an edge."
 )
-@click.option(
-    "--half-width",
-    type=click.IntRange(min=2),
-    default=10,
-    show_default=True,
-    help="With --auto: at most this many px each side of an edge.",
-)
-@click.option(
-    "--plot",
-    "plot",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Write a PNG of the sigma distribution and example fits here.",
-)
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+@file_option("--plot", "plot", help="Write a PNG of the sigma distribution and example fits here.")
+@json_option()
 def esf_command(image, rois_file, auto, um_per_px, half_width, plot, as_json):
     """Fit error functions to straight edges of IMAGE and report the Gaussian PSF sigma."""  # fmt: skip
     if rois_file is not None and auto:

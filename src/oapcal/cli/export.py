@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import allow_unconverged_option, check_output, load_usable_calibration, parse_size
+from oapcal.cli._common import (
+    allow_unconverged_option,
+    check_output,
+    load_usable_calibration,
+    out_option,
+    parse_size,
+)
 from oapcal.cli.correct import geometry_options
 
 
@@ -37,66 +43,12 @@ def _say_trust(cal, geometry) -> None:
         click.echo(line, err=True)
 
 
-#: The longest image side accepted (the pixel count is limited too).
-MAX_SIDE = 2**20
-
-
-@click.command("export-opencv")
-@click.argument("calib", type=click.Path(dir_okay=False))
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False),
-    required=True,
-    help="FILE.json, or FILE.yml / FILE.yaml / FILE.xml (OpenCV FileStorage).",
-)
-@click.option(
-    "--image-size",
-    default=None,
-    help="Input image size WxH in px (default: the calibration's image_size).",
-)
-@geometry_options
-@allow_unconverged_option
-def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, allow_unconverged):
-    """Write camera_matrix, dist_coeffs and new_camera_matrix for cv2.initUndistortRectifyMap.
-
-    A relay calibration has no exact OpenCV coefficients: the export then also holds the
-    exact maps for cv2.remap (map_x, map_y; beside a .json file in FILE.maps.npz) and says
-    how far the coefficients (the best Eq. (1) approximation) are from them.
-    """
-    import math
-    from pathlib import Path
-
-    from oapcal.errors import DataError
-    from oapcal.imaging.remap import output_geometry
-    from oapcal.io.opencv_export import maps_path, opencv_export, save_opencv
+def _say_written(out, side, family, export) -> None:
+    """Say what was written and, for a family without exact coefficients, how far the
+    coefficients (the best Eq. (1) approximation) are from the exact maps."""
     from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE
 
-    check_output(out, calib)
-    size = parse_size(image_size) or None
-    fit_size = parse_size(out_size, "--out-size")
-    cal = load_usable_calibration(calib, allow_unconverged)
-    family = cal.family
-    side = None
-    if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE) and Path(out).suffix.lower() == ".json":
-        side = maps_path(out)
-        check_output(str(side), calib)
-    size = size or cal.image_size
-    if not size:
-        raise DataError(f"{calib}: the calibration has no image_size; give --image-size WxH")
-    _check_size(size, "--image-size" if image_size else f"{calib}: image_size")
-    geometry = output_geometry(cal, (size[1], size[0]), extent=extent, um_per_px=um_per_px, out_size=fit_size)
-    export = opencv_export(cal, size, geometry)
     approx = export.get("approximation")
-    if approx is not None and not all(math.isfinite(v) for v in (approx["mean_px"], approx["max_px"])):
-        click.echo(
-            f"oapcal: {calib}: the Eq. (1) approximation of the {family.name} model failed "
-            "(no finite coefficients); nothing written",
-            err=True,
-        )
-        return 3
-    save_opencv(export, out, cal.name or Path(calib).name)
-    _say_trust(cal, geometry)
     w, h = export["new_image_size"]
     if family is BROWN_CONRADY:
         click.echo(f"wrote {out}: pass new_image_size {w}x{h} to cv2.initUndistortRectifyMap")
@@ -119,4 +71,65 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, a
             f"and new_camera_matrix are the best Brown-Conrady approximation, off by {approx['mean_px']:.3g} "
             f"px mean, {approx['max_px']:.3g} px max over the image{cal_part}"
         )
+
+
+#: The longest image side accepted (the pixel count is limited too).
+MAX_SIDE = 2**20
+
+
+@click.command("export-opencv")
+@click.argument("calib", type=click.Path(dir_okay=False))
+@out_option("FILE.json, or FILE.yml / FILE.yaml / FILE.xml (OpenCV FileStorage).", dash=False)
+@click.option(
+    "--image-size",
+    default=None,
+    help="Input image size WxH in px (default: the calibration's image_size).",
+)
+@geometry_options
+@allow_unconverged_option
+def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, allow_unconverged):
+    """Write camera_matrix, dist_coeffs and new_camera_matrix for cv2.initUndistortRectifyMap.
+
+    A relay calibration has no exact OpenCV coefficients: the export then also holds the
+    exact maps for cv2.remap (map_x, map_y; beside a .json file in FILE.maps.npz) and says
+    how far the coefficients (the best Eq. (1) approximation) are from them.
+    """
+    import math
+    from pathlib import Path
+
+    from oapcal.errors import DataError
+    from oapcal.imaging.opencv import opencv_export
+    from oapcal.imaging.remap import output_geometry
+    from oapcal.io.opencv_export import maps_path, save_opencv
+    from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE
+    from oapcal.records import ImageSize
+
+    check_output(out, calib)
+    size = parse_size(image_size) or None
+    fit_size = parse_size(out_size, "--out-size")
+    cal = load_usable_calibration(calib, allow_unconverged)
+    family = cal.family
+    side = None
+    if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE) and Path(out).suffix.lower() == ".json":
+        side = maps_path(out)
+        check_output(str(side), calib)
+    size = size or cal.image_size
+    if not size:
+        raise DataError(f"{calib}: the calibration has no image_size; give --image-size WxH")
+    _check_size(size, "--image-size" if image_size else f"{calib}: image_size")
+    geometry = output_geometry(
+        cal, ImageSize(*size).shape, extent=extent, um_per_px=um_per_px, out_size=fit_size
+    )
+    export = opencv_export(cal, size, geometry)
+    approx = export.get("approximation")
+    if approx is not None and not all(math.isfinite(v) for v in (approx["mean_px"], approx["max_px"])):
+        click.echo(
+            f"oapcal: {calib}: the Eq. (1) approximation of the {family.name} model failed "
+            "(no finite coefficients); nothing written",
+            err=True,
+        )
+        return 3
+    save_opencv(export, out, cal.name or Path(calib).name)
+    _say_trust(cal, geometry)
+    _say_written(out, side, family, export)
     return 0

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, landmark_options, load_pairs, print_json, sanitize
+from oapcal.cli._common import (
+    check_output,
+    json_option,
+    landmark_options,
+    load_pairs,
+    out_option,
+    print_json,
+    sanitize,
+)
 
 
 @click.group("landmarks")
@@ -14,14 +22,8 @@ def landmarks_group():
 
 @landmarks_group.command("convert")
 @landmark_options
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    required=True,
-    help="Output point-pair CSV (id,x_u,y_u,x_d,y_d); '-' for stdout.",
-)
-@click.option("--json", "as_json", is_flag=True, help="Print a one-object JSON summary.")
+@out_option("Output point-pair CSV (id,x_u,y_u,x_d,y_d); '-' for stdout.")
+@json_option("Print a one-object JSON summary.")
 def convert_command(source, out, as_json):
     """Pair the landmarks of a distorted and a reference image into a point-pair CSV.
 

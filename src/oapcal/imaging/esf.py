@@ -163,27 +163,11 @@ def check_rois(rois, shape, labels=None) -> list[tuple[int, int, int, int]]:
     return out
 
 
-def fit_edge(image: np.ndarray, roi, *, um_per_px: float | None = None, label: str = "") -> EdgeFit:
-    """Fit the error-function ESF to the one straight edge inside ``roi`` (module docstring).
-
-    Never raises on numerical failure: a failed or untrustworthy fit has ``ok = False``.
-    Raises :class:`~oapcal.errors.DataError` when the ROI does not fit in the image.
-    """
-    from scipy.optimize import least_squares
-    from scipy.special import ndtr
-
-    image = np.asarray(image, float)
-    x0, y0, x1, y1 = check_roi(roi, image.shape, label or "ROI")
-    sub = image[y0 : y1 + 1, x0 : x1 + 1]
-    # Orientation: the axis along which the mean profile changes most.
-    span_x = float(np.ptp(sub.mean(axis=0)))
-    span_y = float(np.ptp(sub.mean(axis=1)))
-    vertical = span_x >= span_y
-    data = sub if vertical else sub.T  # the edge now varies along axis 1 (u), lines along axis 0 (v)
+def _edge_start(data: np.ndarray) -> tuple[float, float, float, float, float]:
+    """Start of the fit of an edge varying along axis 1 of ``data``: the levels from the two
+    ends of the profile, the line from the gradient centroid of every line (a straight-line
+    fit through them), and a blur from the steepest gradient."""
     n_v, n_u = data.shape
-    vv, uu = np.mgrid[0:n_v, 0:n_u].astype(float)
-    # Start: the levels from the two ends of the profile, the line from the gradient
-    # centroid of every line (a straight-line fit through them).
     profile = data.mean(axis=0)
     q = max(1, n_u // 4)
     low0, high0 = float(profile[:q].mean()), float(profile[-q:].mean())
@@ -197,15 +181,72 @@ def fit_edge(image: np.ndarray, roi, *, um_per_px: float | None = None, label: s
     else:
         b0, a0 = 0.0, (n_u - 1) / 2
     sigma0 = max(0.5, min(abs(high0 - low0) / max(grad.max(), 1e-12) * 0.4, n_u / 4))
+    return low0, high0, a0, b0, sigma0
 
-    def model(p):
-        low, high, a, b, sigma = p
-        d = (uu - a - b * vv) / math.sqrt(1.0 + b * b)
-        return low + (high - low) * ndtr(d / sigma)
+
+def _erf_fit(data: np.ndarray, uu: np.ndarray, vv: np.ndarray, start):
+    """Least-squares fit of ``low + (high - low) * Phi(d / sigma)`` (``d`` the distance from
+    the line ``u = a + b v``) to ``data``: the parameters ``(low, high, a, b, sigma)``, the
+    standard error of sigma, the residual variance and the solver's verdict and message."""
+    from scipy.optimize import least_squares
+    from scipy.special import ndtr
 
     def residuals(p):
-        return (model(p) - data).ravel()
+        low, high, a, b, sigma = p
+        d = (uu - a - b * vv) / math.sqrt(1.0 + b * b)
+        return (low + (high - low) * ndtr(d / sigma) - data).ravel()
 
+    n_u = data.shape[1]
+    lo_b = [-np.inf, -np.inf, -1.0, -1.0, 0.05]
+    hi_b = [np.inf, np.inf, float(n_u), 1.0, float(n_u)]
+    p0 = np.clip(np.array(start), np.array(lo_b) + 1e-9, np.array(hi_b) - 1e-9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        sol = least_squares(residuals, p0, bounds=(lo_b, hi_b), x_scale="jac", method="trf")
+    res = sol.fun
+    dof = max(res.size - 5, 1)
+    s2 = float(res @ res) / dof
+    try:
+        jtj = sol.jac.T @ sol.jac
+        cov = np.linalg.inv(jtj) * s2
+        sigma_err = float(math.sqrt(max(cov[4, 4], 0.0)))
+    except np.linalg.LinAlgError:
+        sigma_err = float("nan")
+    return tuple(float(v) for v in sol.x), sigma_err, s2, bool(sol.success), str(sol.message)
+
+
+def _edge_verdict(ok: bool, message: str, contrast: float, noise: float, centre_u: float, n_u: int,
+                  sigma: float) -> tuple[bool, str]:  # fmt: skip
+    """Whether a converged fit is trustworthy, and the message saying why not (or ``ok``)."""
+    if ok and not contrast > 5 * noise:
+        return False, f"no clear edge: contrast {contrast:.3g} is below 5x the noise {noise:.3g}"
+    if ok and not (0 <= centre_u <= n_u - 1):
+        return False, "the fitted edge lies outside the ROI"
+    if ok and 3 * sigma > max(centre_u, n_u - 1 - centre_u):
+        return False, "the ROI is too narrow for this blur: widen it to at least 3 sigma each side"
+    if ok and sigma <= 0.051:
+        return False, "sigma hit its lower bound (0.05 px): the edge is not resolved by the pixels"
+    return ok, "ok" if ok else message
+
+
+def fit_edge(image: np.ndarray, roi, *, um_per_px: float | None = None, label: str = "") -> EdgeFit:
+    """Fit the error-function ESF to the one straight edge inside ``roi`` (module docstring).
+
+    Never raises on numerical failure: a failed or untrustworthy fit has ``ok = False``.
+    Raises :class:`~oapcal.errors.DataError` when the ROI does not fit in the image.
+    """
+    image = np.asarray(image, float)
+    x0, y0, x1, y1 = check_roi(roi, image.shape, label or "ROI")
+    sub = image[y0 : y1 + 1, x0 : x1 + 1]
+    # Orientation: the axis along which the mean profile changes most.
+    span_x = float(np.ptp(sub.mean(axis=0)))
+    span_y = float(np.ptp(sub.mean(axis=1)))
+    vertical = span_x >= span_y
+    data = sub if vertical else sub.T  # the edge now varies along axis 1 (u), lines along axis 0 (v)
+    n_v, n_u = data.shape
+    vv, uu = np.mgrid[0:n_v, 0:n_u].astype(float)
+    start = _edge_start(data)
+    low0, high0 = start[0], start[1]
     contrast = abs(high0 - low0)
     orientation = "vertical" if vertical else "horizontal"
     # Noise from differences along the edge (robust: median absolute deviation).
@@ -218,59 +259,21 @@ def fit_edge(image: np.ndarray, roi, *, um_per_px: float | None = None, label: s
             ok=False, message=f"no clear edge: contrast {contrast:.3g} is below 5x the noise {noise0:.3g}",
             um_per_px=um_per_px, label=label, distance=np.zeros(0), values=np.zeros(0),
         )  # fmt: skip
-    p0 = np.array([low0, high0, a0, b0, sigma0])
-    lo_b = [-np.inf, -np.inf, -1.0, -1.0, 0.05]
-    hi_b = [np.inf, np.inf, float(n_u), 1.0, float(n_u)]
-    p0 = np.clip(p0, np.array(lo_b) + 1e-9, np.array(hi_b) - 1e-9)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        sol = least_squares(residuals, p0, bounds=(lo_b, hi_b), x_scale="jac", method="trf")
-    low, high, a, b, sigma = (float(v) for v in sol.x)
-    res = sol.fun
-    dof = max(res.size - 5, 1)
-    s2 = float(res @ res) / dof
-    try:
-        jtj = sol.jac.T @ sol.jac
-        cov = np.linalg.inv(jtj) * s2
-        sigma_err = float(math.sqrt(max(cov[4, 4], 0.0)))
-    except np.linalg.LinAlgError:
-        sigma_err = float("nan")
-    ok, message = bool(sol.success), str(sol.message)
+    (low, high, a, b, sigma), sigma_err, s2, ok, message = _erf_fit(data, uu, vv, start)
     noise = math.sqrt(s2)
     centre_v = (n_v - 1) / 2
     centre_u = a + b * centre_v
-    if ok and not contrast > 5 * noise:
-        ok, message = False, f"no clear edge: contrast {contrast:.3g} is below 5x the noise {noise:.3g}"
-    elif ok and not (0 <= centre_u <= n_u - 1):
-        ok, message = False, "the fitted edge lies outside the ROI"
-    elif ok and 3 * sigma > max(centre_u, n_u - 1 - centre_u):
-        ok, message = False, "the ROI is too narrow for this blur: widen it to at least 3 sigma each side"
-    elif ok and sigma <= 0.051:
-        ok, message = False, "sigma hit its lower bound (0.05 px): the edge is not resolved by the pixels"
-    elif ok:
-        message = "ok"
+    ok, message = _edge_verdict(ok, message, contrast, noise, centre_u, n_u, sigma)
     distance = ((uu - a - b * vv) / math.sqrt(1.0 + b * b)).ravel()
-    values = data.ravel()
     if high < low:  # a falling edge: report levels as dark/bright with a positive sigma
         distance = -distance
     centre = (x0 + centre_u, y0 + centre_v) if vertical else (x0 + centre_v, y0 + centre_u)
     return EdgeFit(
-        roi=(x0, y0, x1, y1),
-        orientation=orientation,
-        sigma_px=sigma,
-        sigma_err_px=sigma_err,
-        angle_deg=math.degrees(math.atan(b)),
-        centre=(float(centre[0]), float(centre[1])),
-        low=min(low, high),
-        high=max(low, high),
-        rms=noise,
-        ok=ok,
-        message=message,
-        um_per_px=um_per_px,
-        label=label,
-        distance=distance,
-        values=values,
-    )
+        roi=(x0, y0, x1, y1), orientation=orientation, sigma_px=sigma, sigma_err_px=sigma_err,
+        angle_deg=math.degrees(math.atan(b)), centre=(float(centre[0]), float(centre[1])),
+        low=min(low, high), high=max(low, high), rms=noise, ok=ok, message=message,
+        um_per_px=um_per_px, label=label, distance=distance, values=data.ravel(),
+    )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -419,50 +422,60 @@ def find_edge_rois(
     ``(rows, cols)``, ROIs that hold an invalid pixel are left out.
     """
     comp = find_components(image, min_area)
-    rows, cols = image.shape
     fg = comp.labels > 0
     rois, labels = [], []
-    for k, (bx0, by0, bx1, by1) in enumerate(comp.boxes):
-        w, h = bx1 - bx0 + 1, by1 - by0 + 1
+    for k, box in enumerate(comp.boxes):
         for side_index, side in enumerate(SIDES):
             if comp.touches[k, side_index]:
                 continue
-            vertical = side in ("left", "right")
-            length = h if vertical else w
-            trim = max(3, length // 5)
-            a0, a1 = (by0, by1) if vertical else (bx0, bx1)
-            a0, a1 = a0 + trim, a1 - trim
-            if a1 - a0 + 1 < min_length:
+            roi = _side_roi(fg, box, side, half_width, min_length)
+            if roi is None:
                 continue
-            thickness = w if vertical else h
-            # The edge lies half-way between the last foreground and first background pixel.
-            if side == "left":
-                edge, outward = bx0, -1
-            elif side == "right":
-                edge, outward = bx1 + 1, 1
-            elif side == "top":
-                edge, outward = by0, -1
-            else:
-                edge, outward = by1 + 1, 1
-            gap = half_width * 2
-            for step in range(1, 2 * half_width + 1):
-                pos = edge - 1 - (step - 1) if outward < 0 else edge + (step - 1)
-                if not (0 <= pos < (cols if vertical else rows)):
-                    gap = step - 1
-                    break
-                strip = fg[a0 : a1 + 1, pos] if vertical else fg[pos, a0 : a1 + 1]
-                if strip.any():
-                    gap = step - 1
-                    break
-            hw = int(min(half_width, thickness // 2, gap // 2 if gap < 2 * half_width else half_width))
-            if hw < 2:
-                continue
-            c0, c1 = edge - hw, edge + hw - 1
-            if c0 < 0 or c1 >= (cols if vertical else rows):
-                continue
-            roi = (c0, a0, c1, a1) if vertical else (a0, c0, a1, c1)
             if valid is not None and not valid[roi[1] : roi[3] + 1, roi[0] : roi[2] + 1].all():
                 continue
             rois.append(tuple(int(v) for v in roi))
             labels.append(f"bar {k + 1} {side}")
     return rois, labels
+
+
+def _side_roi(fg: np.ndarray, box, side: str, half_width: int, min_length: int):
+    """The ROI ``(x0, y0, x1, y1)`` across one ``side`` of the component in ``box`` of the
+    foreground ``fg`` (:func:`find_edge_rois`), or None when the side is too short or too
+    close to the image border or the next component."""
+    rows, cols = fg.shape
+    bx0, by0, bx1, by1 = box
+    w, h = bx1 - bx0 + 1, by1 - by0 + 1
+    vertical = side in ("left", "right")
+    length = h if vertical else w
+    trim = max(3, length // 5)
+    a0, a1 = (by0, by1) if vertical else (bx0, bx1)
+    a0, a1 = a0 + trim, a1 - trim
+    if a1 - a0 + 1 < min_length:
+        return None
+    thickness = w if vertical else h
+    # The edge lies half-way between the last foreground and first background pixel.
+    if side == "left":
+        edge, outward = bx0, -1
+    elif side == "right":
+        edge, outward = bx1 + 1, 1
+    elif side == "top":
+        edge, outward = by0, -1
+    else:
+        edge, outward = by1 + 1, 1
+    gap = half_width * 2
+    for step in range(1, 2 * half_width + 1):
+        pos = edge - 1 - (step - 1) if outward < 0 else edge + (step - 1)
+        if not (0 <= pos < (cols if vertical else rows)):
+            gap = step - 1
+            break
+        strip = fg[a0 : a1 + 1, pos] if vertical else fg[pos, a0 : a1 + 1]
+        if strip.any():
+            gap = step - 1
+            break
+    hw = int(min(half_width, thickness // 2, gap // 2 if gap < 2 * half_width else half_width))
+    if hw < 2:
+        return None
+    c0, c1 = edge - hw, edge + hw - 1
+    if c0 < 0 or c1 >= (cols if vertical else rows):
+        return None
+    return (c0, a0, c1, a1) if vertical else (a0, c0, a1, c1)

@@ -133,12 +133,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", *, clean: bool = True
     if "b" not in mode:
         open_kwargs.setdefault("encoding", "utf-8")
         open_kwargs.setdefault("newline", "")
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
-    check_output_target(path)
-    if clean:
-        _clean_beside(directory, path)
+    directory = _output_directory(path, clean)
     fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.name, ".tmp"), suffix=".tmp", dir=directory)
     try:
         with _naming_output(path), os.fdopen(fd, mode, **open_kwargs) as fh:
@@ -153,6 +148,18 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", *, clean: bool = True
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def _output_directory(path: Path, clean: bool) -> Path:
+    """The existing directory ``path`` is written in (refused if missing, or when ``path``
+    may not be replaced), its stale temporary files of ``path`` removed when ``clean``."""
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
+    check_output_target(path)
+    if clean:
+        _clean_beside(directory, path)
+    return directory
 
 
 @contextlib.contextmanager
@@ -176,12 +183,7 @@ def atomic_path(path: str | os.PathLike, *, clean: bool = True) -> Iterator[Path
     The temporary name keeps ``path``'s suffix so writers pick the right format.
     """
     path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise OutputError(f"{path}: the output directory {directory} does not exist; create it first")
-    check_output_target(path)
-    if clean:
-        _clean_beside(directory, path)
+    directory = _output_directory(path, clean)
     suffix = f".tmp{path.suffix}"
     fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.stem, suffix), suffix=suffix, dir=directory)
     if fcntl is None:  # Windows cannot rename an open file

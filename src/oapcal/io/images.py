@@ -38,6 +38,7 @@ from oapcal.errors import InputFileError
 from oapcal.io.ome import OME_ZARR_SUFFIX, is_ome_tiff_path
 from oapcal.io.userfile import MAX_PIXELS, check_input_file
 from oapcal.io.video import VIDEO_SUFFIXES
+from oapcal.records import ImageSize
 from oapcal.validate import IMAGE_DTYPES
 
 TIFF_SUFFIXES = (".tif", ".tiff")
@@ -296,9 +297,9 @@ def probe(path: str | Path, max_pixels: int = MAX_PIXELS) -> ImageInfo:
         width, height, n_frames, fps = video_header(path)
         _check_pixels(path, width, height, max_pixels)
         return ImageInfo(path, "video", n_frames, (height, width, 3), np.dtype(np.uint8), fps=fps)
-    width, height = header_size(path)
-    _check_pixels(path, width, height, max_pixels)
-    return ImageInfo(path, "opencv", 1, (height, width), None)
+    size = ImageSize(*header_size(path))
+    _check_pixels(path, size.width, size.height, max_pixels)
+    return ImageInfo(path, "opencv", 1, size.shape, None)
 
 
 def check_frame(path: Path, frame: np.ndarray) -> None:
@@ -488,6 +489,9 @@ class FrameWriter:
     writer's own), so that a video corrected into a TIFF keeps its colours.
     """
 
+    # 12 parameters: the output's format and the metadata every kind records, keywords that
+    # batch.stack, batch.distributed and the napari plugin pass by name (one per property of
+    # the output; a record of them would only be unpacked here again).
     def __init__(
         self, path: Path, kind: str, calibration_name=None, um_per_px=None, *, planar=False, expected_bytes=0,
         n_frames=None, source=None, fps=None, bgr=None, calibration=None,

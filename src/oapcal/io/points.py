@@ -15,7 +15,6 @@ from __future__ import annotations
 import csv
 import difflib
 import io
-import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,7 @@ import numpy as np
 
 from oapcal.errors import DataError, InputFileError
 from oapcal.io.atomic import atomic_write
-from oapcal.io.userfile import parse_number, read_text
+from oapcal.io.userfile import checked_coordinate, parse_number, read_text
 from oapcal.validate import point_pairs
 
 PAIR_COLUMNS = ("x_u", "y_u", "x_d", "y_d")
@@ -69,17 +68,8 @@ def _parse_float(text: str, name: str, line: int, column: str) -> float:
             f"{name}: line {line}, column {column!r}: {shown} is not a number (give ASCII decimal or "
             "scientific notation, e.g. 47.5 or 4.75e1)"
         ) from None
-    if not math.isfinite(value):
-        raise InputFileError(
-            f"{name}: line {line}, column {column!r}: {text.strip()} is not a finite number; "
-            "remove or fix this row"
-        )
-    if abs(value) > MAX_COORD:
-        raise InputFileError(
-            f"{name}: line {line}, column {column!r}: {text.strip()} is far outside any image "
-            f"(limit {MAX_COORD:g}); remove or fix this row"
-        )
-    return value
+    at = f"{name}: line {line}, column {column!r}"
+    return checked_coordinate(value, MAX_COORD, at, text.strip(), "remove or fix this row")
 
 
 def read_points(
@@ -107,38 +97,10 @@ def read_points(
         header = [h.strip() for h in next(reader)]
     except csv.Error as exc:
         raise InputFileError(f"{name}: line 1: malformed CSV header ({exc})") from None
-    missing = [c for c in require if c not in header]
-    if missing:
-        hints = []
-        spare = [h for h in header if h not in PAIR_COLUMNS]  # a close match must not be needed itself
-        for col in missing:
-            close = difflib.get_close_matches(col, spare, n=1, cutoff=0.6)
-            hints.append(f"{col!r}" + (f" (found {close[0]!r}: rename it)" if close else ""))
-        raise InputFileError(
-            f"{name}: line 1: missing column{'s' if len(missing) > 1 else ''} {', '.join(hints)}; "
-            f"the header must contain {','.join(require)}{delimiter_hint(header)}"
-        )
-    dupes = sorted({h for h in header if header.count(h) > 1 and h in PAIR_COLUMNS + ("id",)})
-    if dupes:
-        raise InputFileError(f"{name}: line 1: column {dupes[0]!r} appears more than once; keep one")
+    _check_header(header, require, name)
     col = {h: i for i, h in enumerate(header)}
-    rows, lines, values = [], [], []
     present = [c for c in PAIR_COLUMNS if c in col]
-    try:
-        for row in reader:
-            line = reader.line_num
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) < len(header):
-                raise InputFileError(
-                    f"{name}: line {line}: {len(row)} cells but the header has {len(header)} columns; "
-                    "fill in the missing cells"
-                )
-            values.append([_parse_float(row[col[c]], name, line, c) for c in present])
-            rows.append({h: row[i] for i, h in enumerate(header)})
-            lines.append(line)
-    except csv.Error as exc:
-        raise InputFileError(f"{name}: line {reader.line_num}: malformed CSV ({exc})") from None
+    rows, lines, values = _data_rows(reader, header, present, name)
     if not rows:
         raise InputFileError(f"{name}: has a header but no data rows; add point pairs")
     arr = np.full((len(rows), 4), np.nan)
@@ -155,17 +117,63 @@ def read_points(
         source=name,
     )
     if ids is not None:
-        seen: dict[str, int] = {}
-        for i, ident in enumerate(ids):
-            if ident in seen:
-                raise InputFileError(
-                    f"{name}: line {lines[i]}: id {ident!r} already used on line {seen[ident]}; "
-                    "ids must be unique"
-                )
-            seen[ident] = lines[i]
+        _check_unique_ids(ids, lines, name)
     if check_geometry:
         check_geometry_of(pairs)
     return pairs
+
+
+def _check_header(header: list[str], require, name: str) -> None:
+    """Refuse a header without the ``require`` columns (suggesting a close name) or with a
+    point column twice."""
+    missing = [c for c in require if c not in header]
+    if missing:
+        hints = []
+        spare = [h for h in header if h not in PAIR_COLUMNS]  # a close match must not be needed itself
+        for col in missing:
+            close = difflib.get_close_matches(col, spare, n=1, cutoff=0.6)
+            hints.append(f"{col!r}" + (f" (found {close[0]!r}: rename it)" if close else ""))
+        raise InputFileError(
+            f"{name}: line 1: missing column{'s' if len(missing) > 1 else ''} {', '.join(hints)}; "
+            f"the header must contain {','.join(require)}{delimiter_hint(header)}"
+        )
+    dupes = sorted({h for h in header if header.count(h) > 1 and h in PAIR_COLUMNS + ("id",)})
+    if dupes:
+        raise InputFileError(f"{name}: line 1: column {dupes[0]!r} appears more than once; keep one")
+
+
+def _data_rows(reader, header: list[str], present: list[str], name: str):
+    """The non-blank rows after the header: each as a dict, its line and the numbers of
+    its ``present`` point columns."""
+    col = {h: i for i, h in enumerate(header)}
+    rows, lines, values = [], [], []
+    try:
+        for row in reader:
+            line = reader.line_num
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) < len(header):
+                raise InputFileError(
+                    f"{name}: line {line}: {len(row)} cells but the header has {len(header)} columns; "
+                    "fill in the missing cells"
+                )
+            values.append([_parse_float(row[col[c]], name, line, c) for c in present])
+            rows.append({h: row[i] for i, h in enumerate(header)})
+            lines.append(line)
+    except csv.Error as exc:
+        raise InputFileError(f"{name}: line {reader.line_num}: malformed CSV ({exc})") from None
+    return rows, lines, values
+
+
+def _check_unique_ids(ids, lines, name: str) -> None:
+    seen: dict[str, int] = {}
+    for i, ident in enumerate(ids):
+        if ident in seen:
+            raise InputFileError(
+                f"{name}: line {lines[i]}: id {ident!r} already used on line {seen[ident]}; "
+                "ids must be unique"
+            )
+        seen[ident] = lines[i]
 
 
 def delimiter_hint(header: list[str]) -> str:

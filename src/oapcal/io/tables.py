@@ -34,7 +34,7 @@ import numpy as np
 
 from oapcal.errors import DataError, InputFileError
 from oapcal.io.landmarks._base import MAX_COORD, csv_rows, first_row, read_text, sniff_delimiter
-from oapcal.io.userfile import parse_number
+from oapcal.io.userfile import checked_coordinate, parse_number
 
 #: Suffixes read as parquet (through pandas and pyarrow).
 PARQUET_SUFFIXES = (".parquet", ".pq")
@@ -217,17 +217,10 @@ def _value(text: str, name: str, line: int, column: str) -> float:
 
 
 def _finite(value: float, name: str, where: str, column: str) -> float:
-    if not math.isfinite(value):
-        raise InputFileError(
-            f"{name}: {where}, column {column!r}: {value} is not a finite number; give a number, or "
-            "leave the cell empty / NaN where a row has no point"
-        )
-    if abs(value) > MAX_COORD:
-        raise InputFileError(
-            f"{name}: {where}, column {column!r}: {value:g} is far outside any image (limit "
-            f"{MAX_COORD:g}); fix or remove the row"
-        )
-    return value
+    # str(value) of nan and inf is value:g
+    fix = "give a number, or leave the cell empty / NaN where a row has no point"
+    return checked_coordinate(value, MAX_COORD, f"{name}: {where}, column {column!r}", f"{value:g}", fix,
+                              "fix or remove the row")  # fmt: skip
 
 
 def _column(header, wanted: str, name: str, param: str) -> int:
@@ -449,7 +442,9 @@ def correct_points_frame(
     ``calibration`` is a :class:`~oapcal.calibration.Calibration` (``load_calibration``);
     ``preset`` (``"trackpy"``, ``"trackmate"``) names the columns; ``units`` ``"px"`` or
     ``"um"`` (see the module doc); ``origin="corner"`` for tables whose top-left pixel
-    centre is (0.5, 0.5) px.  Needs pandas (``pip install -e '.[tables]'``).
+    centre is (0.5, 0.5) px.  Needs pandas (``pip install -e '.[tables]'``).  A DataFrame
+    without the columns, or with coordinates that are not finite numbers, raises
+    :class:`~oapcal.errors.DataError`.
 
     >>> import pandas as pd
     >>> from oapcal.model import params_from_dict
@@ -459,7 +454,12 @@ def correct_points_frame(
     >>> out[["x", "x_c", "y_c"]].to_dict("list"), out["converged"].isna().tolist()
     ({'x': [20.0, 5.0], 'x_c': [19.0, nan], 'y_c': [10.0, nan]}, [False, True])
     """
-    table = _table_from_frame(frame, "the DataFrame", *preset_columns(preset, x_column, y_column))
+    # 8 parameters: the frame, the calibration and the public keywords of ``correct-points``
+    # (one per option: columns, preset, units, pixel size, origin).
+    try:
+        table = _table_from_frame(frame, "the DataFrame", *preset_columns(preset, x_column, y_column))
+    except InputFileError as exc:  # a value in memory, not a file: the same message as a DataError
+        raise DataError(str(exc), param=exc.param) from None
     xy_c, converged, present = correct_xy(table.xy, calibration, units=units,
                                           table_um_per_px=table_um_per_px, origin=origin)  # fmt: skip
     return add_columns(frame, xy_c, converged, present)

@@ -16,6 +16,7 @@ Every message names the file and says what to do; all raise
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import stat
@@ -237,3 +238,21 @@ def parse_number(text: str) -> float:
     if not _NUMBER.fullmatch(stripped):
         raise ValueError(f"not a number in ASCII decimal notation: {text!r}")
     return float(stripped)
+
+
+def checked_coordinate(
+    value: float, limit: float, at: str, shown: str, fix: str, far_fix: str | None = None
+) -> float:
+    """``value``, a coordinate read at ``at`` (file, line, column) and shown as ``shown``,
+    refused (:class:`InputFileError`, ending in ``fix``; ``far_fix`` for a value too large)
+    when it is not finite or beyond ``limit`` in size.
+
+    >>> checked_coordinate(2e13, 1e12, "p.csv: line 3", "2e13", "fix it")
+    Traceback (most recent call last):
+    oapcal.errors.InputFileError: p.csv: line 3: 2e13 is far outside any image (limit 1e+12); fix it
+    """
+    if not math.isfinite(value):
+        raise InputFileError(f"{at}: {shown} is not a finite number; {fix}")
+    if abs(value) > limit:
+        raise InputFileError(f"{at}: {shown} is far outside any image (limit {limit:g}); {far_fix or fix}")
+    return value

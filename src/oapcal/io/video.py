@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from oapcal.errors import InputFileError, OutputError
+from oapcal.records import ImageSize
 
 VIDEO_SUFFIXES = (".avi", ".mp4", ".mov", ".mkv")
 #: The codec each output container is written with (FourCC).
@@ -126,7 +127,7 @@ class VideoWriter:
         if self._writer is None:
             self._colour = frame.ndim == 3
             fourcc = cv2.VideoWriter_fourcc(*FOURCC.get(self.path.suffix.lower(), "FFV1"))
-            size = (int(frame.shape[1]), int(frame.shape[0]))
+            size = ImageSize.of(frame)
             path = str(self.path)
             self._writer = cv2.VideoWriter(path, cv2.CAP_FFMPEG, fourcc, self.fps, size, self._colour)
             if not self._writer.isOpened():

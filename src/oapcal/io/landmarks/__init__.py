@@ -119,6 +119,8 @@ def read_landmark_pairs(
     Returns :class:`PointPairs` with columns ``id,x_u,y_u,x_d,y_d`` where ``id`` is each
     pair's pairing value.
     """
+    # 12 parameters: the ways a user reads landmark files, each an option of the command
+    # line (``--format``, ``--pair-by``, ...; cli._common.PointsSource) and a public keyword.
     fmt = _check_format(fmt)
     if pair_by is not None and pair_by_order:
         raise InputFileError("give either a pairing attribute or pairing by order, not both")
@@ -127,13 +129,7 @@ def read_landmark_pairs(
     d_text = read_text(distorted)
     d_fmt = detect_format(distorted, d_text) if fmt == "auto" else fmt
     if d_fmt == "bigwarp":
-        if reference is not None and str(reference) != str(distorted):
-            raise InputFileError(
-                f"{distorted}: a BigWarp file holds both images' landmarks; give it once "
-                "(without a separate reference file)"
-            )
-        if distorted_image or reference_image:
-            raise InputFileError(f"{distorted}: image names apply only to VIA files, not BigWarp")
+        _check_bigwarp_args(distorted, reference, distorted_image, reference_image)
         dist, ref = read_bigwarp(distorted, text=d_text)
         pairs = pair_landmarks(dist, ref, pair_by or "name")
         return _finish(pairs, check_geometry)
@@ -154,6 +150,28 @@ def read_landmark_pairs(
         return _distorted_only(dist, pair_by, check_geometry)
     r_text = d_text if str(reference) == str(distorted) else read_text(reference)
     r_fmt = detect_format(reference, r_text) if fmt == "auto" else fmt
+    _check_reference_args(distorted, reference, d_fmt, r_fmt, distorted_image, reference_image)
+    ref = _read_one(reference, r_fmt, r_text, reference_image, opts, "reference")
+    if pair_by is None and not pair_by_order:
+        raise _no_pairing(dist, ref)
+    pairs = pair_landmarks(dist, ref, pair_by) if pair_by else _pair_by_order(dist, ref)
+    return _finish(pairs, check_geometry)
+
+
+def _check_bigwarp_args(distorted, reference, distorted_image, reference_image) -> None:
+    """A BigWarp file holds both images: no other reference file, no VIA image names."""
+    if reference is not None and str(reference) != str(distorted):
+        raise InputFileError(
+            f"{distorted}: a BigWarp file holds both images' landmarks; give it once "
+            "(without a separate reference file)"
+        )
+    if distorted_image or reference_image:
+        raise InputFileError(f"{distorted}: image names apply only to VIA files, not BigWarp")
+
+
+def _check_reference_args(distorted, reference, d_fmt, r_fmt, distorted_image, reference_image) -> None:
+    """Refuse a reference file that cannot be one: a BigWarp file, image names for a file
+    that is not VIA, or the distorted file again without two VIA image names."""
     if r_fmt == "bigwarp":
         raise InputFileError(f"{reference}: is a BigWarp file, which holds both images; give it as the "
                              "distorted file alone")  # fmt: skip
@@ -165,17 +183,17 @@ def read_landmark_pairs(
             "holding both images name them with distorted_image and reference_image",
             param=("distorted_image", "reference_image"),
         )
-    ref = _read_one(reference, r_fmt, r_text, reference_image, opts, "reference")
-    if pair_by is None and not pair_by_order:
-        common = sorted(set.intersection(*(set(lm.attrs) for lm in dist.landmarks + ref.landmarks)) - {""})
-        hint = f" (attributes on every landmark: {', '.join(common[:6])})" if common else ""
-        raise InputFileError(
-            f"{dist.source} + {ref.source}: say how landmarks pair up: by an attribute, pair_by{hint}, "
-            "or by order, pair_by_order, if both files list them in the same order",
-            param=("pair_by", "pair_by_order"),
-        )
-    pairs = pair_landmarks(dist, ref, pair_by) if pair_by else _pair_by_order(dist, ref)
-    return _finish(pairs, check_geometry)
+
+
+def _no_pairing(dist, ref) -> InputFileError:
+    """The error for two landmark files given without a way to pair them."""
+    common = sorted(set.intersection(*(set(lm.attrs) for lm in dist.landmarks + ref.landmarks)) - {""})
+    hint = f" (attributes on every landmark: {', '.join(common[:6])})" if common else ""
+    return InputFileError(
+        f"{dist.source} + {ref.source}: say how landmarks pair up: by an attribute, pair_by{hint}, "
+        "or by order, pair_by_order, if both files list them in the same order",
+        param=("pair_by", "pair_by_order"),
+    )
 
 
 def _check_format(fmt: str) -> str:

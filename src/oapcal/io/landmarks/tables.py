@@ -139,14 +139,7 @@ def read_bigwarp(path, *, text: str | None = None) -> tuple[LandmarkSet, Landmar
             continue
         nd = (width - 2) // 2
         halves = (cells[2 : 2 + nd], cells[2 + nd :])
-        for side, half in zip(("moving", "fixed"), halves):
-            gone = [_missing(v) for v in half]
-            if any(gone) and not all(gone):  # BigWarp writes every coordinate of an unplaced point
-                ax = "xyz"[gone.index(True)]
-                raise InputFileError(
-                    f"{name}: {where}: landmark {label!r} has {side} {ax} = {half[gone.index(True)]!r} but "
-                    f"its other {side} coordinates are numbers; give a finite {ax}, or disable the landmark"
-                )
+        _check_placed(halves, f"{name}: {where}: landmark {label!r}")
         if any(_missing(v) for half in halves for v in half):
             ignored.append(f"{where}: landmark {label!r} is placed in only one image")
             continue
@@ -154,15 +147,7 @@ def read_bigwarp(path, *, text: str | None = None) -> tuple[LandmarkSet, Landmar
         for side, half in zip(("moving", "fixed"), halves):
             points.append([coordinate(v, name, where, f"{side} {ax}") for v, ax in zip(half, "xyz")])
         if nd == 3:
-            for k, side in enumerate(("moving", "fixed")):
-                z = points[k][2]
-                if plane_z[k] is None:
-                    plane_z[k] = z
-                elif not same_plane(z, plane_z[k]):
-                    raise InputFileError(
-                        f"{name}: {where}: {side} z = {z:.15g} differs from earlier landmarks "
-                        f"(z = {plane_z[k]:.15g}); oapcal needs landmarks of one 2-D plane"
-                    )
+            _check_plane(points, plane_z, f"{name}: {where}")
         moving.append(Landmark(points[0][0], points[0][1], {"name": label}, where))
         fixed.append(Landmark(points[1][0], points[1][1], {"name": label}, where))
     if width is None:
@@ -173,6 +158,33 @@ def read_bigwarp(path, *, text: str | None = None) -> tuple[LandmarkSet, Landmar
         LandmarkSet(f"{name} [moving]", tuple(moving), tuple(ignored)),
         LandmarkSet(f"{name} [fixed]", tuple(fixed), ()),
     )
+
+
+def _check_placed(halves, at: str) -> None:
+    """Refuse a point with some coordinates missing and others numbers (BigWarp writes every
+    coordinate of an unplaced point)."""
+    for side, half in zip(("moving", "fixed"), halves):
+        gone = [_missing(v) for v in half]
+        if any(gone) and not all(gone):
+            ax = "xyz"[gone.index(True)]
+            raise InputFileError(
+                f"{at} has {side} {ax} = {half[gone.index(True)]!r} but "
+                f"its other {side} coordinates are numbers; give a finite {ax}, or disable the landmark"
+            )
+
+
+def _check_plane(points, plane_z: list, at: str) -> None:
+    """Refuse a 3-D landmark off the plane of the earlier ones (``plane_z``: the moving and
+    fixed planes so far, None before the first; set here)."""
+    for k, side in enumerate(("moving", "fixed")):
+        z = points[k][2]
+        if plane_z[k] is None:
+            plane_z[k] = z
+        elif not same_plane(z, plane_z[k]):
+            raise InputFileError(
+                f"{at}: {side} z = {z:.15g} differs from earlier landmarks "
+                f"(z = {plane_z[k]:.15g}); oapcal needs landmarks of one 2-D plane"
+            )
 
 
 def _missing(text: str) -> bool:

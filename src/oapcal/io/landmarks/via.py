@@ -216,20 +216,8 @@ def _via3_images(data: dict, name: str) -> list[tuple[str, list]]:
         views = {fid: {"fid_list": [fid]} for fid in files}
     if not isinstance(views, dict):
         raise InputFileError(f"{name}: field 'view' must be an object")
-    anames, options = {}, {}
-    for aid, attr in attributes.items():
-        if isinstance(attr, dict):
-            anames[str(aid)] = str(attr.get("aname", aid))
-            if isinstance(attr.get("options"), dict):
-                options[str(aid)] = attr["options"]
-    view_name = {}
-    for vid, view in views.items():
-        fids = view.get("fid_list") if isinstance(view, dict) else None
-        if not isinstance(fids, list) or not fids:
-            continue
-        entry = files.get(str(fids[0]))
-        fname = entry.get("fname") if isinstance(entry, dict) else None
-        view_name[str(vid)] = fname if isinstance(fname, str) else f"file {fids[0]}"
+    anames, options = _via3_attributes(attributes)
+    view_name = _via3_view_names(views, files)
     images: dict[str, list] = {vid: [] for vid in view_name}
     skipped: Counter = Counter()
     for mid, item in meta.items():
@@ -271,6 +259,30 @@ def _via3_images(data: dict, name: str) -> list[tuple[str, list]]:
         images[vid].append(Landmark(x, y, attrs, where, unusable_attributes(raw)))
     result = [(view_name[vid], regions, vid) for vid, regions in images.items()]
     return _Images(result, skipped)
+
+
+def _via3_attributes(attributes: dict) -> tuple[dict, dict]:
+    """A VIA 3 project's attribute names and option labels, by attribute id."""
+    anames, options = {}, {}
+    for aid, attr in attributes.items():
+        if isinstance(attr, dict):
+            anames[str(aid)] = str(attr.get("aname", aid))
+            if isinstance(attr.get("options"), dict):
+                options[str(aid)] = attr["options"]
+    return anames, options
+
+
+def _via3_view_names(views: dict, files: dict) -> dict:
+    """The image name of each view of a VIA 3 project (its first file's ``fname``)."""
+    view_name = {}
+    for vid, view in views.items():
+        fids = view.get("fid_list") if isinstance(view, dict) else None
+        if not isinstance(fids, list) or not fids:
+            continue
+        entry = files.get(str(fids[0]))
+        fname = entry.get("fname") if isinstance(entry, dict) else None
+        view_name[str(vid)] = fname if isinstance(fname, str) else f"file {fids[0]}"
+    return view_name
 
 
 # -- choosing the image -----------------------------------------------------------------------
