@@ -43,9 +43,11 @@ from oapcal.model import (
     RELAY,
     RELAY_POSE_NAMES,
     ROTATION_SUFFIX,
+    Model,
     all_masks,
+    as_model,
+    family_named,
     jacobian_params,
-    names_from_mask,
 )
 from oapcal.optics.relay_model import (
     RelayDesign,
@@ -186,22 +188,27 @@ class _Region:
     """What :func:`~oapcal.calibration.check_model_region` reads of a calibration: the
     model, the reference points' bounds and the image frame."""
 
-    def __init__(self, params, bounds, image_size):
-        self.params = params
+    def __init__(self, model: Model, bounds, image_size):
+        self.model = model
+        self.family = model.family
+        self.params = np.asarray(model.params, float)
+        self.free = model.free
         self.bounds = bounds
         self.image_size = image_size
 
 
-def region_problem(params, xy_u, image_size=None) -> str:
-    """Why ``oapcal fit`` would refuse to write the model ``params`` fitted to the reference
+def region_problem(params, xy_u, image_size=None, *, family=None) -> str:
+    """Why ``oapcal fit`` would refuse to write the model ``params`` (a
+    :class:`~oapcal.model.Model`, or a vector of ``family``) fitted to the reference
     points ``xy_u`` (its check :func:`~oapcal.calibration.check_model_region` over the
     points' bounds and the ``image_size`` frame), or ``""`` when it would write it."""
     xy_u = np.asarray(xy_u, float)
     bounds = (*xy_u.min(axis=0).tolist(), *xy_u.max(axis=0).tolist())
-    if not np.isfinite(params).all():
+    model = as_model(params, family)
+    if not np.isfinite(model.params).all():
         return "the fit gave non-finite parameters"
     try:
-        check_model_region(_Region(np.asarray(params, float), bounds, image_size), source="the fitted model")
+        check_model_region(_Region(model, bounds, image_size), source="the fitted model")
     except InputFileError as exc:
         return str(exc).removeprefix("the fitted model: ").split(";")[0]
     return ""
@@ -224,19 +231,20 @@ def region_sigma(xy_u, xy_d, mask, p0, region_points, prior=None, family=None,
                     **({} if prior is None else {"prior": prior})).item(0)  # fmt: skip
     if not fit.converged or not np.isfinite(fit.covariance).all():
         return np.inf, fit.k_eff
+    model = as_model(fit, family)
     with np.errstate(all="ignore"):
-        cov = position_covariance(region_points, fit.params, fit.covariance, fit.free)
+        cov = position_covariance(region_points, model, fit.covariance)
         var = cov[..., 0, 0] + cov[..., 1, 1]
         fixed = {
             n: w for n, w in (fixed_prior or {}).items() if n not in fit.free and np.isfinite(w) and w > 0
         }
         if fixed:
-            var = var + _fixed_variance(xy_u, fit, prior, fixed, region_points)
+            var = var + _fixed_variance(xy_u, model, prior, fixed, region_points)
     var = var[np.isfinite(var)]
     return (float(np.sqrt(var.mean())) if var.size else np.inf), fit.k_eff
 
 
-def _fixed_variance(xy_u, fit, prior, fixed: dict, region_points) -> np.ndarray:
+def _fixed_variance(xy_u, fit: Model, prior, fixed: dict, region_points) -> np.ndarray:
     """The position variance (px^2) at ``region_points`` that values held fixed at the design
     (``fixed``: name -> prior width) leave after the fit: linearized, an error ``dq`` of them
     moves the fitted values by ``dp = -G dq`` with ``G = (J_f^T J_f + W^2)^-1 J_f^T J_q`` at
@@ -244,13 +252,12 @@ def _fixed_variance(xy_u, fit, prior, fixed: dict, region_points) -> np.ndarray:
     ``-J_u^-1 (J_q - J_f G) dq``.  Propagated by
     :func:`oapcal.uncertainty.position_covariance` with the joint covariance of ``(dp, dq)``,
     ``[[G S G^T, -G S], [-S G^T, S]]``, ``S = diag(width^2)``."""
-    from oapcal.model import jacobian_params
     from oapcal.uncertainty import position_covariance
 
     names = fit.family.param_names
     f = [names.index(n) for n in fit.free]
     q = [names.index(n) for n in fixed]
-    jac = jacobian_params(xy_u, fit.params).reshape(-1, len(names))
+    jac = fit.jacobian_params(xy_u).reshape(-1, len(names))
     jf, jq = jac[:, f], jac[:, q]
     w2 = np.zeros(len(f))
     if prior is not None:
@@ -260,7 +267,7 @@ def _fixed_variance(xy_u, fit, prior, fixed: dict, region_points) -> np.ndarray:
     g = np.linalg.lstsq(jf.T @ jf + np.diag(w2), jf.T @ jq, rcond=None)[0]
     big_s = np.diag([w**2 for w in fixed.values()])
     joint = np.block([[g @ big_s @ g.T, -g @ big_s], [-big_s @ g.T, big_s]])
-    cov = position_covariance(region_points, fit.params, joint, tuple(fit.free) + tuple(fixed))
+    cov = position_covariance(region_points, fit, joint, tuple(fit.free) + tuple(fixed))
     return cov[..., 0, 0] + cov[..., 1, 1]
 
 
@@ -271,6 +278,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
     checked in AICc order over the output region (:func:`region_problem`) until ``cv_top``
     pass, and those are cross-validated.  ``prior``: ``(mean, sigma)`` ``(B, P)`` of the
     subsets' maximum a posteriori fits (relay priors), or None."""
+    model_family = family_named(family)
     rows = [(spec, mask, np.nan, np.nan, False, reason) for spec, mask, reason in invalid]
     fitted = {}
     if subsets:
@@ -281,7 +289,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
             if codes[i]:
                 rows.append((spec, mask, np.nan, np.nan, False, reasons[i]))
             else:
-                fitted[spec] = scores["params"][i]
+                fitted[spec] = Model.from_mask(model_family, scores["params"][i], mask)
                 rows.append((spec, mask, float(scores["aicc"][i]), float(scores["mean_error"][i]), True, ""))
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))
     top = []
@@ -319,10 +327,11 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
         for r in cv_err:
             i = index[r]
             one = None if prior is None else tuple(np.broadcast_to(a, masks.shape)[i : i + 1] for a in prior)
-            sigma[r] = region_sigma(xy_u, xy_d, masks[i], p0[i], region_points, one, fixed_prior=fixed_prior)
+            sigma[r] = region_sigma(xy_u, xy_d, masks[i], p0[i], region_points, one, family=model_family,
+                                    fixed_prior=fixed_prior)  # fmt: skip
     out = []
     for spec, mask, aicc, err, valid, reason in rows:
-        free = names_from_mask(mask)
+        free = _free_names(model_family, mask)
         e, f = cv_err.get(spec, (None, 0))
         sig, k_eff = sigma.get(spec, (None, None))
         pred = None if sig is None or e is None else float(np.hypot(e, sig))
@@ -337,7 +346,7 @@ def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progres
     each a maximum a posteriori fit, ``relay:all`` (every misalignment value) among them, and
     a value with a prior needs no identifiability from the points."""
     p0 = relay_params(design)
-    jac = jacobian_params(xy_u, p0)  # once for the 64 (128) subsets
+    jac = jacobian_params(xy_u, p0, family=design.family)  # once for the 64 (128) subsets
     subsets = relay_subset_masks(design.family)
     constrained = np.zeros(design.family.n_params, bool)
     if priors is not None:
@@ -364,11 +373,15 @@ def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progres
                   prior, region_points, fixed_prior)  # fmt: skip
 
 
+def _free_names(family, mask) -> tuple[str, ...]:
+    return tuple(n for n, m in zip(family.param_names, mask) if m)
+
+
 def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
     """Every Eq. (1) subset (all 4,096), fitted from ``init`` on the points as given."""
     masks = all_masks()
     p0 = initial_params_many(init, xy_u, xy_d, masks)
-    subsets = [(",".join(names_from_mask(m)), m) for m in masks]
+    subsets = [(",".join(_free_names(BROWN_CONRADY, m)), m) for m in masks]
     return _score(BROWN_CONRADY.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress, image_size,
                   region_points=region_points)  # fmt: skip
 
@@ -378,7 +391,7 @@ def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_siz
     masks = all_masks()
     masks = np.pad(masks, ((0, 0), (0, 1)), constant_values=True)
     p0 = initial_params_many(init, xy_u, xy_d, masks)
-    subsets = [(",".join(names_from_mask(m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
+    subsets = [(",".join(_free_names(BROWN_CONRADY_POSE, m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
     return _score(BROWN_CONRADY_POSE.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress,
                   image_size, region_points=region_points)  # fmt: skip
 
@@ -428,10 +441,8 @@ def region_points(xy_u, region=None) -> np.ndarray:
 def _disagreement(a: Candidate, b: Candidate, params: dict, points) -> float:
     """The largest distance (px) between the distorted positions two fitted models give the
     region's points."""
-    from oapcal.model import distort
-
     with np.errstate(all="ignore"):
-        d = np.hypot(*(distort(points, params[a.spec]) - distort(points, params[b.spec])).T)
+        d = np.hypot(*(params[a.spec](points) - params[b.spec](points)).T)
     return float(np.nanmax(d)) if np.isfinite(d).any() else np.inf
 
 
@@ -559,7 +570,7 @@ def select_families(
 
 
 def _fitted_params(xy_u, xy_d, scored, design, init, priors) -> dict:
-    """The parameters of the cross-validated candidates fitted to all points (for comparing
+    """The models of the cross-validated candidates fitted to all points (for comparing
     two models' maps), by spec."""
     from oapcal.fitting import fit_batch, initial_params
     from oapcal.model import parse_any_model
@@ -572,12 +583,13 @@ def _fitted_params(xy_u, xy_d, scored, design, init, priors) -> dict:
                 if priors is not None:
                     fits, _ = map_fit(xy_u, xy_d, design, mask[None], priors, covariance=False, max_iter=200)
                 else:
-                    fits = fit_batch(xy_u, xy_d, mask[None], relay_params(design)[None], covariance=False)
+                    fits = fit_batch(xy_u, xy_d, mask[None], relay_params(design)[None], covariance=False,
+                                     family=family_named(c.family))  # fmt: skip
             else:
                 mask = parse_any_model(c.spec)
                 fits = fit_batch(xy_u, xy_d, mask[None], initial_params(init, xy_u, xy_d, mask)[None],
-                                 covariance=False)  # fmt: skip
-            out[c.spec] = fits.params[0]
+                                 covariance=False, family=family_named(c.family))  # fmt: skip
+            out[c.spec] = Model.from_mask(c.family, fits.params[0], mask)
         except Exception:  # noqa: BLE001 -- a model that cannot be refitted is not compared
             continue
     return out

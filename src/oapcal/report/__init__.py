@@ -187,7 +187,8 @@ def compute_report(
     progress: Progress | None = None,
 ) -> ReportContent:
     """The report's content (arguments as :func:`build_report`); draws nothing."""
-    from oapcal.imaging.checks import residual_vectors
+    from oapcal.imaging.checks import ResidualVectors
+    from oapcal.model import as_model
     from oapcal.stats import residual_stats
     from oapcal.uncertainty import uncertainty_map
 
@@ -198,7 +199,8 @@ def compute_report(
     if points is not None:
         step("correcting the landmarks")
         xy_u, xy_d = _normalized_points(cal, *points)
-        vectors = residual_vectors(cal.params, xy_u, xy_d)
+        xy_c = as_model(cal).inverse(np.asarray(xy_d, float)).xy
+        vectors = ResidualVectors(np.asarray(xy_u, float), xy_c, xy_c - np.asarray(xy_u, float))
         residuals = residual_stats(vectors.xy_c, xy_u, cal.um_per_px).to_dict()
     else:
         residuals = cal.residuals.to_dict()
@@ -273,7 +275,7 @@ def render_report(
                    "correction, magnified as stated; colour is the residual length.")  # fmt: skip
         sections.append(H.section("Residual vectors", H.png_figure(png, "residual vectors", caption)))
     step("distortion field")
-    png = plots.figure_png(plots.distortion_field_figure(cal.params, shape, cal.hull, um))
+    png = plots.figure_png(plots.distortion_field_figure(cal, shape, cal.hull, um))
     caption = (
         "Where each output pixel is sampled from in the observed image, relative to itself "
         "(the model's distortion)."

@@ -163,10 +163,11 @@ def find_matches(
     """The overlapping pairs and matches of ``frames`` (a sequence of 2-D arrays of one
     size, or an array ``(F, h, w)``): module docstring.
 
-    ``prior`` (a parameter vector, e.g. the relay's design): the frames are first corrected
-    with it (:func:`oapcal.imaging.remap.correction_map`) and matched there, where moved
-    frames differ by little more than a translation; the matches are then taken back to
-    the frames' own pixels through the prior's forward map (exact).  Without it the frames
+    ``prior`` (a :class:`~oapcal.model.Model` or a parameter vector, e.g. the relay's
+    design): the frames are first corrected with it
+    (:func:`oapcal.imaging.remap.correction_map`) and matched there, where moved frames
+    differ by little more than a translation; the matches are then taken back to the
+    frames' own pixels through the prior's forward map (exact).  Without it the frames
     are matched as they are (fine for distortion that changes little over a move).
 
     Raises :class:`SelfcalRefused` (reason ``"texture"``, ``"overlap"`` or ``"frames"``)
@@ -211,7 +212,10 @@ def find_matches(
     del frames
     valid = np.ones((h, w), bool)
     if prior is not None:
-        frames8, valid = _precorrect(frames8, np.asarray(prior, float))
+        from oapcal.model import as_model
+
+        prior = as_model(prior)
+        frames8, valid = _precorrect(frames8, prior)
     soft = cv2.GaussianBlur(cv2.erode(valid.astype(np.float32), np.ones((9, 9), np.uint8)), (0, 0), 6.0)
     reduced = [_reduce(_apodize(f, soft), PHASE_MAX_SIDE) for f in frames8]
     scale = reduced[0][1]
@@ -265,9 +269,7 @@ def find_matches(
     _check_connected(pairs, n, min_overlap)
     xa, xb = np.concatenate(xa), np.concatenate(xb)
     if prior is not None:  # back to the frames' own pixels
-        from oapcal.model import distort
-
-        xa, xb = distort(xa, prior), distort(xb, prior)
+        xa, xb = prior(xa), prior(xb)
     weight = np.concatenate(wt)
     weight = np.clip(weight / np.median(weight), 0.05, 20.0)
     return Matches(np.concatenate(out_a), np.concatenate(out_b), xa, xb, weight, tuple(pairs), n, (w, h))

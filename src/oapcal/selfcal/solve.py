@@ -50,7 +50,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.model import RELAY_FAMILIES, distort, family_of, jacobian_params, jacobian_point, undistort
+from oapcal.model import (
+    RELAY_FAMILIES,
+    distort,
+    family_of_spec,
+    jacobian_params,
+    jacobian_point,
+    undistort,
+)
 from oapcal.selfcal.matches import Matches, SelfcalRefused
 
 #: Affine parts of the gauge, as the matrices of a small change ``u -> (I + eps E) u``.
@@ -134,7 +141,7 @@ def _problem(model, image_size, design, steps_um, um_per_px, stage_rotation) -> 
             um_per_px = design.object_um_per_px
     else:
         mask = parse_any_model(spec)
-        family = family_of(mask)
+        family = family_of_spec(spec)
         p0 = np.zeros(family.n_params)
         names = family.param_names
         p0[names.index("m")] = 1.0
@@ -207,7 +214,7 @@ class _Residual:
         return p, t, theta
 
     def correct(self, p):
-        inv = undistort(self.d, p, xy_start=self.start_u)
+        inv = undistort(self.d, p, xy_start=self.start_u, family=self.prob.family)
         return inv.xy
 
     def _state(self, x):
@@ -234,7 +241,7 @@ class _Residual:
         """``du/dp`` over the solved parameters at the corrected points ``u``: ``(2m, 2, k)``."""
         ok = np.isfinite(u).all(axis=1)
         uu = np.where(ok[:, None], u, self.prob.centre)
-        jpt = jacobian_point(uu, p)
+        jpt = jacobian_point(uu, p, family=self.prob.family)
         jpar = self.param_columns(uu, p, self.prob.solved)
         out = -np.linalg.solve(jpt, jpar)
         out[~ok] = 0.0
@@ -243,7 +250,7 @@ class _Residual:
     def param_columns(self, u, p, mask):
         family = self.prob.family
         if family.analytic_jacobian:
-            return jacobian_params(u, p)[..., mask]
+            return jacobian_params(u, p, family=family)[..., mask]
         # the relay has no analytic columns: central differences of the forward map for
         # the solved columns alone (jacobian_params differences all 36 of them, 3.6 times
         # the work for the default subset), with the family's own step
@@ -252,7 +259,7 @@ class _Residual:
         batch = np.repeat(p[None], 2 * len(idx), axis=0)
         batch[2 * np.arange(len(idx)), idx] += step
         batch[2 * np.arange(len(idx)) + 1, idx] -= step
-        values = distort(u, batch)  # (2k, N, 2)
+        values = distort(u, batch, family=family)  # (2k, N, 2)
         cols = (values[0::2] - values[1::2]) / (2 * step[:, None, None])
         return np.moveaxis(cols, 0, -1)  # (N, 2, k)
 
@@ -279,13 +286,17 @@ class _Residual:
         return (jac * self.sw[:, None, None]).reshape(2 * m, -1)
 
 
-def initial_translations(matches: Matches, params=None) -> np.ndarray:
+def initial_translations(matches: Matches, params=None, *, family=None) -> np.ndarray:
     """The frames' moves ``(F, 2)`` px from the matches (frame 0 at 0): the least-squares
     solution of ``t_b - t_a = median(u(xy_b) - u(xy_a))`` over the pairs, ``u`` the
-    correction of ``params`` (None: the identity)."""
+    correction of ``params`` (a :class:`~oapcal.model.Model`, or a vector of ``family``;
+    None: the identity)."""
     ua, ub = matches.xy_a, matches.xy_b
     if params is not None:
-        ua, ub = undistort(ua, params).xy, undistort(ub, params).xy
+        from oapcal.model import as_model
+
+        model = as_model(params, family)
+        ua, ub = model.inverse(ua).xy, model.inverse(ub).xy
     rows, rhs = [], []
     for pair in matches.pairs:
         sel = (matches.frame_a == pair.a) & (matches.frame_b == pair.b)
@@ -364,7 +375,7 @@ def _check_rank(res: _Residual, x0: np.ndarray) -> None:
 def _plausible(prob: _Problem, matches: Matches, t0: np.ndarray) -> np.ndarray:
     """The matches whose residual at the start lies near its pair's median (within 3 px or
     six robust deviations): a gross mismatch would otherwise pull the first solve."""
-    u = undistort(np.concatenate([matches.xy_a, matches.xy_b]), prob.params0).xy
+    u = undistort(np.concatenate([matches.xy_a, matches.xy_b]), prob.params0, family=prob.family).xy
     m = len(matches)
     e = u[:m] - t0[matches.frame_a] - u[m:] + t0[matches.frame_b]
     keep = np.isfinite(e).all(axis=1)
@@ -419,7 +430,7 @@ def self_calibrate(
                 param="steps_um",
             )
     prob = _problem(model, matches.image_size, design, steps_um, um_per_px, stage_rotation)
-    t0 = initial_translations(matches, prob.params0)
+    t0 = initial_translations(matches, prob.params0, family=prob.family)
     _check_frames(prob, matches, t0)
     use = _plausible(prob, matches, t0)
     from threadpoolctl import threadpool_limits
@@ -567,7 +578,7 @@ def _centre_gauge(p: np.ndarray, prob: _Problem) -> np.ndarray:
     correction (``u(c) = c``); exact for every family (``D(r + delta)`` is the model with
     its reference shift moved)."""
     p = p.copy()
-    delta = undistort(prob.centre[None], p).xy[0] - prob.centre
+    delta = undistort(prob.centre[None], p, family=prob.family).xy[0] - prob.centre
     names = prob.family.param_names
     if prob.family in RELAY_FAMILIES:
         s = p[names.index("scale")]
@@ -593,8 +604,8 @@ def _centre_scale(p, prob: _Problem):
     """Object um per camera px along x and y at the image centre (None without a scale)."""
     if prob.um_per_px is None:
         return None
-    u = undistort(prob.centre[None], p).xy
-    ju = np.linalg.inv(jacobian_point(u, p)[0])  # d u / d d
+    u = undistort(prob.centre[None], p, family=prob.family).xy
+    ju = np.linalg.inv(jacobian_point(u, p, family=prob.family)[0])  # d u / d d
     return (
         float(prob.um_per_px * np.linalg.norm(ju[:, 0])),
         float(prob.um_per_px * np.linalg.norm(ju[:, 1])),
@@ -607,11 +618,11 @@ def gauge_report(prob: _Problem, p, matches: Matches, inlier) -> tuple[tuple[str
     by the model's form), measured with every parameter of the model free."""
     res = _Residual(prob, matches, inlier)
     d = res.d
-    u = undistort(d, p).xy
+    u = undistort(d, p, family=prob.family).xy
     ok = np.isfinite(u).all(axis=1)
     u, _ = u[ok], d[ok]
     mask = prob.shown | prob.solved
-    jpt = jacobian_point(u, p)
+    jpt = jacobian_point(u, p, family=prob.family)
     jpar = res.param_columns(u, p, mask)
     g = -np.linalg.solve(jpt, jpar).reshape(-1, int(mask.sum()))
     g = np.concatenate([g, np.tile(np.eye(2), (len(u), 1))], axis=1)  # translations
@@ -687,9 +698,9 @@ def _record(prob, p, cov, fit, e, dist, n_failed, matches, inlier, gauge, name, 
             np.stack([np.zeros(33), np.linspace(h - 1, 0, 33)], -1),
         ]
     )
-    ub = undistort(border, p).xy
+    ub = undistort(border, p, family=prob.family).xy
     ub = ub[np.isfinite(ub).all(axis=1)]
-    ref = undistort(np.concatenate([matches.xy_a[inlier], matches.xy_b[inlier]]), p).xy
+    ref = undistort(np.concatenate([matches.xy_a[inlier], matches.xy_b[inlier]]), p, family=prob.family).xy
     ref = ref[np.isfinite(ref).all(axis=1)]
     try:
         hull = ref[ConvexHull(ref).vertices]
