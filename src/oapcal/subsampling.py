@@ -293,7 +293,7 @@ def _reference_rms(u: np.ndarray, d: np.ndarray, specs, masks, init, max_iter: i
     out = np.full(len(masks), np.inf)
     # one batch per family: every model with each of its starts
     families = [_family_of(spec) for spec in specs]
-    for family in sorted(set(families), key=lambda f: f.n_params):
+    for family in sorted({f.name: f for f in families}.values(), key=lambda f: f.n_params):
         rows = [(j, _starts_of(spec, s, u, d, masks[j]))
                 for j, spec in enumerate(specs) if families[j] is family
                 for s in ([spec] if isinstance(spec, StartedModel) else starts)]  # fmt: skip
