@@ -271,6 +271,7 @@ def _fixed_variance(xy_u, fit: Model, prior, fixed: dict, region_points) -> np.n
     return cov[..., 0, 0] + cov[..., 1, 1]
 
 
+# 14 parameters: select_families' settings handed on unchanged to each family's scoring
 def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, seed: int, progress,
            image_size=None, prior=None, region_points=None, fixed_prior=None):  # fmt: skip
     """Score the models ``subsets`` (``[(spec, mask)]``) of one family from the starts ``p0``
@@ -292,24 +293,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
                 fitted[spec] = Model.from_mask(model_family, scores["params"][i], mask)
                 rows.append((spec, mask, float(scores["aicc"][i]), float(scores["mean_error"][i]), True, ""))
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))
-    top = []
-    for i, row in enumerate(rows):
-        if len(top) >= max(0, cv_top) or not row[4]:
-            break
-        problem = region_problem(fitted[row[0]], xy_u, image_size)
-        if problem:
-            rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
-        else:
-            top.append(row)
-    for i, row in enumerate(rows):
-        # with priors every value of the relay is constrained: its full model is always
-        # cross-validated (the Bayesian model; a subset fixes what the priors say is uncertain)
-        if row[0] == FULL_RELAY_SPEC and prior is not None and row[4] and row not in top:
-            problem = region_problem(fitted[row[0]], xy_u, image_size)
-            if problem:
-                rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
-            else:
-                top.append(row)
+    top = _admit_top(rows, fitted, xy_u, image_size, cv_top, always_full=prior is not None)
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))
     cv_err = {}
     if top and cv:
@@ -338,6 +322,31 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
         out.append(Candidate(family, spec, free, len(free), aicc, np.nan, err, valid, reason, e, f, sig, pred,
                              k_eff))  # fmt: skip
     return out
+
+
+def _admit_top(rows: list, fitted: dict, xy_u, image_size, cv_top: int, always_full: bool) -> list:
+    """The rows to cross-validate: the valid ones in AICc order that ``oapcal fit`` would
+    write (:func:`region_problem`) until ``cv_top`` pass, and with ``always_full`` (relay
+    priors: every value of the relay is constrained) the full relay model as well (the
+    Bayesian model; a subset fixes what the priors say is uncertain).  A row that fails the
+    check becomes invalid in ``rows``, with the check's reason."""
+    top = []
+
+    def admit(i, row):
+        problem = region_problem(fitted[row[0]], xy_u, image_size)
+        if problem:
+            rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
+        else:
+            top.append(row)
+
+    for i, row in enumerate(rows):
+        if len(top) >= max(0, cv_top) or not row[4]:
+            break
+        admit(i, row)
+    for i, row in enumerate(rows):
+        if row[0] == FULL_RELAY_SPEC and always_full and row[4] and row not in top:
+            admit(i, row)
+    return top
 
 
 def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progress, image_size=None,
@@ -529,14 +538,7 @@ def select_families(
         raise DataError(f"choosing across families needs cross-validation with 2 or more folds, got {cv}",
                         param="cv")  # fmt: skip
     priors = parse_priors(priors)
-    if isinstance(region, str) and region == "auto":
-        region = (
-            None if image_size is None else (0.0, 0.0, float(image_size[0]) - 1, float(image_size[1]) - 1)
-        )
-    elif isinstance(region, str) and region == "hull":
-        region = None
-    elif isinstance(region, str):
-        raise DataError(f"region must be 'auto', 'hull' or a box x0,y0,x1,y1, got {region!r}", param="region")
+    region = _region_box(region, image_size)
     points = region_points(xy_u, region)
     candidates: list[Candidate] = []
     if "bc" in families:
@@ -567,6 +569,17 @@ def select_families(
     if priors is not None and "relay" in families:
         record = priors.to_dict(design)
     return FamilySelection(len(xy_u), int(cv), tuple(candidates), recommended, heldout, region, notes, record)
+
+
+def _region_box(region, image_size):
+    """``select_families``'s ``region`` as a box ``(x0, y0, x1, y1)``, or None for the hull."""
+    if isinstance(region, str) and region == "auto":
+        return None if image_size is None else (0.0, 0.0, float(image_size[0]) - 1, float(image_size[1]) - 1)
+    if isinstance(region, str) and region == "hull":
+        return None
+    if isinstance(region, str):
+        raise DataError(f"region must be 'auto', 'hull' or a box x0,y0,x1,y1, got {region!r}", param="region")
+    return region
 
 
 def _fitted_params(xy_u, xy_d, scored, design, init, priors) -> dict:

@@ -197,28 +197,32 @@ def output_geometry(
     # the model must be finite and not fold over where the output samples it
     what = f"{cols}x{rows} px image" if extent == "input" else f"output region of a {cols}x{rows} px image"
     check_model_region(model, boxes=[((x0, y0, x1, y1), what)], source="the calibration")
-    scale = _output_scale(um_per_px, cal_um)
+    shape, x0, y0, scale = _layout((x0, y0, x1, y1), _output_scale(um_per_px, cal_um), out_size, um_per_px)
+    _check_output_shape(shape, (rows, cols), (x1 - x0, y1 - y0), um_per_px, cal_um)
+    out_um = None if not cal_um else float(cal_um) * scale
+    return OutputGeometry(shape=shape, x0=x0, y0=y0, scale=scale, um_per_px=out_um)
+
+
+def _layout(region, scale: float, out_size, um_per_px) -> tuple[tuple[int, int], float, float, float]:
+    """The output ``(rows, cols)``, origin and scale showing ``region = (x0, y0, x1, y1)``:
+    at ``scale`` units per pixel, or fitted into ``out_size = (w, h)`` (centred, aspect kept)."""
+    x0, y0, x1, y1 = region
     if out_size is not None:
         w, h = int(out_size[0]), int(out_size[1])
         if w < MIN_OUTPUT_SIDE or h < MIN_OUTPUT_SIDE:
             raise DataError(f"the output size must be at least 2x2 px, got {w}x{h}")
         scale = max((x1 - x0) / (w - 1), (y1 - y0) / (h - 1))
         cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-        x0, y0 = cx - scale * (w - 1) / 2, cy - scale * (h - 1) / 2
-        shape = (h, w)
-    else:
-        if not (math.isfinite(scale) and scale > 0):
-            raise DataError(
-                f"the output scale {um_per_px} um per px is outside what a float can represent here; "
-                "choose another um_per_px",
-                param="um_per_px",
-            )
-        # (x1 - x0) / scale may overflow to inf for a tiny scale: capped, the size check refuses it
-        span = [min((y1 - y0) / scale, 2.0**40), min((x1 - x0) / scale, 2.0**40)]
-        shape = (int(math.floor(span[0] + 1e-9)) + 1, int(math.floor(span[1] + 1e-9)) + 1)
-    _check_output_shape(shape, (rows, cols), (x1 - x0, y1 - y0), um_per_px, cal_um)
-    out_um = None if not cal_um else float(cal_um) * scale
-    return OutputGeometry(shape=shape, x0=x0, y0=y0, scale=scale, um_per_px=out_um)
+        return (h, w), cx - scale * (w - 1) / 2, cy - scale * (h - 1) / 2, scale
+    if not (math.isfinite(scale) and scale > 0):
+        raise DataError(
+            f"the output scale {um_per_px} um per px is outside what a float can represent here; "
+            "choose another um_per_px",
+            param="um_per_px",
+        )
+    # (x1 - x0) / scale may overflow to inf for a tiny scale: capped, the size check refuses it
+    span = [min((y1 - y0) / scale, 2.0**40), min((x1 - x0) / scale, 2.0**40)]
+    return (int(math.floor(span[0] + 1e-9)) + 1, int(math.floor(span[1] + 1e-9)) + 1), x0, y0, scale
 
 
 def _region(calibration, model: Model, extent: str, rows: int, cols: int) -> tuple[float, ...]:
@@ -447,7 +451,7 @@ def correction_map(
     check: bool = True,
     allow_size_mismatch: bool = False,
     max_error_px: float | None = None,
-) -> CorrectionMap:
+) -> CorrectionMap:  # 9 parameters: the public keyword options of oapcal correct's map
     """The correction map for distorted images of ``shape = (rows, cols)``.
 
     Output pixel ``(col, row)`` shows the undistorted point
@@ -470,26 +474,14 @@ def correction_map(
     otherwise.
     """
     model = _model_of(calibration_or_params)
-    cal_size = getattr(calibration_or_params, "image_size", None)
-    rows_in, cols_in = int(shape[0]), int(shape[1])
-    if cal_size and tuple(int(v) for v in cal_size) != (cols_in, rows_in) and not allow_size_mismatch:
-        raise DataError(
-            f"the image is {cols_in}x{rows_in} px but the calibration is for {cal_size[0]}x{cal_size[1]} px "
-            "images; give images of that camera, or allow_size_mismatch=True to correct it anyway",
-            param="allow_size_mismatch",
-        )
+    if not allow_size_mismatch:
+        _check_camera(getattr(calibration_or_params, "image_size", None), shape)
     if geometry is None:
         geometry = output_geometry(
             calibration_or_params, shape, extent=extent, um_per_px=um_per_px, out_size=out_size
         )
     rows, cols = geometry.shape
-    if 8 * rows * cols > MAX_MAP_BYTES:
-        raise DataError(
-            f"the correction map for a {cols}x{rows} px output would need "
-            f"{8 * rows * cols / 2**30:.3g} GiB of memory, over the {MAX_MAP_BYTES / 2**30:g} GiB "
-            "limit; choose a smaller out_size, a coarser um_per_px or another extent",
-            param=("out_size", "um_per_px", "extent"),
-        )
+    _check_map_memory(rows, cols)
     xs = geometry.x0 + geometry.scale * np.arange(cols, dtype=float)
     ys = geometry.y0 + geometry.scale * np.arange(rows, dtype=float)
     out_x = np.empty((rows, cols), np.float32)
@@ -511,6 +503,28 @@ def correction_map(
             )
         cmap = mask_untrusted(cmap, predicted_error_map(calibration_or_params, geometry), max_error_px)
     return cmap
+
+
+def _check_camera(cal_size, shape) -> None:
+    """Refuse images of another size than the calibration's ``image_size`` (when it has one)."""
+    rows_in, cols_in = int(shape[0]), int(shape[1])
+    if cal_size and tuple(int(v) for v in cal_size) != (cols_in, rows_in):
+        raise DataError(
+            f"the image is {cols_in}x{rows_in} px but the calibration is for {cal_size[0]}x{cal_size[1]} px "
+            "images; give images of that camera, or allow_size_mismatch=True to correct it anyway",
+            param="allow_size_mismatch",
+        )
+
+
+def _check_map_memory(rows: int, cols: int) -> None:
+    """Refuse a map of more than :data:`MAX_MAP_BYTES`."""
+    if 8 * rows * cols > MAX_MAP_BYTES:
+        raise DataError(
+            f"the correction map for a {cols}x{rows} px output would need "
+            f"{8 * rows * cols / 2**30:.3g} GiB of memory, over the {MAX_MAP_BYTES / 2**30:g} GiB "
+            "limit; choose a smaller out_size, a coarser um_per_px or another extent",
+            param=("out_size", "um_per_px", "extent"),
+        )
 
 
 def _grid_map(model: Model, xs, ys, out_x, out_y) -> None:
