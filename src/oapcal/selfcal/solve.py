@@ -418,41 +418,16 @@ def self_calibrate(
     scene (robust RMS above ``max_rms_px`` or fewer than ``min_inlier_fraction`` inliers).
     """
     from scipy.optimize import least_squares
+    from threadpoolctl import threadpool_limits
 
     from oapcal.progress import Stages
 
-    if steps_um is not None:
-        steps_um = np.asarray(steps_um, float)
-        if steps_um.shape != (matches.n_frames, 2) or not np.isfinite(steps_um).all():
-            raise DataError(
-                f"steps_um has shape {steps_um.shape}: give one finite (x_um, y_um) per frame, "
-                f"({matches.n_frames}, 2)",
-                param="steps_um",
-            )
+    steps_um = _checked_steps(steps_um, matches)
     prob = _problem(model, matches.image_size, design, steps_um, um_per_px, stage_rotation)
     t0 = initial_translations(matches, prob.params0, family=prob.family)
     _check_frames(prob, matches, t0)
     use = _plausible(prob, matches, t0)
-    from threadpoolctl import threadpool_limits
-
-    theta0 = 0.0
-    if prob.steps is not None:
-        # start from the solve with unknown moves taken to the steps' scale and turn: from the
-        # design, a scale off by 1.6 % (the benchmark's relay, seed 1) leaves the first solve
-        # with px of residual over the moves and it does not recover
-        free = _problem(model, matches.image_size, design, None, um_per_px, False)
-        x_free = np.concatenate([free.params0[free.solved], t0[1:].ravel()])
-        with threadpool_limits(limits=1, user_api="blas"):
-            x_free = _robust_start(_Residual(free, matches, use), x_free).x
-        p_free, t_free, _ = _Residual(free, matches, use).split(x_free)
-        scale, theta0 = _similarity(prob.steps, t_free)
-        prob = dataclasses.replace(prob, params0=_rescaled(p_free, scale, prob))
-    x0 = np.concatenate(
-        [
-            prob.params0[prob.solved],
-            t0[1:].ravel() if prob.steps is None else ([theta0] if prob.stage_rotation else []),
-        ]
-    )
+    prob, x0 = _start(prob, matches, use, t0, (model, design, um_per_px))
 
     # one BLAS thread: least_squares takes an SVD of the (2M, n) Jacobian every iteration,
     # 25 ms for 5,000 x 24 on one thread and 0.7 s on two contended ones (OpenBLAS)
@@ -463,19 +438,7 @@ def self_calibrate(
         res = _Residual(prob, matches, use)
         _check_rank(res, x0)
         fit = _robust_start(res, x0)
-        # outliers against the robust spread of the first solve, then the inliers alone
-        e, ok = res.raw(fit.x)
-        dist = np.linalg.norm(e, axis=1)
-        if not ok.any():
-            raise SelfcalRefused(
-                "the model's correction failed at every match (it folds over or does not converge): "
-                "the frames do not fit the model; try another model or check the design",
-                "moving",
-                param="model",
-            )
-        sigma = 1.4826 * float(np.median(dist[ok])) / np.sqrt(2 * np.log(2))  # Rayleigh median -> sigma
-        inlier = np.zeros(len(matches), bool)
-        inlier[use] = ok & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
+        sigma, inlier = _first_inliers(res, fit, use, len(matches))
         stages.advance(description="self-calibration: inliers")
         res = _Residual(prob, matches, inlier)
         fit = least_squares(
@@ -489,40 +452,18 @@ def self_calibrate(
             max_nfev=100,
         )
         stages.advance(description="self-calibration: statistics")
-        full = _Residual(prob, matches, np.ones(len(matches), bool))
-        e_all, ok_all = full.raw(fit.x)
-        dist = np.linalg.norm(e_all, axis=1)
-        inlier = ok_all & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
-        frac = float(inlier.mean())
-        rms = float(np.sqrt(np.mean(dist[inlier] ** 2))) if inlier.any() else float("inf")
-        if frac < min_inlier_fraction or rms > max_rms_px:
-            raise SelfcalRefused(
-                f"the frames are not views of one rigid, static scene: {1 - frac:.0%} of the matches "
-                f"disagree with any one model and set of moves (inlier RMS {rms:.3g} px, limit "
-                f"{max_rms_px:g}); the sample moved or deformed between frames, or the frames are not "
-                "in the order of the steps",
-                "moving",
-                param="frames",
-            )
+        e_all, ok_all, dist, inlier = _rigid_inliers(
+            prob, matches, fit, sigma, max_rms_px, min_inlier_fraction
+        )
         res = _Residual(prob, matches, inlier)
         p, t, theta = res.split(fit.x)
         p = _centre_gauge(p, prob)
         cov = _covariance(res, fit.x, prob)
         stages.advance()
         gauge, left = gauge_report(prob, p, matches, inlier)
+    n_failed = int((~ok_all).sum())
     cal = _record(
-        prob,
-        p,
-        cov,
-        fit,
-        e_all[inlier],
-        dist[inlier],
-        int((~ok_all).sum()),
-        matches,
-        inlier,
-        gauge,
-        name,
-        source,
+        prob, p, cov, fit, e_all[inlier], dist[inlier], n_failed, matches, inlier, gauge, name, source
     )
     return SelfCalibration(
         calibration=cal,
@@ -536,6 +477,89 @@ def self_calibrate(
         um_per_px_centre=_centre_scale(p, prob),
         n_iter=int(fit.nfev),
     )
+
+
+def _checked_steps(steps_um, matches: Matches):
+    """``steps_um`` as a finite ``(F, 2)`` array (None as it is), else :class:`DataError`."""
+    if steps_um is None:
+        return None
+    steps_um = np.asarray(steps_um, float)
+    if steps_um.shape != (matches.n_frames, 2) or not np.isfinite(steps_um).all():
+        raise DataError(
+            f"steps_um has shape {steps_um.shape}: give one finite (x_um, y_um) per frame, "
+            f"({matches.n_frames}, 2)",
+            param="steps_um",
+        )
+    return steps_um
+
+
+def _start(prob: _Problem, matches: Matches, use, t0, spec) -> tuple[_Problem, np.ndarray]:
+    """The start of the solve: the problem (its model's start rescaled, with known steps)
+    and the vector ``x0`` of its solved parameters and moves.  ``spec``: the
+    ``(model, design, um_per_px)`` the problem was made of."""
+    from threadpoolctl import threadpool_limits
+
+    theta0 = 0.0
+    if prob.steps is not None:
+        # start from the solve with unknown moves taken to the steps' scale and turn: from the
+        # design, a scale off by 1.6 % (the benchmark's relay, seed 1) leaves the first solve
+        # with px of residual over the moves and it does not recover
+        model, design, um_per_px = spec
+        free = _problem(model, matches.image_size, design, None, um_per_px, False)
+        x_free = np.concatenate([free.params0[free.solved], t0[1:].ravel()])
+        with threadpool_limits(limits=1, user_api="blas"):
+            x_free = _robust_start(_Residual(free, matches, use), x_free).x
+        p_free, t_free, _ = _Residual(free, matches, use).split(x_free)
+        scale, theta0 = _similarity(prob.steps, t_free)
+        prob = dataclasses.replace(prob, params0=_rescaled(p_free, scale, prob))
+    x0 = np.concatenate(
+        [
+            prob.params0[prob.solved],
+            t0[1:].ravel() if prob.steps is None else ([theta0] if prob.stage_rotation else []),
+        ]
+    )
+    return prob, x0
+
+
+def _first_inliers(res: _Residual, fit, use, n_matches: int) -> tuple[float, np.ndarray]:
+    """The robust spread ``sigma`` (px) of the first solve's residuals and the matches within
+    it (outliers against that spread), ``(n_matches,)`` bool."""
+    e, ok = res.raw(fit.x)
+    dist = np.linalg.norm(e, axis=1)
+    if not ok.any():
+        raise SelfcalRefused(
+            "the model's correction failed at every match (it folds over or does not converge): "
+            "the frames do not fit the model; try another model or check the design",
+            "moving",
+            param="model",
+        )
+    sigma = 1.4826 * float(np.median(dist[ok])) / np.sqrt(2 * np.log(2))  # Rayleigh median -> sigma
+    inlier = np.zeros(n_matches, bool)
+    inlier[use] = ok & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
+    return sigma, inlier
+
+
+def _rigid_inliers(prob: _Problem, matches: Matches, fit, sigma: float, max_rms_px: float,
+                   min_inlier_fraction: float):  # fmt: skip
+    """Every match's residual at the solution ``(M, 2)``, where it converged, its length and
+    the inliers; :class:`SelfcalRefused` (``"moving"``) when they are not those of one rigid
+    scene (too few inliers or their RMS too large)."""
+    full = _Residual(prob, matches, np.ones(len(matches), bool))
+    e_all, ok_all = full.raw(fit.x)
+    dist = np.linalg.norm(e_all, axis=1)
+    inlier = ok_all & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
+    frac = float(inlier.mean())
+    rms = float(np.sqrt(np.mean(dist[inlier] ** 2))) if inlier.any() else float("inf")
+    if frac < min_inlier_fraction or rms > max_rms_px:
+        raise SelfcalRefused(
+            f"the frames are not views of one rigid, static scene: {1 - frac:.0%} of the matches "
+            f"disagree with any one model and set of moves (inlier RMS {rms:.3g} px, limit "
+            f"{max_rms_px:g}); the sample moved or deformed between frames, or the frames are not "
+            "in the order of the steps",
+            "moving",
+            param="frames",
+        )
+    return e_all, ok_all, dist, inlier
 
 
 def _robust_start(res: _Residual, x0: np.ndarray):
