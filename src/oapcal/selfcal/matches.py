@@ -183,33 +183,10 @@ def find_matches(
             "frames",
             param="frames",
         )
-    # one frame in float at a time (two passes: the levels, then 8 bits), so 50 frames of
-    # 2048 x 2048 hold 200 MB rather than 800
-    shape = grey(frames[0]).shape
-    levels = []
-    for i, frame in enumerate(frames):
-        f = grey(frame)
-        if f.shape != shape:
-            raise DataError(
-                f"frame {i} is {f.shape[1]}x{f.shape[0]} px but frame 0 is "
-                f"{shape[1]}x{shape[0]}: all frames must have one size",
-                param="frames",
-            )
-        ratio = texture_ratio(f)
-        if ratio < MIN_TEXTURE_RATIO:
-            raise SelfcalRefused(
-                f"frame {i} has no texture to match (its smoothed contrast is {ratio:.2g} times its "
-                f"pixel noise, needs {MIN_TEXTURE_RATIO:g}): image a textured, in-focus sample",
-                "texture",
-                param="frames",
-            )
-        levels.append(np.percentile(f, [0.5, 99.5]))
-    h, w = shape
-    n = len(frames)
-    lo = float(min(v[0] for v in levels))
-    hi = float(max(v[1] for v in levels))
-    frames8 = [_to_uint8(grey(f), lo, hi) for f in frames]
+    frames8 = _frames8(frames)
     del frames
+    h, w = frames8[0].shape
+    n = len(frames8)
     valid = np.ones((h, w), bool)
     if prior is not None:
         from oapcal.model import as_model
@@ -223,13 +200,7 @@ def find_matches(
     with Stages(progress, total=n * (n - 1) // 2 + 1, description="phase correlation") as stages:
         shifts, response = pair_shifts([r[0] for r in reduced], scale, window)
         stages.advance(description="matching pairs")
-        candidates = []
-        for a in range(n):
-            for b in range(a + 1, n):
-                dx, dy = shifts[a, b]
-                overlap = max(0.0, (w - abs(dx)) * (h - abs(dy)) / (w * h))
-                if overlap >= min_overlap and response[a, b] >= min_response:
-                    candidates.append((float(response[a, b]), overlap, a, b))
+        candidates = _candidates(shifts, response, (w, h), min_overlap, min_response)
         keep = _bounded_pairs(candidates, n, max_pairs_per_frame)
         stages.total = len(keep) + 1
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
@@ -273,6 +244,50 @@ def find_matches(
     weight = np.concatenate(wt)
     weight = np.clip(weight / np.median(weight), 0.05, 20.0)
     return Matches(np.concatenate(out_a), np.concatenate(out_b), xa, xb, weight, tuple(pairs), n, (w, h))
+
+
+def _frames8(frames: list) -> list:
+    """The frames (of one size, each with texture to match: else refused, naming the frame)
+    as 8 bits over their common 0.5-99.5 % range of levels."""
+    # one frame in float at a time (two passes: the levels, then 8 bits), so 50 frames of
+    # 2048 x 2048 hold 200 MB rather than 800
+    shape = grey(frames[0]).shape
+    levels = []
+    for i, frame in enumerate(frames):
+        f = grey(frame)
+        if f.shape != shape:
+            raise DataError(
+                f"frame {i} is {f.shape[1]}x{f.shape[0]} px but frame 0 is "
+                f"{shape[1]}x{shape[0]}: all frames must have one size",
+                param="frames",
+            )
+        ratio = texture_ratio(f)
+        if ratio < MIN_TEXTURE_RATIO:
+            raise SelfcalRefused(
+                f"frame {i} has no texture to match (its smoothed contrast is {ratio:.2g} times its "
+                f"pixel noise, needs {MIN_TEXTURE_RATIO:g}): image a textured, in-focus sample",
+                "texture",
+                param="frames",
+            )
+        levels.append(np.percentile(f, [0.5, 99.5]))
+    lo = float(min(v[0] for v in levels))
+    hi = float(max(v[1] for v in levels))
+    return [_to_uint8(grey(f), lo, hi) for f in frames]
+
+
+def _candidates(shifts, response, size, min_overlap: float, min_response: float) -> list:
+    """The frame pairs ``(response, overlap, a, b)`` whose phase-correlation shift leaves
+    ``min_overlap`` of a ``size = (w, h)`` frame shared, with a peak of ``min_response``."""
+    w, h = size
+    n = len(shifts)
+    out = []
+    for a in range(n):
+        for b in range(a + 1, n):
+            dx, dy = shifts[a, b]
+            overlap = max(0.0, (w - abs(dx)) * (h - abs(dy)) / (w * h))
+            if overlap >= min_overlap and response[a, b] >= min_response:
+                out.append((float(response[a, b]), overlap, a, b))
+    return out
 
 
 def _precorrect(frames8, prior):
