@@ -462,9 +462,7 @@ def self_calibrate(
         stages.advance()
         gauge, left = gauge_report(prob, p, matches, inlier)
     n_failed = int((~ok_all).sum())
-    cal = _record(
-        prob, p, cov, fit, e_all[inlier], dist[inlier], n_failed, matches, inlier, gauge, name, source
-    )
+    cal = _record(prob, p, cov, fit, dist[inlier], n_failed, matches, inlier, gauge, name, source)
     return SelfCalibration(
         calibration=cal,
         translations=t,
@@ -695,35 +693,17 @@ def _part_words(left: float, relay: bool) -> str:
     return "weakly determined by the frames through the model" + (" (the relay's physics)" if relay else "")
 
 
-def _record(prob, p, cov, fit, e, dist, n_failed, matches, inlier, gauge, name, source):
+# 11 parameters: the solve's results, each used once here (a record of them would only be
+# unpacked again)
+def _record(prob, p, cov, fit, dist, n_failed, matches, inlier, gauge, name, source):
     """The :class:`~oapcal.calibration.Calibration` of a self-calibration."""
     from scipy.spatial import ConvexHull, QhullError
 
     from oapcal.calibration import Calibration, FitSummary
     from oapcal.stats import ResidualStats
 
-    names = prob.family.param_names
-    free = tuple(n for n, s in zip(names, prob.shown) if s)
-    solved = [n for n, s in zip(names, prob.solved) if s]
-    idx = [free.index(n) for n in solved]
-    full_cov = np.zeros((len(free), len(free)))
-    full_cov[np.ix_(idx, idx)] = cov
-    stderr = np.full(len(names), np.nan)
-    for n in free:
-        stderr[names.index(n)] = 0.0
-    for i, n in enumerate(solved):
-        stderr[names.index(n)] = np.sqrt(max(cov[i, i], 0.0))
+    free, solved, stderr, full_cov = _uncertainty(prob, cov)
     w, h = matches.image_size
-    border = np.concatenate(
-        [
-            np.stack([np.linspace(0, w - 1, 33), np.zeros(33)], -1),
-            np.stack([np.full(33, w - 1.0), np.linspace(0, h - 1, 33)], -1),
-            np.stack([np.linspace(w - 1, 0, 33), np.full(33, h - 1.0)], -1),
-            np.stack([np.zeros(33), np.linspace(h - 1, 0, 33)], -1),
-        ]
-    )
-    ub = undistort(border, p, family=prob.family).xy
-    ub = ub[np.isfinite(ub).all(axis=1)]
     ref = undistort(np.concatenate([matches.xy_a[inlier], matches.xy_b[inlier]]), p, family=prob.family).xy
     ref = ref[np.isfinite(ref).all(axis=1)]
     try:
@@ -754,7 +734,6 @@ def _record(prob, p, cov, fit, e, dist, n_failed, matches, inlier, gauge, name, 
         normalize="none",
     )
     notes = ("self-calibration from the moves of a scene: " + "; ".join(gauge),)
-    del ub
     return Calibration(
         free=free,
         params=np.array(p),
@@ -771,6 +750,24 @@ def _record(prob, p, cov, fit, e, dist, n_failed, matches, inlier, gauge, name, 
         relay_design=None if prob.design is None else prob.design.to_dict(),
         notes=notes,
     )
+
+
+def _uncertainty(prob: _Problem, cov: np.ndarray):
+    """The record's free parameters (solved and pinned), the solved ones, the standard
+    errors ``(P,)`` (NaN for fixed, 0 for pinned) and the covariance over the free ones (0
+    for pinned), from the covariance ``cov`` of the solved parameters."""
+    names = prob.family.param_names
+    free = tuple(n for n, s in zip(names, prob.shown) if s)
+    solved = [n for n, s in zip(names, prob.solved) if s]
+    idx = [free.index(n) for n in solved]
+    full_cov = np.zeros((len(free), len(free)))
+    full_cov[np.ix_(idx, idx)] = cov
+    stderr = np.full(len(names), np.nan)
+    for n in free:
+        stderr[names.index(n)] = 0.0
+    for i, n in enumerate(solved):
+        stderr[names.index(n)] = np.sqrt(max(cov[i, i], 0.0))
+    return free, solved, stderr, full_cov
 
 
 def parse_steps(text: str, n_frames: int, source: str = "steps") -> np.ndarray:
