@@ -349,6 +349,7 @@ def _admit_top(rows: list, fitted: dict, xy_u, image_size, cv_top: int, always_f
     return top
 
 
+# select_families' settings handed on unchanged (as to _score)
 def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progress, image_size=None,
                       priors=None, region_points=None):  # fmt: skip
     """The relay's subsets; with ``priors`` (:class:`~oapcal.optics.relay_model.RelayPriors`)
@@ -386,6 +387,7 @@ def _free_names(family, mask) -> tuple[str, ...]:
     return tuple(n for n, m in zip(family.param_names, mask) if m)
 
 
+# select_families' settings handed on unchanged (as to _score)
 def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
     """Every Eq. (1) subset (all 4,096), fitted from ``init`` on the points as given."""
     masks = all_masks()
@@ -395,6 +397,7 @@ def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None
                   region_points=region_points)  # fmt: skip
 
 
+# select_families' settings handed on unchanged (as to _score)
 def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
     """Every Eq. (1) subset with the target's rotation free as well."""
     masks = all_masks()
@@ -500,6 +503,7 @@ def _recommend(candidates, params, points, region_words):
     return best, tuple(notes)
 
 
+# keyword options of the public choice across families (each an `oapcal select` option)
 def select_families(
     xy_u,
     xy_d,

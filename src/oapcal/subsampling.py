@@ -198,6 +198,7 @@ def robustness_bytes(trials: int, n_points: int, n_models: int) -> int:
     return trials * (BYTES_PER_TRIAL_POINT * n_points + BYTES_PER_TRIAL_MODEL * n_models)
 
 
+# keyword options of the public robustness test (each an `oapcal robustness` option)
 def robustness(
     xy_u,
     xy_d,

@@ -174,6 +174,7 @@ def _within(progress: Progress | None, start: int, total: int) -> Progress | Non
     return lambda done, _total, label: progress(start + done, total, label)
 
 
+# keyword options of the public report API (one per input the report can show)
 def compute_report(
     calibration,
     *,
@@ -315,6 +316,7 @@ def render_report(
     return H.document(page_title, sections, meta)
 
 
+# keyword options of the public report API (one per input the report can show)
 def build_report(
     calibration,
     *,

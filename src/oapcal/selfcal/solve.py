@@ -390,6 +390,7 @@ def _plausible(prob: _Problem, matches: Matches, t0: np.ndarray) -> np.ndarray:
     return keep
 
 
+# keyword options of the public self-calibration (each an `oapcal selfcal` option)
 def self_calibrate(
     matches: Matches,
     model="paper",
