@@ -102,3 +102,14 @@ def test_toy_family_correction_map_and_simulation_field(toy):
 def test_register_family_refuses_a_taken_name_or_code(toy):
     with pytest.raises(ModelSpecError, match="exists already"):
         register_family(TOY, toy_point)
+
+
+def test_toy_family_drives_an_image_simulation(toy):
+    from oapcal.imaging.simulate import simulate_image
+
+    field = ModelDistortionField(Model(toy, [4e-6, 99.5, 79.5], ("k", "c_x", "c_y")), 4.8, (200, 160))
+    sim = simulate_image((5,), field, snr=None, oversample=1, sigma_px=0)
+    # xy_u is the paraxial image of each corner; the truth's distorted corners are the toy
+    # formula there
+    np.testing.assert_allclose(sim.xy_d, toy_numpy(sim.xy_u, field.params), atol=1e-6)
+    assert sim.image.shape == (160, 200) and sim.visible.sum() > 10
