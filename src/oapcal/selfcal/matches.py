@@ -352,6 +352,25 @@ def _check_connected(pairs, n: int, min_overlap: float) -> None:
         )
 
 
+def _strongest_per_cell(eig, box, max_points: int) -> np.ndarray:
+    """``(n, 3)``: in each cell of a grid of about ``max_points`` cells over ``box = (x0, y0,
+    x1, y1)``, the pixel of largest corner strength ``eig``, as ``(x, y, strength)``."""
+    x0, y0, x1, y1 = box
+    k = max(2, int(np.ceil(np.sqrt(max_points * (x1 - x0) / (y1 - y0)))))
+    m = max(2, int(np.ceil(max_points / k)))
+    xe = np.linspace(x0, x1, k + 1).astype(int)
+    ye = np.linspace(y0, y1, m + 1).astype(int)
+    pts = []
+    for i in range(m):
+        for j in range(k):
+            cell = eig[ye[i] : ye[i + 1], xe[j] : xe[j + 1]]
+            if cell.size == 0:
+                continue
+            r, c = np.unravel_index(int(np.argmax(cell)), cell.shape)
+            pts.append((xe[j] + c, ye[i] + r, cell[r, c]))
+    return np.array(pts, float).reshape(-1, 3)
+
+
 def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, valid):
     """Matches of one pair: points ``(k, 2)`` in ``a``, in ``b``, and their LK eigenvalues."""
     import cv2
@@ -377,19 +396,7 @@ def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, valid):
     edge = min(2 * LK_WINDOW + 1, max(margin, min(h, w) // 12))
     inside_a = cv2.erode(valid.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)) > 0
     eig = np.where(inside_a, eig, 0.0)
-    k = max(2, int(np.ceil(np.sqrt(max_points * (x1 - x0) / (y1 - y0)))))
-    m = max(2, int(np.ceil(max_points / k)))
-    xe = np.linspace(x0, x1, k + 1).astype(int)
-    ye = np.linspace(y0, y1, m + 1).astype(int)
-    pts = []
-    for i in range(m):
-        for j in range(k):
-            cell = eig[ye[i] : ye[i + 1], xe[j] : xe[j + 1]]
-            if cell.size == 0:
-                continue
-            r, c = np.unravel_index(int(np.argmax(cell)), cell.shape)
-            pts.append((xe[j] + c, ye[i] + r, cell[r, c]))
-    pts = np.array(pts, float).reshape(-1, 3)
+    pts = _strongest_per_cell(eig, (x0, y0, x1, y1), max_points)
     if not len(pts):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
     floor = 0.05 * float(np.percentile(pts[:, 2], 90))
