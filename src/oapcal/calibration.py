@@ -142,6 +142,7 @@ def check_model_region(
     from oapcal.model import distort, jacobian_determinant
 
     params = np.asarray(getattr(calibration, "params", calibration), float)
+    family = getattr(calibration, "family", None)  # a Model's or a record's; None: by length
     regions = []
     bounds = getattr(calibration, "bounds", None)
     if bounds is not None:
@@ -155,8 +156,8 @@ def check_model_region(
         for (x0, y0, x1, y1), what in regions:
             gx, gy = np.meshgrid(np.linspace(x0, x1, CHECK_GRID), np.linspace(y0, y1, CHECK_GRID))
             xy = np.stack([gx.ravel(), gy.ravel()], -1)
-            det = jacobian_determinant(xy, params)
-            bad = ~(np.isfinite(distort(xy, params)).all(-1) & np.isfinite(det) & (det > 0))
+            det = jacobian_determinant(xy, params, family=family)
+            bad = ~(np.isfinite(distort(xy, params, family=family)).all(-1) & np.isfinite(det) & (det > 0))
             if bad.any():
                 x, y = xy[np.argmax(bad)]
                 how = "folds over" if np.isfinite(det[np.argmax(bad)]) else "is not finite"

@@ -54,26 +54,27 @@ PROBED_QUANTILE = 0.9
 MIN_POINTS = 12
 
 
-def estimate_error_model(xy_u, xy_d, params, mask, **fit_options) -> ErrorModel | None:
-    """The :class:`~oapcal.uncertainty.ErrorModel` of the model ``params`` (free parameters
-    ``mask``) fitted to reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``,
-    in the fit's coordinates (module docstring).  ``fit_options`` are the fit's own (passed
-    to :func:`oapcal.fitting.fit_batch` for the refits).  None with fewer than
+def estimate_error_model(xy_u, xy_d, params, mask=None, *, family=None, **fit_options) -> ErrorModel | None:
+    """The :class:`~oapcal.uncertainty.ErrorModel` of the model ``params`` fitted to
+    reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``, in the fit's
+    coordinates (module docstring).  ``params`` is a :class:`~oapcal.model.Model` (its free
+    parameters are the fitted ones unless ``mask`` is given) or a parameter vector of
+    ``family`` with the free-parameter ``mask`` (a legacy call without ``family``: the
+    built-in family of its length).  ``fit_options`` are the fit's own (passed to
+    :func:`oapcal.fitting.fit_batch` for the refits).  None with fewer than
     :data:`MIN_POINTS` landmarks whose correction converges.
     """
     from scipy.spatial import cKDTree
 
-    from oapcal.fitting import fit_batch
-    from oapcal.model import family_of, undistort
+    from oapcal.model import Model, as_model
 
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
-    params = np.asarray(params, float)
-    mask = np.asarray(mask, bool)
-    family = family_of(params)
-    free = tuple(n for n, m in zip(family.param_names, mask) if m)
-    k = len(free)
-    inv = undistort(xy_d, params)
+    model = as_model(params, family)
+    if mask is not None:
+        model = Model.from_mask(model.family, model.params, mask)
+    k = len(model.free)
+    inv = model.inverse(xy_d)
     ok = inv.converged & np.isfinite(inv.xy).all(axis=1)
     xy_u, xy_d, resid = xy_u[ok], xy_d[ok], inv.xy[ok] - xy_u[ok]
     n = len(xy_u)
@@ -86,40 +87,7 @@ def estimate_error_model(xy_u, xy_d, params, mask, **fit_options) -> ErrorModel 
     floor2 = max(0.0, float((resid[:, None, :] * resid[nb[:, 1:]]).sum(-1).mean()))
     noise2 = max(ms - floor2, 0.0)
     spacing = float(np.median(dist[:, 1]))
-
-    keep = _sides(xy_u)
-    keep = keep[keep.sum(axis=1) >= k + 2]
-    ratios, reach = [], []
-    if len(keep):
-        import inspect
-
-        # the fit's own options, as far as the batched solver takes them (covariance: always)
-        accepted = set(inspect.signature(fit_batch).parameters) - {"covariance", "points", "family"}
-        fit_options = {k: v for k, v in fit_options.items() if k in accepted}
-        masks = np.repeat(mask[None], len(keep), 0)
-        starts = np.repeat(params[None], len(keep), 0)
-        batch = fit_batch(xy_u, xy_d, masks, starts, points=keep, family=family, **fit_options)
-        idx = np.flatnonzero(mask)
-        for b in range(len(keep)):
-            if not batch.converged[b]:
-                continue
-            out = ~keep[b]
-            pb = batch.params[b]
-            cov_b = batch.covariance[b][np.ix_(idx, idx)]
-            inv_b = undistort(xy_d[out], pb)
-            good = inv_b.converged & np.isfinite(inv_b.xy).all(axis=1)
-            if not good.any():
-                continue
-            h = inv_b.xy[good] - xy_u[out][good]
-            cv = position_covariance(xy_u[out][good], pb, cov_b, free)
-            sp2 = cv[:, 0, 0] + cv[:, 1, 1]
-            sp2 = np.where(np.isfinite(sp2), sp2, 0.0)
-            hull_b = _hull(xy_u[keep[b]])
-            reach.append(hull_distance(xy_u[out][good], hull_b) / max(hull_radius(hull_b), 1e-300))
-            if sp2.sum() <= 0:
-                continue
-            excess = (h * h).sum() - good.sum() * (floor2 + noise2)
-            ratios.append(float(excess / sp2.sum()))
+    ratios, reach = _side_ratios(xy_u, xy_d, model, floor2 + noise2, fit_options)
     kappa2 = max(1.0, float(np.quantile(ratios, SIDE_QUANTILE))) if ratios else 1.0
     return ErrorModel(
         floor_px=float(np.sqrt(floor2)),
@@ -132,6 +100,52 @@ def estimate_error_model(xy_u, xy_d, params, mask, **fit_options) -> ErrorModel 
         growth_exponent=GROWTH_EXPONENT,
         probed_distance=float(np.quantile(np.concatenate(reach), PROBED_QUANTILE)) if reach else 0.0,
     )
+
+
+def _side_ratios(xy_u, xy_d, model, point_var: float, fit_options: dict) -> tuple[list, list]:
+    """Refit without each side of the landmarks (:func:`_sides`) and predict the held-out
+    ones: per converged side, the factor ``kappa^2`` (module docstring; ``point_var`` is
+    ``F^2 + noise^2``) and the held-out landmarks' distances beyond the refit's hull (in
+    hull radii)."""
+    import inspect
+
+    from oapcal.fitting import fit_batch
+
+    mask = model.mask
+    k = int(mask.sum())
+    keep = _sides(xy_u)
+    keep = keep[keep.sum(axis=1) >= k + 2]
+    ratios, reach = [], []
+    if not len(keep):
+        return ratios, reach
+    # the fit's own options, as far as the batched solver takes them (covariance: always)
+    accepted = set(inspect.signature(fit_batch).parameters) - {"covariance", "points", "family"}
+    fit_options = {key: v for key, v in fit_options.items() if key in accepted}
+    masks = np.repeat(mask[None], len(keep), 0)
+    starts = np.repeat(np.asarray(model.params)[None], len(keep), 0)
+    batch = fit_batch(xy_u, xy_d, masks, starts, points=keep, family=model.family, **fit_options)
+    idx = np.flatnonzero(mask)
+    for b in range(len(keep)):
+        if not batch.converged[b]:
+            continue
+        out = ~keep[b]
+        side = model.with_params(batch.params[b])
+        cov_b = batch.covariance[b][np.ix_(idx, idx)]
+        inv_b = side.inverse(xy_d[out])
+        good = inv_b.converged & np.isfinite(inv_b.xy).all(axis=1)
+        if not good.any():
+            continue
+        h = inv_b.xy[good] - xy_u[out][good]
+        cv = position_covariance(xy_u[out][good], side, cov_b)
+        sp2 = cv[:, 0, 0] + cv[:, 1, 1]
+        sp2 = np.where(np.isfinite(sp2), sp2, 0.0)
+        hull_b = _hull(xy_u[keep[b]])
+        reach.append(hull_distance(xy_u[out][good], hull_b) / max(hull_radius(hull_b), 1e-300))
+        if sp2.sum() <= 0:
+            continue
+        excess = (h * h).sum() - good.sum() * point_var
+        ratios.append(float(excess / sp2.sum()))
+    return ratios, reach
 
 
 def _hull(xy: np.ndarray) -> np.ndarray:

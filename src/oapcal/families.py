@@ -43,9 +43,11 @@ from oapcal.model import (
     RELAY,
     RELAY_POSE_NAMES,
     ROTATION_SUFFIX,
+    Model,
     all_masks,
+    as_model,
+    family_named,
     jacobian_params,
-    names_from_mask,
 )
 from oapcal.optics.relay_model import (
     RelayDesign,
@@ -186,22 +188,27 @@ class _Region:
     """What :func:`~oapcal.calibration.check_model_region` reads of a calibration: the
     model, the reference points' bounds and the image frame."""
 
-    def __init__(self, params, bounds, image_size):
-        self.params = params
+    def __init__(self, model: Model, bounds, image_size):
+        self.model = model
+        self.family = model.family
+        self.params = np.asarray(model.params, float)
+        self.free = model.free
         self.bounds = bounds
         self.image_size = image_size
 
 
-def region_problem(params, xy_u, image_size=None) -> str:
-    """Why ``oapcal fit`` would refuse to write the model ``params`` fitted to the reference
+def region_problem(params, xy_u, image_size=None, *, family=None) -> str:
+    """Why ``oapcal fit`` would refuse to write the model ``params`` (a
+    :class:`~oapcal.model.Model`, or a vector of ``family``) fitted to the reference
     points ``xy_u`` (its check :func:`~oapcal.calibration.check_model_region` over the
     points' bounds and the ``image_size`` frame), or ``""`` when it would write it."""
     xy_u = np.asarray(xy_u, float)
     bounds = (*xy_u.min(axis=0).tolist(), *xy_u.max(axis=0).tolist())
-    if not np.isfinite(params).all():
+    model = as_model(params, family)
+    if not np.isfinite(model.params).all():
         return "the fit gave non-finite parameters"
     try:
-        check_model_region(_Region(np.asarray(params, float), bounds, image_size), source="the fitted model")
+        check_model_region(_Region(model, bounds, image_size), source="the fitted model")
     except InputFileError as exc:
         return str(exc).removeprefix("the fitted model: ").split(";")[0]
     return ""
@@ -224,19 +231,20 @@ def region_sigma(xy_u, xy_d, mask, p0, region_points, prior=None, family=None,
                     **({} if prior is None else {"prior": prior})).item(0)  # fmt: skip
     if not fit.converged or not np.isfinite(fit.covariance).all():
         return np.inf, fit.k_eff
+    model = as_model(fit, family)
     with np.errstate(all="ignore"):
-        cov = position_covariance(region_points, fit.params, fit.covariance, fit.free)
+        cov = position_covariance(region_points, model, fit.covariance)
         var = cov[..., 0, 0] + cov[..., 1, 1]
         fixed = {
             n: w for n, w in (fixed_prior or {}).items() if n not in fit.free and np.isfinite(w) and w > 0
         }
         if fixed:
-            var = var + _fixed_variance(xy_u, fit, prior, fixed, region_points)
+            var = var + _fixed_variance(xy_u, model, prior, fixed, region_points)
     var = var[np.isfinite(var)]
     return (float(np.sqrt(var.mean())) if var.size else np.inf), fit.k_eff
 
 
-def _fixed_variance(xy_u, fit, prior, fixed: dict, region_points) -> np.ndarray:
+def _fixed_variance(xy_u, fit: Model, prior, fixed: dict, region_points) -> np.ndarray:
     """The position variance (px^2) at ``region_points`` that values held fixed at the design
     (``fixed``: name -> prior width) leave after the fit: linearized, an error ``dq`` of them
     moves the fitted values by ``dp = -G dq`` with ``G = (J_f^T J_f + W^2)^-1 J_f^T J_q`` at
@@ -244,13 +252,12 @@ def _fixed_variance(xy_u, fit, prior, fixed: dict, region_points) -> np.ndarray:
     ``-J_u^-1 (J_q - J_f G) dq``.  Propagated by
     :func:`oapcal.uncertainty.position_covariance` with the joint covariance of ``(dp, dq)``,
     ``[[G S G^T, -G S], [-S G^T, S]]``, ``S = diag(width^2)``."""
-    from oapcal.model import jacobian_params
     from oapcal.uncertainty import position_covariance
 
     names = fit.family.param_names
     f = [names.index(n) for n in fit.free]
     q = [names.index(n) for n in fixed]
-    jac = jacobian_params(xy_u, fit.params).reshape(-1, len(names))
+    jac = fit.jacobian_params(xy_u).reshape(-1, len(names))
     jf, jq = jac[:, f], jac[:, q]
     w2 = np.zeros(len(f))
     if prior is not None:
@@ -260,10 +267,11 @@ def _fixed_variance(xy_u, fit, prior, fixed: dict, region_points) -> np.ndarray:
     g = np.linalg.lstsq(jf.T @ jf + np.diag(w2), jf.T @ jq, rcond=None)[0]
     big_s = np.diag([w**2 for w in fixed.values()])
     joint = np.block([[g @ big_s @ g.T, -g @ big_s], [-big_s @ g.T, big_s]])
-    cov = position_covariance(region_points, fit.params, joint, tuple(fit.free) + tuple(fixed))
+    cov = position_covariance(region_points, fit, joint, tuple(fit.free) + tuple(fixed))
     return cov[..., 0, 0] + cov[..., 1, 1]
 
 
+# 14 parameters: select_families' settings handed on unchanged to each family's scoring
 def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, seed: int, progress,
            image_size=None, prior=None, region_points=None, fixed_prior=None):  # fmt: skip
     """Score the models ``subsets`` (``[(spec, mask)]``) of one family from the starts ``p0``
@@ -271,6 +279,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
     checked in AICc order over the output region (:func:`region_problem`) until ``cv_top``
     pass, and those are cross-validated.  ``prior``: ``(mean, sigma)`` ``(B, P)`` of the
     subsets' maximum a posteriori fits (relay priors), or None."""
+    model_family = family_named(family)
     rows = [(spec, mask, np.nan, np.nan, False, reason) for spec, mask, reason in invalid]
     fitted = {}
     if subsets:
@@ -281,27 +290,10 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
             if codes[i]:
                 rows.append((spec, mask, np.nan, np.nan, False, reasons[i]))
             else:
-                fitted[spec] = scores["params"][i]
+                fitted[spec] = Model.from_mask(model_family, scores["params"][i], mask)
                 rows.append((spec, mask, float(scores["aicc"][i]), float(scores["mean_error"][i]), True, ""))
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))
-    top = []
-    for i, row in enumerate(rows):
-        if len(top) >= max(0, cv_top) or not row[4]:
-            break
-        problem = region_problem(fitted[row[0]], xy_u, image_size)
-        if problem:
-            rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
-        else:
-            top.append(row)
-    for i, row in enumerate(rows):
-        # with priors every value of the relay is constrained: its full model is always
-        # cross-validated (the Bayesian model; a subset fixes what the priors say is uncertain)
-        if row[0] == FULL_RELAY_SPEC and prior is not None and row[4] and row not in top:
-            problem = region_problem(fitted[row[0]], xy_u, image_size)
-            if problem:
-                rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
-            else:
-                top.append(row)
+    top = _admit_top(rows, fitted, xy_u, image_size, cv_top, always_full=prior is not None)
     rows.sort(key=lambda r: (not r[4], r[2] if np.isfinite(r[2]) else np.inf))
     cv_err = {}
     if top and cv:
@@ -319,10 +311,11 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
         for r in cv_err:
             i = index[r]
             one = None if prior is None else tuple(np.broadcast_to(a, masks.shape)[i : i + 1] for a in prior)
-            sigma[r] = region_sigma(xy_u, xy_d, masks[i], p0[i], region_points, one, fixed_prior=fixed_prior)
+            sigma[r] = region_sigma(xy_u, xy_d, masks[i], p0[i], region_points, one, family=model_family,
+                                    fixed_prior=fixed_prior)  # fmt: skip
     out = []
     for spec, mask, aicc, err, valid, reason in rows:
-        free = names_from_mask(mask)
+        free = _free_names(model_family, mask)
         e, f = cv_err.get(spec, (None, 0))
         sig, k_eff = sigma.get(spec, (None, None))
         pred = None if sig is None or e is None else float(np.hypot(e, sig))
@@ -331,13 +324,39 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
     return out
 
 
+def _admit_top(rows: list, fitted: dict, xy_u, image_size, cv_top: int, always_full: bool) -> list:
+    """The rows to cross-validate: the valid ones in AICc order that ``oapcal fit`` would
+    write (:func:`region_problem`) until ``cv_top`` pass, and with ``always_full`` (relay
+    priors: every value of the relay is constrained) the full relay model as well (the
+    Bayesian model; a subset fixes what the priors say is uncertain).  A row that fails the
+    check becomes invalid in ``rows``, with the check's reason."""
+    top = []
+
+    def admit(i, row):
+        problem = region_problem(fitted[row[0]], xy_u, image_size)
+        if problem:
+            rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
+        else:
+            top.append(row)
+
+    for i, row in enumerate(rows):
+        if len(top) >= max(0, cv_top) or not row[4]:
+            break
+        admit(i, row)
+    for i, row in enumerate(rows):
+        if row[0] == FULL_RELAY_SPEC and always_full and row[4] and row not in top:
+            admit(i, row)
+    return top
+
+
+# select_families' settings handed on unchanged (as to _score)
 def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progress, image_size=None,
                       priors=None, region_points=None):  # fmt: skip
     """The relay's subsets; with ``priors`` (:class:`~oapcal.optics.relay_model.RelayPriors`)
     each a maximum a posteriori fit, ``relay:all`` (every misalignment value) among them, and
     a value with a prior needs no identifiability from the points."""
     p0 = relay_params(design)
-    jac = jacobian_params(xy_u, p0)  # once for the 64 (128) subsets
+    jac = jacobian_params(xy_u, p0, family=design.family)  # once for the 64 (128) subsets
     subsets = relay_subset_masks(design.family)
     constrained = np.zeros(design.family.n_params, bool)
     if priors is not None:
@@ -364,21 +383,27 @@ def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progres
                   prior, region_points, fixed_prior)  # fmt: skip
 
 
+def _free_names(family, mask) -> tuple[str, ...]:
+    return tuple(n for n, m in zip(family.param_names, mask) if m)
+
+
+# select_families' settings handed on unchanged (as to _score)
 def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
     """Every Eq. (1) subset (all 4,096), fitted from ``init`` on the points as given."""
     masks = all_masks()
     p0 = initial_params_many(init, xy_u, xy_d, masks)
-    subsets = [(",".join(names_from_mask(m)), m) for m in masks]
+    subsets = [(",".join(_free_names(BROWN_CONRADY, m)), m) for m in masks]
     return _score(BROWN_CONRADY.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress, image_size,
                   region_points=region_points)  # fmt: skip
 
 
+# select_families' settings handed on unchanged (as to _score)
 def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
     """Every Eq. (1) subset with the target's rotation free as well."""
     masks = all_masks()
     masks = np.pad(masks, ((0, 0), (0, 1)), constant_values=True)
     p0 = initial_params_many(init, xy_u, xy_d, masks)
-    subsets = [(",".join(names_from_mask(m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
+    subsets = [(",".join(_free_names(BROWN_CONRADY_POSE, m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
     return _score(BROWN_CONRADY_POSE.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress,
                   image_size, region_points=region_points)  # fmt: skip
 
@@ -428,10 +453,8 @@ def region_points(xy_u, region=None) -> np.ndarray:
 def _disagreement(a: Candidate, b: Candidate, params: dict, points) -> float:
     """The largest distance (px) between the distorted positions two fitted models give the
     region's points."""
-    from oapcal.model import distort
-
     with np.errstate(all="ignore"):
-        d = np.hypot(*(distort(points, params[a.spec]) - distort(points, params[b.spec])).T)
+        d = np.hypot(*(params[a.spec](points) - params[b.spec](points)).T)
     return float(np.nanmax(d)) if np.isfinite(d).any() else np.inf
 
 
@@ -480,6 +503,7 @@ def _recommend(candidates, params, points, region_words):
     return best, tuple(notes)
 
 
+# keyword options of the public choice across families (each an `oapcal select` option)
 def select_families(
     xy_u,
     xy_d,
@@ -518,14 +542,7 @@ def select_families(
         raise DataError(f"choosing across families needs cross-validation with 2 or more folds, got {cv}",
                         param="cv")  # fmt: skip
     priors = parse_priors(priors)
-    if isinstance(region, str) and region == "auto":
-        region = (
-            None if image_size is None else (0.0, 0.0, float(image_size[0]) - 1, float(image_size[1]) - 1)
-        )
-    elif isinstance(region, str) and region == "hull":
-        region = None
-    elif isinstance(region, str):
-        raise DataError(f"region must be 'auto', 'hull' or a box x0,y0,x1,y1, got {region!r}", param="region")
+    region = _region_box(region, image_size)
     points = region_points(xy_u, region)
     candidates: list[Candidate] = []
     if "bc" in families:
@@ -558,8 +575,19 @@ def select_families(
     return FamilySelection(len(xy_u), int(cv), tuple(candidates), recommended, heldout, region, notes, record)
 
 
+def _region_box(region, image_size):
+    """``select_families``'s ``region`` as a box ``(x0, y0, x1, y1)``, or None for the hull."""
+    if isinstance(region, str) and region == "auto":
+        return None if image_size is None else (0.0, 0.0, float(image_size[0]) - 1, float(image_size[1]) - 1)
+    if isinstance(region, str) and region == "hull":
+        return None
+    if isinstance(region, str):
+        raise DataError(f"region must be 'auto', 'hull' or a box x0,y0,x1,y1, got {region!r}", param="region")
+    return region
+
+
 def _fitted_params(xy_u, xy_d, scored, design, init, priors) -> dict:
-    """The parameters of the cross-validated candidates fitted to all points (for comparing
+    """The models of the cross-validated candidates fitted to all points (for comparing
     two models' maps), by spec."""
     from oapcal.fitting import fit_batch, initial_params
     from oapcal.model import parse_any_model
@@ -572,12 +600,13 @@ def _fitted_params(xy_u, xy_d, scored, design, init, priors) -> dict:
                 if priors is not None:
                     fits, _ = map_fit(xy_u, xy_d, design, mask[None], priors, covariance=False, max_iter=200)
                 else:
-                    fits = fit_batch(xy_u, xy_d, mask[None], relay_params(design)[None], covariance=False)
+                    fits = fit_batch(xy_u, xy_d, mask[None], relay_params(design)[None], covariance=False,
+                                     family=family_named(c.family))  # fmt: skip
             else:
                 mask = parse_any_model(c.spec)
                 fits = fit_batch(xy_u, xy_d, mask[None], initial_params(init, xy_u, xy_d, mask)[None],
-                                 covariance=False)  # fmt: skip
-            out[c.spec] = fits.params[0]
+                                 covariance=False, family=family_named(c.family))  # fmt: skip
+            out[c.spec] = Model.from_mask(c.family, fits.params[0], mask)
         except Exception:  # noqa: BLE001 -- a model that cannot be refitted is not compared
             continue
     return out

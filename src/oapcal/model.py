@@ -138,8 +138,7 @@ def parse_any_model(spec) -> np.ndarray:
     ('k1', 'm', 'rotation')
     """
     if isinstance(spec, np.ndarray) and spec.dtype == bool and spec.shape != (N_PARAMS,):
-        family = family_of(spec)
-        if spec.shape != (family.n_params,):
+        if spec.ndim != 1 or spec.shape[0] not in _BY_SIZE:
             sizes = ", ".join(str(n) for n in sorted(_BY_SIZE))
             raise ModelSpecError(f"a model mask must have {sizes} entries, got shape {spec.shape}")
         return spec.copy()
@@ -147,6 +146,21 @@ def parse_any_model(spec) -> np.ndarray:
         base = spec.strip()[: -len(ROTATION_SUFFIX)]
         return np.append(parse_model(base or "paper"), True)
     return parse_model(spec)
+
+
+def family_of_spec(spec) -> ModelFamily:
+    """The family a specification of :func:`parse_any_model` names: Eq. (1) with the
+    target's rotation for ``"...+rotation"``, Eq. (1) for its other specs; a bare boolean
+    mask carries nothing but its length (:func:`family_of`).
+
+    >>> family_of_spec("paper+rotation").name
+    'brown-conrady+rotation'
+    """
+    if isinstance(spec, np.ndarray) and spec.dtype == bool:
+        return family_of(spec)
+    if isinstance(spec, str) and spec.strip().endswith(ROTATION_SUFFIX):
+        return BROWN_CONRADY_POSE
+    return BROWN_CONRADY
 
 
 def names_from_mask(mask: np.ndarray) -> tuple[str, ...]:
@@ -355,14 +369,49 @@ _BY_SIZE = {f.n_params: f for f in FAMILIES.values()}
 
 
 def family_of(params, family: ModelFamily | None = None) -> ModelFamily:
-    """The family of a parameter vector ``(..., P)``: ``family`` if given, else the one
-    whose vector has ``P`` entries (13 Eq. 1, 14 Eq. 1 with rotation, 36 the relay, 39 the
-    relay with a microscope; the
-    sizes are distinct, so a vector names its family).  Unknown sizes give Eq. (1), whose
-    shape check then reports them."""
+    """The family of a *bare* parameter vector ``(..., P)``, for the legacy calls that pass
+    one (``distort(xy, params)``): ``family`` if given, else the built-in family whose
+    vector has ``P`` entries (13 Eq. 1, 14 Eq. 1 with rotation, 36 the relay, 39 the relay
+    with a microscope; the sizes are distinct).  Any other size raises
+    :class:`ModelSpecError` naming the sizes.  Code that knows its family passes it (a
+    :class:`Model`, or ``family=``): a registered family (:func:`register_family`) is never
+    found by length."""
     if family is not None:
         return family
-    return _BY_SIZE.get(int(np.shape(params)[-1]) if np.ndim(params) else -1, BROWN_CONRADY)
+    size = int(np.shape(params)[-1]) if np.ndim(params) else None
+    try:
+        return _BY_SIZE[size]
+    except KeyError:
+        sizes = ", ".join(f"(..., {f.n_params}) {f.name}" for f in _BY_SIZE.values())
+        raise ModelSpecError(
+            f"parameters must have shape {sizes}, got {np.shape(params)}: a vector of no model "
+            "family (or give a Model, oapcal.model.Model, that names its family)",
+            param="params",
+        ) from None
+
+
+def register_family(family: ModelFamily, point, inverse_start=None, rounding_scale=None) -> ModelFamily:
+    """Add a model family: its entry in :data:`FAMILIES` (found by name) and its compiled
+    point function in the kernels' dispatch table (``oapcal._kernels._POINT``, with its
+    Newton start and rounding scale; defaults: start at the distorted point, no rounding
+    magnitudes).  ``point`` is a ``numba.njit`` function with :func:`oapcal._kernels.bc_point`'s
+    contract.  Everything that takes a :class:`Model` (distort, inverse, fits, correction
+    maps, simulation) then works for it; nothing else changes (``docs/architecture.md``,
+    "Where a new model family goes"; ``tests/model/test_toy_family.py``)."""
+    k = _kernels()
+    taken = {f.code for f in FAMILIES.values()} | set(k._POINT)
+    if family.name in FAMILIES or family.code in taken:
+        raise ModelSpecError(
+            f"a model family named {family.name!r} or with code {family.code} exists already", param="family"
+        )
+    k._POINT[family.code] = point
+    k._START[family.code] = inverse_start or k.identity_start
+    if rounding_scale is not None:
+        k._ROUNDING[family.code] = rounding_scale
+    # the point function lives outside _kernels.py: its source names the cached kernels
+    k._DEPENDS[family.code] = (point,) + tuple(f for f in (inverse_start, rounding_scale) if f is not None)
+    FAMILIES[family.name] = family
+    return family
 
 
 def _kernels():
@@ -715,3 +764,43 @@ class Model:
     def __repr__(self) -> str:
         values = ", ".join(f"{n}={self.value(n):.6g}" for n in self.free)
         return f"Model({self.family.name!r}, {values})"
+
+
+def as_model(value, family: str | ModelFamily | None = None) -> Model:
+    """``value`` as a :class:`Model`: a Model as it is; a fitted record with a ``model``
+    (a :class:`~oapcal.calibration.Calibration`) its model; a record with ``params`` and
+    ``free`` (a calibration or fit written before ``model`` existed) the model of its
+    family (its ``family`` when it carries one); a bare parameter vector ``(P,)`` the model
+    of ``family``, or for a legacy call without one, of the built-in family of its length
+    (:func:`family_of`, which refuses any other length), with no free parameters named.
+
+    The one adapter of the functions that take "a calibration, a Model or a vector"."""
+    if isinstance(value, Model):
+        return value if family is None or family_named(family) is value.family else _mismatch(value, family)
+    inner = getattr(value, "model", None)
+    if isinstance(inner, Model):
+        return as_model(inner, family)
+    if hasattr(value, "params") and hasattr(value, "free"):
+        carried = getattr(value, "family", None)
+        if family is None and isinstance(carried, ModelFamily | str):
+            family = carried
+        return Model(family_of(value.params, None if family is None else family_named(family)),
+                     value.params, tuple(value.free))  # fmt: skip
+    try:
+        params = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise DataError(
+            f"a model is a Model, a calibration or a parameter vector, not {type(value).__name__}",
+            param="model",
+        ) from None
+    if params.ndim != 1:
+        raise ModelSpecError(f"one model's parameter vector is 1-D, got shape {params.shape}", param="params")
+    fam = family_of(params, None if family is None else family_named(family))
+    return Model(fam, params, ())
+
+
+def _mismatch(model: Model, family) -> Model:
+    raise ModelSpecError(
+        f"a {model.family.name} model was given where a {family_named(family).name} model is needed",
+        param="family",
+    )

@@ -42,9 +42,11 @@ from oapcal import validate
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.fitting import DEFAULT_INIT, fit_batch, initial_params_many
 from oapcal.model import (
+    ModelFamily,
+    family_named,
     family_of,
+    family_of_spec,
     min_jacobian_determinant,
-    names_from_mask,
     parse_any_model,
     undistort,
 )
@@ -145,21 +147,33 @@ def hull_grid(xy: np.ndarray, n: int = 41) -> np.ndarray:
 @dataclass(frozen=True)
 class StartedModel:
     """A model of a family that starts from a design (the relay): its ``name``, free-parameter
-    ``mask (P,)`` and starting vector ``p0 (P,)`` (:func:`oapcal.optics.relay_model.relay_params`)."""
+    ``mask (P,)`` and starting vector ``p0 (P,)`` (:func:`oapcal.optics.relay_model.relay_params`);
+    ``family`` the model family (by name; None: the built-in family of the mask's length)."""
 
     name: str
     mask: np.ndarray
     p0: np.ndarray
+    family: ModelFamily | str | None = None
 
 
 def _model_name(spec) -> str:
     if isinstance(spec, StartedModel):
         return spec.name
-    return spec if isinstance(spec, str) else ",".join(names_from_mask(parse_any_model(spec)))
+    if isinstance(spec, str):
+        return spec
+    return ",".join(n for n, m in zip(_family_of(spec).param_names, parse_any_model(spec)) if m)
 
 
 def _mask_of(spec) -> np.ndarray:
     return np.asarray(spec.mask, bool) if isinstance(spec, StartedModel) else parse_any_model(spec)
+
+
+def _family_of(spec) -> ModelFamily:
+    """The family of a model of :func:`robustness`: a :class:`StartedModel`'s own (or, not
+    given, its mask's), else the family the spec names (:func:`oapcal.model.family_of_spec`)."""
+    if isinstance(spec, StartedModel):
+        return family_of(spec.mask) if spec.family is None else family_named(spec.family)
+    return family_of_spec(spec)
 
 
 def _starts_of(spec, init, u, d, mask) -> np.ndarray:
@@ -184,6 +198,7 @@ def robustness_bytes(trials: int, n_points: int, n_models: int) -> int:
     return trials * (BYTES_PER_TRIAL_POINT * n_points + BYTES_PER_TRIAL_MODEL * n_models)
 
 
+# keyword options of the public robustness test (each an `oapcal robustness` option)
 def robustness(
     xy_u,
     xy_d,
@@ -221,14 +236,15 @@ def robustness(
     n_keep, masks = _check_robustness(len(u), trials, fraction, specs)
     ref_rms = _reference_rms(u, d, specs, masks, init, max_iter)
     keep, held = _draw_subsets(seed, trials, len(u), n_keep)
-    trial = _Trials(u, d, masks, ref_rms, wrong_minimum_ratio, n_keep, trials)
+    families = [_family_of(s) for s in specs]
+    trial = _Trials(u, d, masks, families, ref_rms, wrong_minimum_ratio, n_keep, trials)
     p0 = [_starts_of(s, init, u, d, m) for s, m in zip(specs, masks)]
     n_models = len(masks)
     for start in range(0, trials, chunk):
         sl = slice(start, min(start + chunk, trials))
         for j in range(n_models):
             fits = fit_batch(u, d, np.repeat(masks[j][None], sl.stop - sl.start, 0), p0[j], points=keep[sl],
-                             covariance=False, max_iter=max_iter)  # fmt: skip
+                             covariance=False, max_iter=max_iter, family=trial.families[j])  # fmt: skip
             trial.record(j, sl, fits, held[sl])
             if progress is not None:
                 progress(sl.start * n_models + (j + 1) * (sl.stop - sl.start), trials * n_models)
@@ -276,14 +292,15 @@ def _reference_rms(u: np.ndarray, d: np.ndarray, specs, masks, init, max_iter: i
     named = ("auto", "pixel", "zero")
     starts = list(named) + ([init] if not (isinstance(init, str) and init in named) else [])
     out = np.full(len(masks), np.inf)
-    # one batch per family (parameter-vector length): every model with each of its starts
-    for size in sorted({len(m) for m in masks}):
+    # one batch per family: every model with each of its starts
+    families = [_family_of(spec) for spec in specs]
+    for family in sorted({f.name: f for f in families}.values(), key=lambda f: f.n_params):
         rows = [(j, _starts_of(spec, s, u, d, masks[j]))
-                for j, spec in enumerate(specs) if len(masks[j]) == size
+                for j, spec in enumerate(specs) if families[j] is family
                 for s in ([spec] if isinstance(spec, StartedModel) else starts)]  # fmt: skip
         owner = np.array([j for j, _ in rows])
         ref = fit_batch(u, d, np.stack([masks[j] for j in owner]), np.stack([p for _, p in rows]),
-                        covariance=False, max_iter=max_iter)  # fmt: skip
+                        covariance=False, max_iter=max_iter, family=family)  # fmt: skip
         np.minimum.at(out, owner, np.where(ref.converged, ref.rss, np.inf))
     return np.sqrt(out / len(u))
 
@@ -301,8 +318,8 @@ class _Trials:
     """The outcome of every trial of every model: its reason code (0 = converged, else 1 +
     index in REASONS), parameters, held-out mean error and held-out points not inverted."""
 
-    def __init__(self, u, d, masks, ref_rms, wrong_minimum_ratio, n_keep, trials):
-        self.u, self.d, self.masks, self.ref_rms = u, d, masks, ref_rms
+    def __init__(self, u, d, masks, families, ref_rms, wrong_minimum_ratio, n_keep, trials):
+        self.u, self.d, self.masks, self.families, self.ref_rms = u, d, masks, families, ref_rms
         self.wrong_minimum_ratio, self.n_keep = wrong_minimum_ratio, n_keep
         self.atol = 1e-9 * float(np.ptp(d[:, 1]))
         self.fold_points = hull_grid(u)
@@ -323,7 +340,8 @@ class _Trials:
         todo = code == 0
         min_det = np.full(n_sl, np.nan)
         if todo.any():
-            min_det[todo] = min_jacobian_determinant(fits.params[todo], self.fold_points)
+            family = self.families[j]
+            min_det[todo] = min_jacobian_determinant(fits.params[todo], self.fold_points, family=family)
         code[todo & ~(min_det > 0)] = 1 + REASONS.index("folded")
         rms = np.sqrt(fits.rss / self.n_keep)
         ref = self.ref_rms[j]
@@ -336,7 +354,7 @@ class _Trials:
         code = self.classify(j, fits)
         ok = code == 0
         if ok.any():
-            inv = undistort(self.d[held[ok]], fits.params[ok])
+            inv = undistort(self.d[held[ok]], fits.params[ok], family=self.families[j])
             conv = inv.converged
             err = np.hypot(*np.moveaxis(inv.xy - self.u[held[ok]], -1, 0))
             n_ok = conv.sum(axis=1)
@@ -352,9 +370,9 @@ class _Trials:
         """Model ``j`` over all trials: failures by reason, parameter spread, held-out error."""
         codes = self.reason_code[j]
         conv = codes == 0
-        free = names_from_mask(self.masks[j])
+        names = self.families[j].param_names
+        free = tuple(n for n, m in zip(names, self.masks[j]) if m)
         std = {}
-        names = family_of(self.masks[j]).param_names
         for name in free:
             i = names.index(name)
             std[name] = float(np.std(self.params[j][conv, i], ddof=1)) if conv.sum() >= 2 else None

@@ -51,26 +51,29 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.model import family_of, jacobian_params, jacobian_point
+from oapcal.model import as_model
 
 
-def position_covariance(xy_u, params, covariance, free) -> np.ndarray:
+def position_covariance(xy_u, params, covariance, free=None, *, family=None) -> np.ndarray:
     """Covariance ``(..., N, 2, 2)`` of the corrected position at output points ``(..., N, 2)``.
 
-    ``covariance`` is ``k x k`` over the parameters named in ``free`` (names of the family
-    of ``params``, :func:`oapcal.model.family_of`); see the module
-    docstring for the formula.  NaN where the map is singular (folds over).
+    ``params`` is a :class:`~oapcal.model.Model` (``free`` defaults to its free
+    parameters) or a parameter vector of ``family`` (by name; a legacy call without it: the
+    built-in family of its length, :func:`oapcal.model.family_of`).  ``covariance`` is
+    ``k x k`` over the parameters named in ``free``; see the module docstring for the
+    formula.  NaN where the map is singular (folds over).
     """
     xy_u = np.asarray(xy_u, float)
-    names = family_of(params).param_names
-    idx = [names.index(name) for name in free]
+    model = as_model(params, family)
+    names = model.family.param_names
+    idx = [names.index(name) for name in (model.free if free is None else free)]
     cov = np.asarray(covariance, float)
     if cov.shape != (len(idx), len(idx)):
         raise DataError(
             f"covariance must be {len(idx)} x {len(idx)} (one per free parameter), got {cov.shape}"
         )
-    jp = jacobian_params(xy_u, params)[..., idx]  # (..., N, 2, k)
-    ju = jacobian_point(xy_u, params)  # (..., N, 2, 2)
+    jp = model.jacobian_params(xy_u)[..., idx]  # (..., N, 2, k)
+    ju = model.jacobian(xy_u)  # (..., N, 2, 2)
     det = ju[..., 0, 0] * ju[..., 1, 1] - ju[..., 0, 1] * ju[..., 1, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = (
@@ -175,7 +178,7 @@ def predicted_error(xy_u, calibration) -> np.ndarray:
     :class:`ErrorModel` beyond the hull and with its model floor added; the propagated
     uncertainty alone for a calibration without an error model.  NaN where the map folds."""
     xy_u = np.asarray(xy_u, float)
-    cov = position_covariance(xy_u, calibration.params, calibration.covariance, calibration.free)
+    cov = position_covariance(xy_u, as_model(calibration), calibration.covariance)
     sp2 = cov[..., 0, 0] + cov[..., 1, 1]
     return _combine(sp2, xy_u, calibration)
 
@@ -348,8 +351,7 @@ def uncertainty_map(calibration, shape: tuple[int, int] | None = None, *, step: 
     block = max(1, 200_000 // max(len(x), 1))
     for r0 in range(0, len(y), block):
         gx, gy = np.meshgrid(x, y[r0 : r0 + block])
-        cov = position_covariance(np.stack([gx, gy], -1), calibration.params, calibration.covariance,
-                                  calibration.free)  # fmt: skip
+        cov = position_covariance(np.stack([gx, gy], -1), as_model(calibration), calibration.covariance)
         sxx, syy, sxy = cov[..., 0, 0], cov[..., 1, 1], cov[..., 0, 1]
         half_tr = 0.5 * (sxx + syy)
         with np.errstate(invalid="ignore"):

@@ -138,11 +138,11 @@ def _correct_table(calib, points, out, preset, units, table_um_per_px, allow_unc
 
 def _correct_pairs(calib, points, out, allow_unconverged) -> int:
     from oapcal.io.points import write_points
-    from oapcal.model import undistort
+    from oapcal.model import as_model
 
     cal = load_usable_calibration(calib, allow_unconverged)
     pairs = load_pairs(points, require=("x_d", "y_d"))
-    inverse = undistort(pairs.xy_d, cal.params)
+    inverse = as_model(cal).inverse(pairs.xy_d)
     fields = [f for f in pairs.fieldnames if f not in ("x_c", "y_c", "converged")]
     fields += ["x_c", "y_c", "converged"]
     rows = []

@@ -43,6 +43,7 @@ from oapcal.cli._common import check_output, load_pairs, print_json, progress_ba
 @click.option("--title", default=None, help="Title of the page.")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="The HTML file to write.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report's numbers as one JSON object.")
+# one parameter per command-line option (click)
 def report_command(calib, points, image, selection, robustness, expected_ratios, title, out, as_json):
     """Write an HTML report of a calibration (self-contained: images embedded)."""  # fmt: skip
     check_output(out, calib, points, image, selection, robustness)

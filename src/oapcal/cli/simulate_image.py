@@ -145,6 +145,7 @@ BYTES_PER_SUBPIXEL = 100
     default=None,
     help="Ground-truth CSV: id,x_u,y_u,x_d,y_d,visible.",
 )
+# one parameter per command-line option (click)
 def simulate_image_command(
     groups, relay_setup, d1_mm, field_name, calibration, sigma_px, na, wavelength_um, snr, no_noise,
     read_noise_e, bits, polarity, pixel_size_um, image_size, um_per_px, oversample, seed, layout, bars_only,

@@ -8,9 +8,10 @@ A *distortion field* is any object with
   paraxial camera px;
 * attributes ``pixel_size_um`` and ``image_size`` ``(w, h)``.
 
-The ray-traced relay of :mod:`oapcal.optics` follows this protocol;
-:class:`ModelDistortionField` implements it with the distortion model of Eq. (1)
-(``forward`` = :func:`oapcal.model.distort`, ``inverse`` = :func:`oapcal.model.undistort`).
+(the protocol :class:`PixelField`).  The ray-traced relay of :mod:`oapcal.optics` follows
+it; :class:`ModelDistortionField` implements it with any :class:`~oapcal.model.Model`
+(``forward`` = the model, ``inverse`` = :meth:`~oapcal.model.Model.inverse`), so a
+calibration of any family drives a simulation.
 
 >>> f = setup1_like_field()
 >>> f.paraxial_from_object_um(np.array([[0.0, 0.0]])).tolist()
@@ -22,18 +23,21 @@ True
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from oapcal.errors import DataError
-from oapcal.model import distort, family_of, identity_params, params_from_dict, undistort
+from oapcal.errors import DataError, ModelSpecError
+from oapcal.model import PRESETS, Model, as_model, params_from_dict
 
 
 @runtime_checkable
-class DistortionField(Protocol):
-    """The protocol of a distortion field (module docstring)."""
+class PixelField(Protocol):
+    """The protocol of a distortion field in camera pixels (module docstring): what
+    :func:`oapcal.imaging.simulate.simulate_image` draws through.  (Not to be confused
+    with :class:`oapcal.optics.field.DistortionField`, the traced relay's field, which
+    follows it.)"""
 
     pixel_size_um: float
     image_size: tuple[int, int]
@@ -45,39 +49,47 @@ class DistortionField(Protocol):
     def paraxial_from_object_um(self, xy_um: np.ndarray) -> np.ndarray: ...
 
 
+#: The protocol's former name (``docs/usaf.md`` named it): :class:`PixelField`.
+DistortionField = PixelField
+
+
 @dataclass(frozen=True)
 class ModelDistortionField:
-    """A fitted model's parameter vector ``params`` (px units; any family: Eq. (1), Eq. (1)
-    with the target's rotation, the relay, the relay with a microscope) as a distortion field.
+    """A distortion model (a :class:`~oapcal.model.Model` of any family, px units: Eq. (1),
+    Eq. (1) with the target's rotation, the relay, the relay with a microscope, or a
+    registered family; or a bare parameter vector of a built-in family) as a distortion field.
 
     The paraxial image of the object point ``xy_um`` is
     ``centre + magnification * xy_um / pixel_size_um`` with ``centre`` the image centre
-    ``((w - 1) / 2, (h - 1) / 2)``.
+    ``((w - 1) / 2, (h - 1) / 2)``.  ``params`` is the model's vector, ``model`` the model.
     """
 
-    params: np.ndarray
+    params: Model | np.ndarray
     pixel_size_um: float = 4.8
     image_size: tuple[int, int] = (640, 480)
     magnification: float = 1.0
+    model: Model = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
-        p = np.array(self.params, dtype=float)
-        if p.ndim != 1 or family_of(p).n_params != p.shape[0]:
+        try:
+            model = as_model(self.params)
+        except ModelSpecError:
             raise DataError(
-                f"a model distortion field needs one model's parameter vector (13, 14, 36 or 39 "
-                f"values), got shape {p.shape}"
-            )
-        if not np.isfinite(p).all():
+                f"a model distortion field needs a Model or one model's parameter vector (13, 14, 36 "
+                f"or 39 values), got shape {np.shape(self.params)}"
+            ) from None
+        if not np.isfinite(model.params).all():
             raise DataError("a model distortion field needs finite parameters")
-        p.setflags(write=False)
-        object.__setattr__(self, "params", p)
+        object.__setattr__(self, "model", model)
+        object.__setattr__(self, "params", model.params)
         if not (self.pixel_size_um > 0 and self.magnification != 0):
             raise DataError("pixel_size_um must be positive and magnification non-zero")
 
     @classmethod
     def from_calibration(cls, calibration, image_size: tuple[int, int] | None = None):
-        """The field of a fitted :class:`~oapcal.io.calibration.Calibration`: its reference
-        points are taken as the paraxial image, ``calibration.um_per_px`` um per px."""
+        """The field of a fitted :class:`~oapcal.calibration.Calibration` (its model, of any
+        family): its reference points are taken as the paraxial image, ``calibration.um_per_px``
+        um per px."""
         size = image_size or calibration.image_size
         if calibration.um_per_px is None or size is None:
             raise DataError(
@@ -85,19 +97,18 @@ class ModelDistortionField:
                 "(calibrate(..., um_per_px=..., image_size=...))",
                 param="calibration",
             )
-        return cls(np.asarray(calibration.params), float(calibration.um_per_px), tuple(size), 1.0)
+        return cls(as_model(calibration), float(calibration.um_per_px), tuple(size), 1.0)
 
     @property
     def centre_px(self) -> np.ndarray:
         return (np.asarray(self.image_size, float) - 1.0) / 2.0
 
     def forward(self, xy_u_px):
-        return distort(np.asarray(xy_u_px, float), self.params)
+        return self.model(np.asarray(xy_u_px, float))
 
     def inverse(self, xy_d_px):
         xy = np.asarray(xy_d_px, float)
-        flat = xy.reshape(-1, 2)
-        return undistort(flat, self.params).xy.reshape(xy.shape)
+        return self.model.inverse(xy.reshape(-1, 2)).xy.reshape(xy.shape)
 
     def paraxial_from_object_um(self, xy_um):
         scale = self.magnification / self.pixel_size_um
@@ -106,7 +117,7 @@ class ModelDistortionField:
 
 def identity_field(pixel_size_um: float = 4.8, image_size=(640, 480)) -> ModelDistortionField:
     """No distortion: ``forward`` and ``inverse`` are the identity."""
-    return ModelDistortionField(identity_params(), pixel_size_um, tuple(image_size))
+    return ModelDistortionField(Model.identity(), pixel_size_um, tuple(image_size))
 
 
 #: Eq. (1) parameters (px, 640 x 480 camera) of :func:`setup1_like_field`.
@@ -128,7 +139,7 @@ def setup1_like_field(pixel_size_um: float = 4.8, image_size=(640, 480)) -> Mode
     p = SETUP1_LIKE.copy()
     centre = (np.asarray(size, float) - 1.0) / 2.0
     p[8:12] = [-centre[0], -centre[1], centre[0], centre[1]]
-    return ModelDistortionField(p, pixel_size_um, size)
+    return ModelDistortionField(Model("brown-conrady", p, PRESETS["paper"]), pixel_size_um, size)
 
 
 def distortion_stats(field, half_width_um: float = 500.0, n: int = 17) -> dict:

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.errors import DataError
-from oapcal.model import family_of, undistort
+from oapcal.errors import DataError, ModelSpecError
+from oapcal.model import Model, as_model
 from oapcal.validate import image as _valid_image
 
 INTERPOLATIONS = ("nearest", "linear", "cubic", "lanczos")
@@ -118,11 +118,16 @@ def check_model_samples(
     correction_map(calibration_or_params, input_shape, geometry=coarse, allow_size_mismatch=True)
 
 
-def _params_of(calibration_or_params) -> np.ndarray:
-    params = np.asarray(getattr(calibration_or_params, "params", calibration_or_params), dtype=float)
-    if params.ndim != 1 or params.shape != (family_of(params).n_params,):
-        raise DataError(f"a correction map needs one parameter vector of a model family, not {params.shape}")
-    return params
+def _model_of(calibration_or_params) -> Model:
+    """The model of a calibration, a :class:`~oapcal.model.Model` or (legacy) a bare
+    parameter vector of a built-in family."""
+    try:
+        return as_model(calibration_or_params)
+    except ModelSpecError:
+        shape = np.shape(getattr(calibration_or_params, "params", calibration_or_params))
+        raise DataError(
+            f"a correction map needs one parameter vector of a model family, not {shape}"
+        ) from None  # noqa: E501
 
 
 @dataclass(frozen=True)
@@ -180,64 +185,85 @@ def output_geometry(
     ((480, 640), 0.0, 1.0)
     """
     rows, cols = int(input_shape[0]), int(input_shape[1])
-    params = _params_of(calibration_or_params)
+    model = _model_of(calibration_or_params)
     cal_um = getattr(calibration_or_params, "um_per_px", None)
     if extent not in EXTENTS:
         raise DataError(f"unknown extent {extent!r}: use one of {', '.join(EXTENTS)}")
     if um_per_px is not None and out_size is not None:
         raise DataError("give either an output scale (um per px) or an output size, not both")
-    if extent == "input":
-        x0, y0, x1, y1 = 0.0, 0.0, float(cols - 1), float(rows - 1)
-    elif extent == "calibrated":
-        bounds = getattr(calibration_or_params, "bounds", None)
-        if bounds is None:
-            raise DataError(
-                "extent 'calibrated' needs a calibration with 'bounds' (the reference points' "
-                "bounding box); refit with this oapcal or use extent 'input' or 'full'"
-            )
-        x0, y0, x1, y1 = (float(v) for v in bounds)
-    else:
-        x0, y0, x1, y1 = _full_extent(params, rows, cols)
+    x0, y0, x1, y1 = _region(calibration_or_params, model, extent, rows, cols)
     from oapcal.calibration import check_model_region
 
     # the model must be finite and not fold over where the output samples it
     what = f"{cols}x{rows} px image" if extent == "input" else f"output region of a {cols}x{rows} px image"
-    check_model_region(params, boxes=[((x0, y0, x1, y1), what)], source="the calibration")
-    scale = 1.0
-    if um_per_px is not None:
-        if not cal_um:
-            raise DataError(
-                "an output scale in um per px needs a calibration with 'um_per_px'; "
-                "refit it with um_per_px given, or leave um_per_px out",
-                param="um_per_px",
-            )
-        if not um_per_px > 0:
-            raise DataError(
-                f"the output scale must be positive, got {um_per_px} um per px", param="um_per_px"
-            )
-        scale = float(um_per_px) / float(cal_um)
+    check_model_region(model, boxes=[((x0, y0, x1, y1), what)], source="the calibration")
+    shape, x0, y0, scale = _layout((x0, y0, x1, y1), _output_scale(um_per_px, cal_um), out_size, um_per_px)
+    _check_output_shape(shape, (rows, cols), (x1 - x0, y1 - y0), um_per_px, cal_um)
+    out_um = None if not cal_um else float(cal_um) * scale
+    return OutputGeometry(shape=shape, x0=x0, y0=y0, scale=scale, um_per_px=out_um)
+
+
+def _layout(region, scale: float, out_size, um_per_px) -> tuple[tuple[int, int], float, float, float]:
+    """The output ``(rows, cols)``, origin and scale showing ``region = (x0, y0, x1, y1)``:
+    at ``scale`` units per pixel, or fitted into ``out_size = (w, h)`` (centred, aspect kept)."""
+    x0, y0, x1, y1 = region
     if out_size is not None:
         w, h = int(out_size[0]), int(out_size[1])
         if w < MIN_OUTPUT_SIDE or h < MIN_OUTPUT_SIDE:
             raise DataError(f"the output size must be at least 2x2 px, got {w}x{h}")
         scale = max((x1 - x0) / (w - 1), (y1 - y0) / (h - 1))
         cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-        x0, y0 = cx - scale * (w - 1) / 2, cy - scale * (h - 1) / 2
-        shape = (h, w)
-    else:
-        if not (math.isfinite(scale) and scale > 0):
+        return (h, w), cx - scale * (w - 1) / 2, cy - scale * (h - 1) / 2, scale
+    if not (math.isfinite(scale) and scale > 0):
+        raise DataError(
+            f"the output scale {um_per_px} um per px is outside what a float can represent here; "
+            "choose another um_per_px",
+            param="um_per_px",
+        )
+    # (x1 - x0) / scale may overflow to inf for a tiny scale: capped, the size check refuses it
+    span = [min((y1 - y0) / scale, 2.0**40), min((x1 - x0) / scale, 2.0**40)]
+    return (int(math.floor(span[0] + 1e-9)) + 1, int(math.floor(span[1] + 1e-9)) + 1), x0, y0, scale
+
+
+def _region(calibration, model: Model, extent: str, rows: int, cols: int) -> tuple[float, ...]:
+    """The undistorted region ``(x0, y0, x1, y1)`` an ``extent`` of :func:`output_geometry` shows."""
+    if extent == "input":
+        return 0.0, 0.0, float(cols - 1), float(rows - 1)
+    if extent == "calibrated":
+        bounds = getattr(calibration, "bounds", None)
+        if bounds is None:
             raise DataError(
-                f"the output scale {um_per_px} um per px is outside what a float can represent here; "
-                "choose another um_per_px",
-                param="um_per_px",
+                "extent 'calibrated' needs a calibration with 'bounds' (the reference points' "
+                "bounding box); refit with this oapcal or use extent 'input' or 'full'"
             )
-        # (x1 - x0) / scale may overflow to inf for a tiny scale: capped, the size check refuses it
-        span = [min((y1 - y0) / scale, 2.0**40), min((x1 - x0) / scale, 2.0**40)]
-        shape = (int(math.floor(span[0] + 1e-9)) + 1, int(math.floor(span[1] + 1e-9)) + 1)
+        x0, y0, x1, y1 = (float(v) for v in bounds)
+        return x0, y0, x1, y1
+    return _full_extent(model, rows, cols)
+
+
+def _output_scale(um_per_px: float | None, cal_um: float | None) -> float:
+    """Undistorted units per output pixel for an output pixel of ``um_per_px`` um (1 without)."""
+    if um_per_px is None:
+        return 1.0
+    if not cal_um:
+        raise DataError(
+            "an output scale in um per px needs a calibration with 'um_per_px'; "
+            "refit it with um_per_px given, or leave um_per_px out",
+            param="um_per_px",
+        )
+    if not um_per_px > 0:
+        raise DataError(f"the output scale must be positive, got {um_per_px} um per px", param="um_per_px")
+    return float(um_per_px) / float(cal_um)
+
+
+def _check_output_shape(shape, input_shape, span, um_per_px, cal_um) -> None:
+    """Refuse an output that collapses under :data:`MIN_OUTPUT_SIDE` or grows over
+    :data:`MAX_GROWTH` times the input (``span``: the region's width and height)."""
+    rows, cols = input_shape
     if min(shape) < MIN_OUTPUT_SIDE:
         coarsest = ""
         if um_per_px is not None and cal_um:
-            limit = float(cal_um) * min(x1 - x0, y1 - y0) / (MIN_OUTPUT_SIDE - 1)
+            limit = float(cal_um) * min(span) / (MIN_OUTPUT_SIDE - 1)
             coarsest = f" (at most {limit:.4g} um per px here)"
         raise DataError(
             f"the output would be {shape[1]}x{shape[0]} px, under {MIN_OUTPUT_SIDE} px on a side: the "
@@ -251,11 +277,9 @@ def output_geometry(
             f"input's {cols}x{rows}; choose a smaller out_size, a coarser um_per_px or another extent",
             param=("out_size", "um_per_px", "extent"),
         )
-    out_um = None if not cal_um else float(cal_um) * scale
-    return OutputGeometry(shape=shape, x0=x0, y0=y0, scale=scale, um_per_px=out_um)
 
 
-def _full_extent(params: np.ndarray, rows: int, cols: int) -> tuple[float, float, float, float]:
+def _full_extent(model: Model, rows: int, cols: int) -> tuple[float, float, float, float]:
     """Bounding box of the input frame's border pixels mapped to undistorted coordinates."""
     xs = np.arange(cols, dtype=float)
     ys = np.arange(rows, dtype=float)
@@ -267,7 +291,7 @@ def _full_extent(params: np.ndarray, rows: int, cols: int) -> tuple[float, float
             np.stack([np.full_like(ys, cols - 1), ys], -1),
         ]
     )
-    inv = undistort(border, params)
+    inv = model.inverse(border)
     if not inv.converged.all():
         raise DataError(
             f"extent 'full': the inverse model fails at {int((~inv.converged).sum())} of "
@@ -323,8 +347,7 @@ def predicted_error_map(calibration, geometry: OutputGeometry, *, samples: int |
 
     from oapcal.uncertainty import predicted_error
 
-    params = _params_of(calibration)
-    family = family_of(params)
+    family = _model_of(calibration).family
     if samples is None:
         samples = ERROR_SAMPLES["analytic" if family.analytic_jacobian else "finite-difference"]
     rows, cols = geometry.shape
@@ -428,7 +451,7 @@ def correction_map(
     check: bool = True,
     allow_size_mismatch: bool = False,
     max_error_px: float | None = None,
-) -> CorrectionMap:
+) -> CorrectionMap:  # 9 parameters: the public keyword options of oapcal correct's map
     """The correction map for distorted images of ``shape = (rows, cols)``.
 
     Output pixel ``(col, row)`` shows the undistorted point
@@ -450,36 +473,24 @@ def correction_map(
     ``oapcal correct`` builds its maps with :data:`DEFAULT_MAX_ERROR_PX` unless told
     otherwise.
     """
-    params = _params_of(calibration_or_params)
-    cal_size = getattr(calibration_or_params, "image_size", None)
-    rows_in, cols_in = int(shape[0]), int(shape[1])
-    if cal_size and tuple(int(v) for v in cal_size) != (cols_in, rows_in) and not allow_size_mismatch:
-        raise DataError(
-            f"the image is {cols_in}x{rows_in} px but the calibration is for {cal_size[0]}x{cal_size[1]} px "
-            "images; give images of that camera, or allow_size_mismatch=True to correct it anyway",
-            param="allow_size_mismatch",
-        )
+    model = _model_of(calibration_or_params)
+    if not allow_size_mismatch:
+        _check_camera(getattr(calibration_or_params, "image_size", None), shape)
     if geometry is None:
         geometry = output_geometry(
             calibration_or_params, shape, extent=extent, um_per_px=um_per_px, out_size=out_size
         )
     rows, cols = geometry.shape
-    if 8 * rows * cols > MAX_MAP_BYTES:
-        raise DataError(
-            f"the correction map for a {cols}x{rows} px output would need "
-            f"{8 * rows * cols / 2**30:.3g} GiB of memory, over the {MAX_MAP_BYTES / 2**30:g} GiB "
-            "limit; choose a smaller out_size, a coarser um_per_px or another extent",
-            param=("out_size", "um_per_px", "extent"),
-        )
+    _check_map_memory(rows, cols)
     xs = geometry.x0 + geometry.scale * np.arange(cols, dtype=float)
     ys = geometry.y0 + geometry.scale * np.arange(rows, dtype=float)
     out_x = np.empty((rows, cols), np.float32)
     out_y = np.empty((rows, cols), np.float32)
-    family = family_of(params)
+    family = model.family
     if family.map_step and min(rows, cols) > 4 * family.map_step:
-        _spline_map(params, xs, ys, family.map_step, out_x, out_y)
+        _spline_map(model, xs, ys, family.map_step, out_x, out_y)
     else:
-        _grid_map(params, family, xs, ys, out_x, out_y)
+        _grid_map(model, xs, ys, out_x, out_y)
     if check:
         check_map_samples((out_x, out_y), shape)
     cmap = CorrectionMap(out_x, out_y, geometry, (int(shape[0]), int(shape[1])))
@@ -494,22 +505,44 @@ def correction_map(
     return cmap
 
 
-def _grid_map(params, family, xs, ys, out_x, out_y) -> None:
+def _check_camera(cal_size, shape) -> None:
+    """Refuse images of another size than the calibration's ``image_size`` (when it has one)."""
+    rows_in, cols_in = int(shape[0]), int(shape[1])
+    if cal_size and tuple(int(v) for v in cal_size) != (cols_in, rows_in):
+        raise DataError(
+            f"the image is {cols_in}x{rows_in} px but the calibration is for {cal_size[0]}x{cal_size[1]} px "
+            "images; give images of that camera, or allow_size_mismatch=True to correct it anyway",
+            param="allow_size_mismatch",
+        )
+
+
+def _check_map_memory(rows: int, cols: int) -> None:
+    """Refuse a map of more than :data:`MAX_MAP_BYTES`."""
+    if 8 * rows * cols > MAX_MAP_BYTES:
+        raise DataError(
+            f"the correction map for a {cols}x{rows} px output would need "
+            f"{8 * rows * cols / 2**30:.3g} GiB of memory, over the {MAX_MAP_BYTES / 2**30:g} GiB "
+            "limit; choose a smaller out_size, a coarser um_per_px or another extent",
+            param=("out_size", "um_per_px", "extent"),
+        )
+
+
+def _grid_map(model: Model, xs, ys, out_x, out_y) -> None:
     """The model's compiled point function over the separable grid, rows in parallel."""
     from oapcal import _kernels
     from oapcal.model import kernel_array
 
     rows, cols = out_x.shape
     block = _kernels.block_size(rows, -(-(1 << 20) // max(cols, 1)))  # threads only for > 1 Mpx
-    _kernels.run_blocks(_kernels.grid_map, rows, block, family.code,
-                        kernel_array(params), xs, ys, out_x, out_y)  # fmt: skip
+    _kernels.run_blocks(_kernels.grid_map, rows, block, model.family.code,
+                        kernel_array(model.params), xs, ys, out_x, out_y)  # fmt: skip
 
 
 #: Output rows interpolated at a time by :func:`_spline_map` (bounds its float64 temporaries).
 SPLINE_ROWS = 256
 
 
-def _spline_map(params, xs, ys, step: int, out_x, out_y) -> None:
+def _spline_map(model: Model, xs, ys, step: int, out_x, out_y) -> None:
     """The map of a family whose point function is costly (the relay traces a chief ray per
     point, ~2 us): the model exactly on a grid every ``step`` output px (ends included),
     then bicubic splines (:class:`scipy.interpolate.RectBivariateSpline`) in between.  The
@@ -517,14 +550,12 @@ def _spline_map(params, xs, ys, step: int, out_x, out_y) -> None:
     rounding (tests/imaging/test_remap_families.py), ~15x faster at 640 x 480."""
     from scipy.interpolate import RectBivariateSpline
 
-    from oapcal.model import distort
-
     def nodes(v):
         return np.linspace(v[0], v[-1], max(4, int(np.ceil(abs(v[-1] - v[0]) / step)) + 1))
 
     cx, cy = nodes(xs), nodes(ys)
     gx, gy = np.meshgrid(cx, cy)
-    d = distort(np.stack([gx.ravel(), gy.ravel()], -1), params).reshape(len(cy), len(cx), 2)
+    d = model(np.stack([gx.ravel(), gy.ravel()], -1)).reshape(len(cy), len(cx), 2)
     splines = [RectBivariateSpline(cy, cx, d[..., k], kx=3, ky=3) for k in (0, 1)]
     for lo in range(0, len(ys), SPLINE_ROWS):
         hi = min(lo + SPLINE_ROWS, len(ys))

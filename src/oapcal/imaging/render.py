@@ -51,8 +51,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from oapcal.errors import DataError
-from oapcal.model import RELAY, distort, family_of, undistort
+from oapcal.errors import DataError, ModelSpecError
+from oapcal.model import RELAY, Model, as_model
 
 #: Absolute tolerance (px) of the model's inverse when rendering: far below anything an
 #: image shows, and above the relay model's own floating-point precision (~1e-9 px).
@@ -150,24 +150,30 @@ class Microscope:
 
 @dataclass(frozen=True)
 class Scene:
-    """The geometry of a rendering (module docstring, steps 1-4): the model ``params`` (any
-    family), the source's ``placement``, the ``camera``, an optional ``microscope`` behind
-    the model, and for families other than the relay ``object_um_per_px`` (object um per
-    reference px; None: the camera's pixel pitch)."""
+    """The geometry of a rendering (module docstring, steps 1-4): the model ``params`` (a
+    :class:`~oapcal.model.Model` of any family, or a bare parameter vector of a built-in
+    family; ``model`` is the model), the source's ``placement``, the ``camera``, an
+    optional ``microscope`` behind the model, and for families other than the relay
+    ``object_um_per_px`` (object um per reference px; None: the camera's pixel pitch)."""
 
-    params: np.ndarray
+    params: Model | np.ndarray
     placement: Placement
     camera: Camera = field(default_factory=Camera)
     microscope: Microscope | None = None
     object_um_per_px: float | None = None
+    model: Model = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
-        p = np.array(self.params, dtype=float)
-        family_of(p)  # raises for a vector of no family
-        if p.ndim != 1 or not np.isfinite(p).all():
+        try:
+            model = as_model(self.params)
+        except ModelSpecError as exc:
+            if np.ndim(self.params) == 1:
+                raise  # a vector of no family: the model's own message
+            raise DataError("the scene's params must be one finite parameter vector", param="params") from exc
+        if not np.isfinite(model.params).all():
             raise DataError("the scene's params must be one finite parameter vector", param="params")
-        p.setflags(write=False)
-        object.__setattr__(self, "params", p)
+        object.__setattr__(self, "model", model)
+        object.__setattr__(self, "params", model.params)
 
     # ------------------------------------------------------------------ the geometry
     @property
@@ -177,7 +183,7 @@ class Scene:
 
     def paraxial(self) -> tuple[np.ndarray, np.ndarray]:
         """``A (2, 2)`` um per reference px and the reference centre ``c_r``: ``X = A (r - c_r)``."""
-        if family_of(self.params) is RELAY:
+        if self.model.family is RELAY:
             names = RELAY.param_names
             v = {n: self.params[names.index(n)] for n in ("a11", "a12", "a21", "a22", "pixel_mm", "cx", "cy")}
             mat = np.array([[v["a11"], v["a12"]], [v["a21"], v["a22"]]]) * (v["pixel_mm"] * 1e3)
@@ -208,11 +214,11 @@ class Scene:
     def reference_from_camera(self, xy) -> tuple[np.ndarray, np.ndarray]:
         """Steps 1-2: camera px ``(N, 2)`` -> reference px and whether the inverse converged
         (NaN where not)."""
-        inv = undistort(self.model_from_camera(xy), self.params, tol=RENDER_INVERSE_TOL)
+        inv = self.model.inverse(self.model_from_camera(xy), tol=RENDER_INVERSE_TOL)
         return inv.xy, np.asarray(inv.converged, bool)
 
     def camera_from_reference(self, xy):
-        return self.camera_from_model(distort(np.asarray(xy, float), self.params))
+        return self.camera_from_model(self.model(np.asarray(xy, float)))
 
     def object_from_reference(self, xy):
         mat, c = self.paraxial()

@@ -196,14 +196,9 @@ def simulate_image(
     ``progress(done, total, description)`` (optional) hears of each of the 5 steps
     (:mod:`oapcal.progress`).
     """
-    from dataclasses import fields, replace
-
     from oapcal.imaging.field import setup1_like_field
 
-    unknown = sorted(set(options) - {f.name for f in fields(ImageSettings)})
-    if unknown:
-        raise TypeError(f"simulate_image() got an unexpected keyword argument {unknown[0]!r}")
-    settings = replace(settings, **options) if settings is not None else ImageSettings(**options)
+    settings = _settings(settings, options)
     if field is None:
         field = setup1_like_field()
     target = usaf_target(groups, settings.layout_name)
@@ -239,6 +234,17 @@ def simulate_image(
         peak_electrons=peak,
         orientation=orientation,
     )
+
+
+def _settings(settings: ImageSettings | None, options: dict) -> ImageSettings:
+    """``settings`` (default :class:`ImageSettings`) with the keyword ``options`` of
+    :func:`simulate_image` over it; an unknown keyword is a TypeError, as for any function."""
+    from dataclasses import fields, replace
+
+    unknown = sorted(set(options) - {f.name for f in fields(ImageSettings)})
+    if unknown:
+        raise TypeError(f"simulate_image() got an unexpected keyword argument {unknown[0]!r}")
+    return replace(settings, **options) if settings is not None else ImageSettings(**options)
 
 
 def _object_positions(field, target, q: int) -> np.ndarray:

@@ -118,15 +118,16 @@ def calibration_layers(calibration, name: str = "calibration", source: str | Non
     :data:`MAX_FIELD_PIXELS`), a vectors layer from undistorted grid points to where the relay
     images them, and the hull of its calibration points.  ``source`` (the file it was read
     from) goes into the layers' metadata: the *Correct* widget never saves over it."""
-    import oapcal
+    from oapcal.model import as_model
 
+    model = as_model(calibration)
     width, height = frame_of(calibration)
     step = max(1, int(np.ceil(np.sqrt(width * height / MAX_FIELD_PIXELS))))  # large frames: sampled
     gx, gy = np.meshgrid(np.arange(0, width, step, dtype=float), np.arange(0, height, step, dtype=float))
     xy = np.stack([gx.ravel(), gy.ravel()], -1)
-    magnitude = np.hypot(*(oapcal.distort(xy, calibration.params) - xy).T).reshape(gx.shape)
+    magnitude = np.hypot(*(model(xy) - xy).T).reshape(gx.shape)
     grid = field_grid(width, height)
-    shift = oapcal.distort(grid, calibration.params) - grid
+    shift = model(grid) - grid
     vectors = np.stack([xy_to_rc(grid), xy_to_rc(shift)], axis=1)
     meta = {CALIBRATION: calibration, "oapcal_source": source}
     layers = [
@@ -147,9 +148,9 @@ def residual_vectors(calibration, xy_u, xy_d, ids, *, exaggerate: float = 20.0) 
     calibration against ``xy_u``.  Returns ``residual_px`` ``(N,)``, the vectors layer (at
     each landmark in the camera image, ``xy_d``, the residual ``undistort(xy_d) - xy_u`` drawn
     ``exaggerate`` times longer, coloured by size) and the order of the pairs from the worst."""
-    import oapcal
+    from oapcal.model import as_model
 
-    corrected = oapcal.undistort(np.asarray(xy_d, float), calibration.params).xy
+    corrected = as_model(calibration).inverse(np.asarray(xy_d, float)).xy
     delta = corrected - np.asarray(xy_u, float)
     size = np.hypot(*delta.T)
     vectors = np.stack([xy_to_rc(xy_d), xy_to_rc(delta * exaggerate)], axis=1)

@@ -174,6 +174,7 @@ def _within(progress: Progress | None, start: int, total: int) -> Progress | Non
     return lambda done, _total, label: progress(start + done, total, label)
 
 
+# keyword options of the public report API (one per input the report can show)
 def compute_report(
     calibration,
     *,
@@ -187,7 +188,8 @@ def compute_report(
     progress: Progress | None = None,
 ) -> ReportContent:
     """The report's content (arguments as :func:`build_report`); draws nothing."""
-    from oapcal.imaging.checks import residual_vectors
+    from oapcal.imaging.checks import ResidualVectors
+    from oapcal.model import as_model
     from oapcal.stats import residual_stats
     from oapcal.uncertainty import uncertainty_map
 
@@ -198,7 +200,8 @@ def compute_report(
     if points is not None:
         step("correcting the landmarks")
         xy_u, xy_d = _normalized_points(cal, *points)
-        vectors = residual_vectors(cal.params, xy_u, xy_d)
+        xy_c = as_model(cal).inverse(np.asarray(xy_d, float)).xy
+        vectors = ResidualVectors(np.asarray(xy_u, float), xy_c, xy_c - np.asarray(xy_u, float))
         residuals = residual_stats(vectors.xy_c, xy_u, cal.um_per_px).to_dict()
     else:
         residuals = cal.residuals.to_dict()
@@ -273,7 +276,7 @@ def render_report(
                    "correction, magnified as stated; colour is the residual length.")  # fmt: skip
         sections.append(H.section("Residual vectors", H.png_figure(png, "residual vectors", caption)))
     step("distortion field")
-    png = plots.figure_png(plots.distortion_field_figure(cal.params, shape, cal.hull, um))
+    png = plots.figure_png(plots.distortion_field_figure(cal, shape, cal.hull, um))
     caption = (
         "Where each output pixel is sampled from in the observed image, relative to itself "
         "(the model's distortion)."
@@ -313,6 +316,7 @@ def render_report(
     return H.document(page_title, sections, meta)
 
 
+# keyword options of the public report API (one per input the report can show)
 def build_report(
     calibration,
     *,

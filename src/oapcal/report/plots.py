@@ -93,13 +93,16 @@ def _nice(value: float) -> float:
 
 def distortion_field_figure(params, shape, hull=None, um_per_px=None, n_arrows: int = 16):
     """The model's distortion ``distort(u) - u`` over the output frame: magnitude as an image,
-    direction as true-scale arrows, the calibrated region outlined."""
-    from oapcal.model import distort
+    direction as true-scale arrows, the calibrated region outlined.  ``params``: a
+    calibration, a :class:`~oapcal.model.Model` or a parameter vector."""
+    from oapcal.model import as_model
+
+    model = as_model(params)
 
     rows, cols = int(shape[0]), int(shape[1])
     step = max(1, max(rows, cols) // 200)
     gx, gy = np.meshgrid(np.arange(0, cols, step, float), np.arange(0, rows, step, float))
-    d = distort(np.stack([gx, gy], -1), params) - np.stack([gx, gy], -1)
+    d = model(np.stack([gx, gy], -1)) - np.stack([gx, gy], -1)
     mag = np.hypot(d[..., 0], d[..., 1])
     fig = _figure(7.5, 5.6)
     ax = fig.add_subplot()
@@ -108,7 +111,7 @@ def distortion_field_figure(params, shape, hull=None, um_per_px=None, n_arrows: 
     ax_step = max(cols, rows) / n_arrows
     qx, qy = np.meshgrid(np.arange(ax_step / 2, cols, ax_step), np.arange(ax_step / 2, rows, ax_step))
     q = np.stack([qx, qy], -1).reshape(-1, 2)
-    dq = distort(q, params) - q
+    dq = model(q) - q
     ax.quiver(q[:, 0], q[:, 1], dq[:, 0], dq[:, 1], color="white", angles="xy", scale_units="xy",
               scale=1.0, width=0.003)  # fmt: skip
     _hull_outline(ax, hull)

@@ -45,7 +45,7 @@ def matches_figure(result, frame=None, *, frame_index: int | None = None):
 def residual_figure(result, *, arrow_scale: float | None = None):
     """Left: the residual of every inlier match (px) at its position, as arrows (magnified)
     coloured by size.  Right: the correction's displacement ``u(d) - d`` over the frame."""
-    from oapcal.model import undistort
+    from oapcal.model import as_model
 
     m = result.matches
     w, h = m.image_size
@@ -63,7 +63,7 @@ def residual_figure(result, *, arrow_scale: float | None = None):
     ax1.set_title(f"match residuals (x{scale:.0f}): RMS {rms:.3f} px, max {size.max():.3f} px", fontsize=9)
     gx, gy = np.meshgrid(np.linspace(0, w - 1, 17), np.linspace(0, h - 1, 13))
     d = np.stack([gx.ravel(), gy.ravel()], -1)
-    u = undistort(d, result.calibration.params).xy
+    u = as_model(result.calibration).inverse(d).xy
     disp = u - d
     mag = np.linalg.norm(disp, axis=1)
     q2 = ax2.quiver(d[:, 0], d[:, 1], disp[:, 0], disp[:, 1], mag, angles="xy", scale_units="xy", scale=1,

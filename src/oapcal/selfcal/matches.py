@@ -163,10 +163,11 @@ def find_matches(
     """The overlapping pairs and matches of ``frames`` (a sequence of 2-D arrays of one
     size, or an array ``(F, h, w)``): module docstring.
 
-    ``prior`` (a parameter vector, e.g. the relay's design): the frames are first corrected
-    with it (:func:`oapcal.imaging.remap.correction_map`) and matched there, where moved
-    frames differ by little more than a translation; the matches are then taken back to
-    the frames' own pixels through the prior's forward map (exact).  Without it the frames
+    ``prior`` (a :class:`~oapcal.model.Model` or a parameter vector, e.g. the relay's
+    design): the frames are first corrected with it
+    (:func:`oapcal.imaging.remap.correction_map`) and matched there, where moved frames
+    differ by little more than a translation; the matches are then taken back to the
+    frames' own pixels through the prior's forward map (exact).  Without it the frames
     are matched as they are (fine for distortion that changes little over a move).
 
     Raises :class:`SelfcalRefused` (reason ``"texture"``, ``"overlap"`` or ``"frames"``)
@@ -182,36 +183,16 @@ def find_matches(
             "frames",
             param="frames",
         )
-    # one frame in float at a time (two passes: the levels, then 8 bits), so 50 frames of
-    # 2048 x 2048 hold 200 MB rather than 800
-    shape = grey(frames[0]).shape
-    levels = []
-    for i, frame in enumerate(frames):
-        f = grey(frame)
-        if f.shape != shape:
-            raise DataError(
-                f"frame {i} is {f.shape[1]}x{f.shape[0]} px but frame 0 is "
-                f"{shape[1]}x{shape[0]}: all frames must have one size",
-                param="frames",
-            )
-        ratio = texture_ratio(f)
-        if ratio < MIN_TEXTURE_RATIO:
-            raise SelfcalRefused(
-                f"frame {i} has no texture to match (its smoothed contrast is {ratio:.2g} times its "
-                f"pixel noise, needs {MIN_TEXTURE_RATIO:g}): image a textured, in-focus sample",
-                "texture",
-                param="frames",
-            )
-        levels.append(np.percentile(f, [0.5, 99.5]))
-    h, w = shape
-    n = len(frames)
-    lo = float(min(v[0] for v in levels))
-    hi = float(max(v[1] for v in levels))
-    frames8 = [_to_uint8(grey(f), lo, hi) for f in frames]
+    frames8 = _frames8(frames)
     del frames
+    h, w = frames8[0].shape
+    n = len(frames8)
     valid = np.ones((h, w), bool)
     if prior is not None:
-        frames8, valid = _precorrect(frames8, np.asarray(prior, float))
+        from oapcal.model import as_model
+
+        prior = as_model(prior)
+        frames8, valid = _precorrect(frames8, prior)
     soft = cv2.GaussianBlur(cv2.erode(valid.astype(np.float32), np.ones((9, 9), np.uint8)), (0, 0), 6.0)
     reduced = [_reduce(_apodize(f, soft), PHASE_MAX_SIDE) for f in frames8]
     scale = reduced[0][1]
@@ -219,13 +200,7 @@ def find_matches(
     with Stages(progress, total=n * (n - 1) // 2 + 1, description="phase correlation") as stages:
         shifts, response = pair_shifts([r[0] for r in reduced], scale, window)
         stages.advance(description="matching pairs")
-        candidates = []
-        for a in range(n):
-            for b in range(a + 1, n):
-                dx, dy = shifts[a, b]
-                overlap = max(0.0, (w - abs(dx)) * (h - abs(dy)) / (w * h))
-                if overlap >= min_overlap and response[a, b] >= min_response:
-                    candidates.append((float(response[a, b]), overlap, a, b))
+        candidates = _candidates(shifts, response, (w, h), min_overlap, min_response)
         keep = _bounded_pairs(candidates, n, max_pairs_per_frame)
         stages.total = len(keep) + 1
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
@@ -265,12 +240,54 @@ def find_matches(
     _check_connected(pairs, n, min_overlap)
     xa, xb = np.concatenate(xa), np.concatenate(xb)
     if prior is not None:  # back to the frames' own pixels
-        from oapcal.model import distort
-
-        xa, xb = distort(xa, prior), distort(xb, prior)
+        xa, xb = prior(xa), prior(xb)
     weight = np.concatenate(wt)
     weight = np.clip(weight / np.median(weight), 0.05, 20.0)
     return Matches(np.concatenate(out_a), np.concatenate(out_b), xa, xb, weight, tuple(pairs), n, (w, h))
+
+
+def _frames8(frames: list) -> list:
+    """The frames (of one size, each with texture to match: else refused, naming the frame)
+    as 8 bits over their common 0.5-99.5 % range of levels."""
+    # one frame in float at a time (two passes: the levels, then 8 bits), so 50 frames of
+    # 2048 x 2048 hold 200 MB rather than 800
+    shape = grey(frames[0]).shape
+    levels = []
+    for i, frame in enumerate(frames):
+        f = grey(frame)
+        if f.shape != shape:
+            raise DataError(
+                f"frame {i} is {f.shape[1]}x{f.shape[0]} px but frame 0 is "
+                f"{shape[1]}x{shape[0]}: all frames must have one size",
+                param="frames",
+            )
+        ratio = texture_ratio(f)
+        if ratio < MIN_TEXTURE_RATIO:
+            raise SelfcalRefused(
+                f"frame {i} has no texture to match (its smoothed contrast is {ratio:.2g} times its "
+                f"pixel noise, needs {MIN_TEXTURE_RATIO:g}): image a textured, in-focus sample",
+                "texture",
+                param="frames",
+            )
+        levels.append(np.percentile(f, [0.5, 99.5]))
+    lo = float(min(v[0] for v in levels))
+    hi = float(max(v[1] for v in levels))
+    return [_to_uint8(grey(f), lo, hi) for f in frames]
+
+
+def _candidates(shifts, response, size, min_overlap: float, min_response: float) -> list:
+    """The frame pairs ``(response, overlap, a, b)`` whose phase-correlation shift leaves
+    ``min_overlap`` of a ``size = (w, h)`` frame shared, with a peak of ``min_response``."""
+    w, h = size
+    n = len(shifts)
+    out = []
+    for a in range(n):
+        for b in range(a + 1, n):
+            dx, dy = shifts[a, b]
+            overlap = max(0.0, (w - abs(dx)) * (h - abs(dy)) / (w * h))
+            if overlap >= min_overlap and response[a, b] >= min_response:
+                out.append((float(response[a, b]), overlap, a, b))
+    return out
 
 
 def _precorrect(frames8, prior):
@@ -335,6 +352,25 @@ def _check_connected(pairs, n: int, min_overlap: float) -> None:
         )
 
 
+def _strongest_per_cell(eig, box, max_points: int) -> np.ndarray:
+    """``(n, 3)``: in each cell of a grid of about ``max_points`` cells over ``box = (x0, y0,
+    x1, y1)``, the pixel of largest corner strength ``eig``, as ``(x, y, strength)``."""
+    x0, y0, x1, y1 = box
+    k = max(2, int(np.ceil(np.sqrt(max_points * (x1 - x0) / (y1 - y0)))))
+    m = max(2, int(np.ceil(max_points / k)))
+    xe = np.linspace(x0, x1, k + 1).astype(int)
+    ye = np.linspace(y0, y1, m + 1).astype(int)
+    pts = []
+    for i in range(m):
+        for j in range(k):
+            cell = eig[ye[i] : ye[i + 1], xe[j] : xe[j + 1]]
+            if cell.size == 0:
+                continue
+            r, c = np.unravel_index(int(np.argmax(cell)), cell.shape)
+            pts.append((xe[j] + c, ye[i] + r, cell[r, c]))
+    return np.array(pts, float).reshape(-1, 3)
+
+
 def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, valid):
     """Matches of one pair: points ``(k, 2)`` in ``a``, in ``b``, and their LK eigenvalues."""
     import cv2
@@ -360,19 +396,7 @@ def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, valid):
     edge = min(2 * LK_WINDOW + 1, max(margin, min(h, w) // 12))
     inside_a = cv2.erode(valid.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)) > 0
     eig = np.where(inside_a, eig, 0.0)
-    k = max(2, int(np.ceil(np.sqrt(max_points * (x1 - x0) / (y1 - y0)))))
-    m = max(2, int(np.ceil(max_points / k)))
-    xe = np.linspace(x0, x1, k + 1).astype(int)
-    ye = np.linspace(y0, y1, m + 1).astype(int)
-    pts = []
-    for i in range(m):
-        for j in range(k):
-            cell = eig[ye[i] : ye[i + 1], xe[j] : xe[j + 1]]
-            if cell.size == 0:
-                continue
-            r, c = np.unravel_index(int(np.argmax(cell)), cell.shape)
-            pts.append((xe[j] + c, ye[i] + r, cell[r, c]))
-    pts = np.array(pts, float).reshape(-1, 3)
+    pts = _strongest_per_cell(eig, (x0, y0, x1, y1), max_points)
     if not len(pts):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
     floor = 0.05 * float(np.percentile(pts[:, 2], 90))

@@ -50,7 +50,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.model import RELAY_FAMILIES, distort, family_of, jacobian_params, jacobian_point, undistort
+from oapcal.model import (
+    RELAY_FAMILIES,
+    distort,
+    family_of_spec,
+    jacobian_params,
+    jacobian_point,
+    undistort,
+)
 from oapcal.selfcal.matches import Matches, SelfcalRefused
 
 #: Affine parts of the gauge, as the matrices of a small change ``u -> (I + eps E) u``.
@@ -134,7 +141,7 @@ def _problem(model, image_size, design, steps_um, um_per_px, stage_rotation) -> 
             um_per_px = design.object_um_per_px
     else:
         mask = parse_any_model(spec)
-        family = family_of(mask)
+        family = family_of_spec(spec)
         p0 = np.zeros(family.n_params)
         names = family.param_names
         p0[names.index("m")] = 1.0
@@ -207,7 +214,7 @@ class _Residual:
         return p, t, theta
 
     def correct(self, p):
-        inv = undistort(self.d, p, xy_start=self.start_u)
+        inv = undistort(self.d, p, xy_start=self.start_u, family=self.prob.family)
         return inv.xy
 
     def _state(self, x):
@@ -234,7 +241,7 @@ class _Residual:
         """``du/dp`` over the solved parameters at the corrected points ``u``: ``(2m, 2, k)``."""
         ok = np.isfinite(u).all(axis=1)
         uu = np.where(ok[:, None], u, self.prob.centre)
-        jpt = jacobian_point(uu, p)
+        jpt = jacobian_point(uu, p, family=self.prob.family)
         jpar = self.param_columns(uu, p, self.prob.solved)
         out = -np.linalg.solve(jpt, jpar)
         out[~ok] = 0.0
@@ -243,7 +250,7 @@ class _Residual:
     def param_columns(self, u, p, mask):
         family = self.prob.family
         if family.analytic_jacobian:
-            return jacobian_params(u, p)[..., mask]
+            return jacobian_params(u, p, family=family)[..., mask]
         # the relay has no analytic columns: central differences of the forward map for
         # the solved columns alone (jacobian_params differences all 36 of them, 3.6 times
         # the work for the default subset), with the family's own step
@@ -252,7 +259,7 @@ class _Residual:
         batch = np.repeat(p[None], 2 * len(idx), axis=0)
         batch[2 * np.arange(len(idx)), idx] += step
         batch[2 * np.arange(len(idx)) + 1, idx] -= step
-        values = distort(u, batch)  # (2k, N, 2)
+        values = distort(u, batch, family=family)  # (2k, N, 2)
         cols = (values[0::2] - values[1::2]) / (2 * step[:, None, None])
         return np.moveaxis(cols, 0, -1)  # (N, 2, k)
 
@@ -279,13 +286,17 @@ class _Residual:
         return (jac * self.sw[:, None, None]).reshape(2 * m, -1)
 
 
-def initial_translations(matches: Matches, params=None) -> np.ndarray:
+def initial_translations(matches: Matches, params=None, *, family=None) -> np.ndarray:
     """The frames' moves ``(F, 2)`` px from the matches (frame 0 at 0): the least-squares
     solution of ``t_b - t_a = median(u(xy_b) - u(xy_a))`` over the pairs, ``u`` the
-    correction of ``params`` (None: the identity)."""
+    correction of ``params`` (a :class:`~oapcal.model.Model`, or a vector of ``family``;
+    None: the identity)."""
     ua, ub = matches.xy_a, matches.xy_b
     if params is not None:
-        ua, ub = undistort(ua, params).xy, undistort(ub, params).xy
+        from oapcal.model import as_model
+
+        model = as_model(params, family)
+        ua, ub = model.inverse(ua).xy, model.inverse(ub).xy
     rows, rhs = [], []
     for pair in matches.pairs:
         sel = (matches.frame_a == pair.a) & (matches.frame_b == pair.b)
@@ -364,7 +375,7 @@ def _check_rank(res: _Residual, x0: np.ndarray) -> None:
 def _plausible(prob: _Problem, matches: Matches, t0: np.ndarray) -> np.ndarray:
     """The matches whose residual at the start lies near its pair's median (within 3 px or
     six robust deviations): a gross mismatch would otherwise pull the first solve."""
-    u = undistort(np.concatenate([matches.xy_a, matches.xy_b]), prob.params0).xy
+    u = undistort(np.concatenate([matches.xy_a, matches.xy_b]), prob.params0, family=prob.family).xy
     m = len(matches)
     e = u[:m] - t0[matches.frame_a] - u[m:] + t0[matches.frame_b]
     keep = np.isfinite(e).all(axis=1)
@@ -379,6 +390,7 @@ def _plausible(prob: _Problem, matches: Matches, t0: np.ndarray) -> np.ndarray:
     return keep
 
 
+# keyword options of the public self-calibration (each an `oapcal selfcal` option)
 def self_calibrate(
     matches: Matches,
     model="paper",
@@ -407,41 +419,16 @@ def self_calibrate(
     scene (robust RMS above ``max_rms_px`` or fewer than ``min_inlier_fraction`` inliers).
     """
     from scipy.optimize import least_squares
+    from threadpoolctl import threadpool_limits
 
     from oapcal.progress import Stages
 
-    if steps_um is not None:
-        steps_um = np.asarray(steps_um, float)
-        if steps_um.shape != (matches.n_frames, 2) or not np.isfinite(steps_um).all():
-            raise DataError(
-                f"steps_um has shape {steps_um.shape}: give one finite (x_um, y_um) per frame, "
-                f"({matches.n_frames}, 2)",
-                param="steps_um",
-            )
+    steps_um = _checked_steps(steps_um, matches)
     prob = _problem(model, matches.image_size, design, steps_um, um_per_px, stage_rotation)
-    t0 = initial_translations(matches, prob.params0)
+    t0 = initial_translations(matches, prob.params0, family=prob.family)
     _check_frames(prob, matches, t0)
     use = _plausible(prob, matches, t0)
-    from threadpoolctl import threadpool_limits
-
-    theta0 = 0.0
-    if prob.steps is not None:
-        # start from the solve with unknown moves taken to the steps' scale and turn: from the
-        # design, a scale off by 1.6 % (the benchmark's relay, seed 1) leaves the first solve
-        # with px of residual over the moves and it does not recover
-        free = _problem(model, matches.image_size, design, None, um_per_px, False)
-        x_free = np.concatenate([free.params0[free.solved], t0[1:].ravel()])
-        with threadpool_limits(limits=1, user_api="blas"):
-            x_free = _robust_start(_Residual(free, matches, use), x_free).x
-        p_free, t_free, _ = _Residual(free, matches, use).split(x_free)
-        scale, theta0 = _similarity(prob.steps, t_free)
-        prob = dataclasses.replace(prob, params0=_rescaled(p_free, scale, prob))
-    x0 = np.concatenate(
-        [
-            prob.params0[prob.solved],
-            t0[1:].ravel() if prob.steps is None else ([theta0] if prob.stage_rotation else []),
-        ]
-    )
+    prob, x0 = _start(prob, matches, use, t0, (model, design, um_per_px))
 
     # one BLAS thread: least_squares takes an SVD of the (2M, n) Jacobian every iteration,
     # 25 ms for 5,000 x 24 on one thread and 0.7 s on two contended ones (OpenBLAS)
@@ -452,19 +439,7 @@ def self_calibrate(
         res = _Residual(prob, matches, use)
         _check_rank(res, x0)
         fit = _robust_start(res, x0)
-        # outliers against the robust spread of the first solve, then the inliers alone
-        e, ok = res.raw(fit.x)
-        dist = np.linalg.norm(e, axis=1)
-        if not ok.any():
-            raise SelfcalRefused(
-                "the model's correction failed at every match (it folds over or does not converge): "
-                "the frames do not fit the model; try another model or check the design",
-                "moving",
-                param="model",
-            )
-        sigma = 1.4826 * float(np.median(dist[ok])) / np.sqrt(2 * np.log(2))  # Rayleigh median -> sigma
-        inlier = np.zeros(len(matches), bool)
-        inlier[use] = ok & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
+        sigma, inlier = _first_inliers(res, fit, use, len(matches))
         stages.advance(description="self-calibration: inliers")
         res = _Residual(prob, matches, inlier)
         fit = least_squares(
@@ -478,41 +453,17 @@ def self_calibrate(
             max_nfev=100,
         )
         stages.advance(description="self-calibration: statistics")
-        full = _Residual(prob, matches, np.ones(len(matches), bool))
-        e_all, ok_all = full.raw(fit.x)
-        dist = np.linalg.norm(e_all, axis=1)
-        inlier = ok_all & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
-        frac = float(inlier.mean())
-        rms = float(np.sqrt(np.mean(dist[inlier] ** 2))) if inlier.any() else float("inf")
-        if frac < min_inlier_fraction or rms > max_rms_px:
-            raise SelfcalRefused(
-                f"the frames are not views of one rigid, static scene: {1 - frac:.0%} of the matches "
-                f"disagree with any one model and set of moves (inlier RMS {rms:.3g} px, limit "
-                f"{max_rms_px:g}); the sample moved or deformed between frames, or the frames are not "
-                "in the order of the steps",
-                "moving",
-                param="frames",
-            )
+        e_all, ok_all, dist, inlier = _rigid_inliers(
+            prob, matches, fit, sigma, max_rms_px, min_inlier_fraction
+        )
         res = _Residual(prob, matches, inlier)
         p, t, theta = res.split(fit.x)
         p = _centre_gauge(p, prob)
         cov = _covariance(res, fit.x, prob)
         stages.advance()
         gauge, left = gauge_report(prob, p, matches, inlier)
-    cal = _record(
-        prob,
-        p,
-        cov,
-        fit,
-        e_all[inlier],
-        dist[inlier],
-        int((~ok_all).sum()),
-        matches,
-        inlier,
-        gauge,
-        name,
-        source,
-    )
+    n_failed = int((~ok_all).sum())
+    cal = _record(prob, p, cov, fit, dist[inlier], n_failed, matches, inlier, gauge, name, source)
     return SelfCalibration(
         calibration=cal,
         translations=t,
@@ -525,6 +476,89 @@ def self_calibrate(
         um_per_px_centre=_centre_scale(p, prob),
         n_iter=int(fit.nfev),
     )
+
+
+def _checked_steps(steps_um, matches: Matches):
+    """``steps_um`` as a finite ``(F, 2)`` array (None as it is), else :class:`DataError`."""
+    if steps_um is None:
+        return None
+    steps_um = np.asarray(steps_um, float)
+    if steps_um.shape != (matches.n_frames, 2) or not np.isfinite(steps_um).all():
+        raise DataError(
+            f"steps_um has shape {steps_um.shape}: give one finite (x_um, y_um) per frame, "
+            f"({matches.n_frames}, 2)",
+            param="steps_um",
+        )
+    return steps_um
+
+
+def _start(prob: _Problem, matches: Matches, use, t0, spec) -> tuple[_Problem, np.ndarray]:
+    """The start of the solve: the problem (its model's start rescaled, with known steps)
+    and the vector ``x0`` of its solved parameters and moves.  ``spec``: the
+    ``(model, design, um_per_px)`` the problem was made of."""
+    from threadpoolctl import threadpool_limits
+
+    theta0 = 0.0
+    if prob.steps is not None:
+        # start from the solve with unknown moves taken to the steps' scale and turn: from the
+        # design, a scale off by 1.6 % (the benchmark's relay, seed 1) leaves the first solve
+        # with px of residual over the moves and it does not recover
+        model, design, um_per_px = spec
+        free = _problem(model, matches.image_size, design, None, um_per_px, False)
+        x_free = np.concatenate([free.params0[free.solved], t0[1:].ravel()])
+        with threadpool_limits(limits=1, user_api="blas"):
+            x_free = _robust_start(_Residual(free, matches, use), x_free).x
+        p_free, t_free, _ = _Residual(free, matches, use).split(x_free)
+        scale, theta0 = _similarity(prob.steps, t_free)
+        prob = dataclasses.replace(prob, params0=_rescaled(p_free, scale, prob))
+    x0 = np.concatenate(
+        [
+            prob.params0[prob.solved],
+            t0[1:].ravel() if prob.steps is None else ([theta0] if prob.stage_rotation else []),
+        ]
+    )
+    return prob, x0
+
+
+def _first_inliers(res: _Residual, fit, use, n_matches: int) -> tuple[float, np.ndarray]:
+    """The robust spread ``sigma`` (px) of the first solve's residuals and the matches within
+    it (outliers against that spread), ``(n_matches,)`` bool."""
+    e, ok = res.raw(fit.x)
+    dist = np.linalg.norm(e, axis=1)
+    if not ok.any():
+        raise SelfcalRefused(
+            "the model's correction failed at every match (it folds over or does not converge): "
+            "the frames do not fit the model; try another model or check the design",
+            "moving",
+            param="model",
+        )
+    sigma = 1.4826 * float(np.median(dist[ok])) / np.sqrt(2 * np.log(2))  # Rayleigh median -> sigma
+    inlier = np.zeros(n_matches, bool)
+    inlier[use] = ok & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
+    return sigma, inlier
+
+
+def _rigid_inliers(prob: _Problem, matches: Matches, fit, sigma: float, max_rms_px: float,
+                   min_inlier_fraction: float):  # fmt: skip
+    """Every match's residual at the solution ``(M, 2)``, where it converged, its length and
+    the inliers; :class:`SelfcalRefused` (``"moving"``) when they are not those of one rigid
+    scene (too few inliers or their RMS too large)."""
+    full = _Residual(prob, matches, np.ones(len(matches), bool))
+    e_all, ok_all = full.raw(fit.x)
+    dist = np.linalg.norm(e_all, axis=1)
+    inlier = ok_all & (dist <= max(OUTLIER_SIGMA * sigma, MIN_OUTLIER_PX))
+    frac = float(inlier.mean())
+    rms = float(np.sqrt(np.mean(dist[inlier] ** 2))) if inlier.any() else float("inf")
+    if frac < min_inlier_fraction or rms > max_rms_px:
+        raise SelfcalRefused(
+            f"the frames are not views of one rigid, static scene: {1 - frac:.0%} of the matches "
+            f"disagree with any one model and set of moves (inlier RMS {rms:.3g} px, limit "
+            f"{max_rms_px:g}); the sample moved or deformed between frames, or the frames are not "
+            "in the order of the steps",
+            "moving",
+            param="frames",
+        )
+    return e_all, ok_all, dist, inlier
 
 
 def _robust_start(res: _Residual, x0: np.ndarray):
@@ -567,7 +601,7 @@ def _centre_gauge(p: np.ndarray, prob: _Problem) -> np.ndarray:
     correction (``u(c) = c``); exact for every family (``D(r + delta)`` is the model with
     its reference shift moved)."""
     p = p.copy()
-    delta = undistort(prob.centre[None], p).xy[0] - prob.centre
+    delta = undistort(prob.centre[None], p, family=prob.family).xy[0] - prob.centre
     names = prob.family.param_names
     if prob.family in RELAY_FAMILIES:
         s = p[names.index("scale")]
@@ -593,8 +627,8 @@ def _centre_scale(p, prob: _Problem):
     """Object um per camera px along x and y at the image centre (None without a scale)."""
     if prob.um_per_px is None:
         return None
-    u = undistort(prob.centre[None], p).xy
-    ju = np.linalg.inv(jacobian_point(u, p)[0])  # d u / d d
+    u = undistort(prob.centre[None], p, family=prob.family).xy
+    ju = np.linalg.inv(jacobian_point(u, p, family=prob.family)[0])  # d u / d d
     return (
         float(prob.um_per_px * np.linalg.norm(ju[:, 0])),
         float(prob.um_per_px * np.linalg.norm(ju[:, 1])),
@@ -607,11 +641,11 @@ def gauge_report(prob: _Problem, p, matches: Matches, inlier) -> tuple[tuple[str
     by the model's form), measured with every parameter of the model free."""
     res = _Residual(prob, matches, inlier)
     d = res.d
-    u = undistort(d, p).xy
+    u = undistort(d, p, family=prob.family).xy
     ok = np.isfinite(u).all(axis=1)
     u, _ = u[ok], d[ok]
     mask = prob.shown | prob.solved
-    jpt = jacobian_point(u, p)
+    jpt = jacobian_point(u, p, family=prob.family)
     jpar = res.param_columns(u, p, mask)
     g = -np.linalg.solve(jpt, jpar).reshape(-1, int(mask.sum()))
     g = np.concatenate([g, np.tile(np.eye(2), (len(u), 1))], axis=1)  # translations
@@ -660,36 +694,18 @@ def _part_words(left: float, relay: bool) -> str:
     return "weakly determined by the frames through the model" + (" (the relay's physics)" if relay else "")
 
 
-def _record(prob, p, cov, fit, e, dist, n_failed, matches, inlier, gauge, name, source):
+# 11 parameters: the solve's results, each used once here (a record of them would only be
+# unpacked again)
+def _record(prob, p, cov, fit, dist, n_failed, matches, inlier, gauge, name, source):
     """The :class:`~oapcal.calibration.Calibration` of a self-calibration."""
     from scipy.spatial import ConvexHull, QhullError
 
     from oapcal.calibration import Calibration, FitSummary
     from oapcal.stats import ResidualStats
 
-    names = prob.family.param_names
-    free = tuple(n for n, s in zip(names, prob.shown) if s)
-    solved = [n for n, s in zip(names, prob.solved) if s]
-    idx = [free.index(n) for n in solved]
-    full_cov = np.zeros((len(free), len(free)))
-    full_cov[np.ix_(idx, idx)] = cov
-    stderr = np.full(len(names), np.nan)
-    for n in free:
-        stderr[names.index(n)] = 0.0
-    for i, n in enumerate(solved):
-        stderr[names.index(n)] = np.sqrt(max(cov[i, i], 0.0))
+    free, solved, stderr, full_cov = _uncertainty(prob, cov)
     w, h = matches.image_size
-    border = np.concatenate(
-        [
-            np.stack([np.linspace(0, w - 1, 33), np.zeros(33)], -1),
-            np.stack([np.full(33, w - 1.0), np.linspace(0, h - 1, 33)], -1),
-            np.stack([np.linspace(w - 1, 0, 33), np.full(33, h - 1.0)], -1),
-            np.stack([np.zeros(33), np.linspace(h - 1, 0, 33)], -1),
-        ]
-    )
-    ub = undistort(border, p).xy
-    ub = ub[np.isfinite(ub).all(axis=1)]
-    ref = undistort(np.concatenate([matches.xy_a[inlier], matches.xy_b[inlier]]), p).xy
+    ref = undistort(np.concatenate([matches.xy_a[inlier], matches.xy_b[inlier]]), p, family=prob.family).xy
     ref = ref[np.isfinite(ref).all(axis=1)]
     try:
         hull = ref[ConvexHull(ref).vertices]
@@ -719,7 +735,6 @@ def _record(prob, p, cov, fit, e, dist, n_failed, matches, inlier, gauge, name, 
         normalize="none",
     )
     notes = ("self-calibration from the moves of a scene: " + "; ".join(gauge),)
-    del ub
     return Calibration(
         free=free,
         params=np.array(p),
@@ -736,6 +751,24 @@ def _record(prob, p, cov, fit, e, dist, n_failed, matches, inlier, gauge, name, 
         relay_design=None if prob.design is None else prob.design.to_dict(),
         notes=notes,
     )
+
+
+def _uncertainty(prob: _Problem, cov: np.ndarray):
+    """The record's free parameters (solved and pinned), the solved ones, the standard
+    errors ``(P,)`` (NaN for fixed, 0 for pinned) and the covariance over the free ones (0
+    for pinned), from the covariance ``cov`` of the solved parameters."""
+    names = prob.family.param_names
+    free = tuple(n for n, s in zip(names, prob.shown) if s)
+    solved = [n for n, s in zip(names, prob.solved) if s]
+    idx = [free.index(n) for n in solved]
+    full_cov = np.zeros((len(free), len(free)))
+    full_cov[np.ix_(idx, idx)] = cov
+    stderr = np.full(len(names), np.nan)
+    for n in free:
+        stderr[names.index(n)] = 0.0
+    for i, n in enumerate(solved):
+        stderr[names.index(n)] = np.sqrt(max(cov[i, i], 0.0))
+    return free, solved, stderr, full_cov
 
 
 def parse_steps(text: str, n_frames: int, source: str = "steps") -> np.ndarray:
