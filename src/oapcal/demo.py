@@ -114,7 +114,7 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
     from oapcal.optics import relay_distortion
     from oapcal.optics.summary import simulate_relay
     from oapcal.report.optics_plots import plot_grid
-    from oapcal.select import robustness, select_models
+    from oapcal.select import robustness, select_models, with_frame_terms
 
     def start(name: str) -> None:
         if step is not None:
@@ -137,11 +137,9 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
     selection = select_models(grid_u, grid_d, normalization="grid")
     files["model selection"] = out / "selection.json"
     save_selection(selection, files["model selection"])
-    # In camera px the origin is the image corner, not the distortion centre, so the centre
-    # terms (x_off, y_off, c_x, c_y) are always needed there; the selection on the centred
-    # grid decides the distortion terms.  (The paper likewise added x_off to its choice.)
-    frame = ("x_off", "y_off", "c_x", "c_y")
-    chosen = tuple(n for n in _names() if n in selection.best.free or n in frame)
+    # the selection on the centred grid decides the distortion terms; camera px need the
+    # frame terms as well (select.with_frame_terms)
+    chosen = with_frame_terms(selection)
 
     # 3. a camera image of the target through the traced relay
     start("simulate")
@@ -224,8 +222,3 @@ def _run_steps(out: Path, final: Path, *, seed, trials, report, step) -> DemoRes
         extra={"chosen": chosen, "trust": trust},
     )
 
-
-def _names():
-    from oapcal.model import PARAM_NAMES
-
-    return PARAM_NAMES

@@ -37,7 +37,9 @@ import numpy as np
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.model import (
     N_PARAMS,
+    Model,
     ModelFamily,
+    family_named,
     family_of,
     identity_params,
     kernel_array,
@@ -100,11 +102,18 @@ class FitResult:
     message: str
     n_iter: int
     k_eff: float | None = None
+    family: ModelFamily | str | None = None
+
+    def __post_init__(self):
+        # the family by name (fit_batch knows it); a record made without one names the
+        # family of its vector's length, as before the family was carried
+        family = family_of(self.params) if self.family is None else family_named(self.family)
+        object.__setattr__(self, "family", family)
 
     @property
-    def family(self) -> ModelFamily:
-        """The model family (:func:`oapcal.model.family_of` the parameter vector)."""
-        return family_of(self.params)
+    def model(self) -> Model:
+        """The fitted model as a value (:class:`oapcal.model.Model`)."""
+        return Model(self.family, self.params, self.free)
 
     def value(self, name: str) -> float:
         """The fitted value of one parameter."""
@@ -136,7 +145,8 @@ class BatchFit:
     ``status (B,)`` (see :data:`STATUS_MESSAGES`; positive = converged) and ``masks``.
     ``item(i)`` is item ``i`` as a :class:`FitResult`.  ``k_eff (B,)``: with priors, each
     item's effective number of parameters (:class:`FitResult`; ``rss`` is then the data's
-    alone); None without.
+    alone); None without.  ``family`` the model family fitted (by name; None: the family
+    of the masks' length).
     """
 
     masks: np.ndarray
@@ -147,10 +157,13 @@ class BatchFit:
     n_iter: np.ndarray
     status: np.ndarray
     k_eff: np.ndarray | None = None
+    family: ModelFamily | str | None = None
     converged: np.ndarray = field(init=False)
 
     def __post_init__(self):
         object.__setattr__(self, "converged", self.status > 0)
+        family = family_of(self.masks) if self.family is None else family_named(self.family)
+        object.__setattr__(self, "family", family)
         for name in ("masks", "params", "covariance", "rss", "n", "n_iter", "status", "converged", "k_eff"):
             value = getattr(self, name)
             if value is not None:
@@ -188,6 +201,7 @@ class BatchFit:
             message=STATUS_MESSAGES[status],
             n_iter=int(self.n_iter[i]),
             k_eff=k_eff,
+            family=self.family,
         )
 
 
@@ -461,7 +475,7 @@ def fit_batch(
     if cov is not None:
         cov = cov * back[None, :, None] * back[None, None, :]
     return BatchFit(masks=masks.copy(), params=params, covariance=cov, rss=rss_scaled * f * f, n=n_res,
-                    n_iter=n_iter, status=status, k_eff=k_eff)  # fmt: skip
+                    n_iter=n_iter, status=status, k_eff=k_eff, family=family)  # fmt: skip
 
 
 def _priors(prior, masks, p0, family):
@@ -553,7 +567,7 @@ def fit(
     xy_u: np.ndarray,
     xy_d: np.ndarray,
     model="paper",
-    init="auto",
+    init=DEFAULT_INIT,
     **options,
 ) -> FitResult:
     """Fit one model (a spec for :func:`oapcal.model.parse_any_model`: Eq. 1, with

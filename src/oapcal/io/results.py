@@ -146,6 +146,7 @@ def selection_from_dict(data: dict, source: str = "selection") -> Selection:
             cv_mean_error=None if "cv_mean_error" not in m else _nan(m["cv_mean_error"]),
             cv_failed=int(m.get("cv_failed", 0)),
             reason_code=m["reason_code"],
+            aicc_forward=_nan(m.get("aicc_forward")),
         )
         for m in data["models"]
     )
