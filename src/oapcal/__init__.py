@@ -35,7 +35,7 @@ _API: dict[str, str] = {
     "fit": "oapcal.fitting:fit",
     "FitResult": "oapcal.fitting:FitResult",
     "BatchFit": "oapcal.fitting:BatchFit",
-    "calibrate": "oapcal.calibration:calibrate",
+    "calibrate": "oapcal.entry:calibrate",
     "UnusableFitError": "oapcal.calibration:UnusableFitError",
     "correction_residuals": "oapcal.stats:correction_residuals",
     "ResidualStats": "oapcal.stats:ResidualStats",

@@ -45,7 +45,8 @@ class UnusableFitError(DataError):
 
     ``problem`` is what is wrong (naming the points' ``source``), ``advice`` how to fix it
     in Python terms, and ``code`` one of :data:`UNUSABLE_CODES`, so that a front-end can
-    word the fix in its own terms (``oapcal fit`` exits with code 3)."""
+    word the fix in its own terms (``oapcal fit`` exits with code 3).  ``"implausible"``:
+    a relay fit that is no plausible misalignment (:func:`oapcal.entry.check_relay_plausible`)."""
 
     def __init__(self, problem: str, advice: str = "", *, code: str, param=None):
         super().__init__(f"{problem}. {advice}" if advice else problem, param=param)
@@ -55,7 +56,7 @@ class UnusableFitError(DataError):
 
 
 #: The kinds of :class:`UnusableFitError`.
-UNUSABLE_CODES = ("non_finite", "negative_m", "region")
+UNUSABLE_CODES = ("non_finite", "negative_m", "region", "implausible")
 
 
 @dataclass(frozen=True)

@@ -394,28 +394,12 @@ def fit_batch(
     status says which.  Items are independent: a batch gives the same results as a loop of
     single-item calls with the same ``scale``.
     """
-    from oapcal import _kernels
-
     xy_u = np.asarray(xy_u, dtype=float)
     xy_d = np.asarray(xy_d, dtype=float)
     masks = kernel_array(np.atleast_2d(np.asarray(masks, dtype=bool)), bool)
     family = family_of(masks, family)
+    _check_batch(xy_u, xy_d, masks, family)
     n_models, n_params = masks.shape
-    if n_params != family.n_params:
-        raise ModelSpecError(f"model masks must have {family.n_params} entries, got {n_params}")
-    for name in family.always_free:
-        if not masks[:, family.param_names.index(name)].all():
-            raise ModelSpecError(f"the parameter {name!r} must be free in every model")
-    for name in family.never_free:
-        if masks[:, family.param_names.index(name)].any():
-            raise ModelSpecError(
-                f"the parameter {name!r} is a constant of the {family.name} model: it cannot be fitted"
-            )
-    for xy in (xy_u, xy_d):
-        if xy.shape[-1:] != (2,) or xy.ndim not in (2, 3) or xy.shape[-2] != xy_u.shape[-2]:
-            raise ModelSpecError(f"points must be (N, 2) or (B, N, 2), got {xy_u.shape} and {xy_d.shape}")
-        if xy.ndim == 3 and xy.shape[0] not in (1, n_models):
-            raise ModelSpecError(f"per-item points must have {n_models} rows, got {xy.shape[0]}")
     idx, counts = _point_subsets(points, xy_u.shape[-2], n_models)
     p0 = np.broadcast_to(np.asarray(p0, dtype=float), masks.shape)
     if prior is not None:
@@ -437,17 +421,16 @@ def fit_batch(
         p = p * f**exps
     fixed = 0.0 if family.zero_when_fixed else p
     p = kernel_array(np.where(masks, p, fixed))
-    status = np.zeros(n_models, dtype=np.int64)
-    n_iter = np.zeros(n_models, dtype=np.int64)
-    cost = np.zeros(n_models)
     want_jtj = bool(covariance) or prior is not None  # priors: J^T J for k_eff as well
-    jtj = np.zeros((n_models if want_jtj else 1, n_params, n_params))
-    fd = None if family.analytic_jacobian else float(family.fd_step)
-    args = (family.half, p, int(max_iter), float(ftol), float(xtol), float(gtol), fd, want_jtj, status,
-            n_iter, cost, jtj)  # fmt: skip
+    solver = {"max_iter": max_iter, "ftol": ftol, "xtol": xtol, "gtol": gtol, "want_jtj": want_jtj}
+    n_res = 2 * np.broadcast_to(counts, (n_models,)).astype(np.int64)
+    cov = None
+    k_eff = None
     if prior is None:
-        _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts,
-                            masks, *args)  # fmt: skip
+        status, n_iter, cost, jtj = _run_lm(family, u, d, idx, counts, masks, p, solver)
+        rss_scaled = 2.0 * cost
+        if covariance:
+            cov = _covariance(jtj, masks, rss_scaled, n_res)
     else:
         # In the solver's coordinates (p' = p f**e, residuals / f) a row (p - mean) / sigma
         # of the data's objective is w' (p' - mean') with w' = 1 / (sigma f**(e + 1)).
@@ -455,20 +438,12 @@ def fit_batch(
         mean_s = kernel_array(prior_mean * f**e)
         with np.errstate(divide="ignore"):
             w_s = kernel_array(np.where(np.isfinite(prior_sigma), 1.0 / (prior_sigma * f ** (e + 1)), 0.0))
-        _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts,
-                            masks, *args, mean_s, w_s, True)  # fmt: skip
+        status, n_iter, cost, jtj = _run_lm(family, u, d, idx, counts, masks, p, solver, (mean_s, w_s, True))
         w2 = np.broadcast_to(np.where(masks, w_s**2, 0.0), masks.shape)
         penalty = (w2 * (p - mean_s) ** 2).sum(axis=1)
-        cost = cost - 0.5 * penalty  # the data's part of the cost
-    n_res = 2 * np.broadcast_to(counts, (n_models,)).astype(np.int64)
-    rss_scaled = 2.0 * cost
-    cov = None
-    k_eff = None
-    if prior is not None:
+        rss_scaled = 2.0 * (cost - 0.5 * penalty)  # the data's part of the cost
         cov_s, k_eff = _posterior_covariance(jtj, w2, masks, rss_scaled, n_res)
         cov = cov_s if covariance else None
-    elif covariance:
-        cov = _covariance(jtj, masks, rss_scaled, n_res)
     # Back to the data's units: p = p' * f**-e, cov = D cov' D with D = f**-e.
     back = np.ones(n_params) if exps is None else f ** (-exps)
     params = np.where(masks, p * back, fixed) if family.zero_when_fixed else p * back
@@ -476,6 +451,47 @@ def fit_batch(
         cov = cov * back[None, :, None] * back[None, None, :]
     return BatchFit(masks=masks.copy(), params=params, covariance=cov, rss=rss_scaled * f * f, n=n_res,
                     n_iter=n_iter, status=status, k_eff=k_eff, family=family)  # fmt: skip
+
+
+def _check_batch(xy_u, xy_d, masks, family) -> None:
+    """``fit_batch``'s masks and points checked against the family (a named
+    :class:`~oapcal.errors.ModelSpecError`)."""
+    n_models, n_params = masks.shape
+    if n_params != family.n_params:
+        raise ModelSpecError(f"model masks must have {family.n_params} entries, got {n_params}")
+    for name in family.always_free:
+        if not masks[:, family.param_names.index(name)].all():
+            raise ModelSpecError(f"the parameter {name!r} must be free in every model")
+    for name in family.never_free:
+        if masks[:, family.param_names.index(name)].any():
+            raise ModelSpecError(
+                f"the parameter {name!r} is a constant of the {family.name} model: it cannot be fitted"
+            )
+    for xy in (xy_u, xy_d):
+        if xy.shape[-1:] != (2,) or xy.ndim not in (2, 3) or xy.shape[-2] != xy_u.shape[-2]:
+            raise ModelSpecError(f"points must be (N, 2) or (B, N, 2), got {xy_u.shape} and {xy_d.shape}")
+        if xy.ndim == 3 and xy.shape[0] not in (1, n_models):
+            raise ModelSpecError(f"per-item points must have {n_models} rows, got {xy.shape[0]}")
+
+
+def _run_lm(family, u, d, idx, counts, masks, p, solver: dict, prior_rows=()):
+    """The compiled solver over all items in blocks (``p`` is updated in place), in the
+    solver's coordinates: ``(status, n_iter, cost, jtj)``; ``prior_rows`` the kernel's
+    ``(mean, weight, True)`` of a fit with priors."""
+    from oapcal import _kernels
+
+    n_models, n_params = masks.shape
+    status = np.zeros(n_models, dtype=np.int64)
+    n_iter = np.zeros(n_models, dtype=np.int64)
+    cost = np.zeros(n_models)
+    want_jtj = solver["want_jtj"]
+    jtj = np.zeros((n_models if want_jtj else 1, n_params, n_params))
+    fd = None if family.analytic_jacobian else float(family.fd_step)
+    _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts, masks,
+                        family.half, p, int(solver["max_iter"]), float(solver["ftol"]), float(solver["xtol"]),
+                        float(solver["gtol"]), fd, want_jtj, status, n_iter, cost, jtj,
+                        *prior_rows)  # fmt: skip
+    return status, n_iter, cost, jtj
 
 
 def _priors(prior, masks, p0, family):

@@ -120,20 +120,20 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
 
 def _fit_relay(points, model, normalization, um_per_px, size, relay_design, relay_priors):
     """``(calibration, pairs)`` of a relay model (``--model relay...``)."""
-    from oapcal.optics.relay_model import calibrate_relay
+    from oapcal.entry import calibrate
 
     check_relay_spec(model)  # a bad spec fails before the file is read
     refuse_normalize(normalization, "the relay model fits the target's pose itself, in px")
     design = design_from_options(relay_design)
     pairs = load_pairs(points)
-    cal = calibrate_relay(pairs.xy_u, pairs.xy_d, design, model, um_per_px=um_per_px, image_size=size,
-                          source=pairs.source, priors=relay_priors)  # fmt: skip
+    cal = calibrate(pairs.xy_u, pairs.xy_d, model, design=design, um_per_px=um_per_px, image_size=size,
+                    source=pairs.source, priors=relay_priors)  # fmt: skip
     return cal, pairs
 
 
 def _fit_eq1(points, model, init, normalization, um_per_px, size, rotation):
     """``(calibration, pairs)`` of an Eq. (1) model (with or without the rotation)."""
-    from oapcal.calibration import calibrate
+    from oapcal.entry import calibrate
     from oapcal.fitting import check_enough_points
     from oapcal.model import parse_any_model
 
@@ -191,27 +191,23 @@ _UNUSABLE_ADVICE = {
 
 def _check_fit_usable(cal, source: str) -> None:
     """The library's refusal of a fit that gives no usable model
-    (:func:`oapcal.calibration.check_fit_usable`, which :func:`~oapcal.calibration.calibrate`
-    applies as well) and of an implausible relay fit, as exit 3 with nothing written."""
+    (:func:`oapcal.calibration.check_fit_usable`, :func:`oapcal.entry.check_relay_plausible`,
+    which :func:`oapcal.calibrate` applies as well), as exit 3 with nothing written."""
     from oapcal.calibration import UnusableFitError, check_fit_usable
+    from oapcal.entry import check_relay_plausible
 
     try:
         check_fit_usable(cal, source)
+        check_relay_plausible(cal, source)
     except UnusableFitError as exc:
         raise _unusable(exc) from None
-    if cal.relay_design is not None and cal.fit.converged:
-        from oapcal.optics.relay_model import implausible
-
-        problem = implausible(cal)
-        if problem:
-            problem = problem.replace("the priors (priors 'default')", "--priors default")
-            raise FitFailed(f"{source}: {problem}; nothing written")
 
 
 def _unusable(exc) -> FitFailed:
     """An :class:`~oapcal.calibration.UnusableFitError` as ``oapcal fit`` words it."""
     advice = _UNUSABLE_ADVICE.get(exc.code)
-    return FitFailed(f"{exc.problem}; nothing written" + (f". {advice}" if advice else ""))
+    problem = exc.problem.replace("the priors (priors 'default')", "--priors default")
+    return FitFailed(f"{problem}; nothing written" + (f". {advice}" if advice else ""))
 
 
 def fit_summary(cal) -> dict:
@@ -225,9 +221,7 @@ def fit_summary(cal) -> dict:
         "params": cal.params_dict,
         "stderr": {n: _finite(cal.stderr[i]) for i, n in _free_index(cal)},
         "converged": bool(cal.fit.converged),
-        "aicc": _finite(cal.fit.aicc),
-        "aicc_forward": _finite(cal.fit.aicc_forward),
-        "aicc_corrected": _finite(cal.fit.aicc_corrected),
+        "aicc": _finite(cal.fit.aicc),  # forward residuals; the key set is pinned (the file has both)
         "residuals": {
             k: v
             for k, v in cal.residuals.to_dict().items()
