@@ -209,11 +209,11 @@ class Calibration:
 
     @property
     def mask(self) -> np.ndarray:
-        return np.array([n in self.free for n in self.family.param_names])
+        return self.model.mask
 
     @property
     def params_dict(self) -> dict[str, float]:
-        return {n: float(v) for n, v in zip(self.family.param_names, self.params)}
+        return self.model.params_dict
 
 
 def check_model_region(
@@ -296,6 +296,8 @@ def check_fit_usable(calibration, source: str | None = None, *, sign: bool = Tru
         raise UnusableFitError(str(exc), code="region") from None
 
 
+# calibrate's keywords are the public API's options (a contract: docs/architecture.md);
+# each is one documented choice of the caller, so they stay separate keywords.
 def calibrate(
     xy_u,
     xy_d,

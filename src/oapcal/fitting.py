@@ -121,7 +121,7 @@ class FitResult:
 
     @property
     def params_dict(self) -> dict[str, float]:
-        return {name: float(v) for name, v in zip(self.family.param_names, self.params)}
+        return self.model.params_dict
 
     @property
     def stderr_dict(self) -> dict[str, float]:
@@ -131,7 +131,7 @@ class FitResult:
 
     @property
     def mask(self) -> np.ndarray:
-        return np.array([name in self.free for name in self.family.param_names])
+        return self.model.mask
 
 
 @dataclass(frozen=True)
@@ -344,6 +344,8 @@ def _point_subsets(points, n_points: int, n_items: int) -> tuple[np.ndarray, np.
     return idx, np.full(idx.shape[0], idx.shape[1], dtype=np.int64)
 
 
+# fit_batch's keywords are the solver's documented options (MINPACK's tolerances, the
+# iteration cap, priors, subsets): the contract of the one solver, kept as keywords.
 def fit_batch(
     xy_u: np.ndarray,
     xy_d: np.ndarray,

@@ -320,6 +320,7 @@ def check_masks(masks) -> np.ndarray:
     return arr
 
 
+# select_models' keywords are the public API's options (a contract), one per choice.
 def select_models(
     xy_u,
     xy_d,

@@ -76,6 +76,7 @@ from oapcal.cli._relay import (
 )
 @relay_design_options
 @priors_option
+# one parameter per command-line option (Click passes them so)
 def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json, rotation,
                 keep_unconverged, relay_design, priors="off"):  # fmt: skip
     """Fit a distortion model to point pairs: a CSV with x_u,y_u,x_d,y_d (POINTS), or

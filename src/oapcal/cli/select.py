@@ -104,6 +104,7 @@ def _fmt(value, spec: str) -> str:
 )
 @relay_design_options
 @priors_option
+# one parameter per command-line option (Click passes them so)
 def select_command(points, normalization, init, top, cv, seed, json_out, families=None, image_size=None,
                    relay_design=None, model=None, region="auto", priors="off"):  # fmt: skip
     """Rank all 4,096 models of Eq. 1 by AICc of the corrected points (with --families: Eq. 1,
@@ -358,6 +359,7 @@ _INVALID_TEXT = {
 )
 @click.option("--image-size", default=None, help="With a relay model: camera image size WxH in px.")
 @relay_design_options
+# one parameter per command-line option (Click passes them so)
 def robustness_command(
     points, models, trials, fraction, seed, init, normalization, wrong_minimum_ratio, json_out,
     image_size=None, relay_design=None,
