@@ -126,6 +126,33 @@ class ModelScore:
             out["cv_failed"] = self.cv_failed
         return out
 
+    @classmethod
+    def from_dict(cls, m: dict) -> ModelScore:
+        """A model of a selection from its JSON entry (:meth:`to_dict`; ``null`` -> NaN;
+        entries written before ``fit_status``, ``cv_*`` or ``aicc_forward`` existed load
+        with their defaults)."""
+
+        def number(value) -> float:
+            return float("nan") if value is None else float(value)
+
+        return cls(
+            bits=int(m["bits"]),
+            free=tuple(m["free"]),
+            k=int(m["k"]),
+            aicc=number(m["aicc"]),
+            delta_aicc=number(m["delta_aicc"]),
+            weight=number(m["weight"]),
+            rss=number(m["rss"]),
+            mean_error=number(m["mean_error"]),
+            valid=bool(m["valid"]),
+            reason=m["reason"],
+            fit_status=int(m.get("fit_status", 1 if m["valid"] else 0)),
+            cv_mean_error=None if "cv_mean_error" not in m else number(m["cv_mean_error"]),
+            cv_failed=int(m.get("cv_failed", 0)),
+            reason_code=m["reason_code"],
+            aicc_forward=number(m.get("aicc_forward")),
+        )
+
 
 @dataclass(frozen=True)
 class Selection:
