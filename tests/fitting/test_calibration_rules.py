@@ -223,3 +223,16 @@ def test_the_entry_point_takes_a_relay_design_or_spec():
     assert info.value.param == "design"
     with pytest.raises(ModelSpecError, match="priors apply to a relay model"):
         oapcal.calibrate(xy_u, xy_d, "paper", priors="default")
+
+
+def test_the_cli_tables_label_both_aicc(run_cli, data, tmp_path):
+    from oapcal.io.points import write_point_pairs
+
+    points = tmp_path / "p.csv"
+    write_point_pairs(points, data.xy_u, data.xy_d)
+    code, out, err = run_cli("fit", points, "--model", "paper")
+    assert code == 0, err
+    assert "AICc -1261.44 (forward residuals; -1297.83 after correction" in " ".join(out.split())
+    code, out, err = run_cli("select", points, "--top", "3")
+    assert code == 0, err
+    assert "AICc corrected" in out and "AICc forward" in out
