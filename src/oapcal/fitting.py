@@ -408,14 +408,7 @@ def fit_batch(
         masks, p0, prior_mean, prior_sigma = _priors(prior, masks, p0, family)
 
     exps = family.scale_exponents
-    if exps is None:
-        f = 1.0
-    else:
-        f = (
-            float(scale)
-            if scale
-            else float(max(np.abs(xy_u).max(initial=0), np.abs(xy_d).max(initial=0), 1e-300))
-        )
+    f = _solver_scale(family, xy_u, xy_d, scale)
     u = kernel_array((xy_u / f).reshape((-1,) + xy_u.shape[-2:]))
     d = kernel_array((xy_d / f).reshape((-1,) + xy_d.shape[-2:]))
     p = p0
@@ -434,12 +427,7 @@ def fit_batch(
         if covariance:
             cov = _covariance(jtj, masks, rss_scaled, n_res)
     else:
-        # In the solver's coordinates (p' = p f**e, residuals / f) a row (p - mean) / sigma
-        # of the data's objective is w' (p' - mean') with w' = 1 / (sigma f**(e + 1)).
-        e = np.zeros(n_params) if exps is None else exps
-        mean_s = kernel_array(prior_mean * f**e)
-        with np.errstate(divide="ignore"):
-            w_s = kernel_array(np.where(np.isfinite(prior_sigma), 1.0 / (prior_sigma * f ** (e + 1)), 0.0))
+        mean_s, w_s = _prior_rows(prior_mean, prior_sigma, exps, f, n_params)
         status, n_iter, cost, jtj = _run_lm(family, u, d, idx, counts, masks, p, solver, (mean_s, w_s, True))
         w2 = np.broadcast_to(np.where(masks, w_s**2, 0.0), masks.shape)
         penalty = (w2 * (p - mean_s) ** 2).sum(axis=1)
@@ -453,6 +441,27 @@ def fit_batch(
         cov = cov * back[None, :, None] * back[None, None, :]
     return BatchFit(masks=masks.copy(), params=params, covariance=cov, rss=rss_scaled * f * f, n=n_res,
                     n_iter=n_iter, status=status, k_eff=k_eff, family=family)  # fmt: skip
+
+
+def _solver_scale(family, xy_u, xy_d, scale) -> float:
+    """The coordinate factor ``f`` of :func:`fit_batch` (1 for a family that is not
+    reparametrized by scale; else ``scale``, or the largest absolute coordinate)."""
+    if family.scale_exponents is None:
+        return 1.0
+    if scale:
+        return float(scale)
+    return float(max(np.abs(xy_u).max(initial=0), np.abs(xy_d).max(initial=0), 1e-300))
+
+
+def _prior_rows(prior_mean, prior_sigma, exps, f: float, n_params: int):
+    """The priors' rows in the solver's coordinates, ``(mean', w')``: with ``p' = p f**e``
+    and residuals divided by ``f``, a row ``(p - mean) / sigma`` of the data's objective is
+    ``w' (p' - mean')`` with ``w' = 1 / (sigma f**(e + 1))`` (0 for an infinite width)."""
+    e = np.zeros(n_params) if exps is None else exps
+    mean_s = kernel_array(prior_mean * f**e)
+    with np.errstate(divide="ignore"):
+        w_s = kernel_array(np.where(np.isfinite(prior_sigma), 1.0 / (prior_sigma * f ** (e + 1)), 0.0))
+    return mean_s, w_s
 
 
 def _check_batch(xy_u, xy_d, masks, family) -> None:
