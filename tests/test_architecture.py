@@ -16,7 +16,7 @@ LAYERS = [
     {"stats", "normalize", "synthetic", "uncertainty"},
     {"fitting"},
     {"select", "subsampling", "calibration", "error_model"},
-    {"imaging", "optics", "families", "selfcal"},
+    {"imaging", "optics", "families", "selfcal", "entry"},
     {"io"},
     {"batch"},
     {"report"},

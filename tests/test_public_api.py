@@ -48,6 +48,43 @@ PUBLIC = {
     "InputFileError",
     "DataError",
     "ModelSpecError",
+    # the records the public functions return, and the error calibrate raises
+    "Model",
+    "InverseResult",
+    "BatchFit",
+    "UnusableFitError",
+    "ResidualStats",
+    "ModelScore",
+    "with_frame_terms",
+    "ModelRobustness",
+    "FitSummary",
+    "DistortionField",
+    "FamilySelection",
+    "UsafTarget",
+    "SimulatedImage",
+    "Detection",
+    "Matches",
+    "SelfCalibration",
+}
+
+#: Each public function and the public record it returns (the API exports what it returns).
+RETURNS = {
+    "undistort": "InverseResult",
+    "fit": "FitResult",
+    "calibrate": "Calibration",
+    "correction_residuals": "ResidualStats",
+    "select_models": "Selection",
+    "robustness": "Robustness",
+    "load_calibration": "Calibration",
+    "read_points": "PointPairs",
+    "correction_map": "CorrectionMap",
+    "relay_distortion": "DistortionField",
+    "select_families": "FamilySelection",
+    "usaf_target": "UsafTarget",
+    "simulate_image": "SimulatedImage",
+    "detect_usaf": "Detection",
+    "find_matches": "Matches",
+    "self_calibrate": "SelfCalibration",
 }
 
 
@@ -110,3 +147,29 @@ def test_the_readme_example_runs(tmp_path):
     corrected = oapcal.undistort(data.xy_d, back.params)
     assert corrected.converged.all()
     assert np.abs(corrected.xy - data.xy_u).max() < 2.0  # the synthetic pairs' noise is 0.3 px
+
+
+@pytest.mark.parametrize("function", sorted(RETURNS))
+def test_functions_return_records_the_api_exports(function):
+    """The annotated return type of each public function is a public name, and that name
+    is the very class the module defines (not a copy or another class of the same name)."""
+    annotation = inspect.signature(getattr(oapcal, function)).return_annotation
+    name = annotation if isinstance(annotation, str) else annotation.__name__
+    assert name == RETURNS[function]
+    record = getattr(oapcal, name)
+    assert inspect.isclass(record)
+    module = inspect.getmodule(getattr(oapcal, function))
+    assert getattr(module, name) is record
+
+
+def test_records_carry_the_model():
+    """The calibration and its fit carry their family by name and give their Model."""
+    from oapcal.synthetic import synthetic_pairs
+
+    data = synthetic_pairs(seed=2)
+    cal = oapcal.calibrate(data.xy_u, data.xy_d, "paper", error_model=False)
+    assert isinstance(cal.model, oapcal.Model) and isinstance(cal.fit, oapcal.FitSummary)
+    assert cal.model.family is cal.family and cal.model.free == cal.free
+    assert cal.model_family in ("brown-conrady", "brown-conrady+rotation")
+    inverse = cal.model.inverse(data.xy_d)
+    assert isinstance(inverse, oapcal.InverseResult) and inverse.converged.all()

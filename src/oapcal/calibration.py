@@ -12,14 +12,16 @@ region.  ``imaging`` and ``report`` use the record; its file format lives in
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from oapcal import __version__, validate
-from oapcal.errors import DataError, InputFileError
-from oapcal.model import N_PARAMS, ROTATION_SUFFIX, ModelFamily, family_of
+from oapcal.errors import DataError, InputFileError, ModelSpecError
+from oapcal.fitting import DEFAULT_INIT
+from oapcal.model import N_PARAMS, ROTATION_SUFFIX, Model, ModelFamily, family_named, family_of
 from oapcal.normalize import normalize
 from oapcal.stats import ResidualStats, correction_residuals
 
@@ -36,10 +38,31 @@ ROTATION_EVIDENCE_AICC = 10.0
 ROTATION_CHOICES = ("auto", "fit", "none")
 
 
+class UnusableFitError(DataError):
+    """The fit ran but gave no usable model: non-finite parameters, ``m <= 0`` (a target
+    turned by 180 deg that Eq. (1) alone expresses with a negative scale), or a model that
+    folds over or is not finite where it applies (:func:`check_fit_usable`).
+
+    ``problem`` is what is wrong (naming the points' ``source``), ``advice`` how to fix it
+    in Python terms, and ``code`` one of :data:`UNUSABLE_CODES`, so that a front-end can
+    word the fix in its own terms (``oapcal fit`` exits with code 3).  ``"implausible"``:
+    a relay fit that is no plausible misalignment (:func:`oapcal.entry.check_relay_plausible`)."""
+
+    def __init__(self, problem: str, advice: str = "", *, code: str, param=None):
+        super().__init__(f"{problem}. {advice}" if advice else problem, param=param)
+        self.problem = problem
+        self.advice = advice
+        self.code = code
+
+
+#: The kinds of :class:`UnusableFitError`.
+UNUSABLE_CODES = ("non_finite", "negative_m", "region", "implausible")
+
+
 @dataclass(frozen=True)
 class FitSummary:
     """How the model was fitted: the statistics of :class:`oapcal.fitting.FitResult` that a
-    calibration keeps.
+    calibration keeps (:meth:`from_result`).
 
     ``n_points`` point pairs give ``n_residuals = 2 n_points`` residuals; ``k`` free
     parameters; ``rss`` the sum of squared forward residuals in the fit's coordinates and
@@ -48,6 +71,13 @@ class FitSummary:
     iterations from the start ``init``, on points normalized by ``normalize``; ``k_eff`` the
     effective number of parameters of a fit with priors (AIC, AICc and BIC count it
     instead of ``k``; None without priors).  Fields a calibration file does not hold are None.
+
+    Two AICc values describe one fit: ``aicc_forward`` (the same as ``aicc``) scores the
+    forward residuals ``distort(xy_u) - xy_d`` that the fit minimises;
+    ``aicc_corrected`` scores the residuals after correction, ``undistort(xy_d) - xy_u``,
+    as model selection ranks models (:attr:`oapcal.select.ModelScore.aicc_corrected`):
+    for the same model and points it equals the selection's value (None in files written
+    before it was recorded; NaN when the inverse failed at a point).
     """
 
     n_points: int
@@ -64,14 +94,66 @@ class FitSummary:
     init: str | None = None
     normalize: str = "none"
     k_eff: float | None = None
+    aicc_corrected: float | None = None
+
+    @property
+    def aicc_forward(self) -> float | None:
+        """AICc of the forward residuals (``aicc``, named for what it scores)."""
+        return self.aicc
+
+    @classmethod
+    def from_result(cls, result, *, n_points: int, init: str | None = None, normalize: str = "none",
+                    aicc_corrected: float | None = None) -> FitSummary:  # fmt: skip
+        """The summary of a :class:`oapcal.fitting.FitResult` (the one conversion)."""
+        return cls(
+            n_points=int(n_points),
+            n_residuals=int(result.n),
+            k=int(result.k),
+            rss=float(result.rss),
+            aic=float(result.aic),
+            aicc=float(result.aicc),
+            bic=float(result.bic),
+            converged=bool(result.converged),
+            status=int(result.status),
+            message=str(result.message),
+            n_iter=int(result.n_iter),
+            init=init,
+            normalize=normalize or "none",
+            k_eff=result.k_eff,
+            aicc_corrected=None if aicc_corrected is None else float(aicc_corrected),
+        )
+
+    def to_dict(self) -> dict:
+        """The ``fit`` object of a calibration file: every field that is not None, and
+        ``aicc_forward`` beside ``aicc`` (the same number, named for what it scores)."""
+        out = {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
+        if self.aicc is not None:
+            out["aicc_forward"] = self.aicc
+        return out
+
+    @classmethod
+    def from_dict(cls, fit: dict) -> FitSummary:
+        """The ``fit`` object of a file (absent fields None; ``aicc_forward`` is ``aicc``)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        known = {k: v for k, v in fit.items() if k in names}
+        if known.get("aicc") is None and fit.get("aicc_forward") is not None:
+            known["aicc"] = fit["aicc_forward"]
+        known["message"] = known.get("message") or ""
+        known["normalize"] = known.get("normalize") or "none"
+        return cls(**known)
 
 
 @dataclass(frozen=True)
 class Calibration:
-    """A fitted distortion model and what is known about it.
+    """A fitted distortion model and what is known about it: the model
+    (:attr:`model`, an :class:`oapcal.model.Model`), one fit record (``fit``), the region
+    it was fitted on (``bounds``, ``hull``, ``image_size``) and its provenance.
 
     ``params`` is the parameter vector of the model family (``(13,)`` for Eq. 1, ``(14,)``
-    with the target's rotation, ``(36,)`` for the physical relay: :func:`oapcal.model.family_of`);
+    with the target's rotation, ``(36,)`` for the physical relay); ``family`` the family,
+    carried by name (a :class:`oapcal.model.ModelFamily` or its name; when not given, the
+    family :func:`oapcal.model.family_of` names by the vector's length, as records made
+    before the family was carried had it);
     ``stderr`` its standard errors (NaN for fixed parameters); ``covariance`` the ``k x k``
     covariance over ``free``; ``relay_design`` the nominal design a relay model was fitted
     from (:class:`oapcal.optics.relay_model.RelayDesign` as a dict; None for Eq. 1).  ``fit`` says
@@ -104,19 +186,34 @@ class Calibration:
     notes: tuple[str, ...] = ()
     priors: dict | None = None
     error_model: object | None = None
+    family: ModelFamily | str | None = None
+
+    def __post_init__(self):
+        family = family_of(self.params) if self.family is None else family_named(self.family)
+        if np.shape(self.params) != (family.n_params,):
+            raise ModelSpecError(
+                f"a {family.name} calibration has {family.n_params} parameters, got {np.shape(self.params)}",
+                param="params",
+            )
+        object.__setattr__(self, "family", family)
 
     @property
-    def family(self) -> ModelFamily:
-        """The model family of ``params``."""
-        return family_of(self.params)
+    def model_family(self) -> str:
+        """The family's name (the file's ``model_family``)."""
+        return self.family.name
+
+    @property
+    def model(self) -> Model:
+        """The fitted model as a value: family, parameters and free ones."""
+        return Model(self.family, self.params, self.free)
 
     @property
     def mask(self) -> np.ndarray:
-        return np.array([n in self.free for n in self.family.param_names])
+        return self.model.mask
 
     @property
     def params_dict(self) -> dict[str, float]:
-        return {n: float(v) for n, v in zip(self.family.param_names, self.params)}
+        return self.model.params_dict
 
 
 def check_model_region(
@@ -167,12 +264,47 @@ def check_model_region(
                 )
 
 
+def check_fit_usable(calibration, source: str | None = None, *, sign: bool = True) -> None:
+    """Refuse a fit that gives no usable model, raising :class:`UnusableFitError`: its
+    parameters are not all finite; it needs ``m <= 0`` (with ``sign``; Eq. (1) of a target
+    turned by 180 deg, which a calibration expresses as a rotation and a calibration file
+    cannot hold); or its model is not finite or folds over on its own region (the reference
+    points' bounds and its ``image_size`` frame: :func:`check_model_region`).  ``source``
+    names the points (default ``calibration.source``).  :func:`calibrate` applies it to
+    every fit; ``oapcal fit`` maps the error to exit code 3."""
+    source = source or getattr(calibration, "source", None) or "the point data"
+    params = np.asarray(calibration.params, float)
+    if not np.isfinite(params).all():
+        raise UnusableFitError(
+            f"{source}: the fit gave non-finite parameters (the points do not determine the model)",
+            "Check the points, or fit a smaller model",
+            code="non_finite",
+            param="model",
+        )
+    names = calibration.family.param_names
+    if sign and "m" in names and params[names.index("m")] <= 0:
+        raise UnusableFitError(
+            f"{source}: the fit gave m = {params[names.index('m')]:.4g} <= 0: the reference points "
+            "are turned by about 180 deg against the distorted ones, which a calibration expresses as "
+            "a rotation",
+            "Fit the rotation (rotation 'auto', the default, or 'fit')",
+            code="negative_m",
+            param="rotation",
+        )
+    try:
+        check_model_region(calibration, source=source)
+    except InputFileError as exc:
+        raise UnusableFitError(str(exc), code="region") from None
+
+
+# calibrate's keywords are the public API's options (a contract: docs/architecture.md);
+# each is one documented choice of the caller, so they stay separate keywords.
 def calibrate(
     xy_u,
     xy_d,
     model="paper",
     *,
-    init="auto",
+    init=DEFAULT_INIT,
     normalization: str = "none",
     um_per_px: float | None = None,
     image_size: tuple[int, int] | None = None,
@@ -182,6 +314,7 @@ def calibrate(
     rotation: str = "auto",
     priors: dict | None = None,
     error_model: bool = True,
+    check: bool = True,
     **fit_options,
 ) -> Calibration:
     """Fit ``model`` to reference points ``xy_u`` and distorted points ``xy_d`` ``(N, 2)``.
@@ -190,6 +323,10 @@ def calibrate(
     relay mask with ``init`` its design's vector and ``relay_design`` the design as a dict,
     kept in the record; a relay model is fitted in px, without normalization).
 
+    ``normalization`` is ``"none"`` or ``"experiment"`` (:mod:`oapcal.normalize`: only the
+    reference points change, so the model stays in the camera's px); ``"grid"`` is refused
+    (:class:`~oapcal.errors.DataError`), because it rescales the distorted points too and
+    the model would not correct the camera's pixels (it is for :func:`oapcal.select_models`).
     ``um_per_px`` is the object-space size of one unit of the reference points *as given*;
     with ``normalization="experiment"`` it is converted through the normalization scale.
     The residual statistics are those of :func:`oapcal.stats.correction_residuals`.
@@ -201,7 +338,11 @@ def calibrate(
     rotation lowers AICc by more than :data:`ROTATION_EVIDENCE_AICC` (a turned target is
     otherwise absorbed into a distortion centre that runs away, x_off ~ 1e4 px, and the fit
     hits the iteration cap); the record's ``notes`` say so.  ``"fit"`` always adds the
-    rotation, ``"none"`` never.
+    rotation, ``"none"`` never (Eq. (1) as given: a turned target then keeps ``m < 0``).
+
+    ``check`` (default True) refuses a fit that gives no usable model
+    (:func:`check_fit_usable`: :class:`UnusableFitError`; with ``rotation="none"`` the
+    sign of ``m`` is left as fitted); False returns the record whatever it holds.
 
     ``priors`` is recorded only (the priors of a maximum a posteriori relay fit, whose rows
     come in ``fit_options["prior"]``: :func:`oapcal.optics.relay_model.calibrate_relay`).
@@ -209,75 +350,104 @@ def calibrate(
     ``error_model`` (default True) also measures the model floor and the extrapolation
     error on the landmarks (:func:`oapcal.error_model.estimate_error_model`: a few refits).
     """
-    from scipy.spatial import ConvexHull, QhullError
-
-    from oapcal.fitting import fit
-
-    if relay_design is not None and normalization not in (None, "none"):
-        raise DataError(
-            f"normalization {normalization!r} cannot be used with the relay model: it fits the "
-            "target's pose itself, in px (use normalization 'none')"
-        )
-    if um_per_px is not None:
-        um_per_px = validate.positive(um_per_px, "um_per_px")
-    if image_size is not None:
-        image_size = validate.image_size(image_size)
-    if rotation not in ROTATION_CHOICES:
-        choices = ", ".join(ROTATION_CHOICES)
-        raise DataError(f"rotation must be one of {choices}, got {rotation!r}", param="rotation")
+    um_per_px, image_size = _check_arguments(normalization, relay_design, um_per_px, image_size, rotation)
     norm = normalize(normalization, xy_u, xy_d)
-    result = fit(norm.xy_u, norm.xy_d, model, init=init, **fit_options)
-    notes: tuple[str, ...] = ()
-    if rotation != "none" and relay_design is None and len(result.params) == N_PARAMS:
-        result, notes = _with_rotation(result, norm, model, init, rotation, fit_options)
+    result, notes = _fit_model(norm, model, init, rotation if relay_design is None else "none", fit_options)
     scale = None if um_per_px is None else float(um_per_px) / norm.scale_u
-    residuals = correction_residuals(result.params, norm.xy_u, norm.xy_d, scale)
-    try:
-        hull = norm.xy_u[ConvexHull(norm.xy_u).vertices]
-    except QhullError:
-        hull = None
-    lo = norm.xy_u.min(axis=0)
-    hi = norm.xy_u.max(axis=0)
-    init_name = init if isinstance(init, str) else "user"
-    errors = None
-    if error_model and result.converged:
-        from oapcal.error_model import estimate_error_model
-
-        mask = np.array([n in result.free for n in family_of(result.params).param_names])
-        errors = estimate_error_model(norm.xy_u, norm.xy_d, result.params, mask, **fit_options)
-    return Calibration(
+    cal = Calibration(
         free=result.free,
         params=np.array(result.params),
         stderr=np.array(result.stderr),
         covariance=np.array(result.covariance),
-        fit=FitSummary(
+        fit=FitSummary.from_result(
+            result,
             n_points=len(norm.xy_u),
-            n_residuals=int(result.n),
-            k=int(result.k),
-            rss=float(result.rss),
-            aic=float(result.aic),
-            aicc=float(result.aicc),
-            bic=float(result.bic),
-            converged=bool(result.converged),
-            status=int(result.status),
-            message=str(result.message),
-            n_iter=int(result.n_iter),
-            init=init_name,
-            normalize=normalization or "none",
-            k_eff=result.k_eff,
-        ),
-        residuals=residuals,
+            init=init if isinstance(init, str) else "user",
+            normalize=normalization,
+            aicc_corrected=_aicc_corrected(result, norm),
+        ),  # fmt: skip
+        residuals=correction_residuals(result.params, norm.xy_u, norm.xy_d, scale),
         um_per_px=scale,
-        image_size=tuple(int(v) for v in image_size) if image_size else None,
-        bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])),
-        hull=hull,
+        image_size=image_size,
+        **_region(norm.xy_u),
         name=name,
         source=source,
         relay_design=relay_design,
         notes=notes,
         priors=priors,
-        error_model=errors,
+        family=result.family,
     )
+    if check:
+        check_fit_usable(cal, source, sign=rotation != "none" or relay_design is not None)
+    if error_model and result.converged:
+        from oapcal.error_model import estimate_error_model
+
+        errors = estimate_error_model(norm.xy_u, norm.xy_d, result.params, result.mask, **fit_options)
+        cal = dataclasses.replace(cal, error_model=errors)
+    return cal
+
+
+def _check_arguments(normalization, relay_design, um_per_px, image_size, rotation):
+    """``calibrate``'s arguments checked: ``(um_per_px, image_size)`` as numbers."""
+    if relay_design is not None and normalization not in (None, "none"):
+        raise DataError(
+            f"normalization {normalization!r} cannot be used with the relay model: it fits the "
+            "target's pose itself, in px (use normalization 'none')"
+        )
+    if normalization == "grid":
+        raise DataError(
+            "normalization 'grid' rescales the distorted points as well, so the model would not "
+            "correct the camera's px: use normalization 'none' or 'experiment' (grid is for select_models)",
+            param="normalization",
+        )
+    if um_per_px is not None:
+        um_per_px = validate.positive(um_per_px, "um_per_px")
+    if image_size is not None:
+        image_size = tuple(int(v) for v in validate.image_size(image_size))
+    if rotation not in ROTATION_CHOICES:
+        choices = ", ".join(ROTATION_CHOICES)
+        raise DataError(f"rotation must be one of {choices}, got {rotation!r}", param="rotation")
+    return um_per_px, image_size
+
+
+def _fit_model(norm, model, init, rotation: str, fit_options):
+    """The fit of ``model`` to the normalized points, with the rotation policy of
+    :func:`calibrate` for an Eq. (1) model: ``(FitResult, notes)``."""
+    from oapcal.fitting import fit
+
+    result = fit(norm.xy_u, norm.xy_d, model, init=init, **fit_options)
+    if rotation != "none" and len(result.params) == N_PARAMS:
+        return _with_rotation(result, norm, model, init, rotation, fit_options)
+    return result, ()
+
+
+def _aicc_corrected(result, norm) -> float:
+    """AICc of the residuals after correction, ``undistort(xy_d) - xy_u`` (as model
+    selection scores a model: :func:`oapcal.select.score_models`); NaN when the inverse
+    fails at a point."""
+    from oapcal.model import correction_errors
+    from oapcal.stats import information_criteria
+
+    if not np.isfinite(result.params).all():
+        return float("nan")
+    rss, _, n_bad, _ = correction_errors(result.params[None], norm.xy_d, norm.xy_u, family=result.family)
+    k = result.k if result.k_eff is None else result.k_eff
+    rss = float(rss[0]) if n_bad[0] == 0 else float("nan")
+    return float(information_criteria(rss, 2 * len(norm.xy_u), k).aicc)
+
+
+def _region(xy_u) -> dict:
+    """The calibrated region of the reference points: ``bounds`` and the convex ``hull``
+    (None when the points are collinear)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = xy_u[ConvexHull(xy_u).vertices]
+    except QhullError:
+        hull = None
+    lo = xy_u.min(axis=0)
+    hi = xy_u.max(axis=0)
+    return {"bounds": (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])), "hull": hull}
 
 
 def _with_rotation(plain, norm, model, init, rotation: str, fit_options):

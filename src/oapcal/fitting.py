@@ -37,7 +37,9 @@ import numpy as np
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.model import (
     N_PARAMS,
+    Model,
     ModelFamily,
+    family_named,
     family_of,
     identity_params,
     kernel_array,
@@ -100,11 +102,18 @@ class FitResult:
     message: str
     n_iter: int
     k_eff: float | None = None
+    family: ModelFamily | str | None = None
+
+    def __post_init__(self):
+        # the family by name (fit_batch knows it); a record made without one names the
+        # family of its vector's length, as before the family was carried
+        family = family_of(self.params) if self.family is None else family_named(self.family)
+        object.__setattr__(self, "family", family)
 
     @property
-    def family(self) -> ModelFamily:
-        """The model family (:func:`oapcal.model.family_of` the parameter vector)."""
-        return family_of(self.params)
+    def model(self) -> Model:
+        """The fitted model as a value (:class:`oapcal.model.Model`)."""
+        return Model(self.family, self.params, self.free)
 
     def value(self, name: str) -> float:
         """The fitted value of one parameter."""
@@ -112,7 +121,7 @@ class FitResult:
 
     @property
     def params_dict(self) -> dict[str, float]:
-        return {name: float(v) for name, v in zip(self.family.param_names, self.params)}
+        return self.model.params_dict
 
     @property
     def stderr_dict(self) -> dict[str, float]:
@@ -122,7 +131,7 @@ class FitResult:
 
     @property
     def mask(self) -> np.ndarray:
-        return np.array([name in self.free for name in self.family.param_names])
+        return self.model.mask
 
 
 @dataclass(frozen=True)
@@ -136,7 +145,8 @@ class BatchFit:
     ``status (B,)`` (see :data:`STATUS_MESSAGES`; positive = converged) and ``masks``.
     ``item(i)`` is item ``i`` as a :class:`FitResult`.  ``k_eff (B,)``: with priors, each
     item's effective number of parameters (:class:`FitResult`; ``rss`` is then the data's
-    alone); None without.
+    alone); None without.  ``family`` the model family fitted (by name; None: the family
+    of the masks' length).
     """
 
     masks: np.ndarray
@@ -147,10 +157,13 @@ class BatchFit:
     n_iter: np.ndarray
     status: np.ndarray
     k_eff: np.ndarray | None = None
+    family: ModelFamily | str | None = None
     converged: np.ndarray = field(init=False)
 
     def __post_init__(self):
         object.__setattr__(self, "converged", self.status > 0)
+        family = family_of(self.masks) if self.family is None else family_named(self.family)
+        object.__setattr__(self, "family", family)
         for name in ("masks", "params", "covariance", "rss", "n", "n_iter", "status", "converged", "k_eff"):
             value = getattr(self, name)
             if value is not None:
@@ -188,6 +201,7 @@ class BatchFit:
             message=STATUS_MESSAGES[status],
             n_iter=int(self.n_iter[i]),
             k_eff=k_eff,
+            family=self.family,
         )
 
 
@@ -330,6 +344,8 @@ def _point_subsets(points, n_points: int, n_items: int) -> tuple[np.ndarray, np.
     return idx, np.full(idx.shape[0], idx.shape[1], dtype=np.int64)
 
 
+# fit_batch's keywords are the solver's documented options (MINPACK's tolerances, the
+# iteration cap, priors, subsets): the contract of the one solver, kept as keywords.
 def fit_batch(
     xy_u: np.ndarray,
     xy_d: np.ndarray,
@@ -380,12 +396,77 @@ def fit_batch(
     status says which.  Items are independent: a batch gives the same results as a loop of
     single-item calls with the same ``scale``.
     """
-    from oapcal import _kernels
-
     xy_u = np.asarray(xy_u, dtype=float)
     xy_d = np.asarray(xy_d, dtype=float)
     masks = kernel_array(np.atleast_2d(np.asarray(masks, dtype=bool)), bool)
     family = family_of(masks, family)
+    _check_batch(xy_u, xy_d, masks, family)
+    n_models, n_params = masks.shape
+    idx, counts = _point_subsets(points, xy_u.shape[-2], n_models)
+    p0 = np.broadcast_to(np.asarray(p0, dtype=float), masks.shape)
+    if prior is not None:
+        masks, p0, prior_mean, prior_sigma = _priors(prior, masks, p0, family)
+
+    exps = family.scale_exponents
+    f = _solver_scale(family, xy_u, xy_d, scale)
+    u = kernel_array((xy_u / f).reshape((-1,) + xy_u.shape[-2:]))
+    d = kernel_array((xy_d / f).reshape((-1,) + xy_d.shape[-2:]))
+    p = p0
+    if exps is not None:
+        p = p * f**exps
+    fixed = 0.0 if family.zero_when_fixed else p
+    p = kernel_array(np.where(masks, p, fixed))
+    want_jtj = bool(covariance) or prior is not None  # priors: J^T J for k_eff as well
+    solver = {"max_iter": max_iter, "ftol": ftol, "xtol": xtol, "gtol": gtol, "want_jtj": want_jtj}
+    n_res = 2 * np.broadcast_to(counts, (n_models,)).astype(np.int64)
+    cov = None
+    k_eff = None
+    if prior is None:
+        status, n_iter, cost, jtj = _run_lm(family, u, d, idx, counts, masks, p, solver)
+        rss_scaled = 2.0 * cost
+        if covariance:
+            cov = _covariance(jtj, masks, rss_scaled, n_res)
+    else:
+        mean_s, w_s = _prior_rows(prior_mean, prior_sigma, exps, f, n_params)
+        status, n_iter, cost, jtj = _run_lm(family, u, d, idx, counts, masks, p, solver, (mean_s, w_s, True))
+        w2 = np.broadcast_to(np.where(masks, w_s**2, 0.0), masks.shape)
+        penalty = (w2 * (p - mean_s) ** 2).sum(axis=1)
+        rss_scaled = 2.0 * (cost - 0.5 * penalty)  # the data's part of the cost
+        cov_s, k_eff = _posterior_covariance(jtj, w2, masks, rss_scaled, n_res)
+        cov = cov_s if covariance else None
+    # Back to the data's units: p = p' * f**-e, cov = D cov' D with D = f**-e.
+    back = np.ones(n_params) if exps is None else f ** (-exps)
+    params = np.where(masks, p * back, fixed) if family.zero_when_fixed else p * back
+    if cov is not None:
+        cov = cov * back[None, :, None] * back[None, None, :]
+    return BatchFit(masks=masks.copy(), params=params, covariance=cov, rss=rss_scaled * f * f, n=n_res,
+                    n_iter=n_iter, status=status, k_eff=k_eff, family=family)  # fmt: skip
+
+
+def _solver_scale(family, xy_u, xy_d, scale) -> float:
+    """The coordinate factor ``f`` of :func:`fit_batch` (1 for a family that is not
+    reparametrized by scale; else ``scale``, or the largest absolute coordinate)."""
+    if family.scale_exponents is None:
+        return 1.0
+    if scale:
+        return float(scale)
+    return float(max(np.abs(xy_u).max(initial=0), np.abs(xy_d).max(initial=0), 1e-300))
+
+
+def _prior_rows(prior_mean, prior_sigma, exps, f: float, n_params: int):
+    """The priors' rows in the solver's coordinates, ``(mean', w')``: with ``p' = p f**e``
+    and residuals divided by ``f``, a row ``(p - mean) / sigma`` of the data's objective is
+    ``w' (p' - mean')`` with ``w' = 1 / (sigma f**(e + 1))`` (0 for an infinite width)."""
+    e = np.zeros(n_params) if exps is None else exps
+    mean_s = kernel_array(prior_mean * f**e)
+    with np.errstate(divide="ignore"):
+        w_s = kernel_array(np.where(np.isfinite(prior_sigma), 1.0 / (prior_sigma * f ** (e + 1)), 0.0))
+    return mean_s, w_s
+
+
+def _check_batch(xy_u, xy_d, masks, family) -> None:
+    """``fit_batch``'s masks and points checked against the family (a named
+    :class:`~oapcal.errors.ModelSpecError`)."""
     n_models, n_params = masks.shape
     if n_params != family.n_params:
         raise ModelSpecError(f"model masks must have {family.n_params} entries, got {n_params}")
@@ -402,66 +483,26 @@ def fit_batch(
             raise ModelSpecError(f"points must be (N, 2) or (B, N, 2), got {xy_u.shape} and {xy_d.shape}")
         if xy.ndim == 3 and xy.shape[0] not in (1, n_models):
             raise ModelSpecError(f"per-item points must have {n_models} rows, got {xy.shape[0]}")
-    idx, counts = _point_subsets(points, xy_u.shape[-2], n_models)
-    p0 = np.broadcast_to(np.asarray(p0, dtype=float), masks.shape)
-    if prior is not None:
-        masks, p0, prior_mean, prior_sigma = _priors(prior, masks, p0, family)
 
-    exps = family.scale_exponents
-    if exps is None:
-        f = 1.0
-    else:
-        f = (
-            float(scale)
-            if scale
-            else float(max(np.abs(xy_u).max(initial=0), np.abs(xy_d).max(initial=0), 1e-300))
-        )
-    u = kernel_array((xy_u / f).reshape((-1,) + xy_u.shape[-2:]))
-    d = kernel_array((xy_d / f).reshape((-1,) + xy_d.shape[-2:]))
-    p = p0
-    if exps is not None:
-        p = p * f**exps
-    fixed = 0.0 if family.zero_when_fixed else p
-    p = kernel_array(np.where(masks, p, fixed))
+
+def _run_lm(family, u, d, idx, counts, masks, p, solver: dict, prior_rows=()):
+    """The compiled solver over all items in blocks (``p`` is updated in place), in the
+    solver's coordinates: ``(status, n_iter, cost, jtj)``; ``prior_rows`` the kernel's
+    ``(mean, weight, True)`` of a fit with priors."""
+    from oapcal import _kernels
+
+    n_models, n_params = masks.shape
     status = np.zeros(n_models, dtype=np.int64)
     n_iter = np.zeros(n_models, dtype=np.int64)
     cost = np.zeros(n_models)
-    want_jtj = bool(covariance) or prior is not None  # priors: J^T J for k_eff as well
+    want_jtj = solver["want_jtj"]
     jtj = np.zeros((n_models if want_jtj else 1, n_params, n_params))
     fd = None if family.analytic_jacobian else float(family.fd_step)
-    args = (family.half, p, int(max_iter), float(ftol), float(xtol), float(gtol), fd, want_jtj, status,
-            n_iter, cost, jtj)  # fmt: skip
-    if prior is None:
-        _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts,
-                            masks, *args)  # fmt: skip
-    else:
-        # In the solver's coordinates (p' = p f**e, residuals / f) a row (p - mean) / sigma
-        # of the data's objective is w' (p' - mean') with w' = 1 / (sigma f**(e + 1)).
-        e = np.zeros(n_params) if exps is None else exps
-        mean_s = kernel_array(prior_mean * f**e)
-        with np.errstate(divide="ignore"):
-            w_s = kernel_array(np.where(np.isfinite(prior_sigma), 1.0 / (prior_sigma * f ** (e + 1)), 0.0))
-        _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts,
-                            masks, *args, mean_s, w_s, True)  # fmt: skip
-        w2 = np.broadcast_to(np.where(masks, w_s**2, 0.0), masks.shape)
-        penalty = (w2 * (p - mean_s) ** 2).sum(axis=1)
-        cost = cost - 0.5 * penalty  # the data's part of the cost
-    n_res = 2 * np.broadcast_to(counts, (n_models,)).astype(np.int64)
-    rss_scaled = 2.0 * cost
-    cov = None
-    k_eff = None
-    if prior is not None:
-        cov_s, k_eff = _posterior_covariance(jtj, w2, masks, rss_scaled, n_res)
-        cov = cov_s if covariance else None
-    elif covariance:
-        cov = _covariance(jtj, masks, rss_scaled, n_res)
-    # Back to the data's units: p = p' * f**-e, cov = D cov' D with D = f**-e.
-    back = np.ones(n_params) if exps is None else f ** (-exps)
-    params = np.where(masks, p * back, fixed) if family.zero_when_fixed else p * back
-    if cov is not None:
-        cov = cov * back[None, :, None] * back[None, None, :]
-    return BatchFit(masks=masks.copy(), params=params, covariance=cov, rss=rss_scaled * f * f, n=n_res,
-                    n_iter=n_iter, status=status, k_eff=k_eff)  # fmt: skip
+    _kernels.run_blocks(_kernels.lm_batch, n_models, _kernels.CHUNK, family.code, u, d, idx, counts, masks,
+                        family.half, p, int(solver["max_iter"]), float(solver["ftol"]), float(solver["xtol"]),
+                        float(solver["gtol"]), fd, want_jtj, status, n_iter, cost, jtj,
+                        *prior_rows)  # fmt: skip
+    return status, n_iter, cost, jtj
 
 
 def _priors(prior, masks, p0, family):
@@ -553,7 +594,7 @@ def fit(
     xy_u: np.ndarray,
     xy_d: np.ndarray,
     model="paper",
-    init="auto",
+    init=DEFAULT_INIT,
     **options,
 ) -> FitResult:
     """Fit one model (a spec for :func:`oapcal.model.parse_any_model`: Eq. 1, with

@@ -75,6 +75,11 @@ class ModelScore:
     else a message whose kind is ``reason_code`` (one of :data:`INVALID_REASONS`).
     ``cv_mean_error`` is the cross-validated mean error on held-out points (same units),
     ``None`` unless cross-validation ran for this model.
+
+    Two AICc values describe the model: ``aicc`` (also named ``aicc_corrected``), of the
+    residuals after correction, by which the selection ranks; and ``aicc_forward``, of the
+    forward residuals the fit minimises (what :attr:`oapcal.calibration.FitSummary.aicc`
+    holds for a fit of the same model; NaN when not known, e.g. in older files).
     """
 
     bits: int
@@ -91,6 +96,12 @@ class ModelScore:
     cv_mean_error: float | None = None
     cv_failed: int = 0
     reason_code: str = ""
+    aicc_forward: float = float("nan")
+
+    @property
+    def aicc_corrected(self) -> float:
+        """AICc of the residuals after correction (``aicc``, named for what it scores)."""
+        return self.aicc
 
     def to_dict(self) -> dict:
         """The JSON entry: ``free k aicc delta_aicc weight rss valid reason`` and extras."""
@@ -98,6 +109,8 @@ class ModelScore:
             "free": list(self.free),
             "k": self.k,
             "aicc": finite_or_none(self.aicc),
+            "aicc_corrected": finite_or_none(self.aicc),
+            "aicc_forward": finite_or_none(self.aicc_forward),
             "delta_aicc": finite_or_none(self.delta_aicc),
             "weight": finite_or_none(self.weight),
             "rss": finite_or_none(self.rss),
@@ -112,6 +125,33 @@ class ModelScore:
             out["cv_mean_error"] = finite_or_none(self.cv_mean_error)
             out["cv_failed"] = self.cv_failed
         return out
+
+    @classmethod
+    def from_dict(cls, m: dict) -> ModelScore:
+        """A model of a selection from its JSON entry (:meth:`to_dict`; ``null`` -> NaN;
+        entries written before ``fit_status``, ``cv_*`` or ``aicc_forward`` existed load
+        with their defaults)."""
+
+        def number(value) -> float:
+            return float("nan") if value is None else float(value)
+
+        return cls(
+            bits=int(m["bits"]),
+            free=tuple(m["free"]),
+            k=int(m["k"]),
+            aicc=number(m["aicc"]),
+            delta_aicc=number(m["delta_aicc"]),
+            weight=number(m["weight"]),
+            rss=number(m["rss"]),
+            mean_error=number(m["mean_error"]),
+            valid=bool(m["valid"]),
+            reason=m["reason"],
+            fit_status=int(m.get("fit_status", 1 if m["valid"] else 0)),
+            cv_mean_error=None if "cv_mean_error" not in m else number(m["cv_mean_error"]),
+            cv_failed=int(m.get("cv_failed", 0)),
+            reason_code=m["reason_code"],
+            aicc_forward=number(m.get("aicc_forward")),
+        )
 
 
 @dataclass(frozen=True)
@@ -146,6 +186,28 @@ class Selection:
             "cv_folds": self.cv_folds,
             "models": [m.to_dict() for m in self.models],
         }
+
+
+#: The terms that place the distortion in the camera's frame: in camera px the origin is the
+#: image corner, not the distortion centre, so a model used there keeps these free whatever
+#: a selection on centred points chose (the paper likewise added x_off to its choice).
+FRAME_TERMS = ("x_off", "y_off", "c_x", "c_y")
+
+
+def with_frame_terms(free) -> tuple[str, ...]:
+    """The free parameters ``free`` (names, a :class:`ModelScore` or a :class:`Selection`,
+    whose best model is taken) with :data:`FRAME_TERMS` added, in the order of Eq. (1):
+    the model ``oapcal demo`` and napari's *Fit & inspect* fit in camera px after a
+    selection.
+
+    >>> with_frame_terms(("k1", "m"))
+    ('k1', 'x_off', 'y_off', 'c_x', 'c_y', 'm')
+    """
+    if isinstance(free, Selection):
+        free = free.best
+    if isinstance(free, ModelScore):
+        free = free.free
+    return tuple(n for n in PARAM_NAMES if n in free or n in FRAME_TERMS)
 
 
 @functools.cache
@@ -187,7 +249,8 @@ def score_models(
 
     Returns a dict of arrays over the B models: ``params``, ``status``, ``rss`` (corrected
     residuals), ``mean_error``, ``n_bad`` (points whose inverse failed), ``n_folded``,
-    ``aicc``.  Works in chunks so that ``progress(done, total)`` can be reported.  ``prior``
+    ``aicc`` (of the corrected residuals) and ``aicc_forward`` (of the forward residuals
+    the fits minimised).  Works in chunks so that ``progress(done, total)`` can be reported.  ``prior``
     (:func:`oapcal.fitting.fit_batch`'s, ``(B, P)`` arrays) makes each fit a maximum a
     posteriori one, and AICc then counts its effective number of parameters (``k_eff``).
     """
@@ -204,6 +267,7 @@ def score_models(
         "mean_error": np.full(n_models, np.nan),
         "n_bad": np.zeros(n_models, dtype=np.int64),
         "n_folded": np.zeros(n_models, dtype=np.int64),
+        "rss_forward": np.full(n_models, np.nan),
     }
     k_free = masks.sum(axis=1).astype(float)
     for start in range(0, n_models, chunk):
@@ -222,10 +286,14 @@ def score_models(
         out["status"][sl] = fits.status
         out["n_bad"][sl] = n_bad
         out["n_folded"][sl] = n_folded
+        out["rss_forward"][sl] = fits.rss
         if progress is not None:
             progress(sl.stop, n_models)
     n = 2 * len(xy_u)
     out["aicc"] = np.asarray(information_criteria(out["rss"], n, k_free).aicc, dtype=float)
+    out["aicc_forward"] = np.asarray(
+        information_criteria(out.pop("rss_forward"), n, k_free).aicc, dtype=float
+    )
     return out
 
 
@@ -279,6 +347,7 @@ def check_masks(masks) -> np.ndarray:
     return arr
 
 
+# select_models' keywords are the public API's options (a contract), one per choice.
 def select_models(
     xy_u,
     xy_d,
@@ -307,37 +376,44 @@ def select_models(
     u, d = norm.xy_u, norm.xy_d
     masks = all_masks() if masks is None else check_masks(masks)
     seed = validate.seed(seed)
-    n_points = len(u)
     scores = score_models(u, d, masks, init, max_iter=max_iter, progress=progress)
     k = masks.sum(axis=1)
-    codes, reasons = invalid_reasons(scores, k, n_points)
+    codes, reasons = invalid_reasons(scores, k, len(u))
     valid = np.array([c == "" for c in codes])
-    aicc = scores["aicc"]
-    bits = bits_from_mask(masks)
-    # Valid models by AICc (ties: fewer parameters, then bits); invalid ones after them,
-    # ordered by their (possibly NaN) AICc, then bits.
-    order_key = np.where(valid, aicc, np.inf)
-    inv_key = np.where(np.isfinite(aicc) & ~valid, aicc, np.inf)
-    order = np.lexsort((bits, k, inv_key, order_key, ~valid))
-    best = aicc[valid].min() if valid.any() else np.nan
-    delta = np.where(valid, aicc - best, np.nan)
-    weight = np.where(valid, np.exp(-0.5 * np.where(valid, delta, 0.0)), 0.0)
-    weight = weight / weight.sum() if valid.any() else np.full(len(masks), np.nan)
-    weight = np.where(valid, weight, np.nan)
-    mean_error = scores["mean_error"] / norm.scale_u
-
+    order, delta, weight = _rank(scores["aicc"], valid, k, bits_from_mask(masks))
     cv_err: dict[int, tuple[float, int]] = {}
     if cv is not None:
         top = order[: max(0, cv_top)]
         errs, failed = cross_validate(u, d, masks[top], folds=cv, init=init, seed=seed, max_iter=max_iter)
         for i, e, f in zip(top, errs, failed):
             cv_err[int(i)] = (float(e) / norm.scale_u, int(f))
+    columns = {**scores, "k": k, "valid": valid, "delta": delta, "weight": weight,
+               "bits": bits_from_mask(masks), "mean_error": scores["mean_error"] / norm.scale_u}  # fmt: skip
+    models = _model_scores(columns, order, codes, reasons, cv_err)
+    init_name = init if isinstance(init, str) else "user"
+    return Selection(len(u), normalization or "none", init_name, models, cv)
 
-    # Plain Python values once per column (faster than converting 4,096 x 11 NumPy scalars).
-    cols = zip(bits[order].tolist(), k[order].tolist(), aicc[order].tolist(), delta[order].tolist(),
-               weight[order].tolist(), scores["rss"][order].tolist(), mean_error[order].tolist(),
-               valid[order].tolist(), scores["status"][order].tolist(), order.tolist())  # fmt: skip
-    models = tuple(
+
+def _rank(aicc, valid, k, bits):
+    """``(order, delta_aicc, weight)`` of a selection: valid models by AICc (ties: fewer
+    parameters, then bits), invalid ones after them ordered by their (possibly NaN) AICc,
+    then bits; dAICc and the Akaike weights over the valid models (NaN for the others)."""
+    order_key = np.where(valid, aicc, np.inf)
+    inv_key = np.where(np.isfinite(aicc) & ~valid, aicc, np.inf)
+    order = np.lexsort((bits, k, inv_key, order_key, ~valid))
+    best = aicc[valid].min() if valid.any() else np.nan
+    delta = np.where(valid, aicc - best, np.nan)
+    weight = np.where(valid, np.exp(-0.5 * np.where(valid, delta, 0.0)), 0.0)
+    weight = weight / weight.sum() if valid.any() else np.full(len(aicc), np.nan)
+    return order, delta, np.where(valid, weight, np.nan)
+
+
+def _model_scores(columns: dict, order, codes, reasons, cv_err) -> tuple[ModelScore, ...]:
+    """The :class:`ModelScore` of every model, in ``order``, from the arrays ``columns``."""
+    names = ("bits", "k", "aicc", "delta", "weight", "rss", "mean_error", "valid", "status", "aicc_forward")
+    # Plain Python values once per column (faster than converting 4,096 x 12 NumPy scalars).
+    cols = zip(*(np.asarray(columns[n])[order].tolist() for n in names), order.tolist())
+    return tuple(
         ModelScore(
             bits=b,
             free=_names_of_bits(b),
@@ -353,11 +429,10 @@ def select_models(
             reason_code=codes[i],
             cv_mean_error=cv_err[i][0] if i in cv_err else None,
             cv_failed=cv_err[i][1] if i in cv_err else 0,
+            aicc_forward=af,
         )
-        for b, kk, a, da, w, r, me, v, st, i in cols
+        for b, kk, a, da, w, r, me, v, st, af, i in cols
     )
-    init_name = init if isinstance(init, str) else "user"
-    return Selection(n_points, normalization or "none", init_name, models, cv)
 
 
 def cross_validate(

@@ -25,8 +25,19 @@ import click
 def demo_command(out_dir, seed, trials, no_report):
     """Run the whole method on built-in data: trace the relay, select the model, simulate
     and detect a USAF target, fit, test robustness, correct the image, write a report."""
-    from oapcal.cli._common import console, progress_bar, sanitize
-    from oapcal.cli.fit import print_fit
+    from oapcal.cli._common import sanitize
+
+    result = _run(out_dir, seed, trials, no_report)
+    _print_steps(result, trials)
+    _print_correction(result.extra.get("trust"))
+    for label, path in result.files.items():
+        click.echo(sanitize(f"wrote {label}: {path}"))
+    return 0
+
+
+def _run(out_dir, seed, trials, no_report):
+    """:func:`oapcal.demo.run_demo` with a progress bar over its steps."""
+    from oapcal.cli._common import progress_bar
     from oapcal.demo import STEPS, run_demo
 
     skipped = {"report"} if no_report else set()
@@ -41,6 +52,13 @@ def demo_command(out_dir, seed, trials, no_report):
 
         result = run_demo(out_dir, seed=seed, trials=trials, report=not no_report, step=step)
         update(len(steps), len(steps))
+    return result
+
+
+def _print_steps(result, trials) -> None:
+    """Steps 1-6 of the demo's summary."""
+    from oapcal.cli._common import console
+    from oapcal.cli.fit import print_fit
 
     out = console()
     d = result.relay["distortion"]
@@ -51,7 +69,9 @@ def demo_command(out_dir, seed, trials, no_report):
         f"(paper {paper.get('mean_um', float('nan')):g})"
     )
     best = result.selection.models[:3]
-    out.print("[bold]2. Model selection by AICc over 4,096 subsets (grid):[/bold]")
+    out.print(
+        "[bold]2. Model selection by AICc (of the corrected residuals) over 4,096 subsets (grid):[/bold]"
+    )
     for rank, m in enumerate(best, 1):
         out.print(f"   {rank}. {','.join(m.free)}  dAICc {m.delta_aicc:.2f}  weight {m.weight:.3f}")
     out.print(f"   fitted model: {','.join(result.extra['chosen'])}")
@@ -75,9 +95,14 @@ def demo_command(out_dir, seed, trials, no_report):
                 f"   {m.name}: not converged {m.not_converged} of {m.trials}; held-out mean error "
                 f"{m.heldout_mean_error:.3f} px"
             )
-    trust = result.extra.get("trust")
+
+
+def _print_correction(trust) -> None:
+    """Step 7 of the demo's summary: where the correction is trusted."""
+    from oapcal.cli._common import console
+
     if trust:
-        out.print(
+        console().print(
             f"[bold]7. Correction:[/bold] trusted (predicted error <= {trust['max_error_px']:g} px) in "
             f"{100 * trust['trusted_fraction']:.0f} % of the frame; the landmarks cover "
             f"{100 * (1 - trust['outside_fraction']):.0f} %, and the frame reaches "
@@ -85,6 +110,3 @@ def demo_command(out_dir, seed, trials, no_report):
             f"{trust['max_predicted_px']:.3g} px); the rest of corrected.png is black (the report shows "
             "the trust region)"
         )
-    for label, path in result.files.items():
-        click.echo(sanitize(f"wrote {label}: {path}"))
-    return 0

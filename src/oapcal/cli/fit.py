@@ -76,40 +76,26 @@ from oapcal.cli._relay import (
 )
 @relay_design_options
 @priors_option
+# one parameter per command-line option (Click passes them so)
 def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json, rotation,
                 keep_unconverged, relay_design, priors="off"):  # fmt: skip
     """Fit a distortion model to point pairs: a CSV with x_u,y_u,x_d,y_d (POINTS), or
     landmark files --distorted FILE --reference FILE (VIA, napari, BigWarp, CSV)."""
-    from oapcal.calibration import calibrate
+    from oapcal.calibration import UnusableFitError
     from oapcal.io.calibration import save_calibration
-    from oapcal.model import parse_any_model
 
     check_output(out, points)
     size = parse_size(image_size)
     relay_priors = load_priors(priors)
     if relay_priors is not None and not is_relay(model):
         raise click.UsageError(f"--priors {priors} applies to a relay model (--model relay); drop it")
-    if is_relay(model):
-        check_relay_spec(model)  # a bad spec fails before the file is read
-        refuse_normalize(normalization, "the relay model fits the target's pose itself, in px")
-        design = design_from_options(relay_design)
-        pairs = load_pairs(points)
-        from oapcal.optics.relay_model import calibrate_relay
-
-        cal = calibrate_relay(pairs.xy_u, pairs.xy_d, design, model, um_per_px=um_per_px, image_size=size,
-                              source=pairs.source, priors=relay_priors)  # fmt: skip
-    else:
-        parse_any_model(model)  # a bad spec fails before the file is read
-        pairs = load_pairs(points)
-        from oapcal.fitting import check_enough_points
-
-        check_enough_points(len(pairs), int(parse_any_model(model).sum()), source=pairs.source)
-        if rotation != "auto" and model.strip().endswith("+rotation"):
-            raise click.UsageError(f"--model {model} fits the rotation already: drop --rotation {rotation}")
-        cal = calibrate(
-            pairs.xy_u, pairs.xy_d, model, init=init, normalization=normalization,
-            um_per_px=um_per_px, image_size=size, source=pairs.source, rotation=rotation,
-        )  # fmt: skip
+    try:
+        if is_relay(model):
+            cal, pairs = _fit_relay(points, model, normalization, um_per_px, size, relay_design, relay_priors)
+        else:
+            cal, pairs = _fit_eq1(points, model, init, normalization, um_per_px, size, rotation)
+    except UnusableFitError as exc:
+        raise _unusable(exc) from None
     _check_fit_usable(cal, pairs.source)
     for note in cal.notes:
         click.echo(f"oapcal: note: {note} (--rotation none fits the model as given)", err=True)
@@ -131,6 +117,37 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
         )
         return 3
     return 0
+
+
+def _fit_relay(points, model, normalization, um_per_px, size, relay_design, relay_priors):
+    """``(calibration, pairs)`` of a relay model (``--model relay...``)."""
+    from oapcal.entry import calibrate
+
+    check_relay_spec(model)  # a bad spec fails before the file is read
+    refuse_normalize(normalization, "the relay model fits the target's pose itself, in px")
+    design = design_from_options(relay_design)
+    pairs = load_pairs(points)
+    cal = calibrate(pairs.xy_u, pairs.xy_d, model, design=design, um_per_px=um_per_px, image_size=size,
+                    source=pairs.source, priors=relay_priors)  # fmt: skip
+    return cal, pairs
+
+
+def _fit_eq1(points, model, init, normalization, um_per_px, size, rotation):
+    """``(calibration, pairs)`` of an Eq. (1) model (with or without the rotation)."""
+    from oapcal.entry import calibrate
+    from oapcal.fitting import check_enough_points
+    from oapcal.model import parse_any_model
+
+    parse_any_model(model)  # a bad spec fails before the file is read
+    pairs = load_pairs(points)
+    check_enough_points(len(pairs), int(parse_any_model(model).sum()), source=pairs.source)
+    if rotation != "auto" and model.strip().endswith("+rotation"):
+        raise click.UsageError(f"--model {model} fits the rotation already: drop --rotation {rotation}")
+    cal = calibrate(
+        pairs.xy_u, pairs.xy_d, model, init=init, normalization=normalization,
+        um_per_px=um_per_px, image_size=size, source=pairs.source, rotation=rotation,
+    )  # fmt: skip
+    return cal, pairs
 
 
 def _runaway(cal) -> str:
@@ -165,37 +182,33 @@ class FitFailed(click.ClickException):
         click.echo(f"oapcal: error: {sanitize(self.format_message())}", err=True)
 
 
+#: ``oapcal fit``'s wording of the fix of each :class:`oapcal.calibration.UnusableFitError`
+#: (its flags; the library's message names the Python parameters).
+_UNUSABLE_ADVICE = {
+    "non_finite": "Check the points, or fit a smaller --model",
+    "negative_m": "Fit the rotation (--rotation auto, the default, or fit)",
+}
+
+
 def _check_fit_usable(cal, source: str) -> None:
-    """Refuse to write or report a fit whose numbers are not finite or whose model folds over
-    on its own points (exit 3)."""
-    import numpy as np
+    """The library's refusal of a fit that gives no usable model
+    (:func:`oapcal.calibration.check_fit_usable`, :func:`oapcal.entry.check_relay_plausible`,
+    which :func:`oapcal.calibrate` applies as well), as exit 3 with nothing written."""
+    from oapcal.calibration import UnusableFitError, check_fit_usable
+    from oapcal.entry import check_relay_plausible
 
-    from oapcal.errors import InputFileError
-    from oapcal.io.calibration import check_model_region
-
-    if not np.isfinite(cal.params).all():
-        raise FitFailed(
-            f"{source}: the fit gave non-finite parameters (the points do not "
-            "determine the model); nothing written. Check the points, or fit a smaller --model"
-        )
-    names = cal.family.param_names
-    if "m" in names and cal.params[names.index("m")] <= 0:
-        raise FitFailed(
-            f"{source}: the fit gave m = {cal.params[names.index('m')]:.4g} <= 0: the reference points "
-            "are turned by about 180 deg against the distorted ones, which a calibration expresses as "
-            "a rotation; nothing written. Fit the rotation (--rotation auto, the default, or fit)"
-        )
     try:
-        check_model_region(cal, source=source)
-    except InputFileError as exc:
-        raise FitFailed(f"{exc}; nothing written") from None
-    if cal.relay_design is not None and cal.fit.converged:
-        from oapcal.optics.relay_model import implausible
+        check_fit_usable(cal, source)
+        check_relay_plausible(cal, source)
+    except UnusableFitError as exc:
+        raise _unusable(exc) from None
 
-        problem = implausible(cal)
-        if problem:
-            problem = problem.replace("the priors (priors 'default')", "--priors default")
-            raise FitFailed(f"{source}: {problem}; nothing written")
+
+def _unusable(exc) -> FitFailed:
+    """An :class:`~oapcal.calibration.UnusableFitError` as ``oapcal fit`` words it."""
+    advice = _UNUSABLE_ADVICE.get(exc.code)
+    problem = exc.problem.replace("the priors (priors 'default')", "--priors default")
+    return FitFailed(f"{problem}; nothing written" + (f". {advice}" if advice else ""))
 
 
 def fit_summary(cal) -> dict:
@@ -209,13 +222,17 @@ def fit_summary(cal) -> dict:
         "params": cal.params_dict,
         "stderr": {n: _finite(cal.stderr[i]) for i, n in _free_index(cal)},
         "converged": bool(cal.fit.converged),
-        "aicc": _finite(cal.fit.aicc),
+        "aicc": _finite(cal.fit.aicc),  # forward residuals; the key set is pinned (the file has both)
         "residuals": {
             k: v
             for k, v in cal.residuals.to_dict().items()
             if k.endswith(("_px", "_um")) and k != "um_per_px"
         },
     }
+
+
+def _number(value) -> str:
+    return "n/a" if value is None else f"{value:.6g}"
 
 
 def _free_index(cal):
@@ -258,7 +275,8 @@ def print_fit(cal) -> None:
     status = "converged" if f.converged else "NOT converged"
     out.print(
         f"{status} after {f.n_iter} iterations ({f.message}); {f.n_points} points, "
-        f"RSS {f.rss:.6g}, AICc {f.aicc:.6g}"
+        f"RSS {f.rss:.6g}, AICc {f.aicc_forward:.6g} (forward residuals; "
+        f"{_number(f.aicc_corrected)} after correction, as model selection scores it)"
     )
     r = cal.residuals.to_dict()
     out.print("[bold]Residuals after correction (paper's Table 1)[/bold]")

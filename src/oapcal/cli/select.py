@@ -104,6 +104,7 @@ def _fmt(value, spec: str) -> str:
 )
 @relay_design_options
 @priors_option
+# one parameter per command-line option (Click passes them so)
 def select_command(points, normalization, init, top, cv, seed, json_out, families=None, image_size=None,
                    relay_design=None, model=None, region="auto", priors="off"):  # fmt: skip
     """Rank all 4,096 models of Eq. 1 by AICc of the corrected points (with --families: Eq. 1,
@@ -217,8 +218,8 @@ def print_family_selection(sel, top: int, source: str = "") -> None:
     table = Table(
         title=f"Best models of each family by AICc ({source}, {sel.n_points} points)", title_justify="left"
     )
-    for col in ("family", "model (--model)", "K", "AICc", "dAICc", "mean err", f"{sel.cv_folds}-fold CV err",
-                "sigma over region", "predicted err"):  # fmt: skip
+    for col in ("family", "model (--model)", "K", "AICc corrected", "dAICc", "mean err",
+                f"{sel.cv_folds}-fold CV err", "sigma over region", "predicted err"):  # fmt: skip
         table.add_column(col, justify="left" if col in ("family", "model (--model)") else "right")
     families = list(dict.fromkeys(c.family for c in sel.candidates))
     for family in families:
@@ -276,7 +277,8 @@ def print_selection(sel, top: int, source: str = "") -> None:
         f"{sel.n_points} points, --normalize {sel.normalization}, --init {sel.init})"
     )
     table = Table(title=title, title_justify="left")
-    for col in ("#", "free parameters", "K", "AICc", "dAICc", "weight", "RSS", "mean err"):
+    for col in ("#", "free parameters", "K", "AICc corrected", "dAICc", "weight", "RSS", "mean err",
+                "AICc forward"):  # fmt: skip
         table.add_column(col, justify="left" if col == "free parameters" else "right")
     if sel.cv_folds:
         table.add_column(f"{sel.cv_folds}-fold CV err", justify="right")
@@ -290,6 +292,7 @@ def print_selection(sel, top: int, source: str = "") -> None:
             _fmt(m.weight, ".3f"),
             _fmt(m.rss, ".4g"),
             _fmt(m.mean_error, ".4g"),
+            _fmt(m.aicc_forward, ".2f"),
         ]
         if sel.cv_folds:
             row.append(_fmt(m.cv_mean_error, ".4g") + (f" ({m.cv_failed} failed)" if m.cv_failed else ""))
@@ -298,7 +301,9 @@ def print_selection(sel, top: int, source: str = "") -> None:
     where = "the normalized coordinates of the fit" if sel.normalization != "none" else "the points' units"
     out.print(
         f"K = free parameters + 1 (the error variance); n = {2 * sel.n_points} residuals; RSS in {where}; "
-        "errors in the units of the reference points as given."
+        "errors in the units of the reference points as given. AICc corrected: of the residuals "
+        "after correction (the ranking); AICc forward: of the forward residuals the fit minimises "
+        "(what 'oapcal fit' reports as AICc)."
     )
     bad = [m for m in sel.models if not m.valid]
     if bad:
@@ -354,6 +359,7 @@ _INVALID_TEXT = {
 )
 @click.option("--image-size", default=None, help="With a relay model: camera image size WxH in px.")
 @relay_design_options
+# one parameter per command-line option (Click passes them so)
 def robustness_command(
     points, models, trials, fraction, seed, init, normalization, wrong_minimum_ratio, json_out,
     image_size=None, relay_design=None,

@@ -9,8 +9,9 @@ Layout (``docs/file-formats.md`` has an annotated example)::
      "relay_design": {the nominal relay of a relay model} or null,
      "free": ["k1", ...], "params": {all of the family's by name}, "stderr": {free ones by name},
      "covariance": [[...]]  (free parameters, in "free" order),
-     "fit": {"n_points", "n_residuals", "k", "rss", "aic", "aicc", "bic", "converged",
-             "status", "message", "n_iter", "init", "normalize"},
+     "fit": {"n_points", "n_residuals", "k", "rss", "aic", "aicc", "aicc_forward" (= "aicc"),
+             "aicc_corrected", "bic", "converged", "status", "message", "n_iter", "init",
+             "normalize"},
      "residuals": {"max_px", "mean_px", "rms_px", "total_px", "n_points", "n_failed",
                    and "*_um" with a scale},
      "um_per_px": S or null, "image_size": [width, height] or null,
@@ -32,7 +33,6 @@ bounds and on the ``image_size`` frame (:func:`check_model_region`).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from importlib import resources
@@ -98,7 +98,7 @@ def calibration_to_dict(calibration: Calibration) -> dict:
                 for n in calibration.free
             },  # fmt: skip
             "covariance": np.asarray(calibration.covariance, float).tolist(),
-            "fit": {k: v for k, v in dataclasses.asdict(calibration.fit).items() if v is not None},
+            "fit": calibration.fit.to_dict(),
             "residuals": calibration.residuals.to_dict(),
             "um_per_px": calibration.um_per_px,
             "image_size": list(calibration.image_size) if calibration.image_size else None,
@@ -112,12 +112,8 @@ def calibration_to_dict(calibration: Calibration) -> dict:
 
 
 def _fit_summary(fit: dict) -> FitSummary:
-    """The ``fit`` object of a file as a :class:`FitSummary` (absent fields None)."""
-    names = {f.name for f in dataclasses.fields(FitSummary)}
-    known = {k: v for k, v in fit.items() if k in names}
-    known["message"] = known.get("message") or ""
-    known["normalize"] = known.get("normalize") or "none"
-    return FitSummary(**known)
+    """The ``fit`` object of a file as a :class:`FitSummary` (:meth:`FitSummary.from_dict`)."""
+    return FitSummary.from_dict(fit)
 
 
 def _residual_stats(residuals: dict):
@@ -193,6 +189,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         relay_design=data.get("relay_design"),
         priors=data.get("priors"),
         error_model=ErrorModel.from_dict(data.get("error_model")),
+        family=family,
     )
     check_model_region(cal, source=source)
     return cal

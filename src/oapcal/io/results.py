@@ -130,25 +130,7 @@ def selection_from_dict(data: dict, source: str = "selection") -> Selection:
     """A :class:`Selection` from its JSON object (validated; ``source`` names it in errors)."""
     data = _upgrade(data, SELECTION_FORMAT)
     _validate(data, SELECTION_FORMAT, source)
-    models = tuple(
-        ModelScore(
-            bits=int(m["bits"]),
-            free=tuple(m["free"]),
-            k=int(m["k"]),
-            aicc=_nan(m["aicc"]),
-            delta_aicc=_nan(m["delta_aicc"]),
-            weight=_nan(m["weight"]),
-            rss=_nan(m["rss"]),
-            mean_error=_nan(m["mean_error"]),
-            valid=bool(m["valid"]),
-            reason=m["reason"],
-            fit_status=int(m.get("fit_status", 1 if m["valid"] else 0)),
-            cv_mean_error=None if "cv_mean_error" not in m else _nan(m["cv_mean_error"]),
-            cv_failed=int(m.get("cv_failed", 0)),
-            reason_code=m["reason_code"],
-        )
-        for m in data["models"]
-    )
+    models = tuple(ModelScore.from_dict(m) for m in data["models"])
     return Selection(int(data["n_points"]), data["normalize"], data["init"], models, data["cv_folds"])
 
 

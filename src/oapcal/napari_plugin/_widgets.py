@@ -28,12 +28,10 @@ from magicgui.widgets import (
 )
 
 from oapcal.napari_plugin import _layers as L
+from oapcal.select import FRAME_TERMS, with_frame_terms  # noqa: F401 (FRAME_TERMS: the name as before)
 
 #: Models offered by *Fit & inspect*: oapcal's presets and AICc selection.
 SELECT = "select (AICc)"
-#: In camera px the origin is the image corner, not the distortion centre: selection keeps
-#: these terms free whatever it chooses (as ``oapcal demo`` does).
-FRAME_TERMS = ("x_off", "y_off", "c_x", "c_y")
 #: Widest a docked widget grows (px), so that the canvas keeps most of the window.
 MAX_WIDTH_PX = 460
 #: Step (px) of the uncertainty map the *Correct* widget shows.
@@ -446,8 +444,7 @@ class FitWidget(_OapcalWidget):
 
         def work():
             if model == SELECT:
-                selection = oapcal.select_models(xy_u, xy_d)  # the shared default start
-                chosen = tuple(n for n in oapcal.PARAM_NAMES if n in selection.best.free or n in FRAME_TERMS)
+                chosen = with_frame_terms(oapcal.select_models(xy_u, xy_d))  # the shared default start
             else:
                 chosen = model
             return oapcal.calibrate(xy_u, xy_d, chosen, um_per_px=scale, image_size=size,
