@@ -14,6 +14,7 @@ from oapcal.cli._common import (
     print_json,
     progress_bar,
 )
+from oapcal.cli._relay import design_option, design_options
 
 #: Smallest camera pixel (um): below it a grid of a mm spans over 1e7 px and the aligned
 #: calibration cannot be fitted in px.
@@ -62,26 +63,15 @@ def _tolerance_options(func):
     return wrapper
 
 
-#: The relay's design options, shared with ``oapcal simulate relay`` (the same definitions).
+#: The relay's design options, shared with ``oapcal simulate relay`` (the same definitions:
+#: :func:`oapcal.cli._relay.design_options`, style ``simulate``).
 DESIGN_OPTIONS = ("setup", "d1", "orientation", "stop_distance", "focal_length", "focal_length_2")
 
 
-def _relay_design_options(func):
-    """``--setup --d1 --orientation --stop-distance --focal-length --focal-length-2``,
-    copies of ``oapcal simulate relay``'s options (same names, types, bounds and help)."""
-    import copy
-
-    from oapcal.cli.simulate_relay import relay_command
-
-    defined = {p.name: p for p in relay_command.params}
-    params = func.__dict__.setdefault("__click_params__", [])
-    for name in reversed(DESIGN_OPTIONS):  # click reverses the list when it builds the command
-        params.append(copy.copy(defined[name]))
-    return func
-
-
 @click.command("tolerance", cls=OneLineCommand)
-@_relay_design_options
+@design_options(
+    "simulate", "setup", "d1_mm", "orientation", "stop_distance_mm", "focal_length_mm", "focal_length_2_mm"
+)
 @click.option("--grid", "n", type=int, default=17, show_default=True, help="Grid points per side.")
 @click.option(
     "--field",
@@ -91,13 +81,7 @@ def _relay_design_options(func):
     show_default=True,
     help="Full width of the square object field, mm (as simulate relay).",
 )
-@click.option(
-    "--pixel-size",
-    type=Finite(min=MIN_PIXEL_UM, max=1000),
-    default=4.8,
-    show_default=True,
-    help="Camera pixel size, um.",
-)
+@design_option("simulate", "pixel_size_um", low=MIN_PIXEL_UM, low_open=False)
 @click.option(
     "--model",
     default="paper",
@@ -166,17 +150,16 @@ def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal
         check_output(plot)
         check_plot_suffix(plot, "--plot")
 
+    from oapcal.cli._relay import traced_relay
     from oapcal.model import parse_model
-    from oapcal.optics.relay import oap_relay
     from oapcal.optics.tolerance import GROUPS as _GROUP_MEMBERS
     from oapcal.optics.tolerance import Tolerancing, check_monte_carlo, expand_tolerances
 
     parse_model(model)  # a bad model is a usage error before any work
     tolerances = expand_tolerances(groups, per_parameter)
-    relay = oap_relay(
-        int(setup), d1_mm=d1, orientation=orientation, stop_distance_mm=stop_distance,
-        focal_length_mm=focal_length, focal_length_2_mm=focal_length_2,
-    )  # fmt: skip
+    relay = traced_relay({"setup": setup, "d1_mm": d1, "orientation": orientation,
+                          "stop_distance_mm": stop_distance, "focal_length_mm": focal_length,
+                          "focal_length_2_mm": focal_length_2})  # fmt: skip
     if tolerances:  # the trials, their memory and each tolerance's extremes, before any tracing
         try:
             check_monte_carlo(relay, tolerances, trials, distribution, n)

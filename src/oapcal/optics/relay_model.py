@@ -32,8 +32,9 @@ from oapcal.model import (
     RELAY_POSE_NAMES,
     distort,
 )
+from oapcal.optics.design import DESIGN_FIELDS, FIELDS, MICROSCOPE_MAGNIFICATION_RANGE
 from oapcal.optics.misalign import PARAMETERS, Misalignment
-from oapcal.optics.relay import DEFAULT_FOCAL_LENGTH_MM, oap_relay, paraxial_matrix
+from oapcal.optics.relay import oap_relay, paraxial_matrix
 
 #: The parameters fitted by default (``--model relay``): the target's whole pose and the
 #: six misalignment directions that reproduced fields of relays with all 20 values
@@ -97,34 +98,31 @@ class RelayDesign:
     and the camera, its lateral magnification, negative when it inverts the image (-5: a
     5x objective forming a real, inverted image); None (default): the camera is at the
     relay's image plane.  With a microscope the model family is ``relay+microscope``.
+
+    Units, defaults and ranges: :data:`oapcal.optics.design.DESIGN_FIELDS` (one table, which
+    the commands' design options are built from too).
     """
 
-    setup: int | None = 1
-    d1_mm: float | None = None
-    focal_length_mm: float = DEFAULT_FOCAL_LENGTH_MM
-    focal_length_2_mm: float | None = None
-    orientation: str = "U"
-    stop_distance_mm: float = 0.0
-    pixel_size_um: float = 4.8
-    centre: tuple[float, float] | None = None
-    microscope_magnification: float | None = None
+    setup: int | None = FIELDS["setup"].default
+    d1_mm: float | None = FIELDS["d1_mm"].default
+    focal_length_mm: float = FIELDS["focal_length_mm"].default
+    focal_length_2_mm: float | None = FIELDS["focal_length_2_mm"].default
+    orientation: str = FIELDS["orientation"].default
+    stop_distance_mm: float = FIELDS["stop_distance_mm"].default
+    pixel_size_um: float = FIELDS["pixel_size_um"].default
+    centre: tuple[float, float] | None = FIELDS["centre"].default
+    microscope_magnification: float | None = FIELDS["microscope_magnification"].default
 
     def __post_init__(self):
         """Refuse, naming the field, a design value that is not a number in its range
-        (:data:`DESIGN_RANGES`): a NaN or negative pixel size would otherwise show only as a
-        relay that images nothing."""
-        for name, (lo, hi, lo_open, nullable) in DESIGN_RANGES.items():
-            value = getattr(self, name)
-            if value is None and nullable:
-                continue
-            ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
-            if ok:
-                x = float(value)
-                ok = bool(np.isfinite(x)) and (x > lo if lo_open else x >= lo) and x <= hi
-            if not ok:
-                low = f"({lo:g}" if lo_open else f"[{lo:g}"
-                raise DataError(f"relay design {name} is {value!r}; it must be a number in {low}, {hi:g}]",
-                                param="design")  # fmt: skip
+        (:data:`~oapcal.optics.design.DESIGN_FIELDS`): a NaN or negative pixel size would
+        otherwise show only as a relay that images nothing."""
+        for f in _RANGED:
+            value = getattr(self, f.name)
+            ok = isinstance(value, int | float | np.integer | np.floating) or value is None
+            if not (ok and f.accepts(value)):
+                raise DataError(f"relay design {f.name} is {value!r}; it must be a number in "
+                                f"{f.describe_range()}", param="design")  # fmt: skip
         if self.centre is not None and not _two_finite(self.centre):
             raise DataError(f"relay design centre is {self.centre!r}; it must be two finite numbers (px)",
                             param="design")  # fmt: skip
@@ -229,17 +227,10 @@ def relay_params(
     return np.array([float(values[n]) for n in family.param_names])
 
 
-#: What a stored design may hold (the ranges ``oapcal fit --model relay`` accepts):
-#: field -> (lowest, highest, lowest excluded, may be null).
-DESIGN_RANGES = {
-    "d1_mm": (0.0, 100_000.0, True, True),
-    "focal_length_mm": (0.0, 10_000.0, True, False),
-    "focal_length_2_mm": (0.0, 10_000.0, True, True),
-    "stop_distance_mm": (0.0, 100_000.0, False, False),
-    "pixel_size_um": (0.0, 1000.0, True, False),
-}
-#: The microscope's magnification, in absolute value (its sign says whether it inverts).
-MICROSCOPE_MAGNIFICATION_RANGE = (0.01, 1000.0)
+#: The design's number fields (:data:`~oapcal.optics.design.DESIGN_FIELDS`), and their
+#: ranges as ``field -> (lowest, highest, lowest excluded, may be null)``.
+_RANGED = tuple(f for f in DESIGN_FIELDS if f.numeric)
+DESIGN_RANGES = {f.name: (f.low, f.high, f.low_open, f.nullable) for f in _RANGED}
 
 
 def _design_words(design: RelayDesign) -> str:
@@ -275,19 +266,10 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
             f"relay_design.{unknown[0]}",
             f"is not a design field (fields: {', '.join(RelayDesign.__dataclass_fields__)})",
         )
-    for name, (lo, hi, lo_open, nullable) in DESIGN_RANGES.items():
-        value = record.get(name, getattr(RelayDesign, name))
-        if value is None and nullable:
-            continue
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, int | float)
-            or not ((lo < value if lo_open else lo <= value) and value <= hi)
-        ):
-            raise bad(
-                f"relay_design.{name}",
-                f"is {value!r}; it must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}]",
-            )
+    for f in _RANGED:
+        value = record.get(f.name, f.default)
+        if not ((value is None or isinstance(value, int | float)) and f.accepts(value)):
+            raise bad(f"relay_design.{f.name}", f"is {value!r}; it must be a number in {f.describe_range()}")
     if record.get("setup", 1) not in (1, 2, None) or isinstance(record.get("setup"), bool):
         raise bad("relay_design.setup", f"is {record.get('setup')!r}; it must be 1, 2 or null")
     if record.get("setup", 1) is None and record.get("d1_mm") is None:

@@ -14,6 +14,7 @@ and figures are made elsewhere (:mod:`oapcal.io.grid`, :mod:`oapcal.report.optic
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -155,39 +156,68 @@ class _Work:
             self.progress(self.done + done, self.total)
 
 
-def simulate_relay(
-    setup: int | None = 1,
-    *,
-    d1_mm: float | None = None,
-    orientation: str = "U",
-    stop_distance_mm: float | None = None,
-    focal_length_mm: float = 50.8,
-    n: int = 17,
-    field_mm: float = 1.0,
-    pixel_size_um: float = 4.8,
-    beam_diameter_mm: float = 20.0,
-    wavelength_nm: float = 850.0,
-    spot_fields=None,
-    rings: int = 8,
-    progress: Progress | None = None,
-    focal_length_2_mm: float | None = None,
-    misalignment=None,
-) -> RelaySimulation:
+@dataclass(frozen=True)
+class SimulationOptions:
+    """What :func:`simulate_relay` traces besides the relay: an ``n`` x ``n`` grid over
+    ``field_mm``, px figures for ``pixel_size_um`` (None: the design's, 4.8 for a
+    :class:`~oapcal.optics.relay.Relay`), spot diagrams at ``spot_fields`` (object mm,
+    ``(M, 2)``; None: :func:`default_spot_fields`) with ``rings`` hexapolar rings, and the
+    NA and resolution limits of a collimated beam of ``beam_diameter_mm`` at
+    ``wavelength_nm``."""
+
+    n: int = 17
+    field_mm: float = 1.0
+    pixel_size_um: float | None = None
+    beam_diameter_mm: float = 20.0
+    wavelength_nm: float = 850.0
+    spot_fields: object = None
+    rings: int = 8
+
+
+#: The design keywords of the older form ``simulate_relay(setup, d1_mm=..., ...)`` (those of
+#: :func:`~oapcal.optics.relay.oap_relay`).
+_RELAY_KEYWORDS = ("d1_mm", "orientation", "stop_distance_mm", "focal_length_mm", "focal_length_2_mm")
+
+
+def simulate_relay(design=1, options: SimulationOptions | None = None, *, misalignment=None,
+                   progress: Progress | None = None, **keywords) -> RelaySimulation:  # fmt: skip
     """Trace the relay and summarize it (see the module docstring).
 
-    ``spot_fields`` are the object points (mm, ``(M, 2)``) of the spot diagrams, traced
-    with ``rings`` hexapolar rings of rays (default: :func:`default_spot_fields`).
-    ``progress(done, total)`` is called as the work advances, counted in traced rays
-    (the radial fit counts as one ray per grid point).  ``focal_length_2_mm`` and
-    ``misalignment`` are as in :func:`~oapcal.optics.relay.oap_relay` (the spot diagrams
-    of the other orientation get the same misalignment).
+    ``design`` a :class:`~oapcal.optics.relay_model.RelayDesign` (traced with
+    ``misalignment``, as :func:`~oapcal.optics.relay.oap_relay` takes it; the spot diagrams
+    of the other orientation get the same misalignment), or a
+    :class:`~oapcal.optics.relay.Relay` traced as it is; ``options`` a
+    :class:`SimulationOptions`.  ``progress(done, total)`` is called as the work advances,
+    counted in traced rays (the radial fit counts as one ray per grid point).
+
+    The older form still works: ``design`` the setup (1, 2 or None) and the relay's
+    keywords of :func:`~oapcal.optics.relay.oap_relay` (``d1_mm``, ``orientation``,
+    ``stop_distance_mm``, ``focal_length_mm``, ``focal_length_2_mm``), with the options'
+    fields as keywords (``simulate_relay(1, n=9, pixel_size_um=5.0)``).
     """
-    relay = oap_relay(
-        setup, d1_mm=d1_mm, orientation=orientation, stop_distance_mm=stop_distance_mm,
-        focal_length_mm=focal_length_mm, focal_length_2_mm=focal_length_2_mm, misalignment=misalignment,
-    )  # fmt: skip
-    n = int(n)
-    field_points = _spot_fields(spot_fields, field_mm)
+    relay, pixel = _relay_of(design if "setup" not in keywords else keywords.pop("setup"), misalignment,
+                             {k: keywords.pop(k) for k in _RELAY_KEYWORDS if k in keywords})  # fmt: skip
+    if keywords:
+        options = dataclasses.replace(options or SimulationOptions(), **keywords)  # unknown names raise
+    options = options or SimulationOptions()
+    if options.pixel_size_um is None:
+        options = dataclasses.replace(options, pixel_size_um=pixel)
+    return _simulate(relay, options, progress)
+
+
+def _relay_of(design, misalignment, relay_keywords: dict) -> tuple[Relay, float]:
+    """The relay to trace and the design's pixel size (4.8 um when it has none)."""
+    if isinstance(design, Relay):
+        return design, 4.8
+    if hasattr(design, "relay") and hasattr(design, "pixel_size_um"):  # a RelayDesign
+        return design.relay(misalignment), float(design.pixel_size_um)
+    return oap_relay(design, misalignment=misalignment, **relay_keywords), 4.8
+
+
+def _simulate(relay: Relay, options: SimulationOptions, progress: Progress | None) -> RelaySimulation:
+    """:func:`simulate_relay` of a built relay: the grid, its radial fit, spots and limits."""
+    n, field_mm, rings = int(options.n), options.field_mm, options.rings
+    field_points = _spot_fields(options.spot_fields, field_mm)
     rays_per_spot = len(hexapolar_pupil(rings)) + 1
     work = _Work(2 * n * n + len(SPOT_ORIENTATIONS) * len(field_points) * rays_per_spot + NA_RAYS, progress)
 
@@ -197,12 +227,12 @@ def simulate_relay(
     radial = RadialFitResidual(bool(fit_result.converged), forward_mm, correction_mm)
     work.advance(n * n)
     spots = trace_spots(
-        relay, field_points, beam_diameter_mm, rings, done=lambda: work.advance(rays_per_spot)
+        relay, field_points, options.beam_diameter_mm, rings, done=lambda: work.advance(rays_per_spot)
     )
-    limits = resolution_limits(relay, beam_diameter_mm, wavelength_nm, pixel_size_um,
+    limits = resolution_limits(relay, options.beam_diameter_mm, options.wavelength_nm, options.pixel_size_um,
                                paraxial_magnification(grid))  # fmt: skip
     work.advance(NA_RAYS)
-    return RelaySimulation(grid, spots, radial, limits, float(pixel_size_um), int(rings))
+    return RelaySimulation(grid, spots, radial, limits, float(options.pixel_size_um), int(rings))
 
 
 def _spot_fields(spot_fields, field_mm: float) -> list[tuple[float, float]]:
@@ -235,13 +265,7 @@ def trace_grid(relay: Relay, n: int, field_mm: float, progress: Progress | None 
 
 def _with_orientation(relay: Relay, orientation: str) -> Relay:
     """The same design and misalignment with the second mirror in ``orientation``."""
-    if orientation == relay.orientation:
-        return relay
-    return oap_relay(
-        None, d1_mm=relay.d1_mm, orientation=orientation, stop_distance_mm=relay.stop_distance_mm,
-        focal_length_mm=relay.focal_length_mm, diameter_mm=relay.diameter_mm,
-        focal_length_2_mm=relay.focal_length_2_mm, misalignment=relay.misalignment,
-    )  # fmt: skip
+    return relay if orientation == relay.orientation else relay.rebuilt(orientation=orientation)
 
 
 def trace_spots(relay: Relay, field_points, beam_diameter_mm: float, rings: int,
