@@ -36,8 +36,8 @@ def test_relay_design_defaults_are_the_papers():
 def test_simulate_relay_takes_a_design_and_options_as_the_old_keywords():
     mis = {"m2_tilt_x": 0.02}
     old = simulate_relay(2, n=5, rings=2, pixel_size_um=5.0, orientation="Z", misalignment=mis).summary
-    new = simulate_relay(RelayDesign(setup=2, orientation="Z", pixel_size_um=5.0), SimulationOptions(n=5, rings=2),
-                         misalignment=mis).summary  # fmt: skip
+    design = RelayDesign(setup=2, orientation="Z", pixel_size_um=5.0)
+    new = simulate_relay(design, SimulationOptions(n=5, rings=2), misalignment=mis).summary
     assert new == old
     assert new["relay"]["orientation"] == "Z" and new["grid"]["pixel_size_um"] == 5.0
 
