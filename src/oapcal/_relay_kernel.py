@@ -236,12 +236,64 @@ def _normal(vertex, axis, fp, q):
 @numba.njit(**_JIT)
 def _stop_miss(vertex, axis, fp, e1, e2, obj, sp, sx, sy, sn, u, v):
     """Where the ray from ``obj`` reflected at the mirror point ``(u, v)`` crosses the
-    stop plane, in the stop's coordinates; also the hit and the reflected direction."""
+    stop plane, in the stop's coordinates; also the hit and the reflected direction.
+    (Twelve arguments: the frames as tuples, as :func:`_aim_chief_ray`.)"""
     q = _surface(vertex, axis, fp, e1, e2, u, v)
     d = _reflect(_unit(_sub(q, obj)), _normal(vertex, axis, fp, q))
     t = _dot(_sub(sp, q), sn) / _dot(d, sn)
     h = _sub(_add(q, _mul(t, d)), sp)
     return _dot(h, sx), _dot(h, sy), q, d
+
+
+@numba.njit(inline="always", **_JIT)
+def _aim_chief_ray(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn):
+    """The chief ray from ``obj``: the point ``q`` of the first mirror (its surface's
+    ``(u, v)``) whose reflection ``d`` passes the stop's centre (Newton, forward-difference
+    Jacobian, from the point under the stop's centre).  (Ten arguments: the mirror's and
+    the stop's frames, passed as tuples; Numba has no cheap record of them.)"""
+    st = _sub(sp, v1)
+    u = _dot(st, e1)
+    v = _dot(st, e2)
+    mx, my, q, d = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v)
+    h = AIM_STEP
+    for _ in range(AIM_MAX_ITER):
+        ux, uy, _, _ = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u + h, v)
+        vx, vy, _, _ = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v + h)
+        ja = (ux - mx) / h
+        jc = (uy - my) / h
+        jb = (vx - mx) / h
+        jd = (vy - my) / h
+        det = ja * jd - jb * jc
+        du = (jd * mx - jb * my) / det
+        dv = (-jc * mx + ja * my) / det
+        u -= du
+        v -= dv
+        mx, my, q, d = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v)
+        if not (abs(du) + abs(dv) > AIM_TOL):  # converged (or NaN: the ray missed)
+            break
+    return q, d
+
+
+@numba.njit(inline="always", **_JIT)
+def _paraboloid_hit(q, d, vertex, axis, fp):
+    """The distance along the ray ``q + t d`` to its first hit (``t > 1e-9``) of the
+    paraboloid ``(vertex, axis, fp)``; inf when it misses (the stable quadratic roots)."""
+    r0 = _sub(q, vertex)
+    r0a = _dot(r0, axis)
+    r0p = _sub(r0, _mul(r0a, axis))
+    da = _dot(d, axis)
+    dp = _sub(d, _mul(da, axis))
+    four_f = 4.0 * fp
+    qa = _dot(dp, dp)
+    qb = 2.0 * _dot(r0p, dp) - four_f * da
+    qc = _dot(r0p, r0p) - four_f * r0a
+    sq = math.sqrt(qb * qb - 4.0 * qa * qc) if qb * qb - 4.0 * qa * qc >= 0.0 else np.nan
+    qq = -0.5 * (qb + math.copysign(sq, qb))
+    t1 = qq / qa if qa != 0.0 else np.inf
+    t2 = qc / qq if qq != 0.0 else np.inf
+    t1 = t1 if t1 > 1e-9 else np.inf
+    t2 = t2 if t2 > 1e-9 else np.inf
+    return min(t1, t2)
 
 
 @numba.njit(**_JIT)
@@ -273,45 +325,8 @@ def relay_point_value(p, x, y):
     (ex, ey, _, v1, a1, fp1, e1, e2, _, v2, a2, fp2, _, sp, sx, sy, sn, ip, jx, jy,
      jn) = relay_frames(p[_M:_D], p[_D], f1, f2, orient, stop)  # fmt: skip
     obj = _add(_mul(ox, ex), _mul(oy, ey))
-    # aim the chief ray: the point (u, v) of the first mirror whose reflection passes
-    # the stop's centre (Newton, forward-difference Jacobian)
-    st = _sub(sp, v1)
-    u = _dot(st, e1)
-    v = _dot(st, e2)
-    mx, my, q, d = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v)
-    h = AIM_STEP
-    for _ in range(AIM_MAX_ITER):
-        ux, uy, _, _ = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u + h, v)
-        vx, vy, _, _ = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v + h)
-        ja = (ux - mx) / h
-        jc = (uy - my) / h
-        jb = (vx - mx) / h
-        jd = (vy - my) / h
-        det = ja * jd - jb * jc
-        du = (jd * mx - jb * my) / det
-        dv = (-jc * mx + ja * my) / det
-        u -= du
-        v -= dv
-        mx, my, q, d = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v)
-        if not (abs(du) + abs(dv) > AIM_TOL):  # converged (or NaN: the ray missed)
-            break
-    # the second mirror: the first hit beyond the first mirror
-    r0 = _sub(q, v2)
-    r0a = _dot(r0, a2)
-    r0p = _sub(r0, _mul(r0a, a2))
-    da = _dot(d, a2)
-    dp = _sub(d, _mul(da, a2))
-    four_f = 4.0 * fp2
-    qa = _dot(dp, dp)
-    qb = 2.0 * _dot(r0p, dp) - four_f * da
-    qc = _dot(r0p, r0p) - four_f * r0a
-    sq = math.sqrt(qb * qb - 4.0 * qa * qc) if qb * qb - 4.0 * qa * qc >= 0.0 else np.nan
-    qq = -0.5 * (qb + math.copysign(sq, qb))
-    t1 = qq / qa if qa != 0.0 else np.inf
-    t2 = qc / qq if qq != 0.0 else np.inf
-    t1 = t1 if t1 > 1e-9 else np.inf
-    t2 = t2 if t2 > 1e-9 else np.inf
-    t = min(t1, t2)
+    q, d = _aim_chief_ray(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn)
+    t = _paraboloid_hit(q, d, v2, a2, fp2)
     if not np.isfinite(t):
         return np.nan, np.nan
     q2 = _add(q, _mul(t, d))
