@@ -45,3 +45,17 @@ def test_simulate_relay_takes_a_design_and_options_as_the_old_keywords():
 def test_simulate_relay_refuses_an_unknown_option():
     with pytest.raises(TypeError):
         simulate_relay(1, n=5, ringz=2)
+
+
+def test_relay_distortion_takes_a_design_as_the_old_keywords():
+    import numpy as np
+
+    from oapcal.optics.field import relay_distortion
+
+    mis = {"m1_tilt_y": 0.01}
+    old = relay_distortion(None, d1_mm=700.0, pixel_size_um=5.0, grid=16, misalignment=mis)
+    new = relay_distortion(RelayDesign(setup=None, d1_mm=700.0, pixel_size_um=5.0), grid=16, misalignment=mis)
+    xy = np.array([[10.0, 20.0], [320.0, 240.0], [600.0, 400.0]])
+    assert new.pixel_size_um == 5.0 and np.array_equal(new.forward(xy), old.forward(xy))
+    with pytest.raises(TypeError, match="focal_lenght_mm"):
+        relay_distortion(1, focal_lenght_mm=50.8)

@@ -201,6 +201,29 @@ def oap_relay(
     )  # fmt: skip
 
 
+#: The arguments of :func:`oap_relay` that describe the design (the older keyword form of
+#: the functions that take a design: :func:`resolve_relay`).
+RELAY_KEYWORDS = ("d1_mm", "orientation", "stop_distance_mm", "focal_length_mm", "focal_length_2_mm")
+
+
+def resolve_relay(design, misalignment=None, keywords: dict | None = None) -> tuple[Relay, float | None]:
+    """The relay a library function traces and the design's pixel size (um; None when the
+    argument has none), from its ``design`` argument: a
+    :class:`~oapcal.optics.relay_model.RelayDesign` (its relay with ``misalignment``), a
+    :class:`Relay` (traced as it is), or, the older form, the setup (1, 2 or None) with the
+    design's ``keywords`` of :func:`oap_relay` (:data:`RELAY_KEYWORDS`; taken out of the
+    dict, so what is left are the function's other keywords)."""
+    keywords = {} if keywords is None else keywords
+    if "setup" in keywords:
+        design = keywords.pop("setup")
+    relay_keywords = {k: keywords.pop(k) for k in RELAY_KEYWORDS if k in keywords}
+    if isinstance(design, Relay):
+        return design, None
+    if hasattr(design, "relay") and hasattr(design, "pixel_size_um"):  # a RelayDesign (imports this module)
+        return design.relay(misalignment), float(design.pixel_size_um)
+    return oap_relay(design, misalignment=misalignment, **relay_keywords), None
+
+
 # ------------------------------------------------------------------------ ray aiming
 
 
@@ -273,6 +296,19 @@ def _aim_c(relay: Relay, points: Vec, tx: np.ndarray, ty: np.ndarray, tol: float
     return q, d_out, miss <= tol, miss, n_iter
 
 
+def _flat_pair(a, da: int, b, db: int):
+    """``(shape, a (N, da), b (N, db))``: two arrays of vectors (``(..., da)``,
+    ``(..., db)``) broadcast against each other over their leading axes and flattened."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    return (
+        shape,
+        np.broadcast_to(a, shape + (da,)).reshape(-1, da),
+        np.broadcast_to(b, shape + (db,)).reshape(-1, db),
+    )
+
+
 def _blocks(n: int, progress):
     """Slices of ``CHUNK`` rays over ``n``, reporting ``progress(done, n)`` after each."""
     for lo in range(0, n, CHUNK):
@@ -295,11 +331,7 @@ def aim(
     steps in between).  Converged where the ray passes within ``tol`` mm of its target.
     ``progress(done, total)`` is called after each block of rays.
     """
-    points = np.asarray(points, dtype=float)
-    target_xy = np.asarray(target_xy, dtype=float)
-    shape = np.broadcast_shapes(points.shape[:-1], target_xy.shape[:-1])
-    p = np.broadcast_to(points, shape + (3,)).reshape(-1, 3)
-    t = np.broadcast_to(target_xy, shape + (2,)).reshape(-1, 2)
+    shape, p, t = _flat_pair(points, 3, target_xy, 2)
     n = p.shape[0]
     hit = np.empty((n, 3))
     direction = np.empty((n, 3))
@@ -345,11 +377,7 @@ def trace_through_stop(relay: Relay, xy_obj_mm, stop_xy_mm, *, progress=None, fu
     Rays are traced in blocks of :data:`CHUNK`; ``progress(done, total)`` is called after
     each.  ``full=False`` skips collecting the hit points and directions (faster).
     """
-    xy_obj_mm = np.asarray(xy_obj_mm, dtype=float)
-    stop_xy_mm = np.asarray(stop_xy_mm, dtype=float)
-    shape = np.broadcast_shapes(xy_obj_mm.shape[:-1], stop_xy_mm.shape[:-1])
-    obj = np.broadcast_to(xy_obj_mm, shape + (2,)).reshape(-1, 2)
-    stop = np.broadcast_to(stop_xy_mm, shape + (2,)).reshape(-1, 2)
+    shape, obj, stop = _flat_pair(xy_obj_mm, 2, stop_xy_mm, 2)
     n = obj.shape[0]
     xy = np.empty((n, 2))
     clear = np.empty(n, dtype=bool)

@@ -31,7 +31,7 @@ from oapcal.optics.quality import (
     spot_diagram,
     traced_numerical_aperture,
 )
-from oapcal.optics.relay import GridDistortion, Relay, grid_distortion, oap_relay, radial_fit
+from oapcal.optics.relay import GridDistortion, Relay, grid_distortion, radial_fit, resolve_relay
 
 #: The paper's figures for setup 1 (1 mm x 1 mm field, 17 x 17 points, 4.8 um pixels).
 PAPER_SETUP1 = {
@@ -174,11 +174,6 @@ class SimulationOptions:
     rings: int = 8
 
 
-#: The design keywords of the older form ``simulate_relay(setup, d1_mm=..., ...)`` (those of
-#: :func:`~oapcal.optics.relay.oap_relay`).
-_RELAY_KEYWORDS = ("d1_mm", "orientation", "stop_distance_mm", "focal_length_mm", "focal_length_2_mm")
-
-
 def simulate_relay(design=1, options: SimulationOptions | None = None, *, misalignment=None,
                    progress: Progress | None = None, **keywords) -> RelaySimulation:  # fmt: skip
     """Trace the relay and summarize it (see the module docstring).
@@ -195,23 +190,11 @@ def simulate_relay(design=1, options: SimulationOptions | None = None, *, misali
     ``stop_distance_mm``, ``focal_length_mm``, ``focal_length_2_mm``), with the options'
     fields as keywords (``simulate_relay(1, n=9, pixel_size_um=5.0)``).
     """
-    relay, pixel = _relay_of(design if "setup" not in keywords else keywords.pop("setup"), misalignment,
-                             {k: keywords.pop(k) for k in _RELAY_KEYWORDS if k in keywords})  # fmt: skip
-    if keywords:
-        options = dataclasses.replace(options or SimulationOptions(), **keywords)  # unknown names raise
-    options = options or SimulationOptions()
+    relay, pixel = resolve_relay(design, misalignment, keywords)
+    options = dataclasses.replace(options or SimulationOptions(), **keywords)  # unknown names raise
     if options.pixel_size_um is None:
-        options = dataclasses.replace(options, pixel_size_um=pixel)
+        options = dataclasses.replace(options, pixel_size_um=4.8 if pixel is None else pixel)
     return _simulate(relay, options, progress)
-
-
-def _relay_of(design, misalignment, relay_keywords: dict) -> tuple[Relay, float]:
-    """The relay to trace and the design's pixel size (4.8 um when it has none)."""
-    if isinstance(design, Relay):
-        return design, 4.8
-    if hasattr(design, "relay") and hasattr(design, "pixel_size_um"):  # a RelayDesign
-        return design.relay(misalignment), float(design.pixel_size_um)
-    return oap_relay(design, misalignment=misalignment, **relay_keywords), 4.8
 
 
 def _simulate(relay: Relay, options: SimulationOptions, progress: Progress | None) -> RelaySimulation:
