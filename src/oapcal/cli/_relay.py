@@ -136,6 +136,13 @@ def is_relay(model: str | None) -> bool:
     return isinstance(model, str) and (model.strip() == "relay" or model.strip().startswith("relay:"))
 
 
+def field_option(text: str):
+    """``--field``: the full width (mm) of the square object field a relay is traced over
+    (``simulate relay``, ``tolerance``), with the command's help ``text``."""
+    return click.option("--field", "field_mm", type=Finite(min=0, max=1000, min_open=True), default=1.0,
+                        show_default=True, help=text)  # fmt: skip
+
+
 def relay_design_options(func):
     """Add the design options of a relay model to a command (passed as ``relay_design``, a
     dict of their values, to keep the command's signature short)."""

@@ -14,7 +14,7 @@ from oapcal.cli._common import (
     print_json,
     progress_bar,
 )
-from oapcal.cli._relay import check_microscope, design_option, design_options
+from oapcal.cli._relay import check_microscope, design_option, design_options, field_option
 
 #: Largest grid (points per side) and number of hexapolar rings: beyond them tracing takes
 #: minutes and gigabytes and shows nothing new.
@@ -72,42 +72,19 @@ def misalignment_options(func):
 
 @click.command("relay")
 @design_options("simulate", "setup", "d1_mm", "orientation", "stop_distance_mm", "focal_length_mm")
-@click.option(
-    "--grid",
-    "n",
-    type=click.IntRange(max=MAX_GRID),
-    default=17,
-    show_default=True,
-    help="Grid points per side.",
-)
-@click.option(
-    "--field",
-    "field_mm",
-    type=Finite(min=0, max=1000, min_open=True),
-    default=1.0,
-    show_default=True,
-    help="Full width of the square object field, mm.",
-)
-@click.option(
-    "--units",
-    type=click.Choice(["mm", "px"]),
-    default="mm",
-    show_default=True,
-    help="Units of x_u,y_u,x_d,y_d in the CSV (image plane).",
-)
+@click.option("--grid", "n", type=click.IntRange(max=MAX_GRID), default=17, show_default=True,
+              help="Grid points per side.")  # fmt: skip
+@field_option("Full width of the square object field, mm.")
+@click.option("--units", type=click.Choice(["mm", "px"]), default="mm", show_default=True,
+              help="Units of x_u,y_u,x_d,y_d in the CSV (image plane).")  # fmt: skip
 @design_option("simulate", "pixel_size_um")
 @click.option(
     "--image-size",
     default=None,
     help="With --units px: write camera px (axis at the image centre) for a WxH image.",
 )
-@click.option(
-    "--beam-diameter",
-    type=Finite(min=0, max=1000, min_open=True),
-    default=20.0,
-    show_default=True,
-    help="Collimated beam (stop) diameter for spots and NA, mm.",
-)
+@click.option("--beam-diameter", type=Finite(min=0, max=1000, min_open=True), default=20.0, show_default=True,
+              help="Collimated beam (stop) diameter for spots and NA, mm.")  # fmt: skip
 @click.option(
     "--wavelength", type=Finite(max=100_000), default=850.0, show_default=True, help="Wavelength, nm."
 )
@@ -118,23 +95,13 @@ def misalignment_options(func):
     metavar="X,Y",
     help="Object point (mm) of a spot diagram; repeat for more (default: centre, edges, corner).",
 )
-@click.option(
-    "--rings",
-    type=click.IntRange(max=MAX_RINGS),
-    default=8,
-    show_default=True,
-    help="Hexapolar rings of rays per spot diagram.",
-)
-@click.option(
-    "--out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    default=None,
-    help="Write the grid CSV (x_obj,y_obj,x_u,y_u,x_d,y_d,clear).",
-)
+@click.option("--rings", type=click.IntRange(max=MAX_RINGS), default=8, show_default=True,
+              help="Hexapolar rings of rays per spot diagram.")  # fmt: skip
+@click.option("--out", type=click.Path(dir_okay=False, allow_dash=True), default=None,
+              help="Write the grid CSV (x_obj,y_obj,x_u,y_u,x_d,y_d,clear).")  # fmt: skip
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="Grid distortion figure (PNG).")
-@click.option(
-    "--spots", type=click.Path(dir_okay=False), default=None, help="Spot diagrams of both orientations (PNG)."
-)
+@click.option("--spots", type=click.Path(dir_okay=False), default=None,
+              help="Spot diagrams of both orientations (PNG).")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
 @design_option("simulate", "focal_length_2_mm")
 @misalignment_options

@@ -6,7 +6,6 @@ from __future__ import annotations
 import click
 
 from oapcal.cli._common import (
-    Finite,
     PointsUsageError,
     check_output,
     check_plot_suffix,
@@ -14,7 +13,7 @@ from oapcal.cli._common import (
     print_json,
     progress_bar,
 )
-from oapcal.cli._relay import design_option, design_options
+from oapcal.cli._relay import design_option, design_options, field_option
 
 #: Smallest camera pixel (um): below it a grid of a mm spans over 1e7 px and the aligned
 #: calibration cannot be fitted in px.
@@ -73,14 +72,7 @@ DESIGN_OPTIONS = ("setup", "d1", "orientation", "stop_distance", "focal_length",
     "simulate", "setup", "d1_mm", "orientation", "stop_distance_mm", "focal_length_mm", "focal_length_2_mm"
 )
 @click.option("--grid", "n", type=int, default=17, show_default=True, help="Grid points per side.")
-@click.option(
-    "--field",
-    "field_mm",
-    type=Finite(min=0, max=1000, min_open=True),
-    default=1.0,
-    show_default=True,
-    help="Full width of the square object field, mm (as simulate relay).",
-)
+@field_option("Full width of the square object field, mm (as simulate relay).")
 @design_option("simulate", "pixel_size_um", low=MIN_PIXEL_UM, low_open=False)
 @click.option(
     "--model",
@@ -128,6 +120,55 @@ def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal
                       as_json):  # fmt: skip
     """Sensitivity of the relay's grid distortion, and of the error of the aligned relay's
     calibration, to each misalignment; Monte Carlo over tolerances (--tilt 0.05 ...)."""
+    from oapcal.cli._relay import traced_relay
+
+    pct, per_parameter = _check_options(n, trials, pixel_size, field_mm, percentiles, tol, groups, plot)
+    from oapcal.model import parse_model
+    from oapcal.optics.tolerance import Tolerancing, expand_tolerances
+
+    parse_model(model)  # a bad model is a usage error before any work
+    tolerances = expand_tolerances(groups, per_parameter)
+    relay = traced_relay({"setup": setup, "d1_mm": d1, "orientation": orientation,
+                          "stop_distance_mm": stop_distance, "focal_length_mm": focal_length,
+                          "focal_length_2_mm": focal_length_2})  # fmt: skip
+    if tolerances:  # the trials, their memory and each tolerance's extremes, before any tracing
+        _check_monte_carlo(relay, tolerances, trials, distribution, n)
+    bar, update = progress_bar("tolerancing")
+    with bar:
+        update(0, 1, "calibrating the aligned relay")
+        tolerancing = Tolerancing(relay, n=n, field_mm=field_mm, pixel_size_um=pixel_size, model=model)
+        if not tolerancing.calibration.converged:
+            click.echo(
+                f"oapcal: error: the {model} model did not converge on the aligned relay's grid "
+                f"({tolerancing.calibration.message}); try another --model",
+                err=True,
+            )
+            return 3
+        update(0, 1, "sensitivities")
+        rows = tolerancing.sensitivity(progress=update)
+        mc = None
+        if tolerances:
+            update(0, trials, "Monte Carlo")
+            mc = tolerancing.monte_carlo(
+                tolerances, trials, seed=seed, distribution=distribution, percentiles=pct, refit=refit,
+                progress=update,
+            )  # fmt: skip
+        result = _result(relay, tolerancing, pixel_size, model, rows, mc)
+        if plot is not None:
+            from oapcal.report.optics_plots import plot_tolerance
+
+            update(0, 1, "plotting")
+            plot_tolerance(result, plot)
+    if as_json:
+        print_json(result)
+    else:
+        print_tolerance(result)
+    return 0
+
+
+def _check_options(n, trials, pixel_size, field_mm, percentiles, tol, groups, plot):
+    """Refuse bad option values before any work; returns the percentiles and the
+    per-parameter tolerances (``--tol``) parsed."""
     from oapcal.errors import GeometrySpecError
 
     if n < 2:
@@ -149,72 +190,41 @@ def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal
     if plot is not None:
         check_output(plot)
         check_plot_suffix(plot, "--plot")
+    return pct, per_parameter
 
-    from oapcal.cli._relay import traced_relay
-    from oapcal.model import parse_model
-    from oapcal.optics.tolerance import GROUPS as _GROUP_MEMBERS
-    from oapcal.optics.tolerance import Tolerancing, check_monte_carlo, expand_tolerances
 
-    parse_model(model)  # a bad model is a usage error before any work
-    tolerances = expand_tolerances(groups, per_parameter)
-    relay = traced_relay({"setup": setup, "d1_mm": d1, "orientation": orientation,
-                          "stop_distance_mm": stop_distance, "focal_length_mm": focal_length,
-                          "focal_length_2_mm": focal_length_2})  # fmt: skip
-    if tolerances:  # the trials, their memory and each tolerance's extremes, before any tracing
-        try:
-            check_monte_carlo(relay, tolerances, trials, distribution, n)
-        except GeometrySpecError as exc:
-            if not (isinstance(exc.param, tuple) and exc.param[0] == "tolerances"):
-                raise
-            name = exc.param[1]
-            flags = [
-                flag for group, (flag, _, _) in TOLERANCE_OPTIONS.items() if name in _GROUP_MEMBERS[group]
-            ]
-            raise GeometrySpecError(f"{exc} (set by {', '.join(flags + ['--tol'])})") from None
-    bar, update = progress_bar("tolerancing")
-    with bar:
-        update(0, 1, "calibrating the aligned relay")
-        tolerancing = Tolerancing(relay, n=n, field_mm=field_mm, pixel_size_um=pixel_size, model=model)
-        if not tolerancing.calibration.converged:
-            click.echo(
-                f"oapcal: error: the {model} model did not converge on the aligned relay's grid "
-                f"({tolerancing.calibration.message}); try another --model",
-                err=True,
-            )
-            return 3
-        update(0, 1, "sensitivities")
-        rows = tolerancing.sensitivity(progress=update)
-        mc = None
-        if tolerances:
-            update(0, trials, "Monte Carlo")
-            mc = tolerancing.monte_carlo(
-                tolerances, trials, seed=seed, distribution=distribution, percentiles=pct, refit=refit,
-                progress=update,
-            )  # fmt: skip
-        result = {
-            "relay": {
-                "d1_mm": relay.d1_mm, "orientation": relay.orientation,
-                "stop_distance_mm": relay.stop_distance_mm, "focal_length_mm": relay.focal_lengths_mm[0],
-                "focal_length_2_mm": relay.focal_lengths_mm[1],
-            },
-            "grid": {"n": tolerancing.n, "field_mm": tolerancing.field_mm, "pixel_size_um": pixel_size},
-            "model": model,
-            "calibration": {"free": list(tolerancing.calibration.free),
-                            "params": tolerancing.calibration.params_dict},
-            "aligned": tolerancing.aligned,
-            "sensitivity": rows,
-            "monte_carlo": mc,
-        }  # fmt: skip
-        if plot is not None:
-            from oapcal.report.optics_plots import plot_tolerance
+def _check_monte_carlo(relay, tolerances, trials, distribution, n) -> None:
+    """:func:`oapcal.optics.tolerance.check_monte_carlo`, its error naming the flags that
+    set the offending tolerance."""
+    from oapcal.errors import GeometrySpecError
+    from oapcal.optics.tolerance import GROUPS, check_monte_carlo
 
-            update(0, 1, "plotting")
-            plot_tolerance(result, plot)
-    if as_json:
-        print_json(result)
-    else:
-        print_tolerance(result)
-    return 0
+    try:
+        check_monte_carlo(relay, tolerances, trials, distribution, n)
+    except GeometrySpecError as exc:
+        if not (isinstance(exc.param, tuple) and exc.param[0] == "tolerances"):
+            raise
+        name = exc.param[1]
+        flags = [flag for group, (flag, _, _) in TOLERANCE_OPTIONS.items() if name in GROUPS[group]]
+        raise GeometrySpecError(f"{exc} (set by {', '.join(flags + ['--tol'])})") from None
+
+
+def _result(relay, tolerancing, pixel_size, model, rows, mc) -> dict:
+    """The JSON-ready result of the command (``--json``; the tables print it)."""
+    return {
+        "relay": {
+            "d1_mm": relay.d1_mm, "orientation": relay.orientation,
+            "stop_distance_mm": relay.stop_distance_mm, "focal_length_mm": relay.focal_lengths_mm[0],
+            "focal_length_2_mm": relay.focal_lengths_mm[1],
+        },
+        "grid": {"n": tolerancing.n, "field_mm": tolerancing.field_mm, "pixel_size_um": pixel_size},
+        "model": model,
+        "calibration": {"free": list(tolerancing.calibration.free),
+                        "params": tolerancing.calibration.params_dict},
+        "aligned": tolerancing.aligned,
+        "sensitivity": rows,
+        "monte_carlo": mc,
+    }  # fmt: skip
 
 
 def _parse_percentiles(text: str) -> list[float]:
