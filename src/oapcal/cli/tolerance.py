@@ -81,39 +81,21 @@ DESIGN_OPTIONS = ("setup", "d1", "orientation", "stop_distance", "focal_length",
     help="Brown-Conrady model of the aligned calibration (preset or parameter list).",
 )
 @_tolerance_options
-@click.option(
-    "--tol",
-    "tol",
-    multiple=True,
-    metavar="NAME=VALUE",
-    help="Tolerance of one parameter (e.g. m2_tilt_x=0.02), overriding its group; repeatable.",
-)
-@click.option(
-    "--trials", type=int, default=500, show_default=True, help=f"Monte Carlo trials (at most {MAX_TRIALS:,})."
-)
+@click.option("--tol", "tol", multiple=True, metavar="NAME=VALUE",
+              help="Tolerance of one parameter (e.g. m2_tilt_x=0.02), overriding its group; "
+              "repeatable.")  # fmt: skip
+@click.option("--trials", type=int, default=500, show_default=True,
+              help=f"Monte Carlo trials (at most {MAX_TRIALS:,}).")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the Monte Carlo.")
-@click.option(
-    "--distribution",
-    type=click.Choice(["uniform", "normal"]),
-    default="uniform",
-    show_default=True,
-    help="uniform in +/- tolerance, or normal with sigma = tolerance / 2.",
-)
-@click.option(
-    "--percentiles",
-    default="50,90,95",
-    show_default=True,
-    help="Percentiles of the Monte Carlo summary, comma-separated.",
-)
-@click.option(
-    "--refit", is_flag=True, help="Also refit the model to each Monte Carlo relay (its own floor; slower)."
-)
-@click.option(
-    "--plot",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Figure (PNG): sensitivities, and the Monte Carlo distributions.",
-)
+@click.option("--distribution", type=click.Choice(["uniform", "normal"]), default="uniform",
+              show_default=True,
+              help="uniform in +/- tolerance, or normal with sigma = tolerance / 2.")  # fmt: skip
+@click.option("--percentiles", default="50,90,95", show_default=True,
+              help="Percentiles of the Monte Carlo summary, comma-separated.")  # fmt: skip
+@click.option("--refit", is_flag=True,
+              help="Also refit the model to each Monte Carlo relay (its own floor; slower).")  # fmt: skip
+@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+              help="Figure (PNG): sensitivities, and the Monte Carlo distributions.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
 def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal_length_2, n, field_mm,
                       pixel_size, model, groups, tol, trials, seed, distribution, percentiles, refit, plot,
