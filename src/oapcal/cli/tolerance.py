@@ -235,8 +235,6 @@ def _parse_assignment(text: str) -> tuple[str, float]:
 
 
 def print_tolerance(s: dict) -> None:
-    from rich import box
-    from rich.table import Table
 
     out = console()
     r, g, a = s["relay"], s["grid"], s["aligned"]
@@ -250,6 +248,19 @@ def print_tolerance(s: dict) -> None:
         f"Aligned: distortion max {a['max_px']:.2f} px, mean {a['mean_px']:.2f} px; the {s['model']} "
         f"calibration corrects it to mean {a['corrected_mean_px']:.3f} px, max {a['corrected_max_px']:.3f} px"
     )
+    out.print(_sensitivity_table(s["sensitivity"]))
+    mc = s["monte_carlo"]
+    if mc is None:
+        out.print("No tolerances given: add e.g. --tilt 0.05 --decentre 0.1 for a Monte Carlo.")
+        return
+    _print_monte_carlo(out, mc)
+
+
+def _sensitivity_table(rows):
+    """The table of first-order rates (rates below the resolution shown as 0)."""
+    from rich import box
+    from rich.table import Table
+
     from oapcal.optics.tolerance import RESOLUTION_PX
 
     def num(value, signed=False):
@@ -263,18 +274,19 @@ def print_tolerance(s: dict) -> None:
                 "shift", "scale%"):  # fmt: skip
         left = col in ("parameter", "unit")
         table.add_column(col, justify="left" if left else "right", no_wrap=left)
-    for row in s["sensitivity"]:
+    for row in rows:
         signed = [num(row[k], True) for k in ("max_plus_px", "max_minus_px", "mean_plus_px", "mean_minus_px")]
         plain = [
             num(row[k]) for k in ("corrected_mean_px", "corrected_max_px", "recentred_mean_px", "shift_px")
         ]
         scale = num(row["scale_ppm"] * 1e-4, True) if abs(row["scale_ppm"]) >= 1.0 else "0"
         table.add_row(row["parameter"], row["unit"], *signed, *plain, scale)
-    out.print(table)
-    mc = s["monte_carlo"]
-    if mc is None:
-        out.print("No tolerances given: add e.g. --tilt 0.05 --decentre 0.1 for a Monte Carlo.")
-        return
+    return table
+
+
+def _print_monte_carlo(out, mc) -> None:
+    from rich.table import Table
+
     tol = ", ".join(f"{k} {v:g}" for k, v in mc["tolerances"].items())
     out.print(
         f"Monte Carlo: {mc['trials']} trials ({mc['distribution']}, seed {mc['seed']}) within +/- {tol}"

@@ -258,6 +258,33 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
     def bad(field, what):
         return InputFileError(f"{source}: field '{field}' {what}")
 
+    _check_record(record, bad)
+    design = RelayDesign.from_dict(record)
+    family = design.family
+    if len(params) != family.n_params:
+        raise bad(
+            "relay_design.microscope_magnification",
+            f"says the model is {family.name!r} ({family.n_params} parameters) but the file holds "
+            f"{len(params)}; restore the design or refit",
+        )
+    try:
+        expected = relay_params(design)
+    except DataError as exc:  # e.g. no paraxial image: name the file's field
+        raise bad("relay_design", f"describes no working relay: {exc}") from None
+    for name in family.never_free:
+        i = family.param_names.index(name)
+        if not abs(params[i] - expected[i]) <= 1e-9 * max(1.0, abs(expected[i])):
+            raise bad(
+                f"params.{name}",
+                f"is {params[i]:.12g} but the relay_design gives {expected[i]:.12g}; design constants "
+                "are never fitted: restore the value or refit",
+            )
+    return design
+
+
+def _check_record(record, bad) -> None:
+    """The checks of :func:`design_from_record` on the record's fields, each raising
+    ``bad(field, what)``."""
     if not isinstance(record, Mapping):
         raise bad("relay_design", "must be an object (the design a relay model was fitted from)")
     unknown = sorted(set(record) - set(RelayDesign.__dataclass_fields__))
@@ -292,27 +319,6 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
             f"is {mag!r}; it must be null (no microscope) or a number with {lo:g} <= |M| <= {hi:g} "
             "(negative: the microscope inverts the image)",
         )
-    design = RelayDesign.from_dict(record)
-    family = design.family
-    if len(params) != family.n_params:
-        raise bad(
-            "relay_design.microscope_magnification",
-            f"says the model is {family.name!r} ({family.n_params} parameters) but the file holds "
-            f"{len(params)}; restore the design or refit",
-        )
-    try:
-        expected = relay_params(design)
-    except DataError as exc:  # e.g. no paraxial image: name the file's field
-        raise bad("relay_design", f"describes no working relay: {exc}") from None
-    for name in family.never_free:
-        i = family.param_names.index(name)
-        if not abs(params[i] - expected[i]) <= 1e-9 * max(1.0, abs(expected[i])):
-            raise bad(
-                f"params.{name}",
-                f"is {params[i]:.12g} but the relay_design gives {expected[i]:.12g}; design constants "
-                "are never fitted: restore the value or refit",
-            )
-    return design
 
 
 def relay_mask(spec="default", family=RELAY) -> np.ndarray:
@@ -657,7 +663,6 @@ def calibrate_relay(
     effective number of parameters, and the calibration records the priors (``priors``).
     """
     from oapcal.calibration import calibrate
-    from oapcal.errors import DataError
     from oapcal.fitting import check_enough_points
 
     xy_u = np.asarray(xy_u, float)
@@ -665,25 +670,9 @@ def calibrate_relay(
     mask = relay_mask(free, design.family)
     check_enough_points(len(xy_u), int(mask.sum()), source=source or "the point data")
     design = default_centre(design, xy_u, image_size)
-    p0 = relay_params(design)
-    with np.errstate(all="ignore"):
-        start = distort(xy_u, p0)
-    bad = ~np.isfinite(start).all(axis=1)
-    if not np.isfinite(p0).all() or bad.any():
-        raise DataError(
-            f"{source or 'the point data'}: the relay design {_design_words(design)} does not image "
-            f"{int(bad.sum()) or len(xy_u)} of {len(xy_u)} reference points (the trace is not finite "
-            "there): check the design values (d1, focal lengths, pixel size, centre) and the points' units",
-            param="design",
-        )
+    p0 = _imaging_start(design, xy_u, source)
     priors = parse_priors(priors)
-    unconstrained = mask.copy()
-    if priors is not None:
-        sig = priors.sigma(design)
-        unconstrained &= np.array([not np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
-    ident = identifiability(xy_u, p0, unconstrained)
-    if not ident.ok:
-        raise DataError(f"{source or 'the point data'}: {ident.message()}", param="free")
+    _check_identifiable(xy_u, p0, mask, design, priors, source)
     if um_per_px is None:
         um_per_px = design.object_um_per_px
     # Behind a microscope the misalignment moves the image by hundreds of px and the fit
@@ -698,6 +687,35 @@ def calibrate_relay(
         record = {**priors.to_dict(design), "noise_used_px": float(noise[0])}
     return calibrate(xy_u, xy_d, mask, init=p0, um_per_px=um_per_px, image_size=image_size, name=name,
                      source=source, relay_design=design.to_dict(), priors=record, **fit_options)  # fmt: skip
+
+
+def _imaging_start(design: RelayDesign, xy_u: np.ndarray, source: str | None) -> np.ndarray:
+    """The design's parameter vector, refused (:class:`~oapcal.errors.DataError`) when its
+    relay does not image every reference point (a trace that is not finite)."""
+    p0 = relay_params(design)
+    with np.errstate(all="ignore"):
+        start = distort(xy_u, p0)
+    bad = ~np.isfinite(start).all(axis=1)
+    if not np.isfinite(p0).all() or bad.any():
+        raise DataError(
+            f"{source or 'the point data'}: the relay design {_design_words(design)} does not image "
+            f"{int(bad.sum()) or len(xy_u)} of {len(xy_u)} reference points (the trace is not finite "
+            "there): check the design values (d1, focal lengths, pixel size, centre) and the points' units",
+            param="design",
+        )
+    return p0
+
+
+def _check_identifiable(xy_u, p0, mask, design: RelayDesign, priors, source: str | None) -> None:
+    """Refuse a subset the points do not determine (:func:`identifiability`); the values
+    with a finite prior count as determined."""
+    unconstrained = mask.copy()
+    if priors is not None:
+        sig = priors.sigma(design)
+        unconstrained &= np.array([not np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
+    ident = identifiability(xy_u, p0, unconstrained)
+    if not ident.ok:
+        raise DataError(f"{source or 'the point data'}: {ident.message()}", param="free")
 
 
 #: Largest misalignment angle (deg) of a plausible fit: what ``oapcal simulate relay``
