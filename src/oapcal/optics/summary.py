@@ -285,13 +285,52 @@ def resolution_limits(relay: Relay, beam_diameter_mm: float, wavelength_nm: floa
 # --------------------------------------------------------------------------- render
 
 
+def _distortion_summary(grid: GridDistortion, px: float) -> dict:
+    """The grid distortion's statistics in um and px (``px`` camera px per image mm)."""
+    disp, dist = grid.displacement, grid.distortion
+    return {
+        "max_um": float(dist.max() * 1e3),
+        "mean_um": float(dist.mean() * 1e3),
+        "max_px": float(dist.max() * px),
+        "mean_px": float(dist.mean() * px),
+        "max_abs_dx_um": float(np.abs(disp[:, 0]).max() * 1e3),
+        "max_abs_dy_um": float(np.abs(disp[:, 1]).max() * 1e3),
+        "max_abs_dx_px": float(np.abs(disp[:, 0]).max() * px),
+        "max_abs_dy_px": float(np.abs(disp[:, 1]).max() * px),
+    }
+
+
+def _quality_summary(sim: RelaySimulation) -> dict:
+    """The beam, its NA and resolution limits, and the spots' sizes."""
+    q = sim.limits
+    return {
+        "beam_diameter_mm": q.beam_diameter_mm,
+        "wavelength_nm": q.wavelength_nm,
+        "rings": sim.rings,
+        "na": q.na,
+        "na_traced": q.na_traced,
+        "sparrow_um": q.sparrow_um,
+        "rayleigh_um": q.rayleigh_um,
+        "pixel_limit_um": q.pixel_limit_um,
+        "spots": [
+            {
+                "orientation": key,
+                "field_mm": list(map(float, s.field_mm)),
+                "rms_um": s.rms_um,
+                "geo_um": s.geo_um,
+            }
+            for key in SPOT_ORIENTATIONS
+            for s in sim.spots[key]
+        ],  # fmt: skip
+    }
+
+
 def relay_summary(sim: RelaySimulation) -> dict:
     """The JSON-ready summary of ``oapcal simulate relay --json`` (``docs/cli.md``): the
     relay, the grid, the paraxial map, the distortion in um and px, the radial fit, the
     resolution limits and spots, and the paper's figures when comparable."""
-    relay, grid, radial, q = sim.relay, sim.grid, sim.radial, sim.limits
+    relay, grid, radial = sim.relay, sim.grid, sim.radial
     px = 1e3 / sim.pixel_size_um  # px per image mm
-    disp, dist = grid.displacement, grid.distortion
     return {
         "relay": {
             "d1_mm": relay.d1_mm,
@@ -311,16 +350,7 @@ def relay_summary(sim: RelaySimulation) -> dict:
         "paraxial_matrix": grid.matrix.round(12).tolist(),
         "paraxial_offset_mm": grid.offset.round(12).tolist(),
         "magnification": sim.magnification,
-        "distortion": {
-            "max_um": float(dist.max() * 1e3),
-            "mean_um": float(dist.mean() * 1e3),
-            "max_px": float(dist.max() * px),
-            "mean_px": float(dist.mean() * px),
-            "max_abs_dx_um": float(np.abs(disp[:, 0]).max() * 1e3),
-            "max_abs_dy_um": float(np.abs(disp[:, 1]).max() * 1e3),
-            "max_abs_dx_px": float(np.abs(disp[:, 0]).max() * px),
-            "max_abs_dy_px": float(np.abs(disp[:, 1]).max() * px),
-        },
+        "distortion": _distortion_summary(grid, px),
         "radial_fit": {
             "model": "radial",
             "normalize": "grid",
@@ -330,25 +360,6 @@ def relay_summary(sim: RelaySimulation) -> dict:
             "mean_correction_residual_um": radial.mean_correction_residual_mm * 1e3,
             "mean_correction_residual_px": radial.mean_correction_residual_mm * px,
         },
-        "quality": {
-            "beam_diameter_mm": q.beam_diameter_mm,
-            "wavelength_nm": q.wavelength_nm,
-            "rings": sim.rings,
-            "na": q.na,
-            "na_traced": q.na_traced,
-            "sparrow_um": q.sparrow_um,
-            "rayleigh_um": q.rayleigh_um,
-            "pixel_limit_um": q.pixel_limit_um,
-            "spots": [
-                {
-                    "orientation": key,
-                    "field_mm": list(map(float, s.field_mm)),
-                    "rms_um": s.rms_um,
-                    "geo_um": s.geo_um,
-                }
-                for key in SPOT_ORIENTATIONS
-                for s in sim.spots[key]
-            ],  # fmt: skip
-        },
+        "quality": _quality_summary(sim),
         "paper": sim.paper,
     }
