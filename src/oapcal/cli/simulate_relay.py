@@ -116,6 +116,7 @@ def misalignment_options(func):
     help="Figure of the relay in its fold plane with the frames of the misalignment conventions.",
 )  # fmt: skip
 @design_option("simulate", "microscope_magnification")
+# The command's options, one parameter each (click); the body calls helpers.
 def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,
                   image_size, beam_diameter, wavelength, spot_fields, rings, out, plot, spots,
                   as_json, focal_length_2=None, misalignment=None, layout=None,

@@ -97,6 +97,7 @@ DESIGN_OPTIONS = ("setup", "d1", "orientation", "stop_distance", "focal_length",
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
               help="Figure (PNG): sensitivities, and the Monte Carlo distributions.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+# The command's options, one parameter each (click); the body calls helpers.
 def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal_length_2, n, field_mm,
                       pixel_size, model, groups, tol, trials, seed, distribution, percentiles, refit, plot,
                       as_json):  # fmt: skip

@@ -602,6 +602,7 @@ def parse_priors(text) -> RelayPriors | None:
     return priors_from_dict(values, spec=text)
 
 
+# Ten parameters: the data, the design and the subsets, then keyword options of fit_batch's.
 def map_fit(xy_u, xy_d, design: RelayDesign, masks, priors: RelayPriors, *, p0=None, points=None,
             covariance: bool = True, max_iter: int = RELAY_MAX_ITER, noise_px=None):  # fmt: skip
     """The maximum a posteriori fit of relay subsets ``masks (B, P)`` under ``priors``:
@@ -633,6 +634,8 @@ def map_fit(xy_u, xy_d, design: RelayDesign, masks, priors: RelayPriors, *, p0=N
     return fits, used
 
 
+# Ten parameters: the points, the design and the subset, then the keyword options of
+# calibrate() (a public signature, kept as it is).
 def calibrate_relay(
     xy_u,
     xy_d,
