@@ -32,13 +32,18 @@ to that plane through the design's magnification ``M0``, ``o = A (r' - c) pixel 
 and the traced point ``h`` (mm on that plane) to the sensor as ``s = M h (1 + k1 |M h|^2)``
 (``M`` the fitted magnification, ``k1`` the radial term): the distorted point is
 ``c + s / pixel``.  The branch is chosen by the vector's length, so the plain relay's
-values are computed exactly as without it.  The geometry is exactly
-that of :func:`oapcal.optics.relay.oap_relay` (``docs/optics.md``); the tests check this
-function against that NumPy tracer.
+values are computed exactly as without it.
+
+The geometry (the frames of the mirrors, the stop, the sensor and the object plane under
+misalignment) is built by one function, :func:`relay_frames`, for this tracer and for the
+NumPy tracer :func:`oapcal.optics.relay.oap_relay` (``docs/optics.md``).  The chief ray is
+aimed here by Newton with a fresh Jacobian every step, to the rounding level: this is the
+reference for chief rays; the NumPy tracer's ``aim`` (any stop point, blocks of rays, to
+1e-10 mm) agrees with it to ~3e-10 px, and the tests check the two against each other.
 
 Why hand-written: the solver evaluates the model at every point for every parameter
-step (central differences over up to 24 parameters); the NumPy tracer builds its
-geometry with SciPy rotations and aims rays in Python, ~1000x slower per point.
+step (central differences over up to 24 parameters); the NumPy tracer aims rays in
+Python over arrays, ~1000x slower per point.
 """
 
 from __future__ import annotations
@@ -130,14 +135,14 @@ def _mount(v, n, a, b, clock, tilt_x, tilt_y):
 
 
 @numba.njit(**_JIT)
-def _mirror(p, i, centre, to_focus, axis, f):
-    """Mirror ``i`` (0 or 1) of the relay with its misalignment from ``p``: returns
-    ``(vertex, axis, parent focal length, e1, e2)`` with ``e1, e2`` the transverse axes
-    along which its surface is parametrized (the design's ``x`` and ``y`` rotated with
-    it), plus the mount rotation's images of the stop's axes ``(ex, ey, normal)`` and the
-    decentre shift (used by the stop at the first mirror)."""
-    o = _M + 6 * i
-    tilt_x, tilt_y, dec_x, dec_y, clock, df = p[o], p[o + 1], p[o + 2], p[o + 3], p[o + 4], p[o + 5]
+def _mirror(m, i, centre, to_focus, axis, f):
+    """Mirror ``i`` (0 or 1) of the relay with its misalignment from ``m`` (the 20
+    misalignment values): returns ``(vertex, axis, parent focal length, e1, e2)`` with
+    ``e1, e2`` the transverse axes along which its surface is parametrized (the design's
+    ``x`` and ``y`` rotated with it), plus the mount rotation's images of the stop's axes
+    ``(ex, ey, normal)`` and the decentre shift (used by the stop at the first mirror)."""
+    o = 6 * i
+    tilt_x, tilt_y, dec_x, dec_y, clock, df = m[o], m[o + 1], m[o + 2], m[o + 3], m[o + 4], m[o + 5]
     fn = f + df
     n = _unit(_add(axis, to_focus))  # the normal at a 90-degree OAP's centre
     a = (1.0, 0.0, 0.0)
@@ -148,10 +153,76 @@ def _mirror(p, i, centre, to_focus, axis, f):
     ax = _mount(axis, n, a, b, clock, tilt_x, tilt_y)
     e1 = _mount((1.0, 0.0, 0.0), n, a, b, clock, tilt_x, tilt_y)
     e2 = _mount((0.0, 1.0, 0.0), n, a, b, clock, tilt_x, tilt_y)
-    sx = _mount((1.0, 0.0, 0.0), n, a, b, clock, tilt_x, tilt_y)
-    sy = _mount((0.0, 1.0, 0.0), n, a, b, clock, tilt_x, tilt_y)
     sn = _mount((0.0, 0.0, 1.0), n, a, b, clock, tilt_x, tilt_y)
-    return vertex, ax, 0.5 * fn, e1, e2, sx, sy, sn, shift
+    return vertex, ax, 0.5 * fn, e1, e2, sn, shift
+
+
+@numba.njit(**_JIT)
+def relay_frames(m, d1_design, f1, f2, orient, stop):
+    """The frames of the relay's parts under misalignment: the one builder of the relay's
+    geometry, used by :func:`relay_point_value` (for every parameter vector the solver
+    tries) and by the NumPy tracer :func:`oapcal.optics.relay.oap_relay` (once per relay).
+
+    ``m`` the 20 misalignment values (:data:`oapcal.optics.misalign.PARAMETERS` order),
+    ``d1_design`` the design's collimated path (mm; ``m``'s d1 change is added), ``f1``,
+    ``f2`` the mirrors' design focal lengths, ``orient`` +1 (U) or -1 (Z), ``stop`` the
+    stop's distance after the first mirror (0: the first mirror's own aperture, which moves
+    with it).  Returns the tuple (3-vectors as tuples, mm)::
+
+        (obj_ex, obj_ey, obj_n,       the object plane's axes (its origin: 0)
+         v1, a1, fp1, e1, e2, c1,     the first mirror: vertex, parent axis, parent focal
+                                      length, the axes of its surface's (u, v), centre
+         v2, a2, fp2, c2,             the second mirror (without the surface's axes)
+         sp, sx, sy, sn,              the stop: its centre, x and y axes, normal
+         ip, jx, jy, jn)              the sensor: its centre, x and y axes, normal
+
+    The frames of ``docs/optics.md`` (Misalignment): each mirror rotated about its centre
+    by ``R_b(tilt_y) R_a(tilt_x) R_n(clock)`` (``a, b, n`` its design frame), then
+    decentred; a focal-length change moves the vertex, not the centre; the sensor at the
+    design's second focus, its axes the object's carried along the central ray by both
+    reflections, defocused along its normal, then tilted about its own x, then y axis; the
+    object plane tilted about its own x, then y axis.
+    """
+    d1 = d1_design + m[12]
+    o_ex = (1.0, 0.0, 0.0)
+    o_ey = (0.0, 0.0, 1.0)
+    o_n = (0.0, 1.0, 0.0)
+    tx, ty = m[18], m[19]
+    ex = _rotate(_rotate(o_ex, o_ex, tx), o_ey, ty)
+    ey = _rotate(_rotate(o_ey, o_ex, tx), o_ey, ty)
+    en = _rotate(_rotate(o_n, o_ex, tx), o_ey, ty)
+    c1 = (0.0, f1, 0.0)
+    to1 = (0.0, -1.0, 0.0)
+    ax1 = (0.0, 0.0, 1.0)
+    c2 = (0.0, f1, d1)
+    to2 = (0.0, -orient, 0.0)
+    ax2 = (0.0, 0.0, -1.0)
+    v1, a1, fp1, e1, e2, sn, shift1 = _mirror(m, 0, c1, to1, ax1, f1)
+    v2, a2, fp2, _, _, _, shift2 = _mirror(m, 1, c2, to2, ax2, f2)
+    # the stop: at the first mirror it is that mirror's aperture and moves with it
+    if stop == 0.0:
+        sp = _add(c1, shift1)
+        sx = e1
+        sy = e2
+    else:
+        sp = (0.0, f1, stop)
+        sx = (1.0, 0.0, 0.0)
+        sy = (0.0, 1.0, 0.0)
+        sn = (0.0, 0.0, 1.0)
+    sp = _add(sp, _add(_mul(m[13], sx), _mul(m[14], sy)))
+    # the sensor
+    n1 = _unit(_add(ax1, to1))
+    n2 = _unit(_add(ax2, to2))
+    i_ex = _reflect(_reflect(o_ex, n1), n2)
+    i_ey = _reflect(_reflect(o_ey, n1), n2)
+    i_n = _reflect(_reflect(o_n, n1), n2)
+    ip = _add(_add(c2, _mul(f2, to2)), _mul(m[17], i_n))
+    ctx, cty = m[15], m[16]
+    jx = _rotate(_rotate(i_ex, i_ex, ctx), i_ey, cty)
+    jy = _rotate(_rotate(i_ey, i_ex, ctx), i_ey, cty)
+    jn = _rotate(_rotate(i_n, i_ex, ctx), i_ey, cty)
+    return (ex, ey, en, v1, a1, fp1, e1, e2, _add(c1, shift1), v2, a2, fp2, _add(c2, shift2),
+            sp, sx, sy, sn, ip, jx, jy, jn)  # fmt: skip
 
 
 @numba.njit(inline="always", **_JIT)
@@ -170,7 +241,8 @@ def _normal(vertex, axis, fp, q):
 @numba.njit(**_JIT)
 def _stop_miss(vertex, axis, fp, e1, e2, obj, sp, sx, sy, sn, u, v):
     """Where the ray from ``obj`` reflected at the mirror point ``(u, v)`` crosses the
-    stop plane, in the stop's coordinates; also the hit and the reflected direction."""
+    stop plane, in the stop's coordinates; also the hit and the reflected direction.
+    (Twelve arguments: the frames as tuples, as :func:`_aim_chief_ray`.)"""
     q = _surface(vertex, axis, fp, e1, e2, u, v)
     d = _reflect(_unit(_sub(q, obj)), _normal(vertex, axis, fp, q))
     t = _dot(_sub(sp, q), sn) / _dot(d, sn)
@@ -178,11 +250,61 @@ def _stop_miss(vertex, axis, fp, e1, e2, obj, sp, sx, sy, sn, u, v):
     return _dot(h, sx), _dot(h, sy), q, d
 
 
+@numba.njit(inline="always", **_JIT)
+def _aim_chief_ray(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn):
+    """The chief ray from ``obj``: the point ``q`` of the first mirror (its surface's
+    ``(u, v)``) whose reflection ``d`` passes the stop's centre (Newton, forward-difference
+    Jacobian, from the point under the stop's centre).  (Ten arguments: the mirror's and
+    the stop's frames, passed as tuples; Numba has no cheap record of them.)"""
+    st = _sub(sp, v1)
+    u = _dot(st, e1)
+    v = _dot(st, e2)
+    mx, my, q, d = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v)
+    h = AIM_STEP
+    for _ in range(AIM_MAX_ITER):
+        ux, uy, _, _ = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u + h, v)
+        vx, vy, _, _ = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v + h)
+        ja = (ux - mx) / h
+        jc = (uy - my) / h
+        jb = (vx - mx) / h
+        jd = (vy - my) / h
+        det = ja * jd - jb * jc
+        du = (jd * mx - jb * my) / det
+        dv = (-jc * mx + ja * my) / det
+        u -= du
+        v -= dv
+        mx, my, q, d = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v)
+        if not (abs(du) + abs(dv) > AIM_TOL):  # converged (or NaN: the ray missed)
+            break
+    return q, d
+
+
+@numba.njit(inline="always", **_JIT)
+def _paraboloid_hit(q, d, vertex, axis, fp):
+    """The distance along the ray ``q + t d`` to its first hit (``t > 1e-9``) of the
+    paraboloid ``(vertex, axis, fp)``; inf when it misses (the stable quadratic roots)."""
+    r0 = _sub(q, vertex)
+    r0a = _dot(r0, axis)
+    r0p = _sub(r0, _mul(r0a, axis))
+    da = _dot(d, axis)
+    dp = _sub(d, _mul(da, axis))
+    four_f = 4.0 * fp
+    qa = _dot(dp, dp)
+    qb = 2.0 * _dot(r0p, dp) - four_f * da
+    qc = _dot(r0p, r0p) - four_f * r0a
+    sq = math.sqrt(qb * qb - 4.0 * qa * qc) if qb * qb - 4.0 * qa * qc >= 0.0 else np.nan
+    qq = -0.5 * (qb + math.copysign(sq, qb))
+    t1 = qq / qa if qa != 0.0 else np.inf
+    t2 = qc / qq if qq != 0.0 else np.inf
+    t1 = t1 if t1 > 1e-9 else np.inf
+    t2 = t2 if t2 > 1e-9 else np.inf
+    return min(t1, t2)
+
+
 @numba.njit(**_JIT)
 def relay_point_value(p, x, y):
     """The distorted point ``(xd, yd)`` px of the reference point ``(x, y)`` px (module
     docstring); NaN where the ray misses a surface."""
-    d1 = p[_D] + p[_M + 12]
     f1 = p[_D + 1]
     f2 = p[_D + 2]
     orient = p[_D + 3]
@@ -205,87 +327,15 @@ def relay_point_value(p, x, y):
         iy /= p[_S + 2]
     ox = p[_D + 8] * ix + p[_D + 9] * iy
     oy = p[_D + 10] * ix + p[_D + 11] * iy
-    # the object plane (tilted about its own x, then y axis through the field centre)
-    o_ex = (1.0, 0.0, 0.0)
-    o_ey = (0.0, 0.0, 1.0)
-    tx, ty = p[_M + 18], p[_M + 19]
-    ex = _rotate(_rotate(o_ex, o_ex, tx), o_ey, ty)
-    ey = _rotate(_rotate(o_ey, o_ex, tx), o_ey, ty)
+    (ex, ey, _, v1, a1, fp1, e1, e2, _, v2, a2, fp2, _, sp, sx, sy, sn, ip, jx, jy,
+     jn) = relay_frames(p[_M:_D], p[_D], f1, f2, orient, stop)  # fmt: skip
     obj = _add(_mul(ox, ex), _mul(oy, ey))
-    # the mirrors
-    c1 = (0.0, f1, 0.0)
-    to1 = (0.0, -1.0, 0.0)
-    ax1 = (0.0, 0.0, 1.0)
-    c2 = (0.0, f1, d1)
-    to2 = (0.0, -orient, 0.0)
-    ax2 = (0.0, 0.0, -1.0)
-    v1, a1, fp1, e1, e2, sx, sy, sn, shift1 = _mirror(p, 0, c1, to1, ax1, f1)
-    v2, a2, fp2, _, _, _, _, _, _ = _mirror(p, 1, c2, to2, ax2, f2)
-    # the stop: at the first mirror it is that mirror's aperture and moves with it
-    if stop == 0.0:
-        sp = _add(c1, shift1)
-    else:
-        sp = (0.0, f1, stop)
-        sx = (1.0, 0.0, 0.0)
-        sy = (0.0, 1.0, 0.0)
-        sn = (0.0, 0.0, 1.0)
-    sp = _add(sp, _add(_mul(p[_M + 13], sx), _mul(p[_M + 14], sy)))
-    # aim the chief ray: the point (u, v) of the first mirror whose reflection passes
-    # the stop's centre (Newton, forward-difference Jacobian)
-    st = _sub(sp, v1)
-    u = _dot(st, e1)
-    v = _dot(st, e2)
-    mx, my, q, d = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v)
-    h = AIM_STEP
-    for _ in range(AIM_MAX_ITER):
-        ux, uy, _, _ = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u + h, v)
-        vx, vy, _, _ = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v + h)
-        ja = (ux - mx) / h
-        jc = (uy - my) / h
-        jb = (vx - mx) / h
-        jd = (vy - my) / h
-        det = ja * jd - jb * jc
-        du = (jd * mx - jb * my) / det
-        dv = (-jc * mx + ja * my) / det
-        u -= du
-        v -= dv
-        mx, my, q, d = _stop_miss(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn, u, v)
-        if not (abs(du) + abs(dv) > AIM_TOL):  # converged (or NaN: the ray missed)
-            break
-    # the second mirror: the first hit beyond the first mirror
-    r0 = _sub(q, v2)
-    r0a = _dot(r0, a2)
-    r0p = _sub(r0, _mul(r0a, a2))
-    da = _dot(d, a2)
-    dp = _sub(d, _mul(da, a2))
-    four_f = 4.0 * fp2
-    qa = _dot(dp, dp)
-    qb = 2.0 * _dot(r0p, dp) - four_f * da
-    qc = _dot(r0p, r0p) - four_f * r0a
-    sq = math.sqrt(qb * qb - 4.0 * qa * qc) if qb * qb - 4.0 * qa * qc >= 0.0 else np.nan
-    qq = -0.5 * (qb + math.copysign(sq, qb))
-    t1 = qq / qa if qa != 0.0 else np.inf
-    t2 = qc / qq if qq != 0.0 else np.inf
-    t1 = t1 if t1 > 1e-9 else np.inf
-    t2 = t2 if t2 > 1e-9 else np.inf
-    t = min(t1, t2)
+    q, d = _aim_chief_ray(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn)
+    t = _paraboloid_hit(q, d, v2, a2, fp2)
     if not np.isfinite(t):
         return np.nan, np.nan
     q2 = _add(q, _mul(t, d))
     d2 = _reflect(d, _normal(v2, a2, fp2, q2))
-    # the sensor: the design's image plane at the second focus, its axes those of the
-    # object carried along the central ray; defocused along its normal, then tilted
-    # about its own x, then y axis
-    n1 = _unit(_add(ax1, to1))
-    n2 = _unit(_add(ax2, to2))
-    i_ex = _reflect(_reflect(o_ex, n1), n2)
-    i_ey = _reflect(_reflect(o_ey, n1), n2)
-    i_n = _reflect(_reflect((0.0, 1.0, 0.0), n1), n2)
-    ip = _add(_add(c2, _mul(f2, to2)), _mul(p[_M + 17], i_n))
-    ctx, cty = p[_M + 15], p[_M + 16]
-    jx = _rotate(_rotate(i_ex, i_ex, ctx), i_ey, cty)
-    jy = _rotate(_rotate(i_ey, i_ex, ctx), i_ey, cty)
-    jn = _rotate(_rotate(i_n, i_ex, ctx), i_ey, cty)
     t = _dot(_sub(ip, q2), jn) / _dot(d2, jn)
     hit = _sub(_add(q2, _mul(t, d2)), ip)
     hx = _dot(hit, jx)

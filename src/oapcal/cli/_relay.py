@@ -12,14 +12,117 @@ import math
 import click
 
 from oapcal.cli._common import Finite
+from oapcal.optics.design import FIELDS, MICROSCOPE_MAGNIFICATION_RANGE
 
+#: |M| of --microscope-magnification at least, and at most (the design table's range).
+MIN_MICROSCOPE_MAGNIFICATION, MAX_MICROSCOPE_MAGNIFICATION = MICROSCOPE_MAGNIFICATION_RANGE
 #: Defaults of the design options (the paper's OAPs and camera, as ``simulate relay``).
-DEFAULT_FOCAL_LENGTH_MM = 50.8
-DEFAULT_PIXEL_SIZE_UM = 4.8
-#: |M| of --microscope-magnification at most, and at least (a copy of
-#: ``relay_model.MICROSCOPE_MAGNIFICATION_RANGE``: importing it would load NumPy for --help).
-MAX_MICROSCOPE_MAGNIFICATION = 1000.0
-MIN_MICROSCOPE_MAGNIFICATION = 0.01
+DEFAULT_FOCAL_LENGTH_MM = FIELDS["focal_length_mm"].default
+DEFAULT_PIXEL_SIZE_UM = FIELDS["pixel_size_um"].default
+
+_W = "With --model relay: "
+#: How each command spells the design's fields (:data:`oapcal.optics.design.DESIGN_FIELDS`):
+#: style -> field -> (flag, Python name, help[, changes]).  Types, ranges and defaults come
+#: from the table; ``changes`` replace some for that style: ``simulate relay`` and
+#: ``tolerance`` leave the low end of d1, the second focal length and the pixel size to the
+#: tracer and the command, whose messages name the geometry ("d1 (the collimated path
+#: length) must be a positive number of mm"), and put the stop at the first mirror by
+#: None; ``simulate image`` traces a relay only when a setup or d1 is given.
+OPTION_STYLES: dict[str, dict[str, tuple]] = {
+    # fit, select, selfcal, robustness: with --model relay
+    "relay": {
+        "setup": ("--relay-setup", "relay_setup", _W + "the paper's setup 1 (d1 = 860 mm) or 2 (660 mm)."),
+        "d1_mm": ("--d1", "relay_d1", _W + "collimated path length, mm (overrides --relay-setup)."),
+        "focal_length_mm": ("--focal-length", "relay_focal_length",
+                            _W + "reflected focal length of the mirrors, mm."),
+        "focal_length_2_mm": ("--focal-length-2", "relay_focal_length_2",
+                              _W + "the second mirror's, mm (default: --focal-length)."),
+        "orientation": ("--orientation", "relay_orientation", _W + "U or Z."),
+        "stop_distance_mm": ("--stop-distance", "relay_stop",
+                             _W + "aperture stop, mm after the first mirror."),
+        "pixel_size_um": ("--pixel-size", "relay_pixel_size", _W + "camera pixel size, um."),
+        "centre": ("--relay-centre", "relay_centre", _W + "the point (px) on the relay's axis (default: the "
+                   "image centre with --image-size, else the middle of the reference points)."),
+        "microscope_magnification": ("--microscope-magnification", "microscope_magnification", _W + "a "
+                                     "finite-conjugate microscope between the relay and the camera, its "
+                                     "magnification; negative when it inverts the image (-5: a 5x objective "
+                                     "forming a real image). The model is then relay+microscope "
+                                     "(docs/models.md)."),
+    },
+    # simulate relay, tolerance: the relay traced
+    "simulate": {
+        "setup": ("--setup", "setup", "The paper's setup: 1 (d1 = 860 mm) or 2 (d1 = 660 mm)."),
+        "d1_mm": ("--d1", "d1", "Collimated path length in mm (overrides --setup).", {"low": None}),
+        "orientation": ("--orientation", "orientation",
+                        "U: parent axes coincide (cancels astigmatism); Z: rotated 180 degrees."),
+        "stop_distance_mm": ("--stop-distance", "stop_distance",
+                             "Aperture stop on the collimated path, mm after the first mirror "
+                             "(default: at it).",
+                             {"default": None}),
+        "focal_length_mm": ("--focal-length", "focal_length", "Reflected focal length of both mirrors, mm."),
+        "focal_length_2_mm": ("--focal-length-2", "focal_length_2",
+                              "Reflected focal length of the second mirror, mm (default: --focal-length).",
+                              {"low": None, "high": None}),
+        "pixel_size_um": ("--pixel-size", "pixel_size", "Camera pixel size, um.", {"low": None}),
+        "microscope_magnification": ("--microscope-magnification", "microscope_magnification", "The grid "
+                                     "CSV's image points (x_u..y_d) behind an ideal microscope of this "
+                                     "magnification (negative: it inverts the image, -5 for a 5x objective), "
+                                     "as "
+                                     "'oapcal fit --model relay --microscope-magnification' takes them; the "
+                                     "tables and figures stay at the relay's image."),
+    },
+    # simulate image: a ray-traced relay only when asked for
+    "image": {
+        "setup": ("--relay-setup", "relay_setup", "Ray-traced relay of the paper's setup 1 or 2.",
+                  {"default": None}),
+        "d1_mm": ("--d1", "d1_mm", "Ray-traced relay with this OAP 2 - OAP 3 distance (mm).",
+                  {"low": 1, "low_open": False}),
+        "pixel_size_um": ("--pixel-size-um", "pixel_size_um", "Camera pixel size (um).",
+                          {"low": 0.01, "low_open": False}),
+    },
+}  # fmt: skip
+
+
+def design_option(style: str, name: str, **changes):
+    """The click option of design field ``name`` as commands of ``style`` spell it
+    (:data:`OPTION_STYLES`, with the style's changes); ``changes`` replace the table's
+    ``default``, ``low``, ``low_open``, ``high`` for this command."""
+    field = FIELDS[name]
+    flag, dest, text, *styled = OPTION_STYLES[style][name]
+    spec = {"default": field.default, "low": field.low, "high": field.high, "low_open": field.low_open,
+            **(styled[0] if styled else {}), **changes}  # fmt: skip
+    default = spec["default"]
+    extra = {}
+    if field.choices:
+        kind = click.Choice([str(c) for c in field.choices], case_sensitive=name != "orientation")
+        default = None if default is None else str(default)
+    elif field.abs_range is not None:
+        kind = Finite(min=-field.abs_range[1], max=field.abs_range[1])
+        extra["metavar"] = "M"
+    elif field.numeric:
+        kind = Finite(
+            min=spec["low"], max=spec["high"], min_open=spec["low_open"] and spec["low"] is not None
+        )
+    else:  # the centre: a point, parsed by the command
+        kind, extra["metavar"] = None, "X,Y"
+    if default is not None:
+        extra["show_default"] = True
+    return click.option(flag, dest, type=kind, default=default, help=text, **extra)
+
+
+def design_options(style: str, *names: str):
+    """Add the options of the design fields ``names`` (all of ``style``'s when none are
+    given) to a command, in that order, each as :func:`design_option`; the command receives
+    them under their Python names."""
+    names = names or tuple(OPTION_STYLES[style])
+
+    def decorate(func):
+        for name in reversed(names):  # click lists the options last applied first
+            func = design_option(style, name)(func)
+        return func
+
+    return decorate
+
 
 RELAY_MODEL_HELP = (
     " Or 'relay' (the physical relay: its misalignment and the target's pose, from the "
@@ -33,46 +136,24 @@ def is_relay(model: str | None) -> bool:
     return isinstance(model, str) and (model.strip() == "relay" or model.strip().startswith("relay:"))
 
 
+def field_option(text: str):
+    """``--field``: the full width (mm) of the square object field a relay is traced over
+    (``simulate relay``, ``tolerance``), with the command's help ``text``."""
+    return click.option("--field", "field_mm", type=Finite(min=0, max=1000, min_open=True), default=1.0,
+                        show_default=True, help=text)  # fmt: skip
+
+
 def relay_design_options(func):
     """Add the design options of a relay model to a command (passed as ``relay_design``, a
     dict of their values, to keep the command's signature short)."""
-    length = Finite(min=0, max=10_000, min_open=True)
-    w = "With --model relay: "
-    options = [
-        click.option("--relay-setup", type=click.Choice(["1", "2"]), default="1", show_default=True,
-                     help=w + "the paper's setup 1 (d1 = 860 mm) or 2 (660 mm)."),
-        click.option("--d1", "relay_d1", type=Finite(min=0, max=100_000, min_open=True), default=None,
-                     help=w + "collimated path length, mm (overrides --relay-setup)."),
-        click.option("--focal-length", "relay_focal_length", type=length, default=DEFAULT_FOCAL_LENGTH_MM,
-                     show_default=True, help=w + "reflected focal length of the mirrors, mm."),
-        click.option("--focal-length-2", "relay_focal_length_2", type=length, default=None,
-                     help=w + "the second mirror's, mm (default: --focal-length)."),
-        click.option("--orientation", "relay_orientation", default="U", show_default=True,
-                     type=click.Choice(["U", "Z"], case_sensitive=False), help=w + "U or Z."),
-        click.option("--stop-distance", "relay_stop", type=Finite(min=0, max=100_000), default=0.0,
-                     show_default=True, help=w + "aperture stop, mm after the first mirror."),
-        click.option("--pixel-size", "relay_pixel_size", type=Finite(min=0, max=1000, min_open=True),
-                     default=DEFAULT_PIXEL_SIZE_UM, show_default=True, help=w + "camera pixel size, um."),
-        click.option("--relay-centre", "relay_centre", default=None, metavar="X,Y",
-                     help=w + "the point (px) on the relay's axis (default: the image centre with "
-                     "--image-size, else the middle of the reference points)."),
-        click.option("--microscope-magnification", "microscope_magnification", default=None, metavar="M",
-                     type=Finite(min=-MAX_MICROSCOPE_MAGNIFICATION, max=MAX_MICROSCOPE_MAGNIFICATION),
-                     help=w + "a finite-conjugate microscope between the relay and the camera, its "
-                     "magnification; negative when it inverts the image (-5: a 5x objective forming a "
-                     "real image). The model is then relay+microscope (docs/models.md)."),
-    ]  # fmt: skip
+    keys = tuple(dest for _, dest, _ in OPTION_STYLES["relay"].values())
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
-        keys = ("relay_setup", "relay_d1", "relay_focal_length", "relay_focal_length_2", "relay_orientation",
-                "relay_stop", "relay_pixel_size", "relay_centre", "microscope_magnification")  # fmt: skip
         kwargs["relay_design"] = {k: kwargs.pop(k) for k in keys}
         return func(*args, **kwargs)
 
-    for option in reversed(options):
-        wrapper = option(wrapper)
-    return wrapper
+    return design_options("relay")(wrapper)
 
 
 def parse_xy(text: str, option: str, example: str) -> tuple[float, float]:
@@ -106,13 +187,35 @@ def design_from_options(values: dict):
 
 
 def _microscope(value):
+    return check_microscope(
+        value, "-5 for a 5x objective that inverts the image", " when there is no microscope"
+    )
+
+
+def check_microscope(value, example: str = "-5", when: str = ""):
+    """``value`` of --microscope-magnification, refused (a usage error) below the design
+    table's smallest |M|."""
     if value is not None and abs(value) < MIN_MICROSCOPE_MAGNIFICATION:
         raise click.BadParameter(
-            f"{value:g} is not a magnification: give |M| >= {MIN_MICROSCOPE_MAGNIFICATION:g} (e.g. -5 for "
-            "a 5x objective that inverts the image), or leave the option out when there is no microscope",
+            f"{value:g} is not a magnification: give |M| >= {MIN_MICROSCOPE_MAGNIFICATION:g} "
+            f"(e.g. {example}), or leave the option out{when}",
             param_hint="--microscope-magnification",
         )
     return value
+
+
+#: The design fields that are arguments of :func:`oapcal.optics.relay.oap_relay` too.
+RELAY_FIELDS = ("d1_mm", "orientation", "stop_distance_mm", "focal_length_mm", "focal_length_2_mm")
+
+
+def traced_relay(values: dict, misalignment=None):
+    """The relay (:func:`oapcal.optics.relay.oap_relay`) of a traced command's design
+    options, ``values`` keyed by field name (``setup``, ``d1_mm`` ...): its errors name the
+    geometry (``d1 (the collimated path length) must be a positive number of mm``)."""
+    from oapcal.optics.relay import oap_relay
+
+    fields = {k: values[k] for k in RELAY_FIELDS if k in values}
+    return oap_relay(int(values["setup"]), misalignment=misalignment, **fields)
 
 
 def refuse_normalize(normalization: str | None, why: str) -> None:

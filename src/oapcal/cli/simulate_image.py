@@ -13,6 +13,7 @@ from oapcal.cli._common import (
     progress_bar,
     sanitize,
 )
+from oapcal.cli._relay import design_option, design_options
 
 #: Largest Gaussian PSF sigma (camera px): wider blurs every bar of the target into grey.
 MAX_SIGMA_PX = 50.0
@@ -26,19 +27,7 @@ BYTES_PER_SUBPIXEL = 100
 
 @click.command("image")
 @click.option("--groups", default="4-5", show_default=True, help="USAF groups to draw, e.g. 4-5 or 2,4-5.")
-@click.option(
-    "--relay-setup",
-    type=click.Choice(["1", "2"]),
-    default=None,
-    help="Ray-traced relay of the paper's setup 1 or 2.",
-)
-@click.option(
-    "--d1",
-    "d1_mm",
-    type=Finite(min=1, max=100_000),
-    default=None,
-    help="Ray-traced relay with this OAP 2 - OAP 3 distance (mm).",
-)
+@design_options("image", "setup", "d1_mm")
 @click.option(
     "--field",
     "field_name",
@@ -102,13 +91,7 @@ BYTES_PER_SUBPIXEL = 100
     show_default=True,
     help="Bright bars on a dark field, or dark bars on a bright field.",
 )
-@click.option(
-    "--pixel-size-um",
-    type=Finite(min=0.01, max=1000),
-    default=4.8,
-    show_default=True,
-    help="Camera pixel size (um).",
-)
+@design_option("image", "pixel_size_um")
 @click.option("--image-size", default="640x480", show_default=True, help="Camera size WxH (px).")
 @click.option(
     "--um-per-px",

@@ -14,7 +14,7 @@ from oapcal.cli._common import (
     print_json,
     progress_bar,
 )
-from oapcal.cli._relay import MAX_MICROSCOPE_MAGNIFICATION, MIN_MICROSCOPE_MAGNIFICATION
+from oapcal.cli._relay import check_microscope, design_option, design_options, field_option
 
 #: Largest grid (points per side) and number of hexapolar rings: beyond them tracing takes
 #: minutes and gigabytes and shows nothing new.
@@ -71,82 +71,20 @@ def misalignment_options(func):
 
 
 @click.command("relay")
-@click.option(
-    "--setup",
-    type=click.Choice(["1", "2"]),
-    default="1",
-    show_default=True,
-    help="The paper's setup: 1 (d1 = 860 mm) or 2 (d1 = 660 mm).",
-)
-@click.option(
-    "--d1",
-    "d1",
-    type=Finite(max=100_000),
-    default=None,
-    help="Collimated path length in mm (overrides --setup).",
-)
-@click.option(
-    "--orientation",
-    type=click.Choice(["U", "Z"], case_sensitive=False),
-    default="U",
-    show_default=True,
-    help="U: parent axes coincide (cancels astigmatism); Z: rotated 180 degrees.",
-)
-@click.option(
-    "--stop-distance",
-    type=Finite(min=0, max=100_000),
-    default=None,
-    help="Aperture stop on the collimated path, mm after the first mirror (default: at it).",
-)
-@click.option(
-    "--focal-length",
-    type=Finite(min=0, max=10_000, min_open=True),
-    default=50.8,
-    show_default=True,
-    help="Reflected focal length of both mirrors, mm.",
-)
-@click.option(
-    "--grid",
-    "n",
-    type=click.IntRange(max=MAX_GRID),
-    default=17,
-    show_default=True,
-    help="Grid points per side.",
-)
-@click.option(
-    "--field",
-    "field_mm",
-    type=Finite(min=0, max=1000, min_open=True),
-    default=1.0,
-    show_default=True,
-    help="Full width of the square object field, mm.",
-)
-@click.option(
-    "--units",
-    type=click.Choice(["mm", "px"]),
-    default="mm",
-    show_default=True,
-    help="Units of x_u,y_u,x_d,y_d in the CSV (image plane).",
-)
-@click.option(
-    "--pixel-size",
-    type=Finite(max=1000),
-    default=4.8,
-    show_default=True,
-    help="Camera pixel size, um.",
-)
+@design_options("simulate", "setup", "d1_mm", "orientation", "stop_distance_mm", "focal_length_mm")
+@click.option("--grid", "n", type=click.IntRange(max=MAX_GRID), default=17, show_default=True,
+              help="Grid points per side.")  # fmt: skip
+@field_option("Full width of the square object field, mm.")
+@click.option("--units", type=click.Choice(["mm", "px"]), default="mm", show_default=True,
+              help="Units of x_u,y_u,x_d,y_d in the CSV (image plane).")  # fmt: skip
+@design_option("simulate", "pixel_size_um")
 @click.option(
     "--image-size",
     default=None,
     help="With --units px: write camera px (axis at the image centre) for a WxH image.",
 )
-@click.option(
-    "--beam-diameter",
-    type=Finite(min=0, max=1000, min_open=True),
-    default=20.0,
-    show_default=True,
-    help="Collimated beam (stop) diameter for spots and NA, mm.",
-)
+@click.option("--beam-diameter", type=Finite(min=0, max=1000, min_open=True), default=20.0, show_default=True,
+              help="Collimated beam (stop) diameter for spots and NA, mm.")  # fmt: skip
 @click.option(
     "--wavelength", type=Finite(max=100_000), default=850.0, show_default=True, help="Wavelength, nm."
 )
@@ -157,28 +95,15 @@ def misalignment_options(func):
     metavar="X,Y",
     help="Object point (mm) of a spot diagram; repeat for more (default: centre, edges, corner).",
 )
-@click.option(
-    "--rings",
-    type=click.IntRange(max=MAX_RINGS),
-    default=8,
-    show_default=True,
-    help="Hexapolar rings of rays per spot diagram.",
-)
-@click.option(
-    "--out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    default=None,
-    help="Write the grid CSV (x_obj,y_obj,x_u,y_u,x_d,y_d,clear).",
-)
+@click.option("--rings", type=click.IntRange(max=MAX_RINGS), default=8, show_default=True,
+              help="Hexapolar rings of rays per spot diagram.")  # fmt: skip
+@click.option("--out", type=click.Path(dir_okay=False, allow_dash=True), default=None,
+              help="Write the grid CSV (x_obj,y_obj,x_u,y_u,x_d,y_d,clear).")  # fmt: skip
 @click.option("--plot", type=click.Path(dir_okay=False), default=None, help="Grid distortion figure (PNG).")
-@click.option(
-    "--spots", type=click.Path(dir_okay=False), default=None, help="Spot diagrams of both orientations (PNG)."
-)
+@click.option("--spots", type=click.Path(dir_okay=False), default=None,
+              help="Spot diagrams of both orientations (PNG).")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
-@click.option(
-    "--focal-length-2", "focal_length_2", type=float, default=None,
-    help="Reflected focal length of the second mirror, mm (default: --focal-length).",
-)  # fmt: skip
+@design_option("simulate", "focal_length_2_mm")
 @misalignment_options
 @click.option(
     "--reference", type=click.Choice(["paraxial", "design"]), default="paraxial", show_default=True,
@@ -190,24 +115,44 @@ def misalignment_options(func):
     "--layout", type=click.Path(dir_okay=False), default=None,
     help="Figure of the relay in its fold plane with the frames of the misalignment conventions.",
 )  # fmt: skip
-@click.option(
-    "--microscope-magnification", "microscope_magnification", metavar="M", default=None,
-    type=Finite(min=-MAX_MICROSCOPE_MAGNIFICATION, max=MAX_MICROSCOPE_MAGNIFICATION),
-    help="The grid CSV's image points (x_u..y_d) behind an ideal microscope of this magnification "
-    "(negative: it inverts the image, -5 for a 5x objective), as 'oapcal fit --model relay "
-    "--microscope-magnification' takes them; the tables and figures stay at the relay's image.",
-)  # fmt: skip
+@design_option("simulate", "microscope_magnification")
+# The command's options, one parameter each (click); the body calls helpers.
 def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,
                   image_size, beam_diameter, wavelength, spot_fields, rings, out, plot, spots,
                   as_json, focal_length_2=None, misalignment=None, layout=None,
                   reference="paraxial", microscope_magnification=None):  # fmt: skip
     """Trace the OAP relay: grid distortion (paraxial vs real chief rays), spots, limits."""
+    from oapcal.cli._relay import traced_relay
+    from oapcal.optics.summary import SimulationOptions, simulate_relay
+
+    size = _check_options(n, rings, units, image_size, pixel_size, beam_diameter, wavelength,
+                          microscope_magnification, (out, plot, spots, layout))  # fmt: skip
+    points = [_parse_point(text) for text in spot_fields] or None
+    bar, update = progress_bar("tracing")
+    with bar:
+        update(0, 1, f"tracing {n}x{n} grid and spots")
+        relay = traced_relay({"setup": setup, "d1_mm": d1, "orientation": orientation,
+                              "stop_distance_mm": stop_distance, "focal_length_mm": focal_length,
+                              "focal_length_2_mm": focal_length_2}, misalignment)  # fmt: skip
+        options = SimulationOptions(n=n, field_mm=field_mm, pixel_size_um=pixel_size,
+                                    beam_diameter_mm=beam_diameter, wavelength_nm=wavelength,
+                                    spot_fields=points, rings=rings)  # fmt: skip
+        sim = simulate_relay(relay, options, progress=update)
+        files = {"out": out, "plot": plot, "spots": spots, "layout": layout}
+        _write_outputs(sim, files, update, units, pixel_size, size, reference, microscope_magnification)
+    if as_json:
+        print_json(sim.summary)
+    elif out != "-":
+        print_summary(sim.summary)
+    return 0
+
+
+def _check_options(n, rings, units, image_size, pixel_size, beam_diameter, wavelength, microscope, files):
+    """Refuse bad option values before any tracing (usage errors naming the option);
+    returns the parsed --image-size.  (Nine arguments: the options it checks.)"""
     from oapcal.errors import GeometrySpecError
 
-    microscope = microscope_magnification
-
     size = parse_size(image_size)
-    points = [_parse_point(text) for text in spot_fields] or None
     if n < 3:
         raise GeometrySpecError(
             f"--grid {n}: a grid needs at least 2 points per side and the radial fit at least 3; "
@@ -215,66 +160,50 @@ def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_
         )
     if rings < 1:
         raise GeometrySpecError(f"--rings must be at least 1, got {rings}")
-    if microscope is not None and abs(microscope) < MIN_MICROSCOPE_MAGNIFICATION:
-        raise click.BadParameter(
-            f"{microscope:g} is not a magnification: give |M| >= {MIN_MICROSCOPE_MAGNIFICATION:g} (e.g. -5), "
-            "or leave the option out",
-            param_hint="--microscope-magnification",
-        )
+    check_microscope(microscope)
     if size is not None and units != "px":
         raise GeometrySpecError("--image-size needs --units px (camera px); drop it or add --units px")
     for value, name in ((pixel_size, "--pixel-size"), (beam_diameter, "--beam-diameter"),
                         (wavelength, "--wavelength")):  # fmt: skip
         if not value > 0:
             raise GeometrySpecError(f"{name} must be positive, got {value:g}")
-    outputs = [p for p in (out, plot, spots, layout) if p not in (None, "-")]
+    outputs = [p for p in files if p not in (None, "-")]
     if len(set(outputs)) < len(outputs):
         raise GeometrySpecError("--out, --plot, --spots and --layout must be different files")
     for path in outputs:
         check_output(path)
+    out, plot, spots, layout = files
     check_plot_suffix(plot, "--plot")
     check_plot_suffix(spots, "--spots")
     check_plot_suffix(layout, "--layout")
+    return size
 
+
+def _write_outputs(sim, files: dict, update, units, pixel_size, size, reference, microscope):
+    """The grid CSV and the figures asked for (all of them or none: :class:`OutputSet`)."""
     from oapcal.io.grid import write_grid_csv
-    from oapcal.optics.summary import simulate_relay
 
-    bar, update = progress_bar("tracing")
-    with bar:
-        update(0, 1, f"tracing {n}x{n} grid and spots")
-        sim = simulate_relay(
-            int(setup), d1_mm=d1, orientation=orientation, stop_distance_mm=stop_distance,
-            focal_length_mm=focal_length, n=n, field_mm=field_mm, pixel_size_um=pixel_size,
-            beam_diameter_mm=beam_diameter, wavelength_nm=wavelength, spot_fields=points, rings=rings,
-            progress=update, focal_length_2_mm=focal_length_2, misalignment=misalignment,
-        )  # fmt: skip
-        with OutputSet() as outputs:  # all three or none
-            if out is not None:
-                update(0, 1, "writing the grid CSV")
-                grid = sim.grid if reference == "paraxial" else _design_reference(sim.grid)
-                if microscope is not None:
-                    grid = _behind_microscope(grid, microscope)
-                write_grid_csv(grid, outputs.stage(out), units, pixel_size, size, progress=update)
-            if plot is not None:
-                from oapcal.report.optics_plots import plot_grid
+    with OutputSet() as outputs:
+        if files["out"] is not None:
+            update(0, 1, "writing the grid CSV")
+            grid = sim.grid if reference == "paraxial" else _design_reference(sim.grid)
+            if microscope is not None:
+                grid = _behind_microscope(grid, microscope)
+            write_grid_csv(grid, outputs.stage(files["out"]), units, pixel_size, size, progress=update)
+        if files["plot"] is not None:
+            from oapcal.report.optics_plots import plot_grid
 
-                update(0, 1, "plotting")
-                plot_grid(sim.grid, outputs.stage(plot), units=units, pixel_size_um=pixel_size)
-            if spots is not None:
-                from oapcal.report.optics_plots import plot_spots
+            update(0, 1, "plotting")
+            plot_grid(sim.grid, outputs.stage(files["plot"]), units=units, pixel_size_um=pixel_size)
+        if files["spots"] is not None:
+            from oapcal.report.optics_plots import plot_spots
 
-                plot_spots(
-                    sim.spots, outputs.stage(spots), airy_radius_um=sim.summary["quality"]["rayleigh_um"]
-                )
-            if layout is not None:
-                from oapcal.report.optics_plots import plot_layout
+            airy = sim.summary["quality"]["rayleigh_um"]
+            plot_spots(sim.spots, outputs.stage(files["spots"]), airy_radius_um=airy)
+        if files["layout"] is not None:
+            from oapcal.report.optics_plots import plot_layout
 
-                plot_layout(sim.grid.relay, outputs.stage(layout))
-    if as_json:
-        print_json(sim.summary)
-    elif out != "-":
-        print_summary(sim.summary)
-    return 0
+            plot_layout(sim.grid.relay, outputs.stage(files["layout"]))
 
 
 def _design_reference(grid):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import click
 
 from oapcal.cli._common import (
-    Finite,
     PointsUsageError,
     check_output,
     check_plot_suffix,
@@ -14,6 +13,7 @@ from oapcal.cli._common import (
     print_json,
     progress_bar,
 )
+from oapcal.cli._relay import design_option, design_options, field_option
 
 #: Smallest camera pixel (um): below it a grid of a mm spans over 1e7 px and the aligned
 #: calibration cannot be fitted in px.
@@ -62,42 +62,18 @@ def _tolerance_options(func):
     return wrapper
 
 
-#: The relay's design options, shared with ``oapcal simulate relay`` (the same definitions).
+#: The relay's design options, shared with ``oapcal simulate relay`` (the same definitions:
+#: :func:`oapcal.cli._relay.design_options`, style ``simulate``).
 DESIGN_OPTIONS = ("setup", "d1", "orientation", "stop_distance", "focal_length", "focal_length_2")
 
 
-def _relay_design_options(func):
-    """``--setup --d1 --orientation --stop-distance --focal-length --focal-length-2``,
-    copies of ``oapcal simulate relay``'s options (same names, types, bounds and help)."""
-    import copy
-
-    from oapcal.cli.simulate_relay import relay_command
-
-    defined = {p.name: p for p in relay_command.params}
-    params = func.__dict__.setdefault("__click_params__", [])
-    for name in reversed(DESIGN_OPTIONS):  # click reverses the list when it builds the command
-        params.append(copy.copy(defined[name]))
-    return func
-
-
 @click.command("tolerance", cls=OneLineCommand)
-@_relay_design_options
+@design_options(
+    "simulate", "setup", "d1_mm", "orientation", "stop_distance_mm", "focal_length_mm", "focal_length_2_mm"
+)
 @click.option("--grid", "n", type=int, default=17, show_default=True, help="Grid points per side.")
-@click.option(
-    "--field",
-    "field_mm",
-    type=Finite(min=0, max=1000, min_open=True),
-    default=1.0,
-    show_default=True,
-    help="Full width of the square object field, mm (as simulate relay).",
-)
-@click.option(
-    "--pixel-size",
-    type=Finite(min=MIN_PIXEL_UM, max=1000),
-    default=4.8,
-    show_default=True,
-    help="Camera pixel size, um.",
-)
+@field_option("Full width of the square object field, mm (as simulate relay).")
+@design_option("simulate", "pixel_size_um", low=MIN_PIXEL_UM, low_open=False)
 @click.option(
     "--model",
     default="paper",
@@ -105,45 +81,77 @@ def _relay_design_options(func):
     help="Brown-Conrady model of the aligned calibration (preset or parameter list).",
 )
 @_tolerance_options
-@click.option(
-    "--tol",
-    "tol",
-    multiple=True,
-    metavar="NAME=VALUE",
-    help="Tolerance of one parameter (e.g. m2_tilt_x=0.02), overriding its group; repeatable.",
-)
-@click.option(
-    "--trials", type=int, default=500, show_default=True, help=f"Monte Carlo trials (at most {MAX_TRIALS:,})."
-)
+@click.option("--tol", "tol", multiple=True, metavar="NAME=VALUE",
+              help="Tolerance of one parameter (e.g. m2_tilt_x=0.02), overriding its group; "
+              "repeatable.")  # fmt: skip
+@click.option("--trials", type=int, default=500, show_default=True,
+              help=f"Monte Carlo trials (at most {MAX_TRIALS:,}).")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the Monte Carlo.")
-@click.option(
-    "--distribution",
-    type=click.Choice(["uniform", "normal"]),
-    default="uniform",
-    show_default=True,
-    help="uniform in +/- tolerance, or normal with sigma = tolerance / 2.",
-)
-@click.option(
-    "--percentiles",
-    default="50,90,95",
-    show_default=True,
-    help="Percentiles of the Monte Carlo summary, comma-separated.",
-)
-@click.option(
-    "--refit", is_flag=True, help="Also refit the model to each Monte Carlo relay (its own floor; slower)."
-)
-@click.option(
-    "--plot",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Figure (PNG): sensitivities, and the Monte Carlo distributions.",
-)
+@click.option("--distribution", type=click.Choice(["uniform", "normal"]), default="uniform",
+              show_default=True,
+              help="uniform in +/- tolerance, or normal with sigma = tolerance / 2.")  # fmt: skip
+@click.option("--percentiles", default="50,90,95", show_default=True,
+              help="Percentiles of the Monte Carlo summary, comma-separated.")  # fmt: skip
+@click.option("--refit", is_flag=True,
+              help="Also refit the model to each Monte Carlo relay (its own floor; slower).")  # fmt: skip
+@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+              help="Figure (PNG): sensitivities, and the Monte Carlo distributions.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+# The command's options, one parameter each (click); the body calls helpers.
 def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal_length_2, n, field_mm,
                       pixel_size, model, groups, tol, trials, seed, distribution, percentiles, refit, plot,
                       as_json):  # fmt: skip
     """Sensitivity of the relay's grid distortion, and of the error of the aligned relay's
     calibration, to each misalignment; Monte Carlo over tolerances (--tilt 0.05 ...)."""
+    from oapcal.cli._relay import traced_relay
+
+    pct, per_parameter = _check_options(n, trials, pixel_size, field_mm, percentiles, tol, groups, plot)
+    from oapcal.model import parse_model
+    from oapcal.optics.tolerance import Tolerancing, expand_tolerances
+
+    parse_model(model)  # a bad model is a usage error before any work
+    tolerances = expand_tolerances(groups, per_parameter)
+    relay = traced_relay({"setup": setup, "d1_mm": d1, "orientation": orientation,
+                          "stop_distance_mm": stop_distance, "focal_length_mm": focal_length,
+                          "focal_length_2_mm": focal_length_2})  # fmt: skip
+    if tolerances:  # the trials, their memory and each tolerance's extremes, before any tracing
+        _check_monte_carlo(relay, tolerances, trials, distribution, n)
+    bar, update = progress_bar("tolerancing")
+    with bar:
+        update(0, 1, "calibrating the aligned relay")
+        tolerancing = Tolerancing(relay, n=n, field_mm=field_mm, pixel_size_um=pixel_size, model=model)
+        if not tolerancing.calibration.converged:
+            click.echo(
+                f"oapcal: error: the {model} model did not converge on the aligned relay's grid "
+                f"({tolerancing.calibration.message}); try another --model",
+                err=True,
+            )
+            return 3
+        update(0, 1, "sensitivities")
+        rows = tolerancing.sensitivity(progress=update)
+        mc = None
+        if tolerances:
+            update(0, trials, "Monte Carlo")
+            mc = tolerancing.monte_carlo(
+                tolerances, trials, seed=seed, distribution=distribution, percentiles=pct, refit=refit,
+                progress=update,
+            )  # fmt: skip
+        result = _result(relay, tolerancing, pixel_size, model, rows, mc)
+        if plot is not None:
+            from oapcal.report.optics_plots import plot_tolerance
+
+            update(0, 1, "plotting")
+            plot_tolerance(result, plot)
+    if as_json:
+        print_json(result)
+    else:
+        print_tolerance(result)
+    return 0
+
+
+def _check_options(n, trials, pixel_size, field_mm, percentiles, tol, groups, plot):
+    """Refuse bad option values before any work; returns the percentiles and the
+    per-parameter tolerances (``--tol``) parsed."""
     from oapcal.errors import GeometrySpecError
 
     if n < 2:
@@ -165,73 +173,41 @@ def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal
     if plot is not None:
         check_output(plot)
         check_plot_suffix(plot, "--plot")
+    return pct, per_parameter
 
-    from oapcal.model import parse_model
-    from oapcal.optics.relay import oap_relay
-    from oapcal.optics.tolerance import GROUPS as _GROUP_MEMBERS
-    from oapcal.optics.tolerance import Tolerancing, check_monte_carlo, expand_tolerances
 
-    parse_model(model)  # a bad model is a usage error before any work
-    tolerances = expand_tolerances(groups, per_parameter)
-    relay = oap_relay(
-        int(setup), d1_mm=d1, orientation=orientation, stop_distance_mm=stop_distance,
-        focal_length_mm=focal_length, focal_length_2_mm=focal_length_2,
-    )  # fmt: skip
-    if tolerances:  # the trials, their memory and each tolerance's extremes, before any tracing
-        try:
-            check_monte_carlo(relay, tolerances, trials, distribution, n)
-        except GeometrySpecError as exc:
-            if not (isinstance(exc.param, tuple) and exc.param[0] == "tolerances"):
-                raise
-            name = exc.param[1]
-            flags = [
-                flag for group, (flag, _, _) in TOLERANCE_OPTIONS.items() if name in _GROUP_MEMBERS[group]
-            ]
-            raise GeometrySpecError(f"{exc} (set by {', '.join(flags + ['--tol'])})") from None
-    bar, update = progress_bar("tolerancing")
-    with bar:
-        update(0, 1, "calibrating the aligned relay")
-        tolerancing = Tolerancing(relay, n=n, field_mm=field_mm, pixel_size_um=pixel_size, model=model)
-        if not tolerancing.calibration.converged:
-            click.echo(
-                f"oapcal: error: the {model} model did not converge on the aligned relay's grid "
-                f"({tolerancing.calibration.message}); try another --model",
-                err=True,
-            )
-            return 3
-        update(0, 1, "sensitivities")
-        rows = tolerancing.sensitivity(progress=update)
-        mc = None
-        if tolerances:
-            update(0, trials, "Monte Carlo")
-            mc = tolerancing.monte_carlo(
-                tolerances, trials, seed=seed, distribution=distribution, percentiles=pct, refit=refit,
-                progress=update,
-            )  # fmt: skip
-        result = {
-            "relay": {
-                "d1_mm": relay.d1_mm, "orientation": relay.orientation,
-                "stop_distance_mm": relay.stop_distance_mm, "focal_length_mm": relay.focal_lengths_mm[0],
-                "focal_length_2_mm": relay.focal_lengths_mm[1],
-            },
-            "grid": {"n": tolerancing.n, "field_mm": tolerancing.field_mm, "pixel_size_um": pixel_size},
-            "model": model,
-            "calibration": {"free": list(tolerancing.calibration.free),
-                            "params": tolerancing.calibration.params_dict},
-            "aligned": tolerancing.aligned,
-            "sensitivity": rows,
-            "monte_carlo": mc,
-        }  # fmt: skip
-        if plot is not None:
-            from oapcal.report.optics_plots import plot_tolerance
+def _check_monte_carlo(relay, tolerances, trials, distribution, n) -> None:
+    """:func:`oapcal.optics.tolerance.check_monte_carlo`, its error naming the flags that
+    set the offending tolerance."""
+    from oapcal.errors import GeometrySpecError
+    from oapcal.optics.tolerance import GROUPS, check_monte_carlo
 
-            update(0, 1, "plotting")
-            plot_tolerance(result, plot)
-    if as_json:
-        print_json(result)
-    else:
-        print_tolerance(result)
-    return 0
+    try:
+        check_monte_carlo(relay, tolerances, trials, distribution, n)
+    except GeometrySpecError as exc:
+        if not (isinstance(exc.param, tuple) and exc.param[0] == "tolerances"):
+            raise
+        name = exc.param[1]
+        flags = [flag for group, (flag, _, _) in TOLERANCE_OPTIONS.items() if name in GROUPS[group]]
+        raise GeometrySpecError(f"{exc} (set by {', '.join(flags + ['--tol'])})") from None
+
+
+def _result(relay, tolerancing, pixel_size, model, rows, mc) -> dict:
+    """The JSON-ready result of the command (``--json``; the tables print it)."""
+    return {
+        "relay": {
+            "d1_mm": relay.d1_mm, "orientation": relay.orientation,
+            "stop_distance_mm": relay.stop_distance_mm, "focal_length_mm": relay.focal_lengths_mm[0],
+            "focal_length_2_mm": relay.focal_lengths_mm[1],
+        },
+        "grid": {"n": tolerancing.n, "field_mm": tolerancing.field_mm, "pixel_size_um": pixel_size},
+        "model": model,
+        "calibration": {"free": list(tolerancing.calibration.free),
+                        "params": tolerancing.calibration.params_dict},
+        "aligned": tolerancing.aligned,
+        "sensitivity": rows,
+        "monte_carlo": mc,
+    }  # fmt: skip
 
 
 def _parse_percentiles(text: str) -> list[float]:
@@ -260,8 +236,6 @@ def _parse_assignment(text: str) -> tuple[str, float]:
 
 
 def print_tolerance(s: dict) -> None:
-    from rich import box
-    from rich.table import Table
 
     out = console()
     r, g, a = s["relay"], s["grid"], s["aligned"]
@@ -275,6 +249,19 @@ def print_tolerance(s: dict) -> None:
         f"Aligned: distortion max {a['max_px']:.2f} px, mean {a['mean_px']:.2f} px; the {s['model']} "
         f"calibration corrects it to mean {a['corrected_mean_px']:.3f} px, max {a['corrected_max_px']:.3f} px"
     )
+    out.print(_sensitivity_table(s["sensitivity"]))
+    mc = s["monte_carlo"]
+    if mc is None:
+        out.print("No tolerances given: add e.g. --tilt 0.05 --decentre 0.1 for a Monte Carlo.")
+        return
+    _print_monte_carlo(out, mc)
+
+
+def _sensitivity_table(rows):
+    """The table of first-order rates (rates below the resolution shown as 0)."""
+    from rich import box
+    from rich.table import Table
+
     from oapcal.optics.tolerance import RESOLUTION_PX
 
     def num(value, signed=False):
@@ -288,18 +275,19 @@ def print_tolerance(s: dict) -> None:
                 "shift", "scale%"):  # fmt: skip
         left = col in ("parameter", "unit")
         table.add_column(col, justify="left" if left else "right", no_wrap=left)
-    for row in s["sensitivity"]:
+    for row in rows:
         signed = [num(row[k], True) for k in ("max_plus_px", "max_minus_px", "mean_plus_px", "mean_minus_px")]
         plain = [
             num(row[k]) for k in ("corrected_mean_px", "corrected_max_px", "recentred_mean_px", "shift_px")
         ]
         scale = num(row["scale_ppm"] * 1e-4, True) if abs(row["scale_ppm"]) >= 1.0 else "0"
         table.add_row(row["parameter"], row["unit"], *signed, *plain, scale)
-    out.print(table)
-    mc = s["monte_carlo"]
-    if mc is None:
-        out.print("No tolerances given: add e.g. --tilt 0.05 --decentre 0.1 for a Monte Carlo.")
-        return
+    return table
+
+
+def _print_monte_carlo(out, mc) -> None:
+    from rich.table import Table
+
     tol = ", ".join(f"{k} {v:g}" for k, v in mc["tolerances"].items())
     out.print(
         f"Monte Carlo: {mc['trials']} trials ({mc['distribution']}, seed {mc['seed']}) within +/- {tol}"

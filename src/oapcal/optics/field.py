@@ -19,7 +19,7 @@ import numpy as np
 
 from oapcal import validate
 from oapcal.errors import GeometrySpecError
-from oapcal.optics.relay import Relay, apply_matrix, chief_rays, oap_relay, paraxial_map
+from oapcal.optics.relay import Relay, apply_matrix, chief_rays, paraxial_map, resolve_relay
 
 #: The cubic Hermite basis: ``[a0, a1, a2, a3] = HERMITE @ [p(0), p(1), p'(0), p'(1)]`` for
 #: ``p(s) = a0 + a1 s + a2 s^2 + a3 s^3``.
@@ -246,37 +246,39 @@ class DistortionField:
         return image_mm * (1e3 / self.pixel_size_um) + self.centre
 
 
-def relay_distortion(
-    setup: int | None = 1,
-    *,
-    d1_mm: float | None = None,
-    orientation: str = "U",
-    stop_distance_mm: float | None = None,
-    focal_length_mm: float = 50.8,
-    pixel_size_um: float = 4.8,
-    image_size: tuple[int, int] = (640, 480),
-    grid: int = 97,
-    focal_length_2_mm: float | None = None,
-    misalignment=None,
-) -> DistortionField:
-    """The traced distortion field of a relay (:func:`oapcal.optics.relay.oap_relay`)
-    seen by a camera of ``image_size`` (w, h) px of ``pixel_size_um``.
+def relay_distortion(design=1, *, pixel_size_um: float | None = None, image_size=(640, 480), grid: int = 97,
+                     misalignment=None, **keywords) -> DistortionField:  # fmt: skip
+    """The traced distortion field of a relay seen by a camera of ``image_size`` (w, h) px
+    of ``pixel_size_um`` (None: the design's; 4.8 without one).
+
+    ``design`` a :class:`~oapcal.optics.relay_model.RelayDesign` (traced with
+    ``misalignment``, as :func:`~oapcal.optics.relay.oap_relay` takes it), a
+    :class:`~oapcal.optics.relay.Relay`, or, the older form, the setup (1, 2 or None) with
+    the design's keywords of :func:`~oapcal.optics.relay.oap_relay` (``d1_mm``,
+    ``orientation``, ``stop_distance_mm``, ``focal_length_mm``, ``focal_length_2_mm``).
 
     ``grid`` nodes are traced along the longer image side (proportionally fewer along the
     shorter) over the image plus a margin of 16 px plus 1.1 times the largest displacement
     found on the image border, so that :meth:`DistortionField.inverse` covers every real
     pixel of the image.  The mirrors are treated as unbounded surfaces here: at large
     fields chief rays may fall outside the real mirrors (vignetting), see
-    ``DistortionField.vignetted_nodes``.  ``focal_length_2_mm`` and ``misalignment`` are as
-    in :func:`~oapcal.optics.relay.oap_relay`; a misaligned relay's paraxial px are
-    centred on the real image of the field centre (``DistortionField.offset_mm``), so the
-    displacement is the distortion alone, without the image's shift on the sensor.
+    ``DistortionField.vignetted_nodes``.  A misaligned relay's paraxial px are centred on
+    the real image of the field centre (``DistortionField.offset_mm``), so the displacement
+    is the distortion alone, without the image's shift on the sensor.
     """
-    from scipy.interpolate import RectBivariateSpline
-    from scipy.spatial import cKDTree
-
-    if not (float(pixel_size_um) > 0):
+    if pixel_size_um is not None and not (float(pixel_size_um) > 0):
         raise GeometrySpecError(f"the pixel size must be a positive number of um, got {pixel_size_um}")
+    w, h, n_long, n_short = _field_nodes(image_size, grid)
+    relay, pixel = resolve_relay(design, misalignment, keywords)
+    if keywords:
+        raise TypeError(f"relay_distortion() got an unexpected keyword argument {next(iter(keywords))!r}")
+    pixel_size_um = (4.8 if pixel is None else pixel) if pixel_size_um is None else pixel_size_um
+    return _traced_field(relay, float(pixel_size_um), w, h, n_long, n_short)
+
+
+def _field_nodes(image_size, grid) -> tuple[int, int, int, int]:
+    """``(w, h, nodes along the longer side, along the shorter)`` of a field's grid,
+    refused when the image or the grid is too small or the grid too large for memory."""
     w, h = (int(v) for v in image_size)
     if w < 2 or h < 2:
         raise GeometrySpecError(f"the image size must be at least 2x2 px, got {w}x{h}")
@@ -291,13 +293,17 @@ def relay_distortion(
         "give a smaller grid (the default 97 is enough for the inverse of a camera image)",
         param="grid",
     )
-    relay = oap_relay(
-        setup, d1_mm=d1_mm, orientation=orientation, stop_distance_mm=stop_distance_mm,
-        focal_length_mm=focal_length_mm, focal_length_2_mm=focal_length_2_mm, misalignment=misalignment,
-    )  # fmt: skip
+    return w, h, n_long, n_short
+
+
+def _traced_field(relay, pixel_size_um: float, w: int, h: int, n_long: int, n_short: int) -> DistortionField:
+    """:func:`relay_distortion` of a built relay: the traced nodes and their splines."""
+    from scipy.interpolate import RectBivariateSpline
+    from scipy.spatial import cKDTree
+
     matrix, offset = paraxial_map(relay)
     offset = None if relay.misalignment.is_zero else offset
-    probe = DistortionField(relay, float(pixel_size_um), (w, h), matrix, np.zeros(1), np.zeros(1), None, None,
+    probe = DistortionField(relay, pixel_size_um, (w, h), matrix, np.zeros(1), np.zeros(1), None, None,
                             offset_mm=offset)  # fmt: skip
     # The largest displacement on the image border sets the margin.
     t = np.linspace(0.0, 1.0, 65)
@@ -329,6 +335,6 @@ def relay_distortion(
     good = (dxx * dyy - dxy * dyx) > 0
     vignetted = ~chief_rays(relay, probe.object_um_from_paraxial(nodes) * 1e-3).clear
     return DistortionField(
-        relay, float(pixel_size_um), (w, h), matrix, xs, ys, spline_x, spline_y,
+        relay, pixel_size_um, (w, h), matrix, xs, ys, spline_x, spline_y,
         cKDTree(real[good]), nodes[good], vignetted, BicubicPatches(xs, ys, (spline_x, spline_y)), offset,
     )  # fmt: skip

@@ -40,15 +40,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import GeometrySpecError
-from oapcal.optics.misalign import Misalignment, rotations
-from oapcal.optics.surfaces import Paraboloid, Plane, Vec, axpy_c, dot_c, reflect, reflect_c, sub_c, unit_c
+from oapcal.optics.design import DEFAULT_FOCAL_LENGTH_MM
+from oapcal.optics.misalign import Misalignment
+from oapcal.optics.surfaces import Paraboloid, Plane, Vec, axpy_c, dot_c, reflect_c, sub_c, unit_c
 from oapcal.optics.trace import TraceResult, trace_c
 
 #: Collimated path length ``d1`` (mm) of the paper's two test setups.
 SETUP_D1_MM: dict[int, float] = {1: 860.0, 2: 660.0}
 ORIENTATIONS = ("U", "Z")
-#: Reflected focal length and diameter of the paper's OAPs (mm).
-DEFAULT_FOCAL_LENGTH_MM = 50.8
+#: Diameter of the paper's OAPs (mm; their focal length: ``design.DEFAULT_FOCAL_LENGTH_MM``).
 DEFAULT_DIAMETER_MM = 50.8
 
 
@@ -93,11 +93,16 @@ class Relay:
         """The same design with ``misalignment`` (or these named values) applied instead."""
         if misalignment is None:
             misalignment = Misalignment.from_dict(values)
-        return oap_relay(
-            None, d1_mm=self.d1_mm, orientation=self.orientation, stop_distance_mm=self.stop_distance_mm,
-            focal_length_mm=self.focal_length_mm, diameter_mm=self.diameter_mm,
-            focal_length_2_mm=self.focal_length_2_mm, misalignment=misalignment,
-        )  # fmt: skip
+        return self.rebuilt(misalignment=misalignment)
+
+    def rebuilt(self, **changes) -> Relay:
+        """This relay built again with some arguments of :func:`oap_relay` changed
+        (``orientation="Z"``, ``misalignment=...``)."""
+        args = {"d1_mm": self.d1_mm, "orientation": self.orientation,
+                "stop_distance_mm": self.stop_distance_mm,
+                "focal_length_mm": self.focal_length_mm, "diameter_mm": self.diameter_mm,
+                "focal_length_2_mm": self.focal_length_2_mm, "misalignment": self.misalignment}  # fmt: skip
+        return oap_relay(None, **{**args, **changes})
 
 
 def _check_positive(value, name: str) -> float:
@@ -105,22 +110,6 @@ def _check_positive(value, name: str) -> float:
     if not (np.isfinite(value) and value > 0):
         raise GeometrySpecError(f"{name} must be a positive number of mm, got {value:g}")
     return value
-
-
-def _oap(centre, to_focus, axis, f: float, radius: float) -> Paraboloid:
-    """A 90-degree OAP of reflected focal length ``f`` centred at ``centre``: its focus at
-    ``centre + f to_focus``, its parent axis (vertex to focus) along ``axis``."""
-    c, u, a = (np.asarray(v, dtype=float) for v in (centre, to_focus, axis))
-    return Paraboloid(vertex=c + f * u - (0.5 * f) * a, axis=a, focal_length=0.5 * f,
-                      aperture_centre=c, aperture_radius=radius)  # fmt: skip
-
-
-def _moved(mirror: Paraboloid, rot: np.ndarray, shift: np.ndarray) -> Paraboloid:
-    """``mirror`` rotated by ``rot`` about its aperture centre, then shifted by ``shift``."""
-    c = np.asarray(mirror.aperture_centre)
-    vertex = c + shift + rot @ (np.asarray(mirror.vertex) - c)
-    return Paraboloid(vertex=vertex, axis=rot @ np.asarray(mirror.axis), focal_length=mirror.focal_length,
-                      aperture_centre=c + shift, aperture_radius=mirror.aperture_radius)  # fmt: skip
 
 
 def mirror_frame(mirror: Paraboloid) -> np.ndarray:
@@ -131,36 +120,21 @@ def mirror_frame(mirror: Paraboloid) -> np.ndarray:
     return np.array([a, np.cross(n, a), n])
 
 
-def _misaligned_mirror(mirror: Paraboloid, to_focus, f: float, values: dict[str, float]):
-    """Apply one mirror's misalignment; returns ``(mirror, rotation, shift)``."""
-    a, b, n = mirror_frame(mirror)
-    if values["focal_length"]:
-        f_new = f + values["focal_length"]
-        if not f_new > 0:
-            change = values["focal_length"]
-            raise GeometrySpecError(f"a focal-length change of {change:g} mm leaves no mirror")
-        mirror = _oap(mirror.aperture_centre, to_focus, mirror.axis, f_new, mirror.aperture_radius)
-    rot = rotations((n, values["clock"]), (a, values["tilt_x"]), (b, values["tilt_y"]))
-    shift = values["decentre_x"] * a + values["decentre_y"] * b
-    if any(values[k] for k in ("clock", "tilt_x", "tilt_y", "decentre_x", "decentre_y")):
-        mirror = _moved(mirror, rot, shift)
-    return mirror, rot, shift
+def _frames(mis: Misalignment, d1: float, f: float, f2: float, orientation: str, stop: float, radius: float):
+    """The mirrors and planes of the relay from the one builder of its frames,
+    :func:`oapcal._relay_kernel.relay_frames` (the compiled tracer builds its geometry with
+    the same function): ``(m1, m2, object plane, stop, image plane, m1_axes)``."""
+    from oapcal._relay_kernel import relay_frames  # loads Numba: only when a relay is built
 
-
-def _moved_plane(plane: Plane, rot: np.ndarray, point) -> Plane:
-    """``plane`` with its axes rotated by ``rot`` and its origin at ``point``."""
-    return Plane(point=point, normal=rot @ np.asarray(plane.normal), ex=rot @ np.asarray(plane.ex),
-                 ey=rot @ np.asarray(plane.ey))  # fmt: skip
-
-
-def _tilted_plane(plane: Plane, tilt_x: float, tilt_y: float, shift_normal: float = 0.0) -> Plane:
-    """``plane`` moved along its normal, then rotated about its own x, then y axis
-    through its (moved) point."""
-    if not (tilt_x or tilt_y or shift_normal):
-        return plane
-    ex, ey, nz = (np.asarray(v) for v in (plane.ex, plane.ey, plane.normal))
-    rot = rotations((ex, tilt_x), (ey, tilt_y))
-    return Plane(point=np.asarray(plane.point) + shift_normal * nz, normal=rot @ nz, ex=rot @ ex, ey=rot @ ey)
+    values = np.array([float(v) for v in mis.to_dict().values()])
+    (ex, ey, en, v1, a1, fp1, e1, e2, c1, v2, a2, fp2, c2, sp, sx, sy, sn, ip, jx, jy,
+     jn) = relay_frames(values, d1, f, f2, 1.0 if orientation == "U" else -1.0, stop)  # fmt: skip
+    m1 = Paraboloid(vertex=v1, axis=a1, focal_length=fp1, aperture_centre=c1, aperture_radius=radius)
+    m2 = Paraboloid(vertex=v2, axis=a2, focal_length=fp2, aperture_centre=c2, aperture_radius=radius)
+    obj = Plane(point=(0.0, 0.0, 0.0), normal=en, ex=ex, ey=ey)
+    stop_plane = Plane(point=sp, normal=sn, ex=sx, ey=sy)
+    image = Plane(point=ip, normal=jn, ex=jx, ey=jy)
+    return m1, m2, obj, stop_plane, image, (tuple(e1), tuple(e2))
 
 
 def oap_relay(
@@ -210,41 +184,44 @@ def oap_relay(
         raise GeometrySpecError(
             f"the stop distance {stop:g} mm is outside the collimated path: give 0 .. {d1_real:g} mm"
         )
-    radius = 0.5 * diameter
-    focus_side = (0.0, -1.0, 0.0) if key == "U" else (0.0, 1.0, 0.0)
-    m1 = _oap((0.0, f, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 1.0), f, radius)
-    m2 = _oap((0.0, f, d1_real), focus_side, (0.0, 0.0, -1.0), f2, radius)
-    obj = Plane(point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0), ex=(1.0, 0.0, 0.0), ey=(0.0, 0.0, 1.0))
-    stop_plane = Plane(point=(0.0, f, stop), normal=(0.0, 0.0, 1.0), ex=(1.0, 0.0, 0.0), ey=(0.0, 1.0, 0.0))
-    # Carry the object axes along the central ray through both reflections.
-    axes = np.array([obj.ex, obj.ey, obj.normal])
-    for mirror in (m1, m2):
-        centre = np.asarray(mirror.aperture_centre)
-        axes = reflect(axes, mirror.normal(centre)[None, :])
-    image = Plane(point=tuple(m2.focus), normal=axes[2], ex=axes[0], ey=axes[1])
-    m1_axes = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
-    if not mis.is_zero:
-        m1, rot1, shift1 = _misaligned_mirror(m1, (0.0, -1.0, 0.0), f, mis.mirror(1))
-        m2, _, _ = _misaligned_mirror(m2, focus_side, f2, mis.mirror(2))
-        m1_axes = tuple(tuple(float(v) for v in rot1 @ np.asarray(e)) for e in m1_axes)
-        if stop == 0.0:  # the first mirror's own aperture: it moves with the mirror
-            stop_plane = _moved_plane(stop_plane, rot1, np.asarray(stop_plane.point) + shift1)
-        if mis.stop_decentre_x or mis.stop_decentre_y:
-            ex, ey = np.asarray(stop_plane.ex), np.asarray(stop_plane.ey)
-            point = np.asarray(stop_plane.point) + mis.stop_decentre_x * ex + mis.stop_decentre_y * ey
-            stop_plane = _moved_plane(stop_plane, np.eye(3), point)
-        if not f2 + mis.camera_defocus > 0:  # the sensor sits at the design focus, f2 after the mirror
-            raise GeometrySpecError(
-                f"a camera defocus of {mis.camera_defocus:g} mm puts the image plane at or behind the second "
-                f"mirror (the camera sits {f2:g} mm after it): give a defocus above {-f2:g} mm"
-            )
-        image = _tilted_plane(image, mis.camera_tilt_x, mis.camera_tilt_y, mis.camera_defocus)
-        obj = _tilted_plane(obj, mis.object_tilt_x, mis.object_tilt_y)
+    for i, f_i in ((1, f), (2, f2)):
+        change = mis.mirror(i)["focal_length"]
+        if change and not f_i + change > 0:
+            raise GeometrySpecError(f"a focal-length change of {change:g} mm leaves no mirror")
+    if not f2 + mis.camera_defocus > 0:  # the sensor sits at the design focus, f2 after the mirror
+        raise GeometrySpecError(
+            f"a camera defocus of {mis.camera_defocus:g} mm puts the image plane at or behind the second "
+            f"mirror (the camera sits {f2:g} mm after it): give a defocus above {-f2:g} mm"
+        )
+    m1, m2, obj, stop_plane, image, m1_axes = _frames(mis, d1, f, f2, key, stop, 0.5 * diameter)
     return Relay(
         focal_length_mm=f, diameter_mm=diameter, d1_mm=d1, orientation=key, stop_distance_mm=stop,
         m1=m1, m2=m2, object_plane=obj, stop=stop_plane, image_plane=image, m1_axes=m1_axes,
         focal_length_2_mm=None if focal_length_2_mm is None else f2, misalignment=mis,
     )  # fmt: skip
+
+
+#: The arguments of :func:`oap_relay` that describe the design (the older keyword form of
+#: the functions that take a design: :func:`resolve_relay`).
+RELAY_KEYWORDS = ("d1_mm", "orientation", "stop_distance_mm", "focal_length_mm", "focal_length_2_mm")
+
+
+def resolve_relay(design, misalignment=None, keywords: dict | None = None) -> tuple[Relay, float | None]:
+    """The relay a library function traces and the design's pixel size (um; None when the
+    argument has none), from its ``design`` argument: a
+    :class:`~oapcal.optics.relay_model.RelayDesign` (its relay with ``misalignment``), a
+    :class:`Relay` (traced as it is), or, the older form, the setup (1, 2 or None) with the
+    design's ``keywords`` of :func:`oap_relay` (:data:`RELAY_KEYWORDS`; taken out of the
+    dict, so what is left are the function's other keywords)."""
+    keywords = {} if keywords is None else keywords
+    if "setup" in keywords:
+        design = keywords.pop("setup")
+    relay_keywords = {k: keywords.pop(k) for k in RELAY_KEYWORDS if k in keywords}
+    if isinstance(design, Relay):
+        return design, None
+    if hasattr(design, "relay") and hasattr(design, "pixel_size_um"):  # a RelayDesign (imports this module)
+        return design.relay(misalignment), float(design.pixel_size_um)
+    return oap_relay(design, misalignment=misalignment, **relay_keywords), None
 
 
 # ------------------------------------------------------------------------ ray aiming
@@ -319,6 +296,19 @@ def _aim_c(relay: Relay, points: Vec, tx: np.ndarray, ty: np.ndarray, tol: float
     return q, d_out, miss <= tol, miss, n_iter
 
 
+def _flat_pair(a, da: int, b, db: int):
+    """``(shape, a (N, da), b (N, db))``: two arrays of vectors (``(..., da)``,
+    ``(..., db)``) broadcast against each other over their leading axes and flattened."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    return (
+        shape,
+        np.broadcast_to(a, shape + (da,)).reshape(-1, da),
+        np.broadcast_to(b, shape + (db,)).reshape(-1, db),
+    )
+
+
 def _blocks(n: int, progress):
     """Slices of ``CHUNK`` rays over ``n``, reporting ``progress(done, n)`` after each."""
     for lo in range(0, n, CHUNK):
@@ -341,11 +331,7 @@ def aim(
     steps in between).  Converged where the ray passes within ``tol`` mm of its target.
     ``progress(done, total)`` is called after each block of rays.
     """
-    points = np.asarray(points, dtype=float)
-    target_xy = np.asarray(target_xy, dtype=float)
-    shape = np.broadcast_shapes(points.shape[:-1], target_xy.shape[:-1])
-    p = np.broadcast_to(points, shape + (3,)).reshape(-1, 3)
-    t = np.broadcast_to(target_xy, shape + (2,)).reshape(-1, 2)
+    shape, p, t = _flat_pair(points, 3, target_xy, 2)
     n = p.shape[0]
     hit = np.empty((n, 3))
     direction = np.empty((n, 3))
@@ -391,11 +377,7 @@ def trace_through_stop(relay: Relay, xy_obj_mm, stop_xy_mm, *, progress=None, fu
     Rays are traced in blocks of :data:`CHUNK`; ``progress(done, total)`` is called after
     each.  ``full=False`` skips collecting the hit points and directions (faster).
     """
-    xy_obj_mm = np.asarray(xy_obj_mm, dtype=float)
-    stop_xy_mm = np.asarray(stop_xy_mm, dtype=float)
-    shape = np.broadcast_shapes(xy_obj_mm.shape[:-1], stop_xy_mm.shape[:-1])
-    obj = np.broadcast_to(xy_obj_mm, shape + (2,)).reshape(-1, 2)
-    stop = np.broadcast_to(stop_xy_mm, shape + (2,)).reshape(-1, 2)
+    shape, obj, stop = _flat_pair(xy_obj_mm, 2, stop_xy_mm, 2)
     n = obj.shape[0]
     xy = np.empty((n, 2))
     clear = np.empty(n, dtype=bool)

@@ -32,8 +32,9 @@ from oapcal.model import (
     RELAY_POSE_NAMES,
     distort,
 )
+from oapcal.optics.design import DESIGN_FIELDS, FIELDS, MICROSCOPE_MAGNIFICATION_RANGE
 from oapcal.optics.misalign import PARAMETERS, Misalignment
-from oapcal.optics.relay import DEFAULT_FOCAL_LENGTH_MM, oap_relay, paraxial_matrix
+from oapcal.optics.relay import oap_relay, paraxial_matrix
 
 #: The parameters fitted by default (``--model relay``): the target's whole pose and the
 #: six misalignment directions that reproduced fields of relays with all 20 values
@@ -97,34 +98,31 @@ class RelayDesign:
     and the camera, its lateral magnification, negative when it inverts the image (-5: a
     5x objective forming a real, inverted image); None (default): the camera is at the
     relay's image plane.  With a microscope the model family is ``relay+microscope``.
+
+    Units, defaults and ranges: :data:`oapcal.optics.design.DESIGN_FIELDS` (one table, which
+    the commands' design options are built from too).
     """
 
-    setup: int | None = 1
-    d1_mm: float | None = None
-    focal_length_mm: float = DEFAULT_FOCAL_LENGTH_MM
-    focal_length_2_mm: float | None = None
-    orientation: str = "U"
-    stop_distance_mm: float = 0.0
-    pixel_size_um: float = 4.8
-    centre: tuple[float, float] | None = None
-    microscope_magnification: float | None = None
+    setup: int | None = FIELDS["setup"].default
+    d1_mm: float | None = FIELDS["d1_mm"].default
+    focal_length_mm: float = FIELDS["focal_length_mm"].default
+    focal_length_2_mm: float | None = FIELDS["focal_length_2_mm"].default
+    orientation: str = FIELDS["orientation"].default
+    stop_distance_mm: float = FIELDS["stop_distance_mm"].default
+    pixel_size_um: float = FIELDS["pixel_size_um"].default
+    centre: tuple[float, float] | None = FIELDS["centre"].default
+    microscope_magnification: float | None = FIELDS["microscope_magnification"].default
 
     def __post_init__(self):
         """Refuse, naming the field, a design value that is not a number in its range
-        (:data:`DESIGN_RANGES`): a NaN or negative pixel size would otherwise show only as a
-        relay that images nothing."""
-        for name, (lo, hi, lo_open, nullable) in DESIGN_RANGES.items():
-            value = getattr(self, name)
-            if value is None and nullable:
-                continue
-            ok = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
-            if ok:
-                x = float(value)
-                ok = bool(np.isfinite(x)) and (x > lo if lo_open else x >= lo) and x <= hi
-            if not ok:
-                low = f"({lo:g}" if lo_open else f"[{lo:g}"
-                raise DataError(f"relay design {name} is {value!r}; it must be a number in {low}, {hi:g}]",
-                                param="design")  # fmt: skip
+        (:data:`~oapcal.optics.design.DESIGN_FIELDS`): a NaN or negative pixel size would
+        otherwise show only as a relay that images nothing."""
+        for f in _RANGED:
+            value = getattr(self, f.name)
+            ok = isinstance(value, int | float | np.integer | np.floating) or value is None
+            if not (ok and f.accepts(value)):
+                raise DataError(f"relay design {f.name} is {value!r}; it must be a number in "
+                                f"{f.describe_range()}", param="design")  # fmt: skip
         if self.centre is not None and not _two_finite(self.centre):
             raise DataError(f"relay design centre is {self.centre!r}; it must be two finite numbers (px)",
                             param="design")  # fmt: skip
@@ -229,17 +227,10 @@ def relay_params(
     return np.array([float(values[n]) for n in family.param_names])
 
 
-#: What a stored design may hold (the ranges ``oapcal fit --model relay`` accepts):
-#: field -> (lowest, highest, lowest excluded, may be null).
-DESIGN_RANGES = {
-    "d1_mm": (0.0, 100_000.0, True, True),
-    "focal_length_mm": (0.0, 10_000.0, True, False),
-    "focal_length_2_mm": (0.0, 10_000.0, True, True),
-    "stop_distance_mm": (0.0, 100_000.0, False, False),
-    "pixel_size_um": (0.0, 1000.0, True, False),
-}
-#: The microscope's magnification, in absolute value (its sign says whether it inverts).
-MICROSCOPE_MAGNIFICATION_RANGE = (0.01, 1000.0)
+#: The design's number fields (:data:`~oapcal.optics.design.DESIGN_FIELDS`), and their
+#: ranges as ``field -> (lowest, highest, lowest excluded, may be null)``.
+_RANGED = tuple(f for f in DESIGN_FIELDS if f.numeric)
+DESIGN_RANGES = {f.name: (f.low, f.high, f.low_open, f.nullable) for f in _RANGED}
 
 
 def _design_words(design: RelayDesign) -> str:
@@ -267,6 +258,33 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
     def bad(field, what):
         return InputFileError(f"{source}: field '{field}' {what}")
 
+    _check_record(record, bad)
+    design = RelayDesign.from_dict(record)
+    family = design.family
+    if len(params) != family.n_params:
+        raise bad(
+            "relay_design.microscope_magnification",
+            f"says the model is {family.name!r} ({family.n_params} parameters) but the file holds "
+            f"{len(params)}; restore the design or refit",
+        )
+    try:
+        expected = relay_params(design)
+    except DataError as exc:  # e.g. no paraxial image: name the file's field
+        raise bad("relay_design", f"describes no working relay: {exc}") from None
+    for name in family.never_free:
+        i = family.param_names.index(name)
+        if not abs(params[i] - expected[i]) <= 1e-9 * max(1.0, abs(expected[i])):
+            raise bad(
+                f"params.{name}",
+                f"is {params[i]:.12g} but the relay_design gives {expected[i]:.12g}; design constants "
+                "are never fitted: restore the value or refit",
+            )
+    return design
+
+
+def _check_record(record, bad) -> None:
+    """The checks of :func:`design_from_record` on the record's fields, each raising
+    ``bad(field, what)``."""
     if not isinstance(record, Mapping):
         raise bad("relay_design", "must be an object (the design a relay model was fitted from)")
     unknown = sorted(set(record) - set(RelayDesign.__dataclass_fields__))
@@ -275,19 +293,10 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
             f"relay_design.{unknown[0]}",
             f"is not a design field (fields: {', '.join(RelayDesign.__dataclass_fields__)})",
         )
-    for name, (lo, hi, lo_open, nullable) in DESIGN_RANGES.items():
-        value = record.get(name, getattr(RelayDesign, name))
-        if value is None and nullable:
-            continue
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, int | float)
-            or not ((lo < value if lo_open else lo <= value) and value <= hi)
-        ):
-            raise bad(
-                f"relay_design.{name}",
-                f"is {value!r}; it must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}]",
-            )
+    for f in _RANGED:
+        value = record.get(f.name, f.default)
+        if not ((value is None or isinstance(value, int | float)) and f.accepts(value)):
+            raise bad(f"relay_design.{f.name}", f"is {value!r}; it must be a number in {f.describe_range()}")
     if record.get("setup", 1) not in (1, 2, None) or isinstance(record.get("setup"), bool):
         raise bad("relay_design.setup", f"is {record.get('setup')!r}; it must be 1, 2 or null")
     if record.get("setup", 1) is None and record.get("d1_mm") is None:
@@ -310,27 +319,6 @@ def design_from_record(record, params, source: str = "calibration") -> RelayDesi
             f"is {mag!r}; it must be null (no microscope) or a number with {lo:g} <= |M| <= {hi:g} "
             "(negative: the microscope inverts the image)",
         )
-    design = RelayDesign.from_dict(record)
-    family = design.family
-    if len(params) != family.n_params:
-        raise bad(
-            "relay_design.microscope_magnification",
-            f"says the model is {family.name!r} ({family.n_params} parameters) but the file holds "
-            f"{len(params)}; restore the design or refit",
-        )
-    try:
-        expected = relay_params(design)
-    except DataError as exc:  # e.g. no paraxial image: name the file's field
-        raise bad("relay_design", f"describes no working relay: {exc}") from None
-    for name in family.never_free:
-        i = family.param_names.index(name)
-        if not abs(params[i] - expected[i]) <= 1e-9 * max(1.0, abs(expected[i])):
-            raise bad(
-                f"params.{name}",
-                f"is {params[i]:.12g} but the relay_design gives {expected[i]:.12g}; design constants "
-                "are never fitted: restore the value or refit",
-            )
-    return design
 
 
 def relay_mask(spec="default", family=RELAY) -> np.ndarray:
@@ -614,6 +602,7 @@ def parse_priors(text) -> RelayPriors | None:
     return priors_from_dict(values, spec=text)
 
 
+# Ten parameters: the data, the design and the subsets, then keyword options of fit_batch's.
 def map_fit(xy_u, xy_d, design: RelayDesign, masks, priors: RelayPriors, *, p0=None, points=None,
             covariance: bool = True, max_iter: int = RELAY_MAX_ITER, noise_px=None):  # fmt: skip
     """The maximum a posteriori fit of relay subsets ``masks (B, P)`` under ``priors``:
@@ -645,6 +634,8 @@ def map_fit(xy_u, xy_d, design: RelayDesign, masks, priors: RelayPriors, *, p0=N
     return fits, used
 
 
+# Ten parameters: the points, the design and the subset, then the keyword options of
+# calibrate() (a public signature, kept as it is).
 def calibrate_relay(
     xy_u,
     xy_d,
@@ -675,7 +666,6 @@ def calibrate_relay(
     effective number of parameters, and the calibration records the priors (``priors``).
     """
     from oapcal.calibration import calibrate
-    from oapcal.errors import DataError
     from oapcal.fitting import check_enough_points
 
     xy_u = np.asarray(xy_u, float)
@@ -683,25 +673,9 @@ def calibrate_relay(
     mask = relay_mask(free, design.family)
     check_enough_points(len(xy_u), int(mask.sum()), source=source or "the point data")
     design = default_centre(design, xy_u, image_size)
-    p0 = relay_params(design)
-    with np.errstate(all="ignore"):
-        start = distort(xy_u, p0)
-    bad = ~np.isfinite(start).all(axis=1)
-    if not np.isfinite(p0).all() or bad.any():
-        raise DataError(
-            f"{source or 'the point data'}: the relay design {_design_words(design)} does not image "
-            f"{int(bad.sum()) or len(xy_u)} of {len(xy_u)} reference points (the trace is not finite "
-            "there): check the design values (d1, focal lengths, pixel size, centre) and the points' units",
-            param="design",
-        )
+    p0 = _imaging_start(design, xy_u, source)
     priors = parse_priors(priors)
-    unconstrained = mask.copy()
-    if priors is not None:
-        sig = priors.sigma(design)
-        unconstrained &= np.array([not np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
-    ident = identifiability(xy_u, p0, unconstrained)
-    if not ident.ok:
-        raise DataError(f"{source or 'the point data'}: {ident.message()}", param="free")
+    _check_identifiable(xy_u, p0, mask, design, priors, source)
     if um_per_px is None:
         um_per_px = design.object_um_per_px
     # Behind a microscope the misalignment moves the image by hundreds of px and the fit
@@ -716,6 +690,35 @@ def calibrate_relay(
         record = {**priors.to_dict(design), "noise_used_px": float(noise[0])}
     return calibrate(xy_u, xy_d, mask, init=p0, um_per_px=um_per_px, image_size=image_size, name=name,
                      source=source, relay_design=design.to_dict(), priors=record, **fit_options)  # fmt: skip
+
+
+def _imaging_start(design: RelayDesign, xy_u: np.ndarray, source: str | None) -> np.ndarray:
+    """The design's parameter vector, refused (:class:`~oapcal.errors.DataError`) when its
+    relay does not image every reference point (a trace that is not finite)."""
+    p0 = relay_params(design)
+    with np.errstate(all="ignore"):
+        start = distort(xy_u, p0)
+    bad = ~np.isfinite(start).all(axis=1)
+    if not np.isfinite(p0).all() or bad.any():
+        raise DataError(
+            f"{source or 'the point data'}: the relay design {_design_words(design)} does not image "
+            f"{int(bad.sum()) or len(xy_u)} of {len(xy_u)} reference points (the trace is not finite "
+            "there): check the design values (d1, focal lengths, pixel size, centre) and the points' units",
+            param="design",
+        )
+    return p0
+
+
+def _check_identifiable(xy_u, p0, mask, design: RelayDesign, priors, source: str | None) -> None:
+    """Refuse a subset the points do not determine (:func:`identifiability`); the values
+    with a finite prior count as determined."""
+    unconstrained = mask.copy()
+    if priors is not None:
+        sig = priors.sigma(design)
+        unconstrained &= np.array([not np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
+    ident = identifiability(xy_u, p0, unconstrained)
+    if not ident.ok:
+        raise DataError(f"{source or 'the point data'}: {ident.message()}", param="free")
 
 
 #: Largest misalignment angle (deg) of a plausible fit: what ``oapcal simulate relay``

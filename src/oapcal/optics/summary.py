@@ -14,6 +14,7 @@ and figures are made elsewhere (:mod:`oapcal.io.grid`, :mod:`oapcal.report.optic
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -30,7 +31,7 @@ from oapcal.optics.quality import (
     spot_diagram,
     traced_numerical_aperture,
 )
-from oapcal.optics.relay import GridDistortion, Relay, grid_distortion, oap_relay, radial_fit
+from oapcal.optics.relay import GridDistortion, Relay, grid_distortion, radial_fit, resolve_relay
 
 #: The paper's figures for setup 1 (1 mm x 1 mm field, 17 x 17 points, 4.8 um pixels).
 PAPER_SETUP1 = {
@@ -155,39 +156,51 @@ class _Work:
             self.progress(self.done + done, self.total)
 
 
-def simulate_relay(
-    setup: int | None = 1,
-    *,
-    d1_mm: float | None = None,
-    orientation: str = "U",
-    stop_distance_mm: float | None = None,
-    focal_length_mm: float = 50.8,
-    n: int = 17,
-    field_mm: float = 1.0,
-    pixel_size_um: float = 4.8,
-    beam_diameter_mm: float = 20.0,
-    wavelength_nm: float = 850.0,
-    spot_fields=None,
-    rings: int = 8,
-    progress: Progress | None = None,
-    focal_length_2_mm: float | None = None,
-    misalignment=None,
-) -> RelaySimulation:
+@dataclass(frozen=True)
+class SimulationOptions:
+    """What :func:`simulate_relay` traces besides the relay: an ``n`` x ``n`` grid over
+    ``field_mm``, px figures for ``pixel_size_um`` (None: the design's, 4.8 for a
+    :class:`~oapcal.optics.relay.Relay`), spot diagrams at ``spot_fields`` (object mm,
+    ``(M, 2)``; None: :func:`default_spot_fields`) with ``rings`` hexapolar rings, and the
+    NA and resolution limits of a collimated beam of ``beam_diameter_mm`` at
+    ``wavelength_nm``."""
+
+    n: int = 17
+    field_mm: float = 1.0
+    pixel_size_um: float | None = None
+    beam_diameter_mm: float = 20.0
+    wavelength_nm: float = 850.0
+    spot_fields: object = None
+    rings: int = 8
+
+
+def simulate_relay(design=1, options: SimulationOptions | None = None, *, misalignment=None,
+                   progress: Progress | None = None, **keywords) -> RelaySimulation:  # fmt: skip
     """Trace the relay and summarize it (see the module docstring).
 
-    ``spot_fields`` are the object points (mm, ``(M, 2)``) of the spot diagrams, traced
-    with ``rings`` hexapolar rings of rays (default: :func:`default_spot_fields`).
-    ``progress(done, total)`` is called as the work advances, counted in traced rays
-    (the radial fit counts as one ray per grid point).  ``focal_length_2_mm`` and
-    ``misalignment`` are as in :func:`~oapcal.optics.relay.oap_relay` (the spot diagrams
-    of the other orientation get the same misalignment).
+    ``design`` a :class:`~oapcal.optics.relay_model.RelayDesign` (traced with
+    ``misalignment``, as :func:`~oapcal.optics.relay.oap_relay` takes it; the spot diagrams
+    of the other orientation get the same misalignment), or a
+    :class:`~oapcal.optics.relay.Relay` traced as it is; ``options`` a
+    :class:`SimulationOptions`.  ``progress(done, total)`` is called as the work advances,
+    counted in traced rays (the radial fit counts as one ray per grid point).
+
+    The older form still works: ``design`` the setup (1, 2 or None) and the relay's
+    keywords of :func:`~oapcal.optics.relay.oap_relay` (``d1_mm``, ``orientation``,
+    ``stop_distance_mm``, ``focal_length_mm``, ``focal_length_2_mm``), with the options'
+    fields as keywords (``simulate_relay(1, n=9, pixel_size_um=5.0)``).
     """
-    relay = oap_relay(
-        setup, d1_mm=d1_mm, orientation=orientation, stop_distance_mm=stop_distance_mm,
-        focal_length_mm=focal_length_mm, focal_length_2_mm=focal_length_2_mm, misalignment=misalignment,
-    )  # fmt: skip
-    n = int(n)
-    field_points = _spot_fields(spot_fields, field_mm)
+    relay, pixel = resolve_relay(design, misalignment, keywords)
+    options = dataclasses.replace(options or SimulationOptions(), **keywords)  # unknown names raise
+    if options.pixel_size_um is None:
+        options = dataclasses.replace(options, pixel_size_um=4.8 if pixel is None else pixel)
+    return _simulate(relay, options, progress)
+
+
+def _simulate(relay: Relay, options: SimulationOptions, progress: Progress | None) -> RelaySimulation:
+    """:func:`simulate_relay` of a built relay: the grid, its radial fit, spots and limits."""
+    n, field_mm, rings = int(options.n), options.field_mm, options.rings
+    field_points = _spot_fields(options.spot_fields, field_mm)
     rays_per_spot = len(hexapolar_pupil(rings)) + 1
     work = _Work(2 * n * n + len(SPOT_ORIENTATIONS) * len(field_points) * rays_per_spot + NA_RAYS, progress)
 
@@ -197,12 +210,12 @@ def simulate_relay(
     radial = RadialFitResidual(bool(fit_result.converged), forward_mm, correction_mm)
     work.advance(n * n)
     spots = trace_spots(
-        relay, field_points, beam_diameter_mm, rings, done=lambda: work.advance(rays_per_spot)
+        relay, field_points, options.beam_diameter_mm, rings, done=lambda: work.advance(rays_per_spot)
     )
-    limits = resolution_limits(relay, beam_diameter_mm, wavelength_nm, pixel_size_um,
+    limits = resolution_limits(relay, options.beam_diameter_mm, options.wavelength_nm, options.pixel_size_um,
                                paraxial_magnification(grid))  # fmt: skip
     work.advance(NA_RAYS)
-    return RelaySimulation(grid, spots, radial, limits, float(pixel_size_um), int(rings))
+    return RelaySimulation(grid, spots, radial, limits, float(options.pixel_size_um), int(rings))
 
 
 def _spot_fields(spot_fields, field_mm: float) -> list[tuple[float, float]]:
@@ -235,13 +248,7 @@ def trace_grid(relay: Relay, n: int, field_mm: float, progress: Progress | None 
 
 def _with_orientation(relay: Relay, orientation: str) -> Relay:
     """The same design and misalignment with the second mirror in ``orientation``."""
-    if orientation == relay.orientation:
-        return relay
-    return oap_relay(
-        None, d1_mm=relay.d1_mm, orientation=orientation, stop_distance_mm=relay.stop_distance_mm,
-        focal_length_mm=relay.focal_length_mm, diameter_mm=relay.diameter_mm,
-        focal_length_2_mm=relay.focal_length_2_mm, misalignment=relay.misalignment,
-    )  # fmt: skip
+    return relay if orientation == relay.orientation else relay.rebuilt(orientation=orientation)
 
 
 def trace_spots(relay: Relay, field_points, beam_diameter_mm: float, rings: int,
@@ -278,13 +285,52 @@ def resolution_limits(relay: Relay, beam_diameter_mm: float, wavelength_nm: floa
 # --------------------------------------------------------------------------- render
 
 
+def _distortion_summary(grid: GridDistortion, px: float) -> dict:
+    """The grid distortion's statistics in um and px (``px`` camera px per image mm)."""
+    disp, dist = grid.displacement, grid.distortion
+    return {
+        "max_um": float(dist.max() * 1e3),
+        "mean_um": float(dist.mean() * 1e3),
+        "max_px": float(dist.max() * px),
+        "mean_px": float(dist.mean() * px),
+        "max_abs_dx_um": float(np.abs(disp[:, 0]).max() * 1e3),
+        "max_abs_dy_um": float(np.abs(disp[:, 1]).max() * 1e3),
+        "max_abs_dx_px": float(np.abs(disp[:, 0]).max() * px),
+        "max_abs_dy_px": float(np.abs(disp[:, 1]).max() * px),
+    }
+
+
+def _quality_summary(sim: RelaySimulation) -> dict:
+    """The beam, its NA and resolution limits, and the spots' sizes."""
+    q = sim.limits
+    return {
+        "beam_diameter_mm": q.beam_diameter_mm,
+        "wavelength_nm": q.wavelength_nm,
+        "rings": sim.rings,
+        "na": q.na,
+        "na_traced": q.na_traced,
+        "sparrow_um": q.sparrow_um,
+        "rayleigh_um": q.rayleigh_um,
+        "pixel_limit_um": q.pixel_limit_um,
+        "spots": [
+            {
+                "orientation": key,
+                "field_mm": list(map(float, s.field_mm)),
+                "rms_um": s.rms_um,
+                "geo_um": s.geo_um,
+            }
+            for key in SPOT_ORIENTATIONS
+            for s in sim.spots[key]
+        ],  # fmt: skip
+    }
+
+
 def relay_summary(sim: RelaySimulation) -> dict:
     """The JSON-ready summary of ``oapcal simulate relay --json`` (``docs/cli.md``): the
     relay, the grid, the paraxial map, the distortion in um and px, the radial fit, the
     resolution limits and spots, and the paper's figures when comparable."""
-    relay, grid, radial, q = sim.relay, sim.grid, sim.radial, sim.limits
+    relay, grid, radial = sim.relay, sim.grid, sim.radial
     px = 1e3 / sim.pixel_size_um  # px per image mm
-    disp, dist = grid.displacement, grid.distortion
     return {
         "relay": {
             "d1_mm": relay.d1_mm,
@@ -304,16 +350,7 @@ def relay_summary(sim: RelaySimulation) -> dict:
         "paraxial_matrix": grid.matrix.round(12).tolist(),
         "paraxial_offset_mm": grid.offset.round(12).tolist(),
         "magnification": sim.magnification,
-        "distortion": {
-            "max_um": float(dist.max() * 1e3),
-            "mean_um": float(dist.mean() * 1e3),
-            "max_px": float(dist.max() * px),
-            "mean_px": float(dist.mean() * px),
-            "max_abs_dx_um": float(np.abs(disp[:, 0]).max() * 1e3),
-            "max_abs_dy_um": float(np.abs(disp[:, 1]).max() * 1e3),
-            "max_abs_dx_px": float(np.abs(disp[:, 0]).max() * px),
-            "max_abs_dy_px": float(np.abs(disp[:, 1]).max() * px),
-        },
+        "distortion": _distortion_summary(grid, px),
         "radial_fit": {
             "model": "radial",
             "normalize": "grid",
@@ -323,25 +360,6 @@ def relay_summary(sim: RelaySimulation) -> dict:
             "mean_correction_residual_um": radial.mean_correction_residual_mm * 1e3,
             "mean_correction_residual_px": radial.mean_correction_residual_mm * px,
         },
-        "quality": {
-            "beam_diameter_mm": q.beam_diameter_mm,
-            "wavelength_nm": q.wavelength_nm,
-            "rings": sim.rings,
-            "na": q.na,
-            "na_traced": q.na_traced,
-            "sparrow_um": q.sparrow_um,
-            "rayleigh_um": q.rayleigh_um,
-            "pixel_limit_um": q.pixel_limit_um,
-            "spots": [
-                {
-                    "orientation": key,
-                    "field_mm": list(map(float, s.field_mm)),
-                    "rms_um": s.rms_um,
-                    "geo_um": s.geo_um,
-                }
-                for key in SPOT_ORIENTATIONS
-                for s in sim.spots[key]
-            ],  # fmt: skip
-        },
+        "quality": _quality_summary(sim),
         "paper": sim.paper,
     }

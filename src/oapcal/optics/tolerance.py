@@ -196,6 +196,16 @@ class _Traced:
     clear: bool
 
 
+def _percentile_summary(values: np.ndarray, pct: list[float]) -> dict:
+    """``mean``, ``std``, ``max`` and ``p<q>`` of the finite ``values`` (None for none)."""
+    ok = values[np.isfinite(values)]
+    entry = {"mean": None, "std": None, "max": None, **{f"p{q:g}": None for q in pct}}
+    if ok.size:
+        entry.update(mean=float(ok.mean()), std=float(ok.std()), max=float(ok.max()))
+        entry.update({f"p{q:g}": float(v) for q, v in zip(pct, np.percentile(ok, pct))})
+    return entry
+
+
 class Tolerancing:
     """The aligned relay, its grid and calibration; evaluates misaligned copies.
 
@@ -389,33 +399,10 @@ class Tolerancing:
         check_monte_carlo(self.relay, tolerances, trials, distribution, self.n)
         samples = self.sample(tolerances, trials, seed, distribution)
         total = len(samples)
-        # Streamed: each block of trials is traced, measured and dropped, so memory holds the
-        # metrics and samples of every trial but the traced grids of one block only.
-        block = monte_carlo_block(self.n)
-        metrics: dict[str, list] = {}
-        for lo in range(0, total, block):
-            traced = []
-            for i in range(lo, min(lo + block, total)):
-                traced.append(self._trace(self.relay.with_misalignment(samples[i])))
-                if progress is not None and (i % 8 == 7 or i + 1 == total):
-                    progress(i + 1, total)
-            part = self._metrics(traced)
-            if refit:
-                part.update(self._refit(traced))
-            for k, v in part.items():
-                metrics.setdefault(k, []).append(v)
-            del traced
-        metrics = {k: np.concatenate(v) for k, v in metrics.items()}
+        metrics = self._streamed_metrics(samples, refit, progress)
         clear = metrics.pop("clear")
         lost = metrics.pop("lost")
-        summary = {}
-        for key, values in metrics.items():
-            ok = values[np.isfinite(values)]
-            entry = {"mean": None, "std": None, "max": None, **{f"p{q:g}": None for q in pct}}
-            if ok.size:
-                entry.update(mean=float(ok.mean()), std=float(ok.std()), max=float(ok.max()))
-                entry.update({f"p{q:g}": float(v) for q, v in zip(pct, np.percentile(ok, pct))})
-            summary[key] = entry
+        summary = {key: _percentile_summary(values, pct) for key, values in metrics.items()}
         names = list(expand_tolerances(parameters=tolerances))
         return {
             "trials": total,
@@ -435,6 +422,27 @@ class Tolerancing:
                 for i, m in enumerate(samples)
             ],  # fmt: skip
         }
+
+    def _streamed_metrics(self, samples, refit: bool, progress) -> dict[str, np.ndarray]:
+        """The metrics of every misalignment of ``samples`` (and ``clear``, ``lost``).
+        Streamed: each block of trials is traced, measured and dropped, so memory holds the
+        metrics and samples of every trial but the traced grids of one block only."""
+        total = len(samples)
+        block = monte_carlo_block(self.n)
+        metrics: dict[str, list] = {}
+        for lo in range(0, total, block):
+            traced = []
+            for i in range(lo, min(lo + block, total)):
+                traced.append(self._trace(self.relay.with_misalignment(samples[i])))
+                if progress is not None and (i % 8 == 7 or i + 1 == total):
+                    progress(i + 1, total)
+            part = self._metrics(traced)
+            if refit:
+                part.update(self._refit(traced))
+            for k, v in part.items():
+                metrics.setdefault(k, []).append(v)
+            del traced
+        return {k: np.concatenate(v) for k, v in metrics.items()}
 
     def _refit(self, traced: list[_Traced]) -> dict[str, np.ndarray]:
         from oapcal.fitting import fit
