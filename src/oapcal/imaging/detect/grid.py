@@ -176,10 +176,10 @@ def detect_grid(
     absolute ids when the whole grid is in view); ``um_per_px`` the camera's object-space
     pixel size to within 30 % (optional: the scale of ``xy_u`` and of the search);
     ``polarity`` of the dots (``dark`` on bright, ``bright`` on dark, or ``auto``)."""
-    from oapcal.imaging.detect.core import _to_float_image
+    from oapcal.imaging.detect.core import to_float_image
 
     _check_args(target, pitch_um, dot_um, rows, cols, um_per_px, polarity)
-    img = _to_float_image(image)
+    img = to_float_image(image)
     if img is None:
         return _fail(target, "the image is uniform: there is no grid in it", "uniform")
     h, w = img.shape
