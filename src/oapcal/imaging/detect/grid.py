@@ -30,6 +30,7 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.detect.lattice import index_lattice, lattice_periods
+from oapcal.imaging.detect.warp import PolyWarp
 
 #: Kinds of grid target.
 GRID_TARGETS = ("dots", "chessboard")
@@ -358,45 +359,29 @@ def _similar_to_neighbours(rc, area, ell) -> np.ndarray:
     return keep
 
 
-def _poly_terms(xy, degree):
-    x, y = xy[:, 0], xy[:, 1]
-    return np.stack([x**i * y**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=1)
-
-
-def _poly_grad(at, degree):
-    """d(terms)/dx and d(terms)/dy at the point ``at``."""
-    x, y = at
-    gx, gy = [], []
-    for i in range(degree + 1):
-        for j in range(degree + 1 - i):
-            gx.append(i * x ** (i - 1) * y**j if i else 0.0)
-            gy.append(j * x**i * y ** (j - 1) if j else 0.0)
-    return np.array(gx), np.array(gy)
-
-
 def _scale_fit(xy_d, grid_um, at, degree, norm):
-    """um per px at ``at`` from a polynomial image px -> grid um of ``degree``: ``(s, sigma)``."""
+    """um per px at ``at`` from a polynomial image px -> grid um of ``degree``: ``(s, sigma,
+    the polynomial)``."""
     c0, sc = norm
-    u = (xy_d - c0) / sc
-    a = _poly_terms(u, degree)
-    coef, *_ = np.linalg.lstsq(a, grid_um, rcond=None)
-    res = grid_um - a @ coef
-    dof = max(len(u) - a.shape[1], 1)
+    warp = PolyWarp.fit(xy_d, grid_um, degree, c0, sc)
+    a = warp.basis(xy_d)
+    res = grid_um - a @ warp.coef
+    dof = max(len(xy_d) - a.shape[1], 1)
     var = (res**2).sum(axis=0) / dof  # per output coordinate
     cov = np.linalg.pinv(a.T @ a)
-    gx, gy = _poly_grad((np.asarray(at) - c0) / sc, degree)
-    jac = np.array([[gx @ coef[:, 0], gy @ coef[:, 0]], [gx @ coef[:, 1], gy @ coef[:, 1]]]) / sc
+    at = np.asarray(at, float)[None, :]
+    jac = warp.jacobian(at)[0]
     det = abs(np.linalg.det(jac))
     s = float(np.sqrt(det))
-    # linear propagation: ds/dJ = s/2 J^-T; J_kj = g_j . coef_k / sc, coef_k ~ N(., var_k cov)
+    # linear propagation: ds/dJ = s/2 J^-T; J_kj = g_j . coef_k, coef_k ~ N(., var_k cov)
     ds = 0.5 * s * np.linalg.inv(jac).T
-    g = np.stack([gx, gy]) / sc  # (2, terms)
+    g = np.concatenate(warp.basis_jacobian(at))  # (2, terms): d terms / dx, dy at ``at``
     var_s = 0.0
     for k in range(2):
         ck = var[k] * cov
         vec = ds[k] @ g  # d s / d coef_k
         var_s += float(vec @ ck @ vec)
-    return s, float(np.sqrt(max(var_s, 0.0))), coef
+    return s, float(np.sqrt(max(var_s, 0.0))), warp
 
 
 def _pixel_size(xy_d, rc, pitch_um, centre) -> dict:
@@ -410,21 +395,13 @@ def _pixel_size(xy_d, rc, pitch_um, centre) -> dict:
     at = centre if inside else xy_d.mean(axis=0)
     norm = (xy_d.mean(axis=0), max(float(np.ptp(xy_d, axis=0).max()) / 2, 1.0))
     deg = SCALE_DEGREE if len(xy_d) >= 30 else 1
-    s, sig, coef = _scale_fit(xy_d, grid_um, at, deg, norm)
+    s, sig, scale_map = _scale_fit(xy_d, grid_um, at, deg, norm)
     if len(xy_d) >= 45:
         s4, _, _ = _scale_fit(xy_d, grid_um, at, deg + 1, norm)
         sig = float(np.hypot(sig, s4 - s))
-    u = (centre - norm[0]) / norm[1]
-    g_at_centre = (_poly_terms(u[None, :], deg) @ coef)[0] / pitch_um  # (col, row)
+    g_at_centre = scale_map(np.asarray(centre, float)[None, :])[0] / pitch_um  # (col, row)
     # the forward map grid (row, col) -> px, cubic, for the landmarks expected in view
-    gdeg = min(3, deg)
-    gn = (rc.mean(axis=0), max(float(np.ptp(rc, axis=0).max()) / 2, 1.0))
-    fa = _poly_terms((rc - gn[0]) / gn[1], gdeg)
-    fcoef, *_ = np.linalg.lstsq(fa, xy_d, rcond=None)
-
-    def forward(rc_q):
-        return _poly_terms((np.asarray(rc_q, float) - gn[0]) / gn[1], gdeg) @ fcoef
-
+    forward = PolyWarp.fit(rc, xy_d, min(3, deg))
     return {"um_per_px": s, "sigma": sig, "at": at, "grid_at_centre": g_at_centre[::-1], "forward": forward}
 
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.imaging.detect.bars import Triplets
+from oapcal.imaging.detect.warp import PolyWarp
 
 #: Penalty per resolvable reference triplet predicted inside the image but not found.
 MISSING_PENALTY = 0.3
@@ -224,20 +225,10 @@ def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np
     base = pose.apply(ref.centre)
     x = base[jj]
     resid = img.centre[ii] - x
-    c = x.mean(axis=0)
-    sc = max(float(np.ptp(x, axis=0).max()) / 2, 1.0)
-
-    def design(p):
-        z = (p - c) / sc
-        cols = [np.ones(len(z)), z[:, 0], z[:, 1]]
-        if n >= QUADRATIC_MATCHES:
-            cols += [z[:, 0] ** 2, z[:, 0] * z[:, 1], z[:, 1] ** 2]
-        return np.column_stack(cols)
-
-    coef, *_ = np.linalg.lstsq(design(x), resid, rcond=None)
+    warp = PolyWarp.fit(x, resid, 2 if n >= QUADRATIC_MATCHES else 1)
     # only near the matched triplets is the correction trusted (it is a polynomial)
-    corr = design(base) @ coef
-    far = np.hypot(*((base - c) / sc).T) > 1.6
+    corr = warp(base)
+    far = np.hypot(*((base - warp.centre) / warp.scale).T) > 1.6
     corr[far] = 0.0
     return base + corr
 

@@ -24,9 +24,9 @@ def poly_exponents(degree: int) -> list[tuple[int, int]]:
 
 
 def poly_terms(z: np.ndarray, degree: int) -> np.ndarray:
-    """The monomials (:func:`poly_exponents`) at the normalised points ``z`` ``(N, 2)``."""
+    """The monomials (:func:`poly_exponents`) at the normalised points ``z`` ``(..., 2)``."""
     z = np.asarray(z, float)
-    return np.stack([z[:, 0] ** i * z[:, 1] ** j for i, j in poly_exponents(degree)], -1)
+    return np.stack([z[..., 0] ** i * z[..., 1] ** j for i, j in poly_exponents(degree)], -1)
 
 
 def normalisation(x: np.ndarray) -> tuple[np.ndarray, float]:
