@@ -31,6 +31,14 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.detect.checks import check_consistency
+from oapcal.imaging.detect.records import (
+    ConsistencySummary,
+    DetectionDebug,
+    DroppedCounts,
+    PoseInfo,
+    WorkEstimate,
+    with_changes,
+)
 from oapcal.imaging.detect.registration import (
     MAX_FIT_PIXELS,
     FitOptions,
@@ -109,6 +117,13 @@ class Detection:
     width and height in object um, ``pixel_size`` the measurement from the kept corners
     (``um_per_px``, its ``statistical``, ``anisotropy`` and ``estimator`` parts, ...);
     ``image_sha256`` the digest of the image file (set by the command; ``""`` for an array).
+
+    ``dropped``, ``consistency``, ``pose``, ``work`` and ``debug`` are the typed records of
+    :mod:`.records` (each read like the dict it was: ``det.pose["layout"]``, ``dict(det.work)``;
+    ``{}`` until the stage that fills it has run); ``orientation_scores`` and ``predicted``
+    are dicts keyed by orientation name and corner id.  The message of a detection is
+    ``message``; :meth:`summary` (the JSON of ``oapcal detect``) also writes it under the
+    key ``reason``, while the attribute ``reason`` is the failure code above.
     """
 
     ids: tuple[str, ...]
@@ -116,7 +131,7 @@ class Detection:
     xy_d: np.ndarray
     stderr_px: np.ndarray
     n_expected: int
-    dropped: dict = field(default_factory=dict)
+    dropped: DroppedCounts | dict = field(default_factory=dict)
     status: int = 0
     message: str = "ok"
     polarity: str = "bright"
@@ -124,13 +139,13 @@ class Detection:
     ncc: float = float("nan")
     orientation: str = "none"
     orientation_scores: dict = field(default_factory=dict)
-    consistency: dict = field(default_factory=dict)
+    consistency: ConsistencySummary | dict = field(default_factory=dict)
     predicted: dict = field(default_factory=dict, repr=False)
     um_per_px: float = float("nan")
-    pose: dict = field(default_factory=dict)
+    pose: PoseInfo | dict = field(default_factory=dict)
     triplets_found: int = 0
-    work: dict = field(default_factory=dict)
-    debug: dict = field(default_factory=dict, repr=False)
+    work: WorkEstimate | dict = field(default_factory=dict)
+    debug: DetectionDebug | dict = field(default_factory=dict, repr=False)
     param: tuple[str, ...] = ()
     reason: str = ""
     um_per_px_sigma: float | None = None
@@ -272,7 +287,7 @@ def detect_usaf(
     return _with_pixel_size(det, groups, um_per_px is not None, (w, h))
 
 
-def work_estimate(shape: tuple[int, int]) -> dict:
+def work_estimate(shape: tuple[int, int]) -> WorkEstimate:
     """Memory (MB) that detection needs at most for an image of ``shape`` (rows, cols):
     a few float copies of the image, the bounded reference raster with its blurred
     copies, and the bounded pixel fit (Jacobian of at most 34 columns)."""
@@ -282,10 +297,7 @@ def work_estimate(shape: tuple[int, int]) -> dict:
     image = 12 * h * w * 8
     raster = MAX_RASTER_CELLS * 4 * (1 + 3 * RASTER_CACHE + 2)
     fit = MAX_FIT_PIXELS * (34 + 12) * 8
-    return {
-        "pixels": int(h * w),
-        "memory_bound_mb": round((image + min(raster, 48 * h * w * 4) + fit) / 2**20),
-    }
+    return WorkEstimate(int(h * w), round((image + min(raster, 48 * h * w * 4) + fit) / 2**20))
 
 
 @dataclass(frozen=True)
@@ -325,8 +337,8 @@ def _detect(img, groups, opts: _Options, progress) -> Detection:
     with Stages(progress, 3 + n_trip, "detecting corners") as bar:
         found = _search_pose(img, groups, opts, bar)
         pres, trips = found.result, found.trips
-        debug = {"image_triplets": trips, "ref": found.ref, "pose": pres.pose, "runner_up": pres.runner_up}
-        pose_info = dict(_pose_summary(pres, um_per_px), layout=found.layout)
+        debug = DetectionDebug(trips, found.ref, pres.pose, pres.runner_up)
+        pose_info = _pose_summary(pres, found.layout)
         seen = {"debug": debug, "triplets_found": len(trips), "work": work}
         empty = _replace(empty, pose=pose_info, debug=debug, triplets_found=len(trips))
         if pres.status != 0 and (um_per_px is None or opts.anchors):
@@ -349,7 +361,9 @@ def _detect(img, groups, opts: _Options, progress) -> Detection:
         small = h * w <= DENSE_MAX_PIXELS and um_per_px is not None
         if det_p is not None and det_p.status == 0 and det_p.coverage >= 0.9 and not small:
             # a large image: the dense registration only when the triplets fell short
-            return _at_scale(_replace(det_p, pose=dict(det_p.pose, method="triplets")), um_per_px, (w, h))
+            return _at_scale(
+                _replace(det_p, pose=with_changes(det_p.pose, method="triplets")), um_per_px, (w, h)
+            )
         bar.stage("dense registration")
         if start is not None:
             det_d = _detect_dense(img, found.target, det_p.um_per_px, start.orientation, opts, bar, start)
@@ -357,7 +371,7 @@ def _detect(img, groups, opts: _Options, progress) -> Detection:
             det_d = _detect_dense(img, usaf_target(groups), float(um_per_px), opts.orientation, opts, bar)
         det_d = _replace(det_d, pose=pose_info, **seen)
         if det_p is None:
-            return _replace(det_d, pose=dict(pose_info, method="correlation"))
+            return _replace(det_d, pose=with_changes(pose_info, method="correlation"))
         det_p, det_d = _at_scale(det_p, um_per_px, (w, h)), _at_scale(det_d, um_per_px, (w, h))
         det = _combine([det_p, det_d])
         if um_per_px is not None and det.reason != "registrations_disagree" and (small or det.status != 0):
@@ -366,7 +380,7 @@ def _detect(img, groups, opts: _Options, progress) -> Detection:
             bar.stage("correlation search")
             # (the layout of a weak pose is not trusted either: the default one)
             det_c = _detect_dense(img, usaf_target(groups), float(um_per_px), opts.orientation, opts, bar)
-            det_c = _replace(det_c, pose=dict(pose_info, method="correlation"), **seen)
+            det_c = _replace(det_c, pose=with_changes(pose_info, method="correlation"), **seen)
             det = _combine([det_p, det_d, det_c])
     return det
 
@@ -501,9 +515,9 @@ def _combine(dets: list) -> Detection:
 
     best = max(ok, key=rank)
     if best is dets[0]:
-        return _replace(best, pose=dict(best.pose, method="triplets"))
+        return _replace(best, pose=with_changes(best.pose, method="triplets"))
     if best.pose.get("method") != "correlation":
-        return _replace(best, pose=dict(best.pose, method="dense"))
+        return _replace(best, pose=with_changes(best.pose, method="dense"))
     return best
 
 
@@ -575,7 +589,7 @@ def _detect_from_pose(img, found: _PoseFound, opts: _Options, empty, bar):
         n_expected=int(inside.sum()),
         sigma_px=float(np.sqrt(max((sigma_ref / scale_ref) ** 2 - 1 / 12, 0.0))) if sigmas else float("nan"),
         ncc=float(np.median(nccs)) if nccs else float("nan"),
-        consistency=check.summary(),
+        consistency=ConsistencySummary(**check.summary()),
         predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
     )
     start = _DenseStart(orient, warp, rects, masks, polarity, _pose_anchors(target, found.ref, pose, trips))
@@ -600,9 +614,7 @@ def _finish(empty, target, corners_u, kept: _Kept, check, common) -> Detection:
     dropped = dict(kept.dropped)
     if check.status != 0:
         dropped["inconsistent"] = len(kept.idx)
-        return _replace(
-            empty, dropped={k: v for k, v in dropped.items() if v}, message=check.message, **common
-        )
+        return _replace(empty, dropped=DroppedCounts.from_counts(dropped), message=check.message, **common)
     keep = check.consistent
     dropped["inconsistent"] = int((~keep).sum())
     keep_idx = kept.idx[keep]
@@ -611,14 +623,14 @@ def _finish(empty, target, corners_u, kept: _Kept, check, common) -> Detection:
             f"the registration is unreliable: only {len(keep_idx)} of {n_expected} expected corners "
             f"passed the checks; nothing was kept"
         )
-        return _replace(empty, dropped={k: v for k, v in dropped.items() if v}, message=msg, **common)
+        return _replace(empty, dropped=DroppedCounts.from_counts(dropped), message=msg, **common)
     return _replace(
         empty,
         ids=tuple(target.corner_ids[i] for i in keep_idx),
         xy_u=corners_u[keep_idx],
         xy_d=kept.xy[keep],
         stderr_px=kept.se[keep],
-        dropped={k: v for k, v in dropped.items() if v},
+        dropped=DroppedCounts.from_counts(dropped),
         status=0,
         message="ok",
         **common,
@@ -694,15 +706,18 @@ def _replace(det: Detection, **changes) -> Detection:
     return replace(det, **changes)
 
 
-def _pose_summary(pres, um_per_px) -> dict:
-    out = {"method": "triplets", "status": pres.status, "message": pres.message}
-    if pres.pose is not None:
-        out["best"] = pres.pose.summary()
-    if pres.runner_up is not None:
-        out["runner_up"] = pres.runner_up.summary()
-    out["slip_scores"] = {k: float(v) for k, v in pres.slip_scores.items()}
-    out["image_triplets"] = pres.n_image_triplets
-    return out
+def _pose_summary(pres, layout) -> PoseInfo:
+    """The pose search's result ``pres`` as reported (:class:`~.records.PoseInfo`)."""
+    return PoseInfo(
+        "triplets",
+        pres.status,
+        pres.message,
+        pres.pose.summary() if pres.pose is not None else None,
+        pres.runner_up.summary() if pres.runner_up is not None else None,
+        {k: float(v) for k, v in pres.slip_scores.items()},
+        pres.n_image_triplets,
+        layout,
+    )
 
 
 def _warp_from_points(x_img, u_img, pose, target, u_ref, orient, size) -> PolyWarp:
@@ -867,7 +882,7 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
         n_expected=int(inside.sum()),
         sigma_px=camera_sigma(warp, sigma),
         ncc=global_ncc,
-        consistency=check.summary(),
+        consistency=ConsistencySummary(**check.summary()),
         predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
     )
     return _finish(empty, target, corners_u, kept, check, common)
