@@ -187,86 +187,52 @@ def detect_grid(
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
     periods = lattice_periods(img)
     found_period = periods[0] if periods else float("nan")
+    args = _GridArgs(target, pitch_um, dot_um, rows, cols, um_per_px, polarity, centre)
     if um_per_px is not None:
         # the given scale sets the search; the grid found must then measure it (below): the
         # image's own period can be a turned grid's outline, so it does not overrule it
-        args = (pitch_um, dot_um, rows, cols, um_per_px, polarity, centre)
-        return _detect_at(img, target, pitch_um / um_per_px, found_period, *args)
+        return _detect_at(img, args, pitch_um / um_per_px, found_period)
     # the spectrum's strongest peak first; when no grid is indexed at it, the next ones (the
     # outline of a turned grid can outshine its lattice: through the relay turned 30 degrees)
     det = None
     for period in periods or [float("nan")]:
-        det = _detect_at(
-            img, target, period, found_period, pitch_um, dot_um, rows, cols, None, polarity, centre
-        )
+        det = _detect_at(img, args, period, found_period)
         if det.ok or det.reason not in ("no_seed", "too_few", "no_period"):
             break
     return det
 
 
-def _detect_at(img, target, period, found_period, pitch_um, dot_um, rows, cols, um_per_px, polarity, centre):
+@dataclass(frozen=True)
+class _GridArgs:
+    """The keywords of :func:`detect_grid` (checked) and the image centre."""
+
+    target: str
+    pitch_um: float
+    dot_um: float | None
+    rows: int | None
+    cols: int | None
+    um_per_px: float | None
+    polarity: str
+    centre: np.ndarray
+
+
+def _detect_at(img, args: _GridArgs, period, found_period):
     """:func:`detect_grid` at one lattice period (px)."""
     h, w = img.shape
+    target, um_per_px = args.target, args.um_per_px
     if not (np.isfinite(period) and 3.0 <= period <= min(h, w) / 3.0):
         msg = "no periodic pattern of 3 px or more, with 3 periods across the image, was found"
         return _fail(target, msg, "no_period", ("um_per_px",))
-    counts: dict = {}
-    parity = None
-    if target == "dots":
-        from oapcal.imaging.detect.dots import find_dots
-
-        dot_px = dot_um / pitch_um * period if dot_um else None
-        cand = find_dots(img, period, dot_px=dot_px, polarity=polarity)
-        xy, se, pol = cand.xy, cand.stderr_px, cand.polarity
-    else:
-        from oapcal.imaging.detect.saddles import find_saddles
-
-        cand = find_saddles(img, period)
-        xy, se, pol, parity = cand.xy, np.full((len(cand.xy), 2), np.nan), "", cand.parity
-    counts["candidates"] = len(xy)
-    lat = index_lattice(xy, centre=centre, parity=parity, pitch_px=period)
+    cand, xy, se, pol, parity = _candidates(img, args, period)
+    counts: dict = {"candidates": len(xy)}
+    lat = index_lattice(xy, centre=args.centre, parity=parity, pitch_px=period)
     counts.update(lat.counts)
     if not lat.ok:
         return _fail(target, f"the grid could not be indexed: {lat.message}", lat.reason, counts=counts,
                      polarity=pol, pitch_px=period)  # fmt: skip
     rc, pts = lat.rc, lat.point
-    keep = np.ones(len(rc), bool)
-    if target == "dots":
-        similar = _similar_to_neighbours(rc, cand.area[pts], cand.ellipticity[pts])
-        keep = similar & cand.converged[pts]
-        counts["dirty_dropped"] = int((~similar).sum())
-        counts["unconverged_dropped"] = int((similar & ~cand.converged[pts]).sum())
-        shaded = ~(cand.shading[pts] <= MAX_SHADING)
-        counts["shaded_dropped"] = int((keep & shaded).sum())
-        keep &= ~shaded
-    # a landmark off its neighbours' smooth course by far more than the others (dust on a dot
-    # that pulls its centre, a damaged corner) is left out
-    # (compared within nodes of the same number of neighbours: an edge node's prediction
-    # is an extrapolation, less certain than an inner one's)
-    where = {tuple(n): i for i, n in enumerate(rc)}
-    loo = _loo_residuals(rc, xy[pts], where)
-    finite = np.isfinite(loo)
-    support = np.array(
-        [sum((r + a, c + b) in where for a in (-1, 0, 1) for b in (-1, 0, 1)) - 1 for r, c in rc]
-    )
-    group = np.digitize(support, [5, 8])  # <= 4, 5-7, 8 neighbours
-    off = np.zeros(len(rc), bool)
-    for gi in range(3):
-        sel = finite & (group == gi)
-        if sel.sum() >= 8:
-            typical = 1.4826 * float(np.median(loo[sel]))
-            off |= sel & (loo > max(POSITION_OUTLIER_MIN_PX, POSITION_OUTLIER_FACTOR * typical))
-    if off.any():
-        # once the suspects are out of their neighbours' fits, a clean node next to a dirty
-        # one is predicted well again (its first prediction leaned on the dirty one)
-        suspects = set(np.flatnonzero(off).tolist())
-        again = _loo_residuals(rc, xy[pts], where, exclude=suspects, only=suspects)
-        limit = {gi: max(POSITION_OUTLIER_MIN_PX,
-                         POSITION_OUTLIER_FACTOR * 1.4826 * float(np.median(loo[finite & (group == gi)])))
-                 for gi in range(3) if (finite & (group == gi)).sum() >= 8}  # fmt: skip
-        for i in suspects:
-            if np.isfinite(again[i]) and again[i] <= limit.get(group[i], np.inf):
-                off[i] = False
+    keep = _clean_dots(rc, cand, pts, counts) if target == "dots" else np.ones(len(rc), bool)
+    off = _position_outliers(rc, xy[pts])
     counts["position_dropped"] = int((off & keep).sum())
     keep &= ~off
     rc, pts = rc[keep], pts[keep]
@@ -278,31 +244,19 @@ def _detect_at(img, target, period, found_period, pitch_um, dot_um, rows, cols, 
     order = np.lexsort((rc[:, 1], rc[:, 0]))
     rc, pts = rc[order], pts[order]
     xy_d = xy[pts]
-    # the outline: the target's own landmark rows and columns
-    ids_absolute = False
-    if rows is not None:
-        shape = (rows, cols) if target == "dots" else (rows - 1, cols - 1)
-        found = tuple(int(v) + 1 for v in rc.max(axis=0))
-        fits = (found[0] <= shape[0] and found[1] <= shape[1]) or (
-            found[0] <= shape[1] and found[1] <= shape[0]
-        )
-        if not fits:
-            return _fail(
-                target,
-                f"the grid found spans {found[0]} x {found[1]} landmarks, more than the target's "
-                f"{shape[0]} x {shape[1]}: check rows and cols",
-                "larger_than_target", ("rows", "cols"), counts, pol, lat.pitch_px,
-            )  # fmt: skip
-        ids_absolute = found in (shape, shape[::-1])
-    scale = _pixel_size(xy_d, rc, pitch_um, centre)
+    ids_absolute = _ids_absolute(rc, args)
+    if isinstance(ids_absolute, str):
+        return _fail(target, ids_absolute, "larger_than_target", ("rows", "cols"), counts, pol, lat.pitch_px)
+    scale = _pixel_size(xy_d, rc, args.pitch_um, args.centre)
     if um_per_px is not None and not 0.7 < scale["um_per_px"] / um_per_px < 1.43:
         msg = (f"the grid found measures {scale['um_per_px']:.4g} um/px, but um_per_px is {um_per_px:g} "
                f"(image period {found_period:.2f} px): check the pitch and the pixel size")  # fmt: skip
         return _fail(target, msg, "scale_mismatch", ("um_per_px", "pitch_um"), counts, pol, lat.pitch_px)
     ref_um_per_px = float(um_per_px) if um_per_px is not None else scale["um_per_px"]
     grid_centre = scale["grid_at_centre"]  # (row, col) of the image centre
-    xy_u = centre + (rc[:, ::-1] - grid_centre[::-1]) * (pitch_um / ref_um_per_px)
+    xy_u = args.centre + (rc[:, ::-1] - grid_centre[::-1]) * (args.pitch_um / ref_um_per_px)
     ids = tuple(f"R{r}C{c}" for r, c in rc)
+    dot_um, pitch_um = args.dot_um, args.pitch_um
     margin = 2.0 + (
         0.5 * dot_um / pitch_um * lat.pitch_px if (target == "dots" and dot_um) else 0.25 * lat.pitch_px
     )
@@ -315,6 +269,86 @@ def _detect_at(img, target, period, found_period, pitch_um, dot_um, rows, cols, 
         um_per_px_given=um_per_px is not None,
         pitch_px=lat.pitch_px, polarity=pol, counts=counts,
     )  # fmt: skip
+
+
+def _candidates(img, args: _GridArgs, period):
+    """The landmark candidates at ``period``: ``(candidates, xy, stderr, polarity, parity)``
+    (dots: their centroids; chessboards: the saddle points, with their parity)."""
+    if args.target == "dots":
+        from oapcal.imaging.detect.dots import find_dots
+
+        dot_px = args.dot_um / args.pitch_um * period if args.dot_um else None
+        cand = find_dots(img, period, dot_px=dot_px, polarity=args.polarity)
+        return cand, cand.xy, cand.stderr_px, cand.polarity, None
+    from oapcal.imaging.detect.saddles import find_saddles
+
+    cand = find_saddles(img, period)
+    return cand, cand.xy, np.full((len(cand.xy), 2), np.nan), "", cand.parity
+
+
+def _clean_dots(rc, cand, pts, counts) -> np.ndarray:
+    """The indexed dots to keep: like their neighbours (not dirty), converged and not
+    shaded; the dropped ones counted in ``counts``."""
+    similar = _similar_to_neighbours(rc, cand.area[pts], cand.ellipticity[pts])
+    keep = similar & cand.converged[pts]
+    counts["dirty_dropped"] = int((~similar).sum())
+    counts["unconverged_dropped"] = int((similar & ~cand.converged[pts]).sum())
+    shaded = ~(cand.shading[pts] <= MAX_SHADING)
+    counts["shaded_dropped"] = int((keep & shaded).sum())
+    return keep & ~shaded
+
+
+def _position_outliers(rc, xy) -> np.ndarray:
+    """Landmarks off their neighbours' smooth course by far more than the others (dust on a
+    dot that pulls its centre, a damaged corner), compared within nodes of the same number
+    of neighbours (an edge node's prediction is an extrapolation, less certain than an
+    inner one's)."""
+    where = {tuple(n): i for i, n in enumerate(rc)}
+    loo = _loo_residuals(rc, xy, where)
+    finite = np.isfinite(loo)
+    support = np.array(
+        [sum((r + a, c + b) in where for a in (-1, 0, 1) for b in (-1, 0, 1)) - 1 for r, c in rc]
+    )
+    group = np.digitize(support, [5, 8])  # <= 4, 5-7, 8 neighbours
+    median = {gi: float(np.median(loo[finite & (group == gi)])) for gi in range(3)
+              if (finite & (group == gi)).sum() >= 8}  # fmt: skip
+    off = np.zeros(len(rc), bool)
+    for gi, med in median.items():
+        off |= (
+            finite
+            & (group == gi)
+            & (loo > max(POSITION_OUTLIER_MIN_PX, POSITION_OUTLIER_FACTOR * (1.4826 * med)))
+        )
+    if off.any():
+        # once the suspects are out of their neighbours' fits, a clean node next to a dirty
+        # one is predicted well again (its first prediction leaned on the dirty one)
+        suspects = set(np.flatnonzero(off).tolist())
+        again = _loo_residuals(rc, xy, where, exclude=suspects, only=suspects)
+        limit = {
+            gi: max(POSITION_OUTLIER_MIN_PX, POSITION_OUTLIER_FACTOR * 1.4826 * med)
+            for gi, med in median.items()
+        }
+        for i in suspects:
+            if np.isfinite(again[i]) and again[i] <= limit.get(group[i], np.inf):
+                off[i] = False
+    return off
+
+
+def _ids_absolute(rc, args: _GridArgs):
+    """Whether the ids count from the target's own corner (the whole grid of ``rows`` x
+    ``cols`` in view), or the refusal's message when the grid found is larger."""
+    if args.rows is None:
+        return False
+    rows, cols = args.rows, args.cols
+    shape = (rows, cols) if args.target == "dots" else (rows - 1, cols - 1)
+    found = tuple(int(v) + 1 for v in rc.max(axis=0))
+    fits = (found[0] <= shape[0] and found[1] <= shape[1]) or (found[0] <= shape[1] and found[1] <= shape[0])
+    if not fits:
+        return (
+            f"the grid found spans {found[0]} x {found[1]} landmarks, more than the target's "
+            f"{shape[0]} x {shape[1]}: check rows and cols"
+        )
+    return found in (shape, shape[::-1])
 
 
 def _loo_residuals(rc, xy, where, exclude=(), only=None) -> np.ndarray:
