@@ -117,6 +117,7 @@ ORIENTATION_CHOICES = (
 )
 @click.option("--polarity", type=click.Choice(["auto", "dark", "bright"]), default="auto", show_default=True,
               help="--target dots: dark dots on a bright field, bright on dark, or find out.")  # fmt: skip
+# (one parameter per option of the command, as click passes them)
 def detect_command(
     image,
     target,

@@ -211,6 +211,8 @@ def to_float_image(image: np.ndarray) -> np.ndarray | None:
     return (img - lo) / (hi - lo)
 
 
+# (12 parameters: the public keywords of detection, a contract; the stages take them as one
+# _Options record)
 def detect_usaf(
     image: np.ndarray,
     groups=(4, 5),
