@@ -421,7 +421,7 @@ def search_pose(
         slips_judged = {k: p for k, p in slips.items() if honours(p, ref, anchors, img)}
     else:
         slips_judged = slips
-    res = _judge(best, refined, slips_judged, um_per_px, listed, n_img, ref, img, anchors)
+    res = _judge(best, refined, slips_judged, um_per_px, scene, anchors)
     res.slip_scores = {k: v.score for k, v in slips.items()}
     return res
 
@@ -531,12 +531,12 @@ def _at_given_scale(refined: list[Pose], um_per_px) -> Pose:
     return best
 
 
-def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, listed, n_img: int, ref=None, img=None,
-           anchors=()) -> PoseResult:  # fmt: skip
+def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, scene: _Scene, anchors=()) -> PoseResult:
     """The result for ``best``: not found when it explains too little, ambiguous when
     another pose or a slipped copy scores about as well (and the given scale does not
     decide), else found.  Every refusal says which anchor would decide it
     (:func:`anchor_hint`)."""
+    ref, img, listed, n_img = scene.ref, scene.img, scene.listed, len(scene.img)
     slip_scores = {k: v.score for k, v in slips.items()}
     runner = next((p for p in refined[1:] if not _same_pose(best, p)), None)
     n_named = sum(1 for _, j in best.matches if listed is None or listed[j])
