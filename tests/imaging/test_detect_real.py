@@ -110,16 +110,16 @@ def test_an_absurd_scale_is_refused_quickly_not_rendered():
 def test_fit_parameters_are_bounded():
     """The blur of a triplet fit cannot run away (it once grew 15 -> 90 -> 3397 px): a step
     outside the bound is rejected like a step that raises the cost."""
-    from oapcal.imaging.detect.registration import _levenberg_marquardt, _Reference
+    from oapcal.imaging.detect.registration import FitOptions, FitStart, PixelData, Reference, fit_pixels
 
     rects = np.array([[10.0, 10.0, 15.0, 35.0], [20.0, 10.0, 25.0, 35.0], [30.0, 10.0, 35.0, 35.0]])
-    ref = _Reference(rects, margin=10)
+    ref = Reference(rects, margin=10)
     gy, gx = np.mgrid[0:45, 0:45]
     xs = np.stack([gx.ravel(), gy.ravel()], -1).astype(float)
     values = np.full(len(xs), 0.5) + np.random.default_rng(0).normal(0, 0.01, len(xs))  # no bars at all
     basis = np.column_stack([np.ones(len(xs)), xs / 20.0])
-    res = _levenberg_marquardt(values, xs, basis, ref, np.zeros((3, 2)), 0.1, 0.8, 1.0, fit_sigma=True,
-                        sigma_max=6.0, max_shift=5.0)  # fmt: skip
+    res = fit_pixels(PixelData(values, xs, basis, ref), FitStart(np.zeros((3, 2)), 0.1, 0.8, 1.0),
+                     FitOptions(fit_sigma=True, sigma_max=6.0, max_shift=5.0))  # fmt: skip
     assert res.sigma <= 6.0
     assert np.abs(basis @ res.coef).max() <= 5.0 + 1e-9
 

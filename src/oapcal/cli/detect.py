@@ -117,6 +117,7 @@ ORIENTATION_CHOICES = (
 )
 @click.option("--polarity", type=click.Choice(["auto", "dark", "bright"]), default="auto", show_default=True,
               help="--target dots: dark dots on a bright field, bright on dark, or find out.")  # fmt: skip
+# (one parameter per option of the command, as click passes them)
 def detect_command(
     image,
     target,
@@ -148,6 +149,7 @@ def detect_command(
     from oapcal.cli.detect_grid import check_usaf_options
 
     check_usaf_options()
+    from oapcal.cli.detect_inputs import check_image_size, read_truth
     from oapcal.imaging.detect import detect_usaf, evaluate_detection
     from oapcal.imaging.detect.anchor import parse_anchors
     from oapcal.imaging.usaf import parse_groups
@@ -157,9 +159,9 @@ def detect_command(
     check_output(plot, image, truth, out)
     group_list = parse_groups(groups)
     anchor_list = parse_anchors(anchors)
-    _check_size(image)
+    check_image_size(image)
     img = read_image_grey(image)
-    score = _read_truth(truth) if truth else None
+    score = read_truth(truth) if truth else None
     if score is not None:
         from oapcal.errors import DataError
         from oapcal.imaging.usaf import usaf_target
@@ -222,47 +224,6 @@ def _cli_words(message: str) -> str:
     message = re.sub(r"in anchors, e\.g\. '([^']+)'", r"with --anchor, e.g. --anchor \1", message)
     message = message.replace("the anchors given", "the --anchor given")
     return message.replace(" in anchors", " with --anchor")
-
-
-def _check_size(path):
-    """Refuse an image larger than detection handles, with a message for this command."""
-    from oapcal.errors import InputFileError
-    from oapcal.imaging.detect.core import MAX_IMAGE_PIXELS
-    from oapcal.io.images import probe
-
-    try:
-        info = probe(path)
-    except InputFileError as exc:
-        if exc.param == "max_pixels":
-            raise InputFileError(
-                f"{path}: too large for detection (at most {MAX_IMAGE_PIXELS} px); "
-                f"crop it to the target or bin it"
-            ) from None
-        raise
-    rows, cols = info.frame_shape[:2]
-    if rows * cols > MAX_IMAGE_PIXELS:
-        raise InputFileError(
-            f"{path}: {cols} x {rows} px is too large for detection (at most {MAX_IMAGE_PIXELS} px); "
-            f"crop it to the target or bin it"
-        )
-
-
-def _read_truth(path):
-    import numpy as np
-
-    from oapcal.errors import InputFileError
-    from oapcal.io.points import read_points
-
-    pairs = read_points(path, require=("x_d", "y_d"), check_geometry=False)
-    if pairs.ids is None or "visible" not in pairs.fieldnames:
-        raise InputFileError(f"{path}: line 1: a truth file needs the columns id,x_d,y_d,visible")
-    visible = []
-    for row, line in zip(pairs.rows, pairs.lines):
-        v = row["visible"].strip()
-        if v not in ("0", "1"):
-            raise InputFileError(f"{path}: line {line}, column 'visible': {v!r} is not 0 or 1")
-        visible.append(v == "1")
-    return pairs.ids, pairs.xy_d, np.array(visible)
 
 
 def _print_pixel_size(out, s: dict) -> None:

@@ -72,7 +72,7 @@ def _resolve(target, options):
 
 def detect_grid_command(image, target, um_per_px, out, truth, plot, as_json, options) -> int:
     """Detect a dot grid or chessboard in ``image`` and write the point pairs (``oapcal detect``)."""
-    from oapcal.cli.detect import _check_size
+    from oapcal.cli.detect_inputs import check_image_size
     from oapcal.imaging.detect.grid import detect_grid, score_grid
     from oapcal.io.digest import file_sha256
     from oapcal.io.imagefile import read_image_grey
@@ -80,7 +80,7 @@ def detect_grid_command(image, target, um_per_px, out, truth, plot, as_json, opt
     target, pitch, dot, rows, cols = _resolve(target, options)
     check_output(out, image, truth)
     check_output(plot, image, truth, out)
-    _check_size(image)
+    check_image_size(image)
     img = read_image_grey(image)
     truth_data = _read_grid_truth(truth) if truth else None
     det = detect_grid(img, target, pitch_um=pitch, dot_um=dot, rows=rows, cols=cols, um_per_px=um_per_px,
@@ -132,10 +132,10 @@ def _read_grid_truth(path):
 
     import numpy as np
 
-    from oapcal.cli.detect import _read_truth
+    from oapcal.cli.detect_inputs import read_truth
     from oapcal.errors import InputFileError
 
-    ids, xy, visible = _read_truth(path)
+    ids, xy, visible = read_truth(path)
     rc = []
     for i in ids:
         m = re.fullmatch(r"R(\d+)C(\d+)", i)

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError
+from oapcal.imaging.detect.warp import poly_terms
 from oapcal.imaging.usaf import UsafTarget, bar_width_um
 
 
@@ -124,14 +125,13 @@ class LayoutFit:
 MODELS = {"affine": 2, "quadratic": 12, "cubic": 20}
 
 
+#: Degree of the polynomial maps by name.
+_DEGREE = {"affine": 1, "quadratic": 2, "cubic": 3}
+
+
 def _phi(u: np.ndarray, model: str) -> np.ndarray:
-    x, y = u[..., 0], u[..., 1]
-    cols = [np.ones_like(x), x, y]
-    if model in ("quadratic", "cubic"):
-        cols += [x * x, x * y, y * y]
-    if model == "cubic":
-        cols += [x**3, x * x * y, x * y * y, y**3]
-    return np.stack(cols, axis=-1)
+    """The monomials of the map ``model`` at normalised points ``u`` ``(..., 2)``."""
+    return poly_terms(u, _DEGREE[model])
 
 
 def triplet_names(target: UsafTarget) -> list[str]:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
+from oapcal.imaging.detect.warp import PolyWarp
 
 #: From this many clicked corners the map is quadratic instead of affine.
 QUADRATIC_FROM = 10
@@ -48,13 +49,6 @@ class Proposal:
     mirrored: bool
     map_kind: str
     click_rms_px: float
-
-
-def _design(uv: np.ndarray, quadratic: bool) -> np.ndarray:
-    cols = [np.ones(len(uv)), uv[:, 0], uv[:, 1]]
-    if quadratic:
-        cols += [uv[:, 0] ** 2, uv[:, 0] * uv[:, 1], uv[:, 1] ** 2]
-    return np.stack(cols, -1)
 
 
 def propose_corners(
@@ -91,9 +85,9 @@ def propose_corners(
             "the clicked corners lie on one line of the target: click corners of bars in 2 directions"
         )
     quadratic = len(ids) >= QUADRATIC_FROM
-    coef, *_ = np.linalg.lstsq(_design(uv, quadratic), px, rcond=None)
-    click_rms = float(np.sqrt(np.mean(np.sum((_design(uv, quadratic) @ coef - px) ** 2, -1))))
-    linear = coef[1:3].T / spread  # d px / d um at the clicks' centre (2x2)
+    warp = PolyWarp.fit(um, px, 2 if quadratic else 1, centre, spread)
+    click_rms = float(np.sqrt(np.mean(np.sum((warp(um) - px) ** 2, -1))))
+    linear = warp.coef[1:3].T / spread  # d px / d um at the clicks' centre (2x2)
     det = float(np.linalg.det(linear))
     if not np.isfinite(det) or abs(det) < 1e-12:
         raise DataError("the clicked corners do not fix a map of the target (degenerate)")
@@ -102,8 +96,7 @@ def propose_corners(
     orientation = nearest_orientation(linear)
     w, h = int(image_size[0]), int(image_size[1])
 
-    all_uv = (target.corners_um - centre) / spread
-    predicted = _design(all_uv, quadratic) @ coef
+    predicted = warp(target.corners_um)
     inside = (
         (predicted[:, 0] >= MARGIN_PX) & (predicted[:, 0] <= w - 1 - MARGIN_PX)
         & (predicted[:, 1] >= MARGIN_PX) & (predicted[:, 1] <= h - 1 - MARGIN_PX)

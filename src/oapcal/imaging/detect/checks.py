@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oapcal.imaging.detect.warp import PolyWarp, poly_exponents
+
 #: Consistency check (:func:`check_consistency`): residual limit ``max(SIGMAS * s, FLOOR)``
 #: px, capped at half a bar width; refuse the alignment above MAX_FRACTION flagged pairs.
 CONSISTENCY_FLOOR_PX = 0.5
@@ -44,24 +46,6 @@ class Consistency:
             "status": self.status,
             "message": self.message,
         }
-
-
-def _poly_terms(xy: np.ndarray, degree: int, centre=None, scale=None) -> np.ndarray:
-    xy = np.asarray(xy, float)
-    c = xy.mean(axis=0) if centre is None else centre
-    sc = max(float(np.ptp(xy, axis=0).max()) / 2, 1.0) if scale is None else scale
-    z = (xy - c) / sc
-    return np.column_stack(
-        [z[:, 0] ** i * z[:, 1] ** (t - i) for t in range(degree + 1) for i in range(t + 1)]
-    )
-
-
-def _poly_fit_predict(xy_u, xy_d, keep, degree):
-    """Least-squares polynomial map ``xy_u -> xy_d`` fitted to the ``keep`` pairs, at all pairs."""
-    c = xy_u[keep].mean(axis=0)
-    sc = max(float(np.ptp(xy_u[keep], axis=0).max()) / 2, 1.0)
-    coef, *_ = np.linalg.lstsq(_poly_terms(xy_u[keep], degree, c, sc), xy_d[keep], rcond=None)
-    return _poly_terms(xy_u, degree, c, sc) @ coef
 
 
 def check_consistency(
@@ -114,12 +98,12 @@ def check_consistency(
         result = None if cubic else fit(xy_u[keep], xy_d[keep], model, init="pixel")
         if result is not None and result.converged:
             r = np.hypot(*(distort(xy_u, result.params) - xy_d).T)
-        elif keep.sum() >= 2 * len(_poly_terms(xy_u[:1], 3)[0]):
+        elif keep.sum() >= 2 * len(poly_exponents(3)):
             # An image with almost no distortion leaves Eq. (1)'s centre undetermined and
             # its fit may not converge: a cubic polynomial map (linear least squares) is
             # the smooth model then.
             model, cubic = "cubic", True
-            r = np.hypot(*(_poly_fit_predict(xy_u, xy_d, keep, 3) - xy_d).T)
+            r = np.hypot(*(PolyWarp.fit(xy_u[keep], xy_d[keep], 3)(xy_u) - xy_d).T)
         else:
             return Consistency(
                 ~everything, model, float("nan"), float("nan"), n, 1,

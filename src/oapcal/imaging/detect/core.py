@@ -24,7 +24,6 @@ with its bounding-box centre at the image centre (``oapcal.imaging.usaf``).
 
 from __future__ import annotations
 
-import contextlib
 import functools
 from dataclasses import dataclass, field
 
@@ -32,20 +31,28 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.detect.checks import check_consistency
+from oapcal.imaging.detect.records import (
+    ConsistencySummary,
+    DetectionDebug,
+    DroppedCounts,
+    PoseInfo,
+    WorkEstimate,
+    with_changes,
+)
 from oapcal.imaging.detect.registration import (
     MAX_FIT_PIXELS,
-    _camera_sigma,
-    _exponents,
-    _find_target,
-    _initial_inverse,
-    _initial_warp,
-    _invert,
-    _levenberg_marquardt,
-    _Reference,
-    _region,
-    _Warp,
+    FitOptions,
+    FitStart,
+    PixelData,
+    Reference,
+    camera_sigma,
+    find_target,
+    fit_pixels,
+    initial_warp,
+    region_pixels,
 )
-from oapcal.imaging.detect.triplet import _refine_triplet
+from oapcal.imaging.detect.triplet import TripletContext, refine_triplet
+from oapcal.imaging.detect.warp import PolyWarp
 from oapcal.imaging.usaf import (
     ORIENTATIONS,
     nearest_orientation,
@@ -110,6 +117,13 @@ class Detection:
     width and height in object um, ``pixel_size`` the measurement from the kept corners
     (``um_per_px``, its ``statistical``, ``anisotropy`` and ``estimator`` parts, ...);
     ``image_sha256`` the digest of the image file (set by the command; ``""`` for an array).
+
+    ``dropped``, ``consistency``, ``pose``, ``work`` and ``debug`` are the typed records of
+    :mod:`.records` (each read like the dict it was: ``det.pose["layout"]``, ``dict(det.work)``;
+    ``{}`` until the stage that fills it has run); ``orientation_scores`` and ``predicted``
+    are dicts keyed by orientation name and corner id.  The message of a detection is
+    ``message``; :meth:`summary` (the JSON of ``oapcal detect``) also writes it under the
+    key ``reason``, while the attribute ``reason`` is the failure code above.
     """
 
     ids: tuple[str, ...]
@@ -117,7 +131,7 @@ class Detection:
     xy_d: np.ndarray
     stderr_px: np.ndarray
     n_expected: int
-    dropped: dict = field(default_factory=dict)
+    dropped: DroppedCounts | dict = field(default_factory=dict)
     status: int = 0
     message: str = "ok"
     polarity: str = "bright"
@@ -125,13 +139,13 @@ class Detection:
     ncc: float = float("nan")
     orientation: str = "none"
     orientation_scores: dict = field(default_factory=dict)
-    consistency: dict = field(default_factory=dict)
+    consistency: ConsistencySummary | dict = field(default_factory=dict)
     predicted: dict = field(default_factory=dict, repr=False)
     um_per_px: float = float("nan")
-    pose: dict = field(default_factory=dict)
+    pose: PoseInfo | dict = field(default_factory=dict)
     triplets_found: int = 0
-    work: dict = field(default_factory=dict)
-    debug: dict = field(default_factory=dict, repr=False)
+    work: WorkEstimate | dict = field(default_factory=dict)
+    debug: DetectionDebug | dict = field(default_factory=dict, repr=False)
     param: tuple[str, ...] = ()
     reason: str = ""
     um_per_px_sigma: float | None = None
@@ -179,7 +193,10 @@ class Detection:
 # ---------------------------------------------------------------------------- detection
 
 
-def _to_float_image(image: np.ndarray) -> np.ndarray:
+def to_float_image(image: np.ndarray) -> np.ndarray | None:
+    """``image`` (grey or colour) as floats scaled to its 0.5 and 99.9 percentiles (0 to 1),
+    or None for an image without contrast; :class:`DataError` for an array that is not an
+    image."""
     img = np.asarray(image)
     if img.ndim == 3:
         img = img[..., :3].mean(axis=-1)
@@ -194,6 +211,8 @@ def _to_float_image(image: np.ndarray) -> np.ndarray:
     return (img - lo) / (hi - lo)
 
 
+# (12 parameters: the public keywords of detection, a contract; the stages take them as one
+# _Options record)
 def detect_usaf(
     image: np.ndarray,
     groups=(4, 5),
@@ -249,7 +268,7 @@ def detect_usaf(
     from oapcal.imaging.detect.anchor import parse_anchors
 
     anchors = parse_anchors(anchors)
-    img = _to_float_image(image)
+    img = to_float_image(image)
     if img is None:
         return Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1,
                          "the target was not found: the image is uniform (no contrast at all)",
@@ -263,13 +282,14 @@ def detect_usaf(
     # Detection does many small dense solves; a multithreaded BLAS only adds contention on
     # them (measured on 2 cores: 1.2-1.9 s with one BLAS thread, 12-14 s at random with two).
     with threadpool_limits(limits=1, user_api="blas"):
-        det = _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stderr_px,
-                      ambiguity_ratio, orientation_ratio, consistency_model, progress, anchors)  # fmt: skip
+        opts = _Options(um_per_px, orientation, mirror, sigma_hint_px, max_stderr_px, ambiguity_ratio,
+                        orientation_ratio, consistency_model, anchors)  # fmt: skip
+        det = _detect(img, groups, opts, progress)
     det = _with_anchor_hint(det, anchors)
     return _with_pixel_size(det, groups, um_per_px is not None, (w, h))
 
 
-def work_estimate(shape: tuple[int, int]) -> dict:
+def work_estimate(shape: tuple[int, int]) -> WorkEstimate:
     """Memory (MB) that detection needs at most for an image of ``shape`` (rows, cols):
     a few float copies of the image, the bounded reference raster with its blurred
     copies, and the bounded pixel fit (Jacobian of at most 34 columns)."""
@@ -279,56 +299,54 @@ def work_estimate(shape: tuple[int, int]) -> dict:
     image = 12 * h * w * 8
     raster = MAX_RASTER_CELLS * 4 * (1 + 3 * RASTER_CACHE + 2)
     fit = MAX_FIT_PIXELS * (34 + 12) * 8
-    return {
-        "pixels": int(h * w),
-        "memory_bound_mb": round((image + min(raster, 48 * h * w * 4) + fit) / 2**20),
-    }
+    return WorkEstimate(int(h * w), round((image + min(raster, 48 * h * w * 4) + fit) / 2**20))
 
 
-def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stderr_px, ambiguity_ratio,
-            orientation_ratio, consistency_model, progress, anchors=()) -> Detection:  # fmt: skip
-    from oapcal.imaging.detect.bars import find_triplets
-    from oapcal.imaging.detect.pose import search_pose
+@dataclass(frozen=True)
+class _Options:
+    """The keywords of :func:`detect_usaf` that the stages of one detection read."""
 
+    um_per_px: float | None
+    orientation: str
+    mirror: str
+    sigma_hint_px: float
+    max_stderr_px: float
+    ambiguity_ratio: float
+    orientation_ratio: float
+    consistency_model: str | None
+    anchors: tuple = ()
+
+
+@dataclass(frozen=True)
+class _PoseFound:
+    """The pose search's answer over every layout: the layout kept, its target, reference
+    triplets and search result, and the image's triplets."""
+
+    layout: str | None
+    target: object
+    ref: object
+    result: object
+    trips: object
+
+
+def _detect(img, groups, opts: _Options, progress) -> Detection:
     h, w = img.shape
-    target = usaf_target(groups)
+    um_per_px = opts.um_per_px
     work = work_estimate((h, w))
     empty = Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1, "",
                       um_per_px=float(um_per_px) if um_per_px else float("nan"), work=work)  # fmt: skip
-    n_trip = len(target.triplets())
+    n_trip = len(usaf_target(groups).triplets())
     with Stages(progress, 3 + n_trip, "detecting corners") as bar:
-        bar.stage("finding bar triplets")
-        trips = find_triplets(img)
-        bar.advance()
-        bar.stage("pose search")
-        # every layout is tried; the one whose best pose scores highest is kept
-        tried = []
-        for layout in _layouts():
-            ref = _reference_triplets(layout)
-            listed = np.isin(ref.group, groups)
-            res = search_pose(
-                trips, ref, (h, w), um_per_px=um_per_px, listed=listed,
-                orientation=None if orientation == "auto" else orientation,
-                mirror=None if mirror == "auto" else mirror == "yes", anchors=anchors,
-            )  # fmt: skip
-            score = res.pose.score if res.pose is not None else -np.inf
-            tried.append((score, res.status == 0, layout, ref, res))
-        # the default layout unless another one explains clearly more (2 triplets)
-        default = tried[0]
-        tried.sort(key=lambda r: (-r[0], not r[1]))
-        if tried[0] is not default and tried[0][0] - default[0] < 2.0 and default[1]:
-            tried.insert(0, default)
-        _, _, layout, ref, pres = tried[0]
-        target = usaf_target(groups, layout_name=layout)
-        bar.advance()
-        debug = {"image_triplets": trips, "ref": ref, "pose": pres.pose, "runner_up": pres.runner_up}
-        pose_info = dict(_pose_summary(pres, um_per_px), layout=layout)
+        found = _search_pose(img, groups, opts, bar)
+        pres, trips = found.result, found.trips
+        debug = DetectionDebug(trips, found.ref, pres.pose, pres.runner_up)
+        pose_info = _pose_summary(pres, found.layout)
+        seen = {"debug": debug, "triplets_found": len(trips), "work": work}
         empty = _replace(empty, pose=pose_info, debug=debug, triplets_found=len(trips))
-        if pres.status != 0 and (um_per_px is None or anchors):
+        if pres.status != 0 and (um_per_px is None or opts.anchors):
             # (with anchors, the correlation search below could not honour them)
             return _replace(empty, message=pres.message, param=pres.param)
-        det_p = None
-        init = None
+        det_p = start = None
         if pres.status == 0:
             bar.stage("refining triplets")
             # The pose's own scale, not the given one, from here on: a strongly distorted
@@ -338,27 +356,24 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
             # (measured: +7 to +11 % through misaligned relays; 156 of 264 corners dropped).
             # The ids were decided by the pose search, slips tested; the reference points
             # are put at the given scale at the end (_at_scale).
-            det_p, init = _detect_from_pose(img, target, pres.pose, trips, ref, None, orientation,
-                                            sigma_hint_px, max_stderr_px, ambiguity_ratio, consistency_model,
-                                            _replace(empty), bar, layout)  # fmt: skip
+            det_p, start = _detect_from_pose(img, found, opts, _replace(empty), bar)
         # The dense registration of the whole target: from the pose when there is one,
         # else (um_per_px given, the triplets did not place the target) from a correlation
         # search at that scale.
         small = h * w <= DENSE_MAX_PIXELS and um_per_px is not None
         if det_p is not None and det_p.status == 0 and det_p.coverage >= 0.9 and not small:
             # a large image: the dense registration only when the triplets fell short
-            return _at_scale(_replace(det_p, pose=dict(det_p.pose, method="triplets")), um_per_px, (w, h))
+            return _at_scale(
+                _replace(det_p, pose=with_changes(det_p.pose, method="triplets")), um_per_px, (w, h)
+            )
         bar.stage("dense registration")
-        u_dense = det_p.um_per_px if init is not None else float(um_per_px)
-        det_d = _detect_dense(
-            img, target if init is not None else usaf_target(groups), u_dense,
-            orientation if init is None else init["orientation"], sigma_hint_px, max_stderr_px,
-            ambiguity_ratio, orientation_ratio, consistency_model, bar, init=init,
-        )  # fmt: skip
-        det_d = _replace(det_d, pose=pose_info, debug=debug, triplets_found=len(trips), work=work)
+        if start is not None:
+            det_d = _detect_dense(img, found.target, det_p.um_per_px, start.orientation, opts, bar, start)
+        else:
+            det_d = _detect_dense(img, usaf_target(groups), float(um_per_px), opts.orientation, opts, bar)
+        det_d = _replace(det_d, pose=pose_info, **seen)
         if det_p is None:
-            pose_info = dict(pose_info, method="correlation")
-            return _replace(det_d, pose=pose_info)
+            return _replace(det_d, pose=with_changes(pose_info, method="correlation"))
         det_p, det_d = _at_scale(det_p, um_per_px, (w, h)), _at_scale(det_d, um_per_px, (w, h))
         det = _combine([det_p, det_d])
         if um_per_px is not None and det.reason != "registrations_disagree" and (small or det.status != 0):
@@ -366,14 +381,39 @@ def _detect(img, groups, um_per_px, orientation, mirror, sigma_hint_px, max_stde
             # distorted image): the correlation search at the given scale, as without a pose
             bar.stage("correlation search")
             # (the layout of a weak pose is not trusted either: the default one)
-            det_c = _detect_dense(
-                img, usaf_target(groups), float(um_per_px), orientation, sigma_hint_px, max_stderr_px,
-                ambiguity_ratio, orientation_ratio, consistency_model, bar,
-            )  # fmt: skip
-            det_c = _replace(det_c, pose=dict(pose_info, method="correlation"), debug=debug,
-                             triplets_found=len(trips), work=work)  # fmt: skip
+            det_c = _detect_dense(img, usaf_target(groups), float(um_per_px), opts.orientation, opts, bar)
+            det_c = _replace(det_c, pose=with_changes(pose_info, method="correlation"), **seen)
             det = _combine([det_p, det_d, det_c])
     return det
+
+
+def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
+    """Bar triplets, then the pose search in every layout; the default layout is kept unless
+    another one explains clearly more (2 triplets)."""
+    from oapcal.imaging.detect.bars import find_triplets
+    from oapcal.imaging.detect.pose import search_pose
+
+    bar.stage("finding bar triplets")
+    trips = find_triplets(img)
+    bar.advance()
+    bar.stage("pose search")
+    tried = []
+    for layout in _layouts():
+        ref = _reference_triplets(layout)
+        res = search_pose(
+            trips, ref, img.shape, um_per_px=opts.um_per_px, listed=np.isin(ref.group, groups),
+            orientation=None if opts.orientation == "auto" else opts.orientation,
+            mirror=None if opts.mirror == "auto" else opts.mirror == "yes", anchors=opts.anchors,
+        )  # fmt: skip
+        score = res.pose.score if res.pose is not None else -np.inf
+        tried.append((score, res.status == 0, layout, ref, res))
+    default = tried[0]
+    tried.sort(key=lambda r: (-r[0], not r[1]))
+    if tried[0] is not default and tried[0][0] - default[0] < 2.0 and default[1]:
+        tried.insert(0, default)
+    _, _, layout, ref, pres = tried[0]
+    bar.advance()
+    return _PoseFound(layout, usaf_target(groups, layout_name=layout), ref, pres, trips)
 
 
 def _with_pixel_size(det: Detection, groups, given: bool, size) -> Detection:
@@ -477,104 +517,122 @@ def _combine(dets: list) -> Detection:
 
     best = max(ok, key=rank)
     if best is dets[0]:
-        return _replace(best, pose=dict(best.pose, method="triplets"))
+        return _replace(best, pose=with_changes(best.pose, method="triplets"))
     if best.pose.get("method") != "correlation":
-        return _replace(best, pose=dict(best.pose, method="dense"))
+        return _replace(best, pose=with_changes(best.pose, method="dense"))
     return best
 
 
-def _detect_from_pose(img, target, pose, trips, ref, um_per_px, orientation, sigma_hint_px, max_stderr_px,
-                      ambiguity_ratio, consistency_model, empty, bar, layout=None):  # fmt: skip
+@dataclass(frozen=True)
+class _DenseStart:
+    """Where a dense registration starts: the orientation, the warp camera -> reference px,
+    the model's bars and masked boxes, the polarity (+1 bright bars) and, from a pose, its
+    matched triplets (:func:`_pose_anchors`); ``score_table`` the correlation scores of the
+    orientations (from the correlation search)."""
+
+    orientation: str
+    warp: PolyWarp
+    rects: np.ndarray
+    masks: np.ndarray | None
+    polarity: float
+    anchors: list | None = None
+    score_table: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _Kept:
+    """The refined triplets' kept corners (indices, positions, standard errors, sorted by
+    index), the dropped corners by reason and the ``info`` of every refined triplet."""
+
+    idx: np.ndarray
+    xy: np.ndarray
+    se: np.ndarray
+    dropped: dict
+    infos: list
+
+
+def _detect_from_pose(img, found: _PoseFound, opts: _Options, empty, bar):
     """Corners from the pose: a warp through the matched triplet centres, then each triplet
     refined.  Returns the detection and the start for the dense registration."""
     h, w = img.shape
-    with contextlib.nullcontext():
-        u_ref = float(um_per_px) if um_per_px else 1.0 / pose.s
-        orient = nearest_orientation(pose.lin) if orientation == "auto" else orientation
-        polarity = _pose_polarity(img, trips, pose)
-        empty = _replace(empty, um_per_px=u_ref, orientation=orient,
-                         polarity="bright" if polarity > 0 else "dark")  # fmt: skip
-        corners_u = target.reference_px(u_ref, (w, h), orient)
-        # Every bar of the whole target that is resolvable and near the image goes into the
-        # model of the pixels (so a neighbouring group is not mistaken for background).
-        full = _full_target(layout)
-        # the part of the target (um) that the image shows, with a margin
-        corners_px = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
-        view_um = (corners_px - pose.t) @ np.linalg.inv(pose.matrix()).T
-        pad_um = 0.1 * float(np.ptp(view_um, axis=0).max())
-        near_um = (*(view_um.min(axis=0) - pad_um), *(view_um.max(axis=0) + pad_um))
-        rects, masks = _model_boxes(target, full, u_ref, (w, h), orient, near_um)
-        # bars too narrow to be resolved are left in the model (as grey) only when near
-        # Initial warp camera -> reference px from the matched triplet centres.
-        ii = np.array([i for i, _ in pose.matches])
-        jj = np.array([j for _, j in pose.matches])
-        x_img = trips.centre[ii]
-        u_img = target.to_reference_px(ref.centre[jj], u_ref, (w, h), orient)
-        warp = _warp_from_points(x_img, u_img, pose, target, u_ref, orient, (w, h))
-        x0 = _initial_inverse(warp, corners_u)
-        pred = _invert(warp, warp.jacobian, corners_u, x0)
-        m = 3.0
-        inside = np.isfinite(pred).all(axis=1) & (pred[:, 0] >= m) & (pred[:, 0] <= w - 1 - m)
-        inside &= (pred[:, 1] >= m) & (pred[:, 1] <= h - 1 - m)
-        # only corners of bars that are resolved count as expected
-        inside &= target.corner_width_um * pose.s >= RESOLVED_BAR_PX
-        n_expected = int(inside.sum())
-        scale_ref = pose.s * u_ref  # reference px per camera px
-        sigma = float(np.hypot(sigma_hint_px, np.sqrt(1 / 12))) * scale_ref
-        swap_axes = orientation_matrix(orient)[0, 0] == 0
-        bar.stage("refining triplets")
-
-        def refine(bars, idx):
-            return _refine_triplet(
-                img, warp, rects, target, bars, idx, corners_u, pred, None, polarity, sigma, u_ref,
-                max_stderr_px=max_stderr_px, ambiguity_ratio=ambiguity_ratio, swap_axes=swap_axes,
-                masks=masks,
-            )  # fmt: skip
-
-        keep_idx, keep_xy, keep_se, dropped, infos = _refine_triplets(target, inside, w, h, m, refine, bar)
-        nccs = [info["ncc"] for info in infos]
-        sigmas = [info["sigma"] for info in infos]
-        bar.stage("consistency check")
-        width_px = target.corner_width_um[keep_idx] / u_ref
-        check = check_consistency(corners_u[keep_idx], keep_xy, width_px, consistency_model)
-        bar.advance()
+    target, pose, trips = found.target, found.result.pose, found.trips
+    u_ref = 1.0 / pose.s
+    orient = nearest_orientation(pose.lin) if opts.orientation == "auto" else opts.orientation
+    polarity = _pose_polarity(img, trips, pose)
+    empty = _replace(
+        empty, um_per_px=u_ref, orientation=orient, polarity="bright" if polarity > 0 else "dark"
+    )
+    corners_u = target.reference_px(u_ref, (w, h), orient)
+    rects, masks = _view_boxes(target, found.layout, pose, u_ref, (w, h), orient)
+    # Initial warp camera -> reference px from the matched triplet centres.
+    ii = np.array([i for i, _ in pose.matches])
+    jj = np.array([j for _, j in pose.matches])
+    u_img = target.to_reference_px(found.ref.centre[jj], u_ref, (w, h), orient)
+    warp = _warp_from_points(trips.centre[ii], u_img, pose, target, u_ref, orient, (w, h))
+    pred = warp.inverse(corners_u)
+    m = 3.0
+    # only corners of bars that are resolved count as expected
+    inside = _inside(pred, w, h, m) & (target.corner_width_um * pose.s >= RESOLVED_BAR_PX)
+    scale_ref = pose.s * u_ref  # reference px per camera px
+    sigma = float(np.hypot(opts.sigma_hint_px, np.sqrt(1 / 12))) * scale_ref
+    swap_axes = orientation_matrix(orient)[0, 0] == 0
+    ctx = TripletContext(img, warp, rects, masks, target, corners_u, pred, None, polarity, sigma, u_ref,
+                         opts.max_stderr_px, opts.ambiguity_ratio, swap_axes)  # fmt: skip
+    bar.stage("refining triplets")
+    kept = _refine_triplets(target, inside, w, h, m, functools.partial(refine_triplet, ctx), bar)
+    nccs = [info["ncc"] for info in kept.infos]
+    sigmas = [info["sigma"] for info in kept.infos]
+    bar.stage("consistency check")
+    check = check_consistency(corners_u[kept.idx], kept.xy, target.corner_width_um[kept.idx] / u_ref,
+                              opts.consistency_model)  # fmt: skip
+    bar.advance()
     sigma_ref = float(np.median(sigmas)) if sigmas else float("nan")
     common = dict(
-        n_expected=n_expected,
+        n_expected=int(inside.sum()),
         sigma_px=float(np.sqrt(max((sigma_ref / scale_ref) ** 2 - 1 / 12, 0.0))) if sigmas else float("nan"),
         ncc=float(np.median(nccs)) if nccs else float("nan"),
-        consistency=check.summary(),
+        consistency=ConsistencySummary(**check.summary()),
         predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
     )
-    init = {"orientation": orient, "warp": warp, "rects": rects, "masks": masks, "polarity": polarity,
-            "anchors": _pose_anchors(target, ref, pose, trips)}  # fmt: skip
-    return _finish(empty, target, corners_u, keep_idx, keep_xy, keep_se, dropped, check, common), init
+    start = _DenseStart(orient, warp, rects, masks, polarity, _pose_anchors(target, found.ref, pose, trips))
+    return _finish(empty, target, corners_u, kept, check, common), start
 
 
-def _finish(empty, target, corners_u, keep_idx, keep_xy, keep_se, dropped, check, common) -> Detection:
+def _view_boxes(target, layout, pose, u_ref, size, orient):
+    """:func:`_model_boxes` of every bar of the whole target that is near the part of the
+    target (um) that the image shows (so a neighbouring group is not mistaken for
+    background)."""
+    w, h = size
+    corners_px = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
+    view_um = (corners_px - pose.t) @ np.linalg.inv(pose.matrix()).T
+    pad_um = 0.1 * float(np.ptp(view_um, axis=0).max())
+    near_um = (*(view_um.min(axis=0) - pad_um), *(view_um.max(axis=0) + pad_um))
+    return _model_boxes(target, _full_target(layout), u_ref, size, orient, near_um)
+
+
+def _finish(empty, target, corners_u, kept: _Kept, check, common) -> Detection:
     """The consistency verdict and the kept-fraction limit; the final :class:`Detection`."""
     n_expected = common["n_expected"]
+    dropped = dict(kept.dropped)
     if check.status != 0:
-        dropped["inconsistent"] = len(keep_idx)
-        return _replace(
-            empty, dropped={k: v for k, v in dropped.items() if v}, message=check.message, **common
-        )
+        dropped["inconsistent"] = len(kept.idx)
+        return _replace(empty, dropped=DroppedCounts.from_counts(dropped), message=check.message, **common)
     keep = check.consistent
     dropped["inconsistent"] = int((~keep).sum())
-    keep_idx = keep_idx[keep]
+    keep_idx = kept.idx[keep]
     if n_expected == 0 or len(keep_idx) < MIN_KEPT_FRACTION * n_expected:
         msg = (
             f"the registration is unreliable: only {len(keep_idx)} of {n_expected} expected corners "
             f"passed the checks; nothing was kept"
         )
-        return _replace(empty, dropped={k: v for k, v in dropped.items() if v}, message=msg, **common)
+        return _replace(empty, dropped=DroppedCounts.from_counts(dropped), message=msg, **common)
     return _replace(
         empty,
         ids=tuple(target.corner_ids[i] for i in keep_idx),
         xy_u=corners_u[keep_idx],
-        xy_d=keep_xy[keep],
-        stderr_px=keep_se[keep],
-        dropped={k: v for k, v in dropped.items() if v},
+        xy_d=kept.xy[keep],
+        stderr_px=kept.se[keep],
+        dropped=DroppedCounts.from_counts(dropped),
         status=0,
         message="ok",
         **common,
@@ -604,12 +662,9 @@ def _model_boxes(target, source, u_ref, size, orient, near_um=None):
     return rects, masks
 
 
-def _refine_triplets(target, inside, w, h, m, refine, bar):
+def _refine_triplets(target, inside, w, h, m, refine, bar) -> _Kept:
     """Refine every triplet with a corner expected ``inside`` the image (margin ``m``):
-    ``refine(bars, idx)`` returns ``(reason, xy, se, info)`` for its corner indices ``idx``.
-
-    Returns the kept corner indices, positions and standard errors (sorted by index), the
-    dropped corners by reason and the ``info`` of every refined triplet."""
+    ``refine(bars, idx)`` returns ``(reason, xy, se, info)`` for its corner indices ``idx``."""
     keep_idx, keep_xy, keep_se, infos = [], [], [], []
     dropped = dict.fromkeys(DROP_REASONS, 0)
     for bars in target.triplets():
@@ -633,7 +688,7 @@ def _refine_triplets(target, inside, w, h, m, refine, bar):
                 keep_xy.append(xy[k])
                 keep_se.append(se[k])
     order = np.argsort(keep_idx)
-    return (
+    return _Kept(
         np.asarray(keep_idx, int)[order],
         np.asarray(keep_xy, float).reshape(-1, 2)[order],
         np.asarray(keep_se, float)[order],
@@ -643,6 +698,7 @@ def _refine_triplets(target, inside, w, h, m, refine, bar):
 
 
 def _inside(xy, w, h, m):
+    """Rows of ``xy`` finite and ``m`` px inside a ``w`` x ``h`` image."""
     return (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
 
 
@@ -652,18 +708,21 @@ def _replace(det: Detection, **changes) -> Detection:
     return replace(det, **changes)
 
 
-def _pose_summary(pres, um_per_px) -> dict:
-    out = {"method": "triplets", "status": pres.status, "message": pres.message}
-    if pres.pose is not None:
-        out["best"] = pres.pose.summary()
-    if pres.runner_up is not None:
-        out["runner_up"] = pres.runner_up.summary()
-    out["slip_scores"] = {k: float(v) for k, v in pres.slip_scores.items()}
-    out["image_triplets"] = pres.n_image_triplets
-    return out
+def _pose_summary(pres, layout) -> PoseInfo:
+    """The pose search's result ``pres`` as reported (:class:`~.records.PoseInfo`)."""
+    return PoseInfo(
+        "triplets",
+        pres.status,
+        pres.message,
+        pres.pose.summary() if pres.pose is not None else None,
+        pres.runner_up.summary() if pres.runner_up is not None else None,
+        {k: float(v) for k, v in pres.slip_scores.items()},
+        pres.n_image_triplets,
+        layout,
+    )
 
 
-def _warp_from_points(x_img, u_img, pose, target, u_ref, orient, size) -> _Warp:
+def _warp_from_points(x_img, u_img, pose, target, u_ref, orient, size) -> PolyWarp:
     """Polynomial warp camera -> reference px through the matched triplet centres: affine
     from the pose itself when fewer than 6 triplets match, quadratic from 6, cubic from 20."""
     w, h = size
@@ -676,9 +735,7 @@ def _warp_from_points(x_img, u_img, pose, target, u_ref, orient, size) -> _Warp:
         grid = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1], [(w - 1) / 2, (h - 1) / 2]], float)
         um = (grid - pose.t) @ np.linalg.inv(pose.matrix()).T
         x_img, u_img = grid, target.to_reference_px(um, u_ref, (w, h), orient)
-    warp = _Warp(centre, scale, np.zeros((len(_exponents(degree)), 2)), degree)
-    coef, *_ = np.linalg.lstsq(warp.basis(x_img), u_img, rcond=None)
-    return _Warp(centre, scale, coef, degree)
+    return PolyWarp.fit(x_img, u_img, degree, centre, scale)
 
 
 @functools.lru_cache(maxsize=4)
@@ -728,14 +785,13 @@ def _pose_anchors(target, ref, pose, trips) -> list:
     return out
 
 
-def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr_px, ambiguity_ratio,
-                  orientation_ratio, consistency_model, bar, init=None) -> Detection:  # fmt: skip
+def _detect_dense(img, target, um_per_px, orientation, opts: _Options, bar, start=None) -> Detection:
     """The dense registration at a given scale (module docstring, docs/detection.md), from
-    ``init`` (the pose's orientation, warp, bars and polarity) or from the correlation
-    search.  Refused when the registered scale differs from ``um_per_px`` by more than
-    half an element step (a one-element slip would differ by 12 %)."""
+    ``start`` (the pose's orientation, warp, bars and polarity) or from the correlation
+    search in ``orientation`` (``"auto"``: the 8).  Refused when the registered scale differs
+    from ``um_per_px`` by more than half an element step (a one-element slip would differ by
+    12 %)."""
     h, w = img.shape
-    ref_centre = (np.asarray((w, h), float) - 1) / 2
     empty = Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1, "", um_per_px=um_per_px)
     # bound: the rendered target must be comparable with the image
     extent = np.ptp(target.bars.reshape(-1, 2), axis=0) / um_per_px
@@ -745,90 +801,134 @@ def _detect_dense(img, target, um_per_px, orientation, sigma_hint_px, max_stderr
             f"would be {extent[0]:.0f} x {extent[1]:.0f} px in a {w} x {h} px image; check um_per_px"
         )
         return _replace(empty, message=msg, param=("um_per_px",))
-    if init is not None:
-        return _dense_levels(
-            img, target, um_per_px, init["orientation"], {}, init["rects"], init["warp"], init["polarity"],
-            sigma_hint_px, max_stderr_px, ambiguity_ratio, consistency_model, bar, empty, init["masks"],
-            anchors=init.get("anchors"),
-        )  # fmt: skip
+    if start is None:
+        start = _correlation_start(img, target, um_per_px, orientation, opts.orientation_ratio)
+        if isinstance(start, Detection):
+            return _replace(start, um_per_px=um_per_px)
+        empty = _replace(empty, orientation=start.orientation, orientation_scores=start.score_table)
+    return _dense_levels(img, target, um_per_px, start, opts, bar, empty)
+
+
+def _correlation_start(img, target, um_per_px, orientation, orientation_ratio):
+    """The start of a dense registration from the correlation search over the orientations
+    (:func:`~.registration.find_target`), or a failed :class:`Detection`."""
+    h, w = img.shape
+    ref_centre = (np.asarray((w, h), float) - 1) / 2
     candidates = list(ORIENTATIONS) if orientation == "auto" else [orientation]
     scores = {}
     for name in candidates:
         # bars and reference squares (the squares are part of every real target)
         templ_rects, _ = _model_boxes(target, target, um_per_px, (w, h), name)
-        found = _find_target(img, templ_rects, ref_centre)
+        found = find_target(img, templ_rects, ref_centre)
         scores[name] = (found[2], found) if found is not None else (-1.0, None)
     ranked = sorted(scores, key=lambda k: -scores[k][0])
     best = ranked[0]
     score_table = {k: round(float(scores[k][0]), 4) for k in ranked}
     found = scores[best][1]
-    empty = _replace(empty, orientation=best, orientation_scores=score_table)
+    failed = Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1, "",
+                       orientation=best, orientation_scores=score_table)  # fmt: skip
     if found is None or found[2] < 0.2:
         msg = (
             "the target was not found (no bar triplets, no correlation with the rendered groups); "
             "check groups and um_per_px"
         )
-        return _replace(empty, message=msg, param=("groups", "um_per_px"))
+        return _replace(failed, message=msg, param=("groups", "um_per_px"))
     if len(ranked) > 1 and scores[ranked[1]][0] >= orientation_ratio * scores[best][0]:
         msg = (
             f"the target's orientation is ambiguous: {best} scores {scores[best][0]:.3f} and "
             f"{ranked[1]} {scores[ranked[1]][0]:.3f}; give the orientation"
         )
-        return _replace(empty, message=msg, param=("orientation",))
+        return _replace(failed, message=msg, param=("orientation",))
     rects = target.rectangles_px(um_per_px, (w, h), best)
-    s, shift, score, sign = found  # camera = s u + shift
-    warp = _initial_warp(s, shift, ref_centre, rects, w, h)
+    s, shift, _, sign = found  # camera = s u + shift
     model_rects, masks = _model_boxes(target, target, um_per_px, (w, h), best)
-    return _dense_levels(img, target, um_per_px, best, score_table, model_rects, warp, sign, sigma_hint_px,
-                         max_stderr_px, ambiguity_ratio, consistency_model, bar, empty, masks)  # fmt: skip
+    return _DenseStart(best, initial_warp(s, shift, rects), model_rects, masks, sign, score_table=score_table)
 
 
-def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, sigma_hint_px, max_stderr_px,
-                  ambiguity_ratio, consistency_model, bar, empty, masks=None,
-                  anchors=None) -> Detection:  # fmt: skip
+def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, bar, empty) -> Detection:
     """The dense registration, coarse to fine, then every triplet refined.  A slip onto the
-    neighbouring element is ruled out by ``anchors`` (the pose's matched triplets: the
+    neighbouring element is ruled out by ``start.anchors`` (the pose's matched triplets: the
     registration must keep each on its image triplet) when it starts from a pose, else by
     its scale (within half an element step of ``um_per_px``)."""
+    h, w = img.shape
+    best = start.orientation
+    empty = _replace(empty, orientation=best, orientation_scores=start.score_table, um_per_px=um_per_px,
+                     polarity="bright" if start.polarity > 0 else "dark")  # fmt: skip
+    corners_u = target.reference_px(um_per_px, (w, h), best)
+    own = target.rectangles_px(um_per_px, (w, h), best)
+    ref = Reference(start.rects, window=(own[:, :2].min(axis=0) - 60, own[:, 2:].max(axis=0) + 60),
+                    masks=start.masks)  # fmt: skip
+    ref.lo = np.maximum(ref.lo, own[:, :2].min(axis=0) - 20)
+    ref.hi = np.minimum(ref.hi, own[:, 2:].max(axis=0) + 20)
+    sigma = float(np.hypot(opts.sigma_hint_px, np.sqrt(1 / 12)))
+    a, b = (0.05, 0.9) if start.polarity > 0 else (0.95, -0.9)
+    reg = _register_levels(img, ref, FitStart(start.warp.coef, a, b, sigma), start.warp)
+    if isinstance(reg, dict):
+        return _replace(empty, **reg)
+    warp, res, sigma = reg
+    global_ncc = res.ncc
+    pred = warp.inverse(corners_u)
+    slip = _slip_message(corners_u, pred, start.anchors, um_per_px)
+    if slip:
+        return _replace(empty, message=slip, ncc=global_ncc)
+    pred = warp.inverse(corners_u)
+    m = 3.0
+    inside = _inside(pred, w, h, m)
+    ctx = TripletContext(img, warp, start.rects, start.masks, target, corners_u, pred, res.a, res.b, sigma,
+                         um_per_px, opts.max_stderr_px, opts.ambiguity_ratio,
+                         orientation_matrix(best)[0, 0] == 0)  # fmt: skip
+    kept = _refine_triplets(target, inside, w, h, m, functools.partial(refine_triplet, ctx), bar)
+    width_px = target.corner_width_um[kept.idx] / um_per_px
+    check = check_consistency(corners_u[kept.idx], kept.xy, width_px, opts.consistency_model)
+    common = dict(
+        n_expected=int(inside.sum()),
+        sigma_px=camera_sigma(warp, sigma),
+        ncc=global_ncc,
+        consistency=ConsistencySummary(**check.summary()),
+        predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
+    )
+    return _finish(empty, target, corners_u, kept, check, common)
+
+
+def _register_levels(img, ref: Reference, fit: FitStart, warp: PolyWarp):
+    """The registration's levels (:data:`LEVELS`, coarse to fine) from ``warp`` and the
+    contrast and blur of ``fit``: ``(warp, last fit, fitted blur)``, or the fields of the
+    failed :class:`Detection` (a dict)."""
     import cv2
 
     h, w = img.shape
-    empty = _replace(empty, orientation=best, orientation_scores=score_table, um_per_px=um_per_px)
-    corners_u = target.reference_px(um_per_px, (w, h), best)
-    swap_axes = orientation_matrix(best)[0, 0] == 0  # a quarter turn: H bars run vertically
-    own = target.rectangles_px(um_per_px, (w, h), best)
-    ref = _Reference(rects, window=(own[:, :2].min(axis=0) - 60, own[:, 2:].max(axis=0) + 60), masks=masks)
-    ref.lo = np.maximum(ref.lo, own[:, :2].min(axis=0) - 20)
-    ref.hi = np.minimum(ref.hi, own[:, 2:].max(axis=0) + 20)
-    sigma = float(np.hypot(sigma_hint_px, np.sqrt(1 / 12)))
-    a, b = (0.05, 0.9) if sign > 0 else (0.95, -0.9)
-    empty = _replace(empty, polarity="bright" if sign > 0 else "dark")
+    a, b, sigma = fit.a, fit.b, fit.sigma
     for blur, degree in LEVELS:
         warp = warp.with_degree(degree)
         values_img = img if blur is None else cv2.GaussianBlur(img, (0, 0), blur)
-        xs = _region(warp, ref, w, h, max_pixels=MAX_FIT_PIXELS if blur is None else MAX_FIT_PIXELS // 4)
+        xs = region_pixels(
+            warp, ref, (w, h), max_pixels=MAX_FIT_PIXELS if blur is None else MAX_FIT_PIXELS // 4
+        )
         if len(xs) < 50:
-            return _replace(empty, message="the registered target falls outside the image")
+            return {"message": "the registered target falls outside the image"}
         model_sigma = sigma if blur is None else float(np.hypot(blur, sigma))
-        res = _levenberg_marquardt(
-            values_img[xs[:, 1].astype(int), xs[:, 0].astype(int)], np.zeros((len(xs), 2)), warp.basis(xs),
-            ref, warp.coef, a, b, model_sigma, fit_sigma=blur is None, sigma_max=max(8.0, 2 * model_sigma),
-        )  # fmt: skip
-        warp = _Warp(warp.centre, warp.scale, res.coef, degree)
+        data = PixelData(values_img[xs[:, 1].astype(int), xs[:, 0].astype(int)], np.zeros((len(xs), 2)),
+                         warp.basis(xs), ref)  # fmt: skip
+        options = FitOptions(fit_sigma=blur is None, sigma_max=max(8.0, 2 * model_sigma))
+        res = fit_pixels(data, FitStart(warp.coef, a, b, model_sigma), options)
+        warp = warp.with_coef(res.coef)
         a, b = res.a, res.b
         if res.ncc < 0.3:
             msg = f"registration failed (model-image correlation {res.ncc:.2f} at blur {blur} px)"
-            return _replace(empty, message=msg, ncc=res.ncc)
+            return {"message": msg, "ncc": res.ncc}
         if blur is None:
             sigma = res.sigma
-    global_ncc = res.ncc
-    if global_ncc < 0.5:
-        msg = f"registration failed (model-image correlation {global_ncc:.2f} < 0.5)"
-        return _replace(empty, message=msg, ncc=global_ncc)
-    # the one-element slip: a registration onto the neighbouring element has a scale 12 %
-    # off the given one (the scale of the similarity that fits the registered corners best)
-    x0 = _initial_inverse(warp, corners_u)
-    pred = _invert(warp, warp.jacobian, corners_u, x0)
+    if res.ncc < 0.5:
+        msg = f"registration failed (model-image correlation {res.ncc:.2f} < 0.5)"
+        return {"message": msg, "ncc": res.ncc}
+    return warp, res, sigma
+
+
+def _slip_message(corners_u, pred, anchors, um_per_px) -> str:
+    """Why the registration may have slipped onto the neighbouring element (``""`` when it
+    has not): from a pose, it left the pose's matched triplets; else its scale is more than
+    half an element step off the given one (a slip is 12 % off; the scale of the similarity
+    that fits the registered corners best)."""
     fin = np.isfinite(pred).all(axis=1)
     pu = corners_u[fin] - corners_u[fin].mean(axis=0)
     pc = pred[fin] - pred[fin].mean(axis=0)
@@ -843,40 +943,15 @@ def _dense_levels(img, target, um_per_px, best, score_table, rects, warp, sign, 
         off = [np.hypot(*(pred[idx].mean(axis=0) - xc)) / wc for idx, xc, wc in anchors]
         off = np.asarray(off)[np.isfinite(off)]
         if len(off) == 0 or np.median(off) > 1.0:
-            msg = (
+            return (
                 f"the dense registration left the pose's matched triplets (median "
                 f"{np.median(off) if len(off) else float('nan'):.1f} bar widths off): possibly every "
                 f"id one element off; nothing was kept"
             )
-            return _replace(empty, message=msg, ncc=global_ncc)
     elif abs(np.log(scale)) > np.log(HALF_ELEMENT):
-        msg = (
+        return (
             f"the registered target's scale differs from {um_per_px:g} um/px by "
             f"{100 * (1 / scale - 1):+.1f} % "
             f"(more than half an element step, 6 %): possibly every id one element off; nothing was kept"
         )
-        return _replace(empty, message=msg, ncc=global_ncc)
-    x0 = _initial_inverse(warp, corners_u)
-    pred = _invert(warp, warp.jacobian, corners_u, x0)
-    m = 3.0
-    inside = np.isfinite(pred).all(axis=1) & (pred[:, 0] >= m) & (pred[:, 0] <= w - 1 - m)
-    inside &= (pred[:, 1] >= m) & (pred[:, 1] <= h - 1 - m)
-    n_expected = int(inside.sum())
-
-    def refine(bars, idx):
-        return _refine_triplet(
-            img, warp, rects, target, bars, idx, corners_u, pred, a, b, sigma, um_per_px,
-            max_stderr_px=max_stderr_px, ambiguity_ratio=ambiguity_ratio, swap_axes=swap_axes, masks=masks,
-        )  # fmt: skip
-
-    keep_idx, keep_xy, keep_se, dropped, _ = _refine_triplets(target, inside, w, h, m, refine, bar)
-    width_px = target.corner_width_um[keep_idx] / um_per_px
-    check = check_consistency(corners_u[keep_idx], keep_xy, width_px, consistency_model)
-    common = dict(
-        n_expected=n_expected,
-        sigma_px=_camera_sigma(warp, sigma),
-        ncc=global_ncc,
-        consistency=check.summary(),
-        predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
-    )
-    return _finish(empty, target, corners_u, keep_idx, keep_xy, keep_se, dropped, check, common)
+    return ""

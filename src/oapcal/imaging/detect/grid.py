@@ -30,6 +30,7 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.detect.lattice import index_lattice, lattice_periods
+from oapcal.imaging.detect.warp import PolyWarp
 
 #: Kinds of grid target.
 GRID_TARGETS = ("dots", "chessboard")
@@ -176,96 +177,62 @@ def detect_grid(
     absolute ids when the whole grid is in view); ``um_per_px`` the camera's object-space
     pixel size to within 30 % (optional: the scale of ``xy_u`` and of the search);
     ``polarity`` of the dots (``dark`` on bright, ``bright`` on dark, or ``auto``)."""
-    from oapcal.imaging.detect.core import _to_float_image
+    from oapcal.imaging.detect.core import to_float_image
 
     _check_args(target, pitch_um, dot_um, rows, cols, um_per_px, polarity)
-    img = _to_float_image(image)
+    img = to_float_image(image)
     if img is None:
         return _fail(target, "the image is uniform: there is no grid in it", "uniform")
     h, w = img.shape
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
     periods = lattice_periods(img)
     found_period = periods[0] if periods else float("nan")
+    args = _GridArgs(target, pitch_um, dot_um, rows, cols, um_per_px, polarity, centre)
     if um_per_px is not None:
         # the given scale sets the search; the grid found must then measure it (below): the
         # image's own period can be a turned grid's outline, so it does not overrule it
-        args = (pitch_um, dot_um, rows, cols, um_per_px, polarity, centre)
-        return _detect_at(img, target, pitch_um / um_per_px, found_period, *args)
+        return _detect_at(img, args, pitch_um / um_per_px, found_period)
     # the spectrum's strongest peak first; when no grid is indexed at it, the next ones (the
     # outline of a turned grid can outshine its lattice: through the relay turned 30 degrees)
     det = None
     for period in periods or [float("nan")]:
-        det = _detect_at(
-            img, target, period, found_period, pitch_um, dot_um, rows, cols, None, polarity, centre
-        )
+        det = _detect_at(img, args, period, found_period)
         if det.ok or det.reason not in ("no_seed", "too_few", "no_period"):
             break
     return det
 
 
-def _detect_at(img, target, period, found_period, pitch_um, dot_um, rows, cols, um_per_px, polarity, centre):
+@dataclass(frozen=True)
+class _GridArgs:
+    """The keywords of :func:`detect_grid` (checked) and the image centre."""
+
+    target: str
+    pitch_um: float
+    dot_um: float | None
+    rows: int | None
+    cols: int | None
+    um_per_px: float | None
+    polarity: str
+    centre: np.ndarray
+
+
+def _detect_at(img, args: _GridArgs, period, found_period):
     """:func:`detect_grid` at one lattice period (px)."""
     h, w = img.shape
+    target, um_per_px = args.target, args.um_per_px
     if not (np.isfinite(period) and 3.0 <= period <= min(h, w) / 3.0):
         msg = "no periodic pattern of 3 px or more, with 3 periods across the image, was found"
         return _fail(target, msg, "no_period", ("um_per_px",))
-    counts: dict = {}
-    parity = None
-    if target == "dots":
-        from oapcal.imaging.detect.dots import find_dots
-
-        dot_px = dot_um / pitch_um * period if dot_um else None
-        cand = find_dots(img, period, dot_px=dot_px, polarity=polarity)
-        xy, se, pol = cand.xy, cand.stderr_px, cand.polarity
-    else:
-        from oapcal.imaging.detect.saddles import find_saddles
-
-        cand = find_saddles(img, period)
-        xy, se, pol, parity = cand.xy, np.full((len(cand.xy), 2), np.nan), "", cand.parity
-    counts["candidates"] = len(xy)
-    lat = index_lattice(xy, centre=centre, parity=parity, pitch_px=period)
+    cand, xy, se, pol, parity = _candidates(img, args, period)
+    counts: dict = {"candidates": len(xy)}
+    lat = index_lattice(xy, centre=args.centre, parity=parity, pitch_px=period)
     counts.update(lat.counts)
     if not lat.ok:
         return _fail(target, f"the grid could not be indexed: {lat.message}", lat.reason, counts=counts,
                      polarity=pol, pitch_px=period)  # fmt: skip
     rc, pts = lat.rc, lat.point
-    keep = np.ones(len(rc), bool)
-    if target == "dots":
-        similar = _similar_to_neighbours(rc, cand.area[pts], cand.ellipticity[pts])
-        keep = similar & cand.converged[pts]
-        counts["dirty_dropped"] = int((~similar).sum())
-        counts["unconverged_dropped"] = int((similar & ~cand.converged[pts]).sum())
-        shaded = ~(cand.shading[pts] <= MAX_SHADING)
-        counts["shaded_dropped"] = int((keep & shaded).sum())
-        keep &= ~shaded
-    # a landmark off its neighbours' smooth course by far more than the others (dust on a dot
-    # that pulls its centre, a damaged corner) is left out
-    # (compared within nodes of the same number of neighbours: an edge node's prediction
-    # is an extrapolation, less certain than an inner one's)
-    where = {tuple(n): i for i, n in enumerate(rc)}
-    loo = _loo_residuals(rc, xy[pts], where)
-    finite = np.isfinite(loo)
-    support = np.array(
-        [sum((r + a, c + b) in where for a in (-1, 0, 1) for b in (-1, 0, 1)) - 1 for r, c in rc]
-    )
-    group = np.digitize(support, [5, 8])  # <= 4, 5-7, 8 neighbours
-    off = np.zeros(len(rc), bool)
-    for gi in range(3):
-        sel = finite & (group == gi)
-        if sel.sum() >= 8:
-            typical = 1.4826 * float(np.median(loo[sel]))
-            off |= sel & (loo > max(POSITION_OUTLIER_MIN_PX, POSITION_OUTLIER_FACTOR * typical))
-    if off.any():
-        # once the suspects are out of their neighbours' fits, a clean node next to a dirty
-        # one is predicted well again (its first prediction leaned on the dirty one)
-        suspects = set(np.flatnonzero(off).tolist())
-        again = _loo_residuals(rc, xy[pts], where, exclude=suspects, only=suspects)
-        limit = {gi: max(POSITION_OUTLIER_MIN_PX,
-                         POSITION_OUTLIER_FACTOR * 1.4826 * float(np.median(loo[finite & (group == gi)])))
-                 for gi in range(3) if (finite & (group == gi)).sum() >= 8}  # fmt: skip
-        for i in suspects:
-            if np.isfinite(again[i]) and again[i] <= limit.get(group[i], np.inf):
-                off[i] = False
+    keep = _clean_dots(rc, cand, pts, counts) if target == "dots" else np.ones(len(rc), bool)
+    off = _position_outliers(rc, xy[pts])
     counts["position_dropped"] = int((off & keep).sum())
     keep &= ~off
     rc, pts = rc[keep], pts[keep]
@@ -277,31 +244,19 @@ def _detect_at(img, target, period, found_period, pitch_um, dot_um, rows, cols, 
     order = np.lexsort((rc[:, 1], rc[:, 0]))
     rc, pts = rc[order], pts[order]
     xy_d = xy[pts]
-    # the outline: the target's own landmark rows and columns
-    ids_absolute = False
-    if rows is not None:
-        shape = (rows, cols) if target == "dots" else (rows - 1, cols - 1)
-        found = tuple(int(v) + 1 for v in rc.max(axis=0))
-        fits = (found[0] <= shape[0] and found[1] <= shape[1]) or (
-            found[0] <= shape[1] and found[1] <= shape[0]
-        )
-        if not fits:
-            return _fail(
-                target,
-                f"the grid found spans {found[0]} x {found[1]} landmarks, more than the target's "
-                f"{shape[0]} x {shape[1]}: check rows and cols",
-                "larger_than_target", ("rows", "cols"), counts, pol, lat.pitch_px,
-            )  # fmt: skip
-        ids_absolute = found in (shape, shape[::-1])
-    scale = _pixel_size(xy_d, rc, pitch_um, centre)
+    ids_absolute = _ids_absolute(rc, args)
+    if isinstance(ids_absolute, str):
+        return _fail(target, ids_absolute, "larger_than_target", ("rows", "cols"), counts, pol, lat.pitch_px)
+    scale = _pixel_size(xy_d, rc, args.pitch_um, args.centre)
     if um_per_px is not None and not 0.7 < scale["um_per_px"] / um_per_px < 1.43:
         msg = (f"the grid found measures {scale['um_per_px']:.4g} um/px, but um_per_px is {um_per_px:g} "
                f"(image period {found_period:.2f} px): check the pitch and the pixel size")  # fmt: skip
         return _fail(target, msg, "scale_mismatch", ("um_per_px", "pitch_um"), counts, pol, lat.pitch_px)
     ref_um_per_px = float(um_per_px) if um_per_px is not None else scale["um_per_px"]
     grid_centre = scale["grid_at_centre"]  # (row, col) of the image centre
-    xy_u = centre + (rc[:, ::-1] - grid_centre[::-1]) * (pitch_um / ref_um_per_px)
+    xy_u = args.centre + (rc[:, ::-1] - grid_centre[::-1]) * (args.pitch_um / ref_um_per_px)
     ids = tuple(f"R{r}C{c}" for r, c in rc)
+    dot_um, pitch_um = args.dot_um, args.pitch_um
     margin = 2.0 + (
         0.5 * dot_um / pitch_um * lat.pitch_px if (target == "dots" and dot_um) else 0.25 * lat.pitch_px
     )
@@ -314,6 +269,86 @@ def _detect_at(img, target, period, found_period, pitch_um, dot_um, rows, cols, 
         um_per_px_given=um_per_px is not None,
         pitch_px=lat.pitch_px, polarity=pol, counts=counts,
     )  # fmt: skip
+
+
+def _candidates(img, args: _GridArgs, period):
+    """The landmark candidates at ``period``: ``(candidates, xy, stderr, polarity, parity)``
+    (dots: their centroids; chessboards: the saddle points, with their parity)."""
+    if args.target == "dots":
+        from oapcal.imaging.detect.dots import find_dots
+
+        dot_px = args.dot_um / args.pitch_um * period if args.dot_um else None
+        cand = find_dots(img, period, dot_px=dot_px, polarity=args.polarity)
+        return cand, cand.xy, cand.stderr_px, cand.polarity, None
+    from oapcal.imaging.detect.saddles import find_saddles
+
+    cand = find_saddles(img, period)
+    return cand, cand.xy, np.full((len(cand.xy), 2), np.nan), "", cand.parity
+
+
+def _clean_dots(rc, cand, pts, counts) -> np.ndarray:
+    """The indexed dots to keep: like their neighbours (not dirty), converged and not
+    shaded; the dropped ones counted in ``counts``."""
+    similar = _similar_to_neighbours(rc, cand.area[pts], cand.ellipticity[pts])
+    keep = similar & cand.converged[pts]
+    counts["dirty_dropped"] = int((~similar).sum())
+    counts["unconverged_dropped"] = int((similar & ~cand.converged[pts]).sum())
+    shaded = ~(cand.shading[pts] <= MAX_SHADING)
+    counts["shaded_dropped"] = int((keep & shaded).sum())
+    return keep & ~shaded
+
+
+def _position_outliers(rc, xy) -> np.ndarray:
+    """Landmarks off their neighbours' smooth course by far more than the others (dust on a
+    dot that pulls its centre, a damaged corner), compared within nodes of the same number
+    of neighbours (an edge node's prediction is an extrapolation, less certain than an
+    inner one's)."""
+    where = {tuple(n): i for i, n in enumerate(rc)}
+    loo = _loo_residuals(rc, xy, where)
+    finite = np.isfinite(loo)
+    support = np.array(
+        [sum((r + a, c + b) in where for a in (-1, 0, 1) for b in (-1, 0, 1)) - 1 for r, c in rc]
+    )
+    group = np.digitize(support, [5, 8])  # <= 4, 5-7, 8 neighbours
+    median = {gi: float(np.median(loo[finite & (group == gi)])) for gi in range(3)
+              if (finite & (group == gi)).sum() >= 8}  # fmt: skip
+    off = np.zeros(len(rc), bool)
+    for gi, med in median.items():
+        off |= (
+            finite
+            & (group == gi)
+            & (loo > max(POSITION_OUTLIER_MIN_PX, POSITION_OUTLIER_FACTOR * (1.4826 * med)))
+        )
+    if off.any():
+        # once the suspects are out of their neighbours' fits, a clean node next to a dirty
+        # one is predicted well again (its first prediction leaned on the dirty one)
+        suspects = set(np.flatnonzero(off).tolist())
+        again = _loo_residuals(rc, xy, where, exclude=suspects, only=suspects)
+        limit = {
+            gi: max(POSITION_OUTLIER_MIN_PX, POSITION_OUTLIER_FACTOR * 1.4826 * med)
+            for gi, med in median.items()
+        }
+        for i in suspects:
+            if np.isfinite(again[i]) and again[i] <= limit.get(group[i], np.inf):
+                off[i] = False
+    return off
+
+
+def _ids_absolute(rc, args: _GridArgs):
+    """Whether the ids count from the target's own corner (the whole grid of ``rows`` x
+    ``cols`` in view), or the refusal's message when the grid found is larger."""
+    if args.rows is None:
+        return False
+    rows, cols = args.rows, args.cols
+    shape = (rows, cols) if args.target == "dots" else (rows - 1, cols - 1)
+    found = tuple(int(v) + 1 for v in rc.max(axis=0))
+    fits = (found[0] <= shape[0] and found[1] <= shape[1]) or (found[0] <= shape[1] and found[1] <= shape[0])
+    if not fits:
+        return (
+            f"the grid found spans {found[0]} x {found[1]} landmarks, more than the target's "
+            f"{shape[0]} x {shape[1]}: check rows and cols"
+        )
+    return found in (shape, shape[::-1])
 
 
 def _loo_residuals(rc, xy, where, exclude=(), only=None) -> np.ndarray:
@@ -358,45 +393,29 @@ def _similar_to_neighbours(rc, area, ell) -> np.ndarray:
     return keep
 
 
-def _poly_terms(xy, degree):
-    x, y = xy[:, 0], xy[:, 1]
-    return np.stack([x**i * y**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=1)
-
-
-def _poly_grad(at, degree):
-    """d(terms)/dx and d(terms)/dy at the point ``at``."""
-    x, y = at
-    gx, gy = [], []
-    for i in range(degree + 1):
-        for j in range(degree + 1 - i):
-            gx.append(i * x ** (i - 1) * y**j if i else 0.0)
-            gy.append(j * x**i * y ** (j - 1) if j else 0.0)
-    return np.array(gx), np.array(gy)
-
-
 def _scale_fit(xy_d, grid_um, at, degree, norm):
-    """um per px at ``at`` from a polynomial image px -> grid um of ``degree``: ``(s, sigma)``."""
+    """um per px at ``at`` from a polynomial image px -> grid um of ``degree``: ``(s, sigma,
+    the polynomial)``."""
     c0, sc = norm
-    u = (xy_d - c0) / sc
-    a = _poly_terms(u, degree)
-    coef, *_ = np.linalg.lstsq(a, grid_um, rcond=None)
-    res = grid_um - a @ coef
-    dof = max(len(u) - a.shape[1], 1)
+    warp = PolyWarp.fit(xy_d, grid_um, degree, c0, sc)
+    a = warp.basis(xy_d)
+    res = grid_um - a @ warp.coef
+    dof = max(len(xy_d) - a.shape[1], 1)
     var = (res**2).sum(axis=0) / dof  # per output coordinate
     cov = np.linalg.pinv(a.T @ a)
-    gx, gy = _poly_grad((np.asarray(at) - c0) / sc, degree)
-    jac = np.array([[gx @ coef[:, 0], gy @ coef[:, 0]], [gx @ coef[:, 1], gy @ coef[:, 1]]]) / sc
+    at = np.asarray(at, float)[None, :]
+    jac = warp.jacobian(at)[0]
     det = abs(np.linalg.det(jac))
     s = float(np.sqrt(det))
-    # linear propagation: ds/dJ = s/2 J^-T; J_kj = g_j . coef_k / sc, coef_k ~ N(., var_k cov)
+    # linear propagation: ds/dJ = s/2 J^-T; J_kj = g_j . coef_k, coef_k ~ N(., var_k cov)
     ds = 0.5 * s * np.linalg.inv(jac).T
-    g = np.stack([gx, gy]) / sc  # (2, terms)
+    g = np.concatenate(warp.basis_jacobian(at))  # (2, terms): d terms / dx, dy at ``at``
     var_s = 0.0
     for k in range(2):
         ck = var[k] * cov
         vec = ds[k] @ g  # d s / d coef_k
         var_s += float(vec @ ck @ vec)
-    return s, float(np.sqrt(max(var_s, 0.0))), coef
+    return s, float(np.sqrt(max(var_s, 0.0))), warp
 
 
 def _pixel_size(xy_d, rc, pitch_um, centre) -> dict:
@@ -410,21 +429,13 @@ def _pixel_size(xy_d, rc, pitch_um, centre) -> dict:
     at = centre if inside else xy_d.mean(axis=0)
     norm = (xy_d.mean(axis=0), max(float(np.ptp(xy_d, axis=0).max()) / 2, 1.0))
     deg = SCALE_DEGREE if len(xy_d) >= 30 else 1
-    s, sig, coef = _scale_fit(xy_d, grid_um, at, deg, norm)
+    s, sig, scale_map = _scale_fit(xy_d, grid_um, at, deg, norm)
     if len(xy_d) >= 45:
         s4, _, _ = _scale_fit(xy_d, grid_um, at, deg + 1, norm)
         sig = float(np.hypot(sig, s4 - s))
-    u = (centre - norm[0]) / norm[1]
-    g_at_centre = (_poly_terms(u[None, :], deg) @ coef)[0] / pitch_um  # (col, row)
+    g_at_centre = scale_map(np.asarray(centre, float)[None, :])[0] / pitch_um  # (col, row)
     # the forward map grid (row, col) -> px, cubic, for the landmarks expected in view
-    gdeg = min(3, deg)
-    gn = (rc.mean(axis=0), max(float(np.ptp(rc, axis=0).max()) / 2, 1.0))
-    fa = _poly_terms((rc - gn[0]) / gn[1], gdeg)
-    fcoef, *_ = np.linalg.lstsq(fa, xy_d, rcond=None)
-
-    def forward(rc_q):
-        return _poly_terms((np.asarray(rc_q, float) - gn[0]) / gn[1], gdeg) @ fcoef
-
+    forward = PolyWarp.fit(rc, xy_d, min(3, deg))
     return {"um_per_px": s, "sigma": sig, "at": at, "grid_at_centre": g_at_centre[::-1], "forward": forward}
 
 

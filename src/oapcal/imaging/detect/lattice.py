@@ -72,6 +72,9 @@ class Lattice:
 
 
 def _design(rc: np.ndarray, kind: str) -> np.ndarray:
+    """The local model of the positions in the indices (row, col): not the polynomial warp of
+    :mod:`.warp`, since ``bilinear`` (1, r, c, rc) is no total-degree polynomial, and the
+    coefficients 1 and 2 are read as the local basis vectors (d xy / d row, d xy / d col)."""
     r, c = rc[:, 0].astype(float), rc[:, 1].astype(float)
     one = np.ones_like(r)
     if kind == "quadratic":
@@ -79,6 +82,22 @@ def _design(rc: np.ndarray, kind: str) -> np.ndarray:
     if kind == "bilinear":
         return np.stack([one, r, c, r * c], axis=1)
     return np.stack([one, r, c], axis=1)
+
+
+def _kinds(d: np.ndarray):
+    """The local models (kind, number of coefficients), richest first, that neighbours at the
+    relative indices ``d`` may determine: two points to spare beyond affine, 3 rows and
+    columns for quadratic, 2 for bilinear."""
+    n = len(d)
+    rows, cols = len(np.unique(d[:, 0])), len(np.unique(d[:, 1]))
+    for kind, k in (("quadratic", 6), ("bilinear", 4), ("affine", 3)):
+        if n < k + (2 if kind != "affine" else 0):
+            continue
+        if kind == "quadratic" and (rows < 3 or cols < 3):
+            continue
+        if kind != "affine" and (rows < 2 or cols < 2):
+            continue
+        yield kind, k
 
 
 def _local_solver(offsets: tuple):
@@ -93,14 +112,7 @@ def _local_solver(offsets: tuple):
     n = len(d)
     out = None
     if n >= 3:
-        rows, cols = len(np.unique(d[:, 0])), len(np.unique(d[:, 1]))
-        for kind, k in (("quadratic", 6), ("bilinear", 4), ("affine", 3)):
-            if n < k + (2 if kind != "affine" else 0):
-                continue
-            if kind == "quadratic" and (rows < 3 or cols < 3):
-                continue
-            if kind != "affine" and (rows < 2 or cols < 2):
-                continue
+        for kind, k in _kinds(d):
             a = _design(d, kind)
             sv = np.linalg.svd(a, compute_uv=False)
             if sv[-1] < 1e-6 * sv[0]:
@@ -128,14 +140,7 @@ def local_fit(rc_nb: np.ndarray, xy_nb: np.ndarray, at: np.ndarray):
     if n < 3:
         return None
     d = rc_nb - np.asarray(at)[None, :]
-    rows, cols = len(np.unique(d[:, 0])), len(np.unique(d[:, 1]))
-    for kind, k in (("quadratic", 6), ("bilinear", 4), ("affine", 3)):
-        if n < k + (2 if kind != "affine" else 0):
-            continue
-        if kind == "quadratic" and (rows < 3 or cols < 3):
-            continue
-        if kind != "affine" and (rows < 2 or cols < 2):
-            continue
+    for kind, k in _kinds(d):
         a = _design(d, kind)
         coef, _, rank, sv = np.linalg.lstsq(a, xy_nb, rcond=None)
         if rank < k or sv[-1] < 1e-6 * sv[0]:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.imaging.detect.bars import Triplets
+from oapcal.imaging.detect.warp import PolyWarp
 
 #: Penalty per resolvable reference triplet predicted inside the image but not found.
 MISSING_PENALTY = 0.3
@@ -139,18 +140,29 @@ def _angle_diff(a, b):
     return np.abs((np.asarray(a) - np.asarray(b) + np.pi / 2) % np.pi - np.pi / 2)
 
 
-def _score(
-    pose_s, pose_lin, pose_t, ref: RefTriplets, img: Triplets, tree, shape, *, anchor=None, loose=1.0,
-    listed=None, pred=None, width_tol=1.25,
-):  # fmt: skip
+@dataclass(frozen=True)
+class _Scene:
+    """What every pose of one search is scored against: the reference triplets, the image's
+    triplets with their k-d tree of centres, the image shape (rows, cols) and the
+    reference triplets of the named groups (``listed``, None: all)."""
+
+    ref: RefTriplets
+    img: Triplets
+    tree: object
+    shape: tuple[int, int]
+    listed: np.ndarray | None = None
+
+
+def _score(pose_s, pose_lin, pose_t, scene: _Scene, *, anchor=None, loose=1.0, pred=None, width_tol=1.25):
     """Score hypotheses given as arrays ``s`` (H,), ``lin`` (H, 2, 2), ``t`` (H, 2).
 
     ``pred`` (H, n, 2) replaces the similarity's predicted centres (a smoother map fitted
     to the matches); ``anchor`` (H, 2) widens the position tolerance with the distance
     from it (a single triplet predicts its neighbours better than far triplets).
-    Returns ``score`` (H,), ``n_missing`` (H,) and the matched image index per
-    (hypothesis, reference triplet) (-1: none)."""
-    h, w = shape
+    Returns ``score`` (H,), ``n_missing`` (H,), the matched image index per
+    (hypothesis, reference triplet) (-1: none) and the number of expected triplets (H,)."""
+    ref, img, tree, listed = scene.ref, scene.img, scene.tree, scene.listed
+    h, w = scene.shape
     amat = pose_lin * pose_s[:, None, None]  # px per um, (H, 2, 2); may be non-orthogonal
     if pred is None:
         pred = np.einsum("hij,nj->hni", amat, ref.centre) + pose_t[:, None, :]
@@ -207,8 +219,8 @@ def _score(
         _, first = np.unique(m[sel], return_index=True)
         score[hh] = weight[np.flatnonzero(sel)[first]].sum()
     score -= MISSING_PENALTY * missing
-    _score.n_expected = (expected if listed is None else expected & listed[None, :]).sum(axis=1)
-    return score, missing, match
+    n_expected = (expected if listed is None else expected & listed[None, :]).sum(axis=1)
+    return score, missing, match, n_expected
 
 
 def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np.ndarray | None:
@@ -224,39 +236,30 @@ def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np
     base = pose.apply(ref.centre)
     x = base[jj]
     resid = img.centre[ii] - x
-    c = x.mean(axis=0)
-    sc = max(float(np.ptp(x, axis=0).max()) / 2, 1.0)
-
-    def design(p):
-        z = (p - c) / sc
-        cols = [np.ones(len(z)), z[:, 0], z[:, 1]]
-        if n >= QUADRATIC_MATCHES:
-            cols += [z[:, 0] ** 2, z[:, 0] * z[:, 1], z[:, 1] ** 2]
-        return np.column_stack(cols)
-
-    coef, *_ = np.linalg.lstsq(design(x), resid, rcond=None)
+    warp = PolyWarp.fit(x, resid, 2 if n >= QUADRATIC_MATCHES else 1)
     # only near the matched triplets is the correction trusted (it is a polynomial)
-    corr = design(base) @ coef
-    far = np.hypot(*((base - c) / sc).T) > 1.6
+    corr = warp(base)
+    far = np.hypot(*((base - warp.centre) / warp.scale).T) > 1.6
     corr[far] = 0.0
     return base + corr
 
 
-def _refine(pose: Pose, ref, img, tree, shape, listed, n_iter=5) -> Pose:
+def _refine(pose: Pose, scene: _Scene, n_iter=5) -> Pose:
     """Match, refit the similarity (and a smooth correction of it) to the matches, repeat.
     The position tolerance grows with the distance from the matched triplets' centroid
     (distortion), less at every round."""
+    ref, img = scene.ref, scene.img
     pairs_prev = None
     pred = None
     anchor = img.centre.mean(axis=0)
     for it in range(n_iter + 1):
         loose = 0.8 * 0.6**it
-        sc, miss, match = _score(
-            np.array([pose.s]), pose.lin[None], pose.t[None], ref, img, tree, shape, listed=listed,
+        sc, miss, match, n_exp = _score(
+            np.array([pose.s]), pose.lin[None], pose.t[None], scene,
             pred=None if pred is None else pred[None], anchor=anchor[None], loose=loose, width_tol=WIDTH_TOL,
         )  # fmt: skip
         pairs = [(int(i), j) for j, i in enumerate(match[0]) if i >= 0]
-        new = Pose(pose.s, pose.lin, pose.t, float(sc[0]), pairs, int(miss[0]), int(_score.n_expected[0]))
+        new = Pose(pose.s, pose.lin, pose.t, float(sc[0]), pairs, int(miss[0]), int(n_exp[0]))
         if len(pairs) < 2 or it == n_iter:
             return new
         pairs_prev = pairs
@@ -338,6 +341,7 @@ class PoseResult:
     param: tuple[str, ...] = ()  # the parameters the message suggests changing
 
 
+# (10 parameters: the search's keywords, which core passes by name)
 def search_pose(
     img: Triplets,
     ref: RefTriplets,
@@ -379,9 +383,9 @@ def search_pose(
             return PoseResult(None, None, 1, "no pose fits the options given", {}, n_img, kind="not_found")
         msg = _no_scale_message(img, um_per_px)
         return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("um_per_px",))
-    tree = cKDTree(img.centre)
-    scores = _score_hypotheses(hyps, ref, img, tree, shape, listed)
-    refined = _refined_poses(hyps, scores, ref, img, tree, shape, listed, top)
+    scene = _Scene(ref, img, cKDTree(img.centre), shape, listed)
+    scores = _score_hypotheses(hyps, scene)
+    refined = _refined_poses(hyps, scores, scene, top)
     if anchors:
         from oapcal.imaging.detect.anchor import honours
 
@@ -391,8 +395,8 @@ def search_pose(
         free = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets)
         free_refined = []
         if free is not None:
-            free_scores = _score_hypotheses(free, ref, img, tree, shape, listed)
-            free_refined = _refined_poses(free, free_scores, ref, img, tree, shape, listed, top)
+            free_scores = _score_hypotheses(free, scene)
+            free_refined = _refined_poses(free, free_scores, scene, top)
         pool = []
         for p in sorted(refined + free_refined, key=lambda q: -q.score):
             if honours(p, ref, anchors, img) and not any(_same_pose(p, q) for q in pool):
@@ -411,13 +415,13 @@ def search_pose(
             # (the best pose is what the bars say: the layouts are compared on it)
             return PoseResult(free_best, anchored, 1, msg, {}, n_img, refined, "contradicted", ("anchors",))
     best = _at_given_scale(refined, um_per_px)
-    slips = _slip_scores(best, ref, img, tree, shape, listed)
+    slips = _slip_scores(best, scene)
     if anchors:
         # a slipped copy gives the named element another place: no rival when it breaks an anchor
         slips_judged = {k: p for k, p in slips.items() if honours(p, ref, anchors, img)}
     else:
         slips_judged = slips
-    res = _judge(best, refined, slips_judged, um_per_px, listed, n_img, ref, img, anchors)
+    res = _judge(best, refined, slips_judged, um_per_px, scene, anchors)
     res.slip_scores = {k: v.score for k, v in slips.items()}
     return res
 
@@ -483,24 +487,23 @@ def _hypotheses(
     )
 
 
-def _score_hypotheses(hyps: _Hypotheses, ref, img, tree, shape, listed, chunk: int = 2000) -> np.ndarray:
+def _score_hypotheses(hyps: _Hypotheses, scene: _Scene, chunk: int = 2000) -> np.ndarray:
     """The score of every hypothesis, ``chunk`` at a time."""
     scores = np.empty(len(hyps.s))
     for lo in range(0, len(hyps.s), chunk):
         sl = slice(lo, lo + chunk)
         scores[sl] = _score(
-            hyps.s[sl], hyps.lin[sl], hyps.t[sl], ref, img, tree, shape,
-            anchor=hyps.anchor[sl], listed=listed, width_tol=WIDTH_TOL,
+            hyps.s[sl], hyps.lin[sl], hyps.t[sl], scene, anchor=hyps.anchor[sl], width_tol=WIDTH_TOL,
         )[0]  # fmt: skip
     return scores
 
 
-def _refined_poses(hyps: _Hypotheses, scores, ref, img, tree, shape, listed, top: int) -> list[Pose]:
+def _refined_poses(hyps: _Hypotheses, scores, scene: _Scene, top: int) -> list[Pose]:
     """The best ``4 top`` hypotheses refined, the same pose kept once (its best score),
     until ``top`` distinct poses; best first."""
     refined: list[Pose] = []
     for h in np.argsort(-scores)[: top * 4]:
-        p = _refine(Pose(float(hyps.s[h]), hyps.lin[h], hyps.t[h]), ref, img, tree, shape, listed)
+        p = _refine(Pose(float(hyps.s[h]), hyps.lin[h], hyps.t[h]), scene)
         if any(_same_pose(p, q) and q.score >= p.score for q in refined):
             continue
         refined = [q for q in refined if not (_same_pose(p, q) and q.score < p.score)]
@@ -528,12 +531,12 @@ def _at_given_scale(refined: list[Pose], um_per_px) -> Pose:
     return best
 
 
-def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, listed, n_img: int, ref=None, img=None,
-           anchors=()) -> PoseResult:  # fmt: skip
+def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, scene: _Scene, anchors=()) -> PoseResult:
     """The result for ``best``: not found when it explains too little, ambiguous when
     another pose or a slipped copy scores about as well (and the given scale does not
     decide), else found.  Every refusal says which anchor would decide it
     (:func:`anchor_hint`)."""
+    ref, img, listed, n_img = scene.ref, scene.img, scene.listed, len(scene.img)
     slip_scores = {k: v.score for k, v in slips.items()}
     runner = next((p for p in refined[1:] if not _same_pose(best, p)), None)
     n_named = sum(1 for _, j in best.matches if listed is None or listed[j])
@@ -658,9 +661,10 @@ def _element_index(g, e):
     return 6 * np.asarray(g) + np.asarray(e) - 1
 
 
-def _slip_scores(best: Pose, ref, img, tree, shape, listed) -> dict:
+def _slip_scores(best: Pose, scene: _Scene) -> dict:
     """The best pose re-fitted with every matched reference triplet replaced by the same
     triplet (H or V) one element (``+1``/``-1``) or one layer (``+2g``/``-2g``) along."""
+    ref, img = scene.ref, scene.img
     index = {
         (int(_element_index(ref.group[j], ref.element[j])), ref.orient[j]): j for j in range(len(ref.width))
     }
@@ -677,7 +681,7 @@ def _slip_scores(best: Pose, ref, img, tree, shape, listed) -> dict:
         s, lin, t = _fit_similarity(np.array(src), np.array(dst), best.mirrored)
         if not (np.isfinite(s) and s > 0):
             continue
-        out[name] = _refine(Pose(s, lin, t), ref, img, tree, shape, listed)
+        out[name] = _refine(Pose(s, lin, t), scene)
     return out
 
 

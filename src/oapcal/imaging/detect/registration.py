@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oapcal.imaging.detect.warp import PolyWarp
 from oapcal.imaging.usaf import render_rectangles
 
 #: Reference raster cells per reference px (fewer when the raster would exceed
@@ -29,66 +30,10 @@ MAX_FIT_PIXELS = 250_000
 SIGMA_MIN = 0.05
 
 
-# ------------------------------------------------------------------------ polynomial warp
-
-
-def _exponents(degree: int) -> list[tuple[int, int]]:
-    return [(i, t - i) for t in range(degree + 1) for i in range(t, -1, -1)]
-
-
-@dataclass
-class _Warp:
-    """``u = sum_k coef[k] * xi^i eta^j`` with ``xi = (x - centre) / scale`` (camera -> ref)."""
-
-    centre: np.ndarray
-    scale: float
-    coef: np.ndarray  # (nb, 2)
-    degree: int
-
-    def basis(self, x: np.ndarray) -> np.ndarray:
-        z = (np.asarray(x, float) - self.centre) / self.scale
-        return np.stack([z[:, 0] ** i * z[:, 1] ** j for i, j in _exponents(self.degree)], -1)
-
-    def __call__(self, x):
-        return self.basis(x) @ self.coef
-
-    def jacobian(self, x) -> np.ndarray:
-        """``du/dx`` ``(N, 2, 2)``."""
-        z = (np.asarray(x, float) - self.centre) / self.scale
-        dx, dy = [], []
-        for i, j in _exponents(self.degree):
-            dx.append(i * z[:, 0] ** max(i - 1, 0) * z[:, 1] ** j if i else np.zeros(len(z)))
-            dy.append(j * z[:, 0] ** i * z[:, 1] ** max(j - 1, 0) if j else np.zeros(len(z)))
-        dbx = np.stack(dx, -1) / self.scale
-        dby = np.stack(dy, -1) / self.scale
-        return np.stack([dbx @ self.coef, dby @ self.coef], -1)  # [n, u/v, x/y]
-
-    def with_degree(self, degree: int) -> _Warp:
-        new = np.zeros((len(_exponents(degree)), 2))
-        old = _exponents(self.degree)
-        for k, e in enumerate(_exponents(degree)):
-            if e in old:
-                new[k] = self.coef[old.index(e)]
-        return _Warp(self.centre, self.scale, new, degree)
-
-
-def _invert(func, jac, u_target: np.ndarray, x0: np.ndarray, n_iter: int = 30) -> np.ndarray:
-    """Solve ``func(x) = u_target`` for x by Newton from ``x0`` (rows independent)."""
-    x = np.array(x0, float)
-    for _ in range(n_iter):
-        r = func(x) - u_target
-        jm = jac(x)
-        step = np.linalg.solve(jm, r[..., None])[..., 0]
-        x = x - step
-        if np.nanmax(np.abs(step), initial=0.0) < 1e-9:
-            break
-    return x
-
-
 # -------------------------------------------------------------------------- reference
 
 
-class _Reference:
+class Reference:
     """The target's area-sampled raster in reference px and its blurred versions.
 
     ``window`` ``(lo, hi)`` (reference px) limits the raster to a region (e.g. the part of
@@ -157,8 +102,40 @@ class _Reference:
         return out
 
 
+@dataclass(frozen=True)
+class PixelData:
+    """What a registration fit models: ``values ~ a + b R_sigma(base_u + basis @ coef)`` at the
+    pixels, with ``R_sigma`` the blurred reference raster ``ref``."""
+
+    values: np.ndarray
+    base_u: np.ndarray
+    basis: np.ndarray
+    ref: Reference
+
+
+@dataclass(frozen=True)
+class FitStart:
+    """The start of a fit: the warp coefficients ``(nb, 2)``, background, contrast and blur."""
+
+    coef: np.ndarray
+    a: float
+    b: float
+    sigma: float
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Bounds and stopping rule of :func:`fit_pixels` (its docstring)."""
+
+    fit_sigma: bool
+    max_iter: int = 40
+    tol: float = 1e-3
+    sigma_max: float = np.inf
+    max_shift: float = np.inf
+
+
 @dataclass
-class _LMResult:
+class LMResult:
     coef: np.ndarray
     a: float
     b: float
@@ -170,22 +147,53 @@ class _LMResult:
     ncc: float
 
 
-def _levenberg_marquardt(
-    values,
-    base_u,
-    basis,
-    ref: _Reference,
-    coef,
-    a,
-    b,
-    sigma,
-    *,
-    fit_sigma,
-    max_iter=40,
-    tol=1e-3,
-    sigma_max=np.inf,
-    max_shift=np.inf,
-) -> _LMResult:
+class _PixelProblem:
+    """Residuals and Jacobian of :func:`fit_pixels` in the packed parameters
+    ``theta = (coef[:, 0], coef[:, 1], a, b[, sigma])``."""
+
+    def __init__(self, data: PixelData, start: FitStart, options: FitOptions):
+        self.data, self.options, self.sigma = data, options, start.sigma
+        self.nb = data.basis.shape[1]
+        self.start_u = data.base_u + data.basis @ start.coef
+
+    def pack(self, start: FitStart) -> np.ndarray:
+        c, extra = start.coef, [start.sigma] if self.options.fit_sigma else []
+        return np.concatenate([c[:, 0], c[:, 1], [start.a, start.b], extra])
+
+    def unpack(self, t):
+        nb = self.nb
+        c = np.stack([t[:nb], t[nb : 2 * nb]], -1)
+        s = t[2 * nb + 2] if self.options.fit_sigma else self.sigma
+        return c, t[2 * nb], t[2 * nb + 1], s
+
+    def evaluate(self, t):
+        """``(residuals, raster samples, b)`` at ``t``, or None outside the bounds."""
+        d, o = self.data, self.options
+        c, a_, b_, s = self.unpack(t)
+        if not SIGMA_MIN < s <= o.sigma_max:
+            return None
+        u = d.base_u + d.basis @ c
+        if np.isfinite(o.max_shift) and np.abs(u - self.start_u).max() > o.max_shift:
+            return None
+        smp = d.ref.sample(u, s, with_sigma=o.fit_sigma)
+        model = a_ + b_ * smp[0]
+        return d.values - model, smp, b_
+
+    def jacobian(self, cur) -> np.ndarray:
+        res, smp, b_ = cur
+        basis = self.data.basis
+        cols = [
+            b_ * smp[1][:, None] * basis,
+            b_ * smp[2][:, None] * basis,
+            np.ones((len(res), 1)),
+            smp[0][:, None],
+        ]
+        if self.options.fit_sigma:
+            cols.append(b_ * smp[3][:, None])
+        return np.concatenate(cols, axis=1)
+
+
+def fit_pixels(data: PixelData, start: FitStart, options: FitOptions) -> LMResult:
     """Fit ``values ~ a + b R_sigma(base_u + basis @ coef)`` (Levenberg-Marquardt).
 
     Parameters: ``coef`` ``(nb, 2)``, ``a``, ``b`` and optionally ``sigma``, bounded: a
@@ -193,47 +201,42 @@ def _levenberg_marquardt(
     reference point by more than ``max_shift`` from the start is rejected like a step that
     raises the cost.  Converged when the largest change of ``u`` at any pixel is below
     ``tol`` reference px.
-    """  # fmt: skip
-    nb = basis.shape[1]
-    theta = np.concatenate([coef[:, 0], coef[:, 1], [a, b], [sigma] if fit_sigma else []])
 
-    def unpack(t):
-        c = np.stack([t[:nb], t[nb : 2 * nb]], -1)
-        s = t[2 * nb + 2] if fit_sigma else sigma
-        return c, t[2 * nb], t[2 * nb + 1], s
+    Written out rather than ``scipy.optimize.least_squares``: the shift bound
+    ``|basis @ (coef - coef0)| <= max_shift`` at every pixel is not a box on the parameters
+    (``method="trf"`` takes boxes only, ``"lm"`` no bounds at all), the convergence test is
+    on the largest pixel shift, and the cost is a bilinearly interpolated raster whose
+    Jacobian is the raster's own gradient, not the interpolant's; least_squares stops
+    elsewhere on the same problem (tests/imaging/test_detect_solver.py compares the two).
+    """
+    problem = _PixelProblem(data, start, options)
+    theta, cur, cost, jtj, converged, n_iter = _lm_iterate(problem, problem.pack(start))
+    c, a_, b_, s = problem.unpack(theta)
+    values = data.values
+    dof = max(len(values) - len(theta), 1)
+    try:
+        cov = np.linalg.inv(jtj) * cost / dof if jtj is not None else np.full((len(theta),) * 2, np.nan)
+    except np.linalg.LinAlgError:
+        cov = np.full((len(theta),) * 2, np.nan)
+    model = values - cur[0]
+    ncc = float(np.corrcoef(values, model)[0, 1]) if np.std(model) > 0 else 0.0
+    return LMResult(c, float(a_), float(b_), float(s), cost, cov, converged, n_iter, ncc)
 
-    start_u = base_u + basis @ coef
 
-    def evaluate(t):
-        c, a_, b_, s = unpack(t)
-        if not SIGMA_MIN < s <= sigma_max:
-            return None
-        u = base_u + basis @ c
-        if np.isfinite(max_shift) and np.abs(u - start_u).max() > max_shift:
-            return None
-        smp = ref.sample(u, s, with_sigma=fit_sigma)
-        model = a_ + b_ * smp[0]
-        return values - model, smp, b_
-
+def _lm_iterate(problem: _PixelProblem, theta: np.ndarray):
+    """The Levenberg-Marquardt loop of :func:`fit_pixels`: ``(theta, residuals at theta,
+    cost, J^T J, converged, iterations)``."""
+    nb, basis, options = problem.nb, problem.data.basis, problem.options
     lam = 1e-3
-    cur = evaluate(theta)
+    cur = problem.evaluate(theta)
     cost = float(cur[0] @ cur[0])
     converged = False
     n_iter = 0
     jtj = None
-    for n_iter in range(1, max_iter + 1):  # noqa: B007  (n_iter is reported)
-        res, smp, b_ = cur
-        cols = [
-            b_ * smp[1][:, None] * basis,
-            b_ * smp[2][:, None] * basis,
-            np.ones((len(res), 1)),
-            smp[0][:, None],
-        ]
-        if fit_sigma:
-            cols.append(b_ * smp[3][:, None])
-        jm = np.concatenate(cols, axis=1)
+    for n_iter in range(1, options.max_iter + 1):  # noqa: B007  (n_iter is reported)
+        jm = problem.jacobian(cur)
         jtj = jm.T @ jm
-        g = jm.T @ res
+        g = jm.T @ cur[0]
         d = np.diag(jtj).copy()
         d[d <= 0] = 1.0
         improved = False
@@ -243,7 +246,7 @@ def _levenberg_marquardt(
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            trial = evaluate(theta + step)
+            trial = problem.evaluate(theta + step)
             if trial is not None and np.isfinite(trial[0]).all():
                 new_cost = float(trial[0] @ trial[0])
                 if new_cost <= cost:
@@ -257,21 +260,13 @@ def _levenberg_marquardt(
             converged = True  # no step reduces the cost: at a minimum (or stuck)
             break
         du = np.abs(basis @ np.stack([step[:nb], step[nb : 2 * nb]], -1)).max()
-        if du < tol:
+        if du < options.tol:
             converged = True
             break
-    c, a_, b_, s = unpack(theta)
-    dof = max(len(values) - len(theta), 1)
-    try:
-        cov = np.linalg.inv(jtj) * cost / dof if jtj is not None else np.full((len(theta),) * 2, np.nan)
-    except np.linalg.LinAlgError:
-        cov = np.full((len(theta),) * 2, np.nan)
-    model = values - cur[0]
-    ncc = float(np.corrcoef(values, model)[0, 1]) if np.std(model) > 0 else 0.0
-    return _LMResult(c, float(a_), float(b_), float(s), cost, cov, converged, n_iter, ncc)
+    return theta, cur, cost, jtj, converged, n_iter
 
 
-def _find_target(img: np.ndarray, rects: np.ndarray, centre: np.ndarray):
+def find_target(img: np.ndarray, rects: np.ndarray, centre: np.ndarray):
     """Similarity by multi-scale NCC at half resolution: returns (scale, shift, ncc, sign)
     with ``camera = scale * u + shift``."""
     import cv2
@@ -311,7 +306,7 @@ def _find_target(img: np.ndarray, rects: np.ndarray, centre: np.ndarray):
     return s, shift, best[0], sign
 
 
-def _camera_sigma(warp: _Warp, sigma_ref: float) -> float:
+def camera_sigma(warp: PolyWarp, sigma_ref: float) -> float:
     """PSF sigma in camera px from the fitted blur in reference px (which includes the
     pixel's own box, variance 1/12 px^2), at the centre of the target."""
     scale = float(np.sqrt(abs(np.linalg.det(warp.jacobian(warp.centre[None, :])[0]))))
@@ -319,7 +314,7 @@ def _camera_sigma(warp: _Warp, sigma_ref: float) -> float:
     return float(np.sqrt(max(total**2 - 1 / 12, 0.0)))
 
 
-def _initial_warp(s, shift, ref_centre, rects, w, h) -> _Warp:
+def initial_warp(s, shift, rects) -> PolyWarp:
     """The affine camera -> reference warp of the similarity ``camera = s u + shift``."""
     lo = rects[:, :2].min(axis=0)
     hi = rects[:, 2:].max(axis=0)
@@ -330,25 +325,18 @@ def _initial_warp(s, shift, ref_centre, rects, w, h) -> _Warp:
     coef[0] = mid  # u at the centre
     coef[1] = [scale / s, 0.0]  # d u / d xi
     coef[2] = [0.0, scale / s]
-    return _Warp(centre, scale, coef, 1)
+    return PolyWarp(centre, scale, coef, 1)
 
 
-def _initial_inverse(warp: _Warp, u: np.ndarray) -> np.ndarray:
-    """Camera points from the affine part of ``warp`` (Newton's start)."""
-    jac = warp.jacobian(warp.centre[None, :])[0]
-    u0 = warp(warp.centre[None, :])[0]
-    return warp.centre + np.linalg.solve(jac, (u - u0).T).T
-
-
-def _region(warp: _Warp, ref: _Reference, w: int, h: int, lo=None, hi=None, max_pixels=None) -> np.ndarray:
-    """Integer camera pixels whose reference point lies in ``[lo, hi]`` (default: the
-    target's extent plus a margin); a regular subsample of them (every k-th row and
+def region_pixels(warp: PolyWarp, ref: Reference, size, lo=None, hi=None, max_pixels=None) -> np.ndarray:
+    """Integer camera pixels of an image of ``size`` (w, h) whose reference point lies in
+    ``[lo, hi]`` (default: the target's extent plus a margin); a regular subsample of them (every k-th row and
     column) when there would be more than ``max_pixels``."""
     lo = ref.lo if lo is None else lo
     hi = ref.hi if hi is None else hi
     corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
-    x0 = _initial_inverse(warp, corners)
-    xc = _invert(warp, warp.jacobian, corners, x0)
+    w, h = size
+    xc = warp.inverse(corners)
     pad = 3
     c0 = int(max(0, np.floor(np.nanmin(xc[:, 0])) - pad))
     c1 = int(min(w - 1, np.ceil(np.nanmax(xc[:, 0])) + pad))

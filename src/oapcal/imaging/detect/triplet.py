@@ -3,106 +3,173 @@ contrast and blur, fitted to the pixels around the triplet; corners by Newton.""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from oapcal.imaging.detect.registration import _invert, _levenberg_marquardt, _Reference, _region
+from oapcal.imaging.detect.registration import (
+    FitOptions,
+    FitStart,
+    PixelData,
+    Reference,
+    fit_pixels,
+    region_pixels,
+)
+from oapcal.imaging.detect.warp import PolyWarp, newton_invert
 
 #: Largest number of pixels one triplet's fit uses (a regular subsample beyond: a large
 #: triplet has far more pixels than its 8 parameters need).
 MAX_TRIPLET_PIXELS = 12_000
 
 
-def _refine_triplet(
-    img,
-    warp,
-    rects,
-    target,
-    bars,
-    idx,
-    corners_u,
-    pred,
-    a,
-    b,
-    sigma,
-    um_per_px,
-    *,
-    max_stderr_px,
-    ambiguity_ratio,
-    swap_axes=False,
-    masks=None,
-):
-    """Local affine refinement of one triplet; returns (drop reason or None, xy, stderr, info).
+@dataclass(frozen=True)
+class TripletContext:
+    """What the refinement of every triplet of one registration shares.
 
-    ``a``, ``b``: the starting background and contrast, or ``a`` None to take them from a
-    linear fit of the pixels to the model at the start (uneven illumination); ``b`` then
-    gives only the polarity (its sign) that the fitted contrast must have.
+    ``img`` the normalised image, ``warp`` the registration (camera -> reference px),
+    ``rects``/``masks`` the model's bars and the boxes no fit uses (reference px),
+    ``target`` the target, ``corners_u`` its corners (reference px) and ``pred`` their
+    predicted camera positions; ``a``, ``b``: the starting background and contrast, or ``a``
+    None to take them from a linear fit of the pixels to the model at the start (uneven
+    illumination), ``b`` then gives only the polarity (its sign) that the fitted contrast
+    must have; ``sigma`` the starting blur (reference px), ``um_per_px`` the scale of the
+    reference px, ``swap_axes`` a quarter turn (H bars run vertically); ``max_stderr_px``
+    and ``ambiguity_ratio`` the limits of :func:`refine_triplet`.
     """
-    h, w = img.shape
-    w_ref = float(target.bar_width[bars[0]]) / um_per_px  # bar width, reference px
-    u_tri = corners_u[idx]
-    margin = 1.5 * w_ref + 3.0 * sigma + 1.0
-    lo = u_tri.min(axis=0) - margin
-    hi = u_tri.max(axis=0) + margin
-    # A raster of this triplet's neighbourhood only (bounded, cheap to re-blur for every
-    # trial sigma), holding every bar near it.
-    pad = 3.0 * max(sigma, 1.0) + 2.0 * w_ref + 4.0
-    ref = _Reference(rects, margin=pad, window=(lo - pad, hi + pad), masks=masks)
-    xs = _region(warp, ref, w, h, lo, hi, max_pixels=MAX_TRIPLET_PIXELS)
-    if len(xs) < 20:
+
+    img: np.ndarray
+    warp: PolyWarp
+    rects: np.ndarray
+    masks: np.ndarray | None
+    target: object
+    corners_u: np.ndarray
+    pred: np.ndarray
+    a: float | None
+    b: float
+    sigma: float
+    um_per_px: float
+    max_stderr_px: float
+    ambiguity_ratio: float
+    swap_axes: bool = False
+
+
+@dataclass(frozen=True)
+class _Local:
+    """One triplet's pixels and the local model around it."""
+
+    data: PixelData
+    x_t: np.ndarray  # centre and half size of the local affine correction's coordinates
+    l_t: float
+    w_ref: float  # bar width, reference px
+
+
+def refine_triplet(ctx: TripletContext, bars, idx):
+    """Local affine refinement of the triplet of ``bars`` (corner indices ``idx``); returns
+    (drop reason or None, xy, stderr, info) (:class:`TripletContext` for the start)."""
+    local = _local_pixels(ctx, bars, idx)
+    if local is None:
         return "outside", None, None, None
-    values = img[xs[:, 1].astype(int), xs[:, 0].astype(int)]
-    x_t = pred[idx].mean(axis=0)
-    l_t = max(float(np.ptp(pred[idx], axis=0).max()) / 2, 1.0)
-    basis = np.column_stack([np.ones(len(xs)), (xs - x_t) / l_t])
-    base_u = warp(xs)
+    a, b = ctx.a, ctx.b
     if a is None:
-        r0 = ref.sample(base_u, sigma)[0]
-        design = np.column_stack([np.ones_like(r0), r0])
-        (a, b0), *_ = np.linalg.lstsq(design, values, rcond=None)
-        if not (np.isfinite(b0) and np.sign(b0) == np.sign(b) and abs(b0) > 1e-6):
+        a, b = _linear_contrast(local.data, ctx.sigma, b)
+        if a is None:
             return "contrast", None, None, None
-        b = float(b0)
     # Bounds: the blur at most about a bar width (beyond, the bars are not resolved and the
     # corners are meaningless), the local correction at most a bar width anywhere.
-    res = _levenberg_marquardt(
-        values, base_u, basis, ref, np.zeros((3, 2)), a, b, sigma, fit_sigma=True,
-        sigma_max=max(1.2 * w_ref, 1.5 * sigma, 1.0), max_shift=max(w_ref, 2.0),
-    )  # fmt: skip
-
-    def local(x):
-        return warp(x) + np.column_stack([np.ones(len(x)), (x - x_t) / l_t]) @ res.coef
-
-    def local_jac(x):
-        return warp.jacobian(x) + (res.coef[1:].T / l_t)[None]
-
-    xy = _invert(local, local_jac, u_tri, pred[idx])
+    w_ref, sigma = local.w_ref, ctx.sigma
+    options = FitOptions(
+        fit_sigma=True, sigma_max=max(1.2 * w_ref, 1.5 * sigma, 1.0), max_shift=max(w_ref, 2.0)
+    )
+    res = fit_pixels(local.data, FitStart(np.zeros((3, 2)), a, b, sigma), options)
+    func, jac = _local_warp(ctx.warp, local, res.coef)
+    pred = ctx.pred[idx]
+    xy = newton_invert(func, jac, ctx.corners_u[idx], pred)
     if not (res.converged and np.isfinite(xy).all() and np.isfinite(res.cov).all()):
         return "not_converged", None, None, None
     if np.sign(res.b) != np.sign(b) or not 0.4 < res.b / b < 2.5:
         return "contrast", None, None, None
-    if np.hypot(*(xy - pred[idx]).T).max() > 0.5 * w_ref:
+    if np.hypot(*(xy - pred).T).max() > 0.5 * w_ref:
         return "moved", None, None, None
-    # Ambiguity: the same fit shifted by one bar period (2 w) across the bars.
-    orient = target.bar_orientation[bars[0]]
-    axis = 1 if (orient == "H") != swap_axes else 0
-    best = res.cost
+    if _ambiguous(ctx, local, res, bars):
+        return "ambiguous", None, None, None
+    se = _corner_stderr(local, res, jac, xy)
+    if se.max() > ctx.max_stderr_px:
+        return "uncertain", None, None, None
+    return None, xy, se, {"ncc": res.ncc, "sigma": res.sigma, "b": res.b}
+
+
+def _local_pixels(ctx: TripletContext, bars, idx) -> _Local | None:
+    """The pixels around the triplet (None when fewer than 20) and a raster of its
+    neighbourhood only (bounded, cheap to re-blur for every trial sigma), holding every bar
+    near it."""
+    img, sigma = ctx.img, ctx.sigma
+    h, w = img.shape
+    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
+    u_tri = ctx.corners_u[idx]
+    margin = 1.5 * w_ref + 3.0 * sigma + 1.0
+    lo = u_tri.min(axis=0) - margin
+    hi = u_tri.max(axis=0) + margin
+    pad = 3.0 * max(sigma, 1.0) + 2.0 * w_ref + 4.0
+    ref = Reference(ctx.rects, margin=pad, window=(lo - pad, hi + pad), masks=ctx.masks)
+    xs = region_pixels(ctx.warp, ref, (w, h), lo, hi, max_pixels=MAX_TRIPLET_PIXELS)
+    if len(xs) < 20:
+        return None
+    values = img[xs[:, 1].astype(int), xs[:, 0].astype(int)]
+    pred = ctx.pred[idx]
+    x_t = pred.mean(axis=0)
+    l_t = max(float(np.ptp(pred, axis=0).max()) / 2, 1.0)
+    basis = np.column_stack([np.ones(len(xs)), (xs - x_t) / l_t])
+    return _Local(PixelData(values, ctx.warp(xs), basis, ref), x_t, l_t, w_ref)
+
+
+def _linear_contrast(data: PixelData, sigma: float, b_sign: float):
+    """``(a, b)`` of a linear fit of the pixels to the model at the start, or ``(None,
+    None)`` when its contrast has not the sign of ``b_sign``."""
+    r0 = data.ref.sample(data.base_u, sigma)[0]
+    design = np.column_stack([np.ones_like(r0), r0])
+    (a, b0), *_ = np.linalg.lstsq(design, data.values, rcond=None)
+    if not (np.isfinite(b0) and np.sign(b0) == np.sign(b_sign) and abs(b0) > 1e-6):
+        return None, None
+    return a, float(b0)
+
+
+def _local_warp(warp: PolyWarp, local: _Local, coef: np.ndarray):
+    """The registration plus the fitted local affine correction, and its Jacobian."""
+    x_t, l_t = local.x_t, local.l_t
+
+    def func(x):
+        return warp(x) + np.column_stack([np.ones(len(x)), (x - x_t) / l_t]) @ coef
+
+    def jac(x):
+        return warp.jacobian(x) + (coef[1:].T / l_t)[None]
+
+    return func, jac
+
+
+def _ambiguous(ctx: TripletContext, local: _Local, res, bars) -> bool:
+    """Whether the same fit shifted by one bar period (2 w) across the bars explains the
+    pixels nearly as well (``ambiguity_ratio``)."""
+    orient = ctx.target.bar_orientation[bars[0]]
+    axis = 1 if (orient == "H") != ctx.swap_axes else 0
+    data = local.data
     shifted = []
     for sgn in (-1.0, 1.0):
         shift = np.zeros(2)
-        shift[axis] = sgn * 2 * w_ref
-        u = base_u + basis @ res.coef + shift
-        r = ref.sample(u, res.sigma)[0]
+        shift[axis] = sgn * 2 * local.w_ref
+        u = data.base_u + data.basis @ res.coef + shift
+        r = data.ref.sample(u, res.sigma)[0]
         design = np.column_stack([np.ones_like(r), r])
-        coef, *_ = np.linalg.lstsq(design, values, rcond=None)
-        resid = values - design @ coef
+        coef, *_ = np.linalg.lstsq(design, data.values, rcond=None)
+        resid = data.values - design @ coef
         shifted.append(float(resid @ resid))
-    if min(shifted) < ambiguity_ratio * best:
-        return "ambiguous", None, None, None
-    # Corner standard errors from the covariance of the 6 local warp coefficients.
+    return min(shifted) < ctx.ambiguity_ratio * res.cost
+
+
+def _corner_stderr(local: _Local, res, jac, xy) -> np.ndarray:
+    """Corner standard errors from the covariance of the 6 local warp coefficients."""
     cov = res.cov[:6, :6]  # order: coef[:,0] (3), coef[:,1] (3)
-    jw = local_jac(xy)
-    jinv = np.linalg.inv(jw)
-    loc = np.column_stack([np.ones(len(xy)), (xy - x_t) / l_t])
+    jinv = np.linalg.inv(jac(xy))
+    loc = np.column_stack([np.ones(len(xy)), (xy - local.x_t) / local.l_t])
     se = np.empty(len(xy))
     for k in range(len(xy)):
         du = np.zeros((2, 6))
@@ -110,6 +177,4 @@ def _refine_triplet(
         du[1, 3:] = loc[k]
         dx = -jinv[k] @ du
         se[k] = float(np.sqrt(np.trace(dx @ cov @ dx.T) / 2))
-    if se.max() > max_stderr_px:
-        return "uncertain", None, None, None
-    return None, xy, se, {"ncc": res.ncc, "sigma": res.sigma, "b": res.b}
+    return se
