@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
-from oapcal.model import undistort
+from oapcal.model import as_model
 
 
 def rectangles_intensity(x, y, rects, sigma: float) -> np.ndarray:
@@ -60,7 +60,8 @@ def bar_target(
     """Render ``bars`` (rectangles ``(x0, y0, x1, y1)`` in undistorted px; default
     :func:`demo_layout`) into an image of ``shape = (rows, cols)``.
 
-    With ``params`` the image is distorted by that model (each pixel shows the target at its
+    With ``params`` (a Model, a calibration or a vector: :func:`oapcal.model.as_model`) the
+    image is distorted by that model (each pixel shows the target at its
     undistorted position; pixels whose inverse fails show ``low``).  ``noise`` adds seeded
     Gaussian noise of that standard deviation.  Returns ``(image float64, rectangles)``.
     """
@@ -68,7 +69,7 @@ def bar_target(
     rects = demo_layout((rows, cols)) if bars is None else [tuple(map(float, r)) for r in bars]
     yy, xx = np.mgrid[0:rows, 0:cols].astype(float)
     if params is not None:
-        inverse = undistort(np.stack([xx, yy], -1).reshape(-1, 2), params)
+        inverse = as_model(params).inverse(np.stack([xx, yy], -1).reshape(-1, 2))
         xx = inverse.xy[:, 0].reshape(rows, cols)
         yy = inverse.xy[:, 1].reshape(rows, cols)
     value = rectangles_intensity(xx, yy, rects, sigma)

@@ -284,10 +284,11 @@ class ResidualVectors:
         return np.hypot(self.dxy[:, 0], self.dxy[:, 1])
 
 
-def residual_vectors(params, xy_u, xy_d) -> ResidualVectors:
-    """Correct ``xy_d`` through the inverse model and compare with ``xy_u``."""
-    from oapcal.model import undistort
+def residual_vectors(model, xy_u, xy_d) -> ResidualVectors:
+    """Correct ``xy_d`` through the inverse of ``model`` (a Model, a calibration or a
+    parameter vector: :func:`oapcal.model.as_model`) and compare with ``xy_u``."""
+    from oapcal.model import as_model
 
     xy_u = np.asarray(xy_u, float)
-    xy_c = undistort(np.asarray(xy_d, float), params).xy
+    xy_c = as_model(model).inverse(np.asarray(xy_d, float)).xy
     return ResidualVectors(xy_u, xy_c, xy_c - xy_u)

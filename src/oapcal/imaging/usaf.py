@@ -55,6 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.errors import DataError
+from oapcal.records import ImageSize
 
 #: Gap between the two triplets of an element and between consecutive elements of a column,
 #: in bar widths of the element (of the upper element between elements).  MIL-STD-150A layout.
@@ -716,15 +717,15 @@ def render_usaf(
     if not um_per_px > 0:
         raise DataError(f"um_per_px {um_per_px}: must be positive")
     target = usaf_target(groups, layout_name)
-    w, h = (int(v) for v in image_size)
+    size = ImageSize(*(int(v) for v in image_size))
     # reference px -> um: x_um = centre_um + (x_px - c) * S; cell (0, 0) is pixel (0, 0)
-    start = tuple(target.centre_um - (np.array([w, h], float) - 1.0) / 2.0 * um_per_px)
+    start = tuple(target.centre_um - (np.array(size, float) - 1.0) / 2.0 * um_per_px)
     cover = target_coverage(
-        target, (h, w), start=start, step=float(um_per_px), squares=squares, digits=digits
+        target, size.shape, start=start, step=float(um_per_px), squares=squares, digits=digits
     )
     return RenderedTarget(
         image=intensity(cover, polarity, background),
         corner_ids=target.corner_ids,
-        corners_px=target.reference_px(um_per_px, (w, h)),
+        corners_px=target.reference_px(um_per_px, size),
         um_per_px=float(um_per_px),
     )

@@ -79,7 +79,6 @@ def check_consistency(
     a cubic polynomial map is the smooth model (``model`` ``"cubic"`` in the result).
     """
     from oapcal.fitting import fit
-    from oapcal.model import distort
 
     n = len(xy_u)
     everything = np.ones(n, bool)
@@ -97,7 +96,7 @@ def check_consistency(
     for _ in range(8):
         result = None if cubic else fit(xy_u[keep], xy_d[keep], model, init="pixel")
         if result is not None and result.converged:
-            r = np.hypot(*(distort(xy_u, result.params) - xy_d).T)
+            r = np.hypot(*(result.model(xy_u) - xy_d).T)
         elif keep.sum() >= 2 * len(poly_exponents(3)):
             # An image with almost no distortion leaves Eq. (1)'s centre undetermined and
             # its fit may not converge: a cubic polynomial map (linear least squares) is
