@@ -122,10 +122,13 @@ FAILURE_REASONS = ("not_found", "unsupported", "refused", "out_of_memory", "os_e
 
 @dataclass(frozen=True)
 class StackReport:
-    """Per-input results of :func:`correct_stack`, in input order."""
+    """Per-input results of :func:`correct_stack` (or
+    :func:`oapcal.batch.distributed.correct_stacks_dask`), in input order; ``notes`` what the
+    run decided for the user, each once (where a Dask run went)."""
 
     results: tuple[FileResult, ...]
     geometries: dict = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
 
     def count(self, status: str) -> int:
         return sum(r.status == status for r in self.results)
@@ -278,6 +281,48 @@ def plan_outputs(
         check_output_target(out, directory=out.suffix.lower() == ".zarr")
         outputs.append(out)
     return outputs
+
+
+@dataclass(frozen=True)
+class BatchPlan:
+    """What a batch will correct (:func:`plan_batch`): the input ``files`` in order, their
+    ``outputs``, and a failed :class:`FileResult` for every input that names nothing usable."""
+
+    files: tuple[Path, ...]
+    failures: tuple[FileResult, ...]
+    outputs: tuple[Path, ...]
+
+
+def plan_batch(
+    inputs: Iterable[str | Path],
+    out_dir: str | Path,
+    *,
+    dask_format: str | None = None,
+    output_format: str | None = None,
+    protect: Sequence[str | Path] = (),
+    reserved: Sequence[tuple[str | Path, str]] = (),
+) -> BatchPlan:
+    """Expand the inputs and check every output path before any work
+    (:func:`expand_inputs`, :func:`plan_outputs`): for :func:`correct_stack` with its
+    ``output_format``, or, with ``dask_format`` (:data:`oapcal.batch.distributed.OUTPUT_FORMATS`),
+    for the Dask correction (TIFF stacks and zarr arrays, named by
+    :func:`~oapcal.batch.distributed.dask_output_name`).  Raises
+    :class:`~oapcal.errors.OutputError` for two inputs with one output name, an output that
+    is an input or a ``protect`` file, and an output that is one of the ``reserved``."""
+    from oapcal.io.images import TIFF_SUFFIXES
+
+    if dask_format is not None:
+        from oapcal.batch.distributed import ZARR_SUFFIX, dask_output_name
+
+        files, failures, dirs = expand_inputs(
+            [str(p) for p in inputs], suffixes=(*TIFF_SUFFIXES, ZARR_SUFFIX)
+        )
+        naming = lambda p: dask_output_name(p, dask_format)  # noqa: E731
+    else:
+        files, failures, dirs = expand_inputs([str(p) for p in inputs])
+        naming = None if output_format is None else (lambda p: output_name(p, output_format))
+    outputs = plan_outputs(files, out_dir, dirs, protect, output_name=naming, reserved=reserved)
+    return BatchPlan(tuple(files), tuple(failures), tuple(outputs))
 
 
 def correction_digest(calibration, cmap: CorrectionMap | None = None, **settings) -> str:
