@@ -1,22 +1,9 @@
-"""Shared fixtures: seeded synthetic data sets; the kernels compiled in the background when
-the cache is empty (:mod:`kernel_warmup`)."""
+"""Shared fixtures: seeded synthetic data sets."""
 
 import numpy as np
 import pytest
 
 from oapcal.synthetic import synthetic_pairs
-
-
-def pytest_sessionstart(session):
-    import kernel_warmup
-
-    session.config._oapcal_warmup = kernel_warmup.start()
-
-
-def pytest_sessionfinish(session, exitstatus):
-    import kernel_warmup
-
-    kernel_warmup.stop(getattr(session.config, "_oapcal_warmup", None))
 
 
 @pytest.fixture
