@@ -36,7 +36,13 @@ from pathlib import Path
 import numpy as np
 
 from oapcal.errors import DataError, InputFileError, OapcalError, OutputError
-from oapcal.imaging.remap import CorrectionMap, check_map_samples, correct_image, correction_map
+from oapcal.imaging.remap import (
+    CorrectionMap,
+    check_map_samples,
+    correct_image,
+    correction_map,
+    mask_untrusted,
+)
 from oapcal.io.atomic import (
     atomic_dir,
     atomic_path,
@@ -358,6 +364,7 @@ class MapCache:
         cmap: CorrectionMap | None = None,
         image_size=None,
         allow_size_mismatch: bool = False,
+        predicted_errors=None,
         **geometry_options,
     ):
         self.calibration = calibration
@@ -365,6 +372,7 @@ class MapCache:
         self.image_size = tuple(image_size) if image_size else None
         self.allow = allow_size_mismatch
         self.options = geometry_options
+        self.predicted = dict(predicted_errors or {})
         self._maps: dict[tuple[int, int], CorrectionMap] = {}
         self._checked: set[tuple[int, int]] = set()
         self._lock = threading.Lock()
@@ -393,10 +401,21 @@ class MapCache:
             return self.cmap
         with self._lock:
             if (rows, cols) not in self._maps:
-                self._maps[(rows, cols)] = correction_map(
-                    self.calibration, (rows, cols), allow_size_mismatch=True, **self.options
-                )  # the size was checked above
+                self._maps[(rows, cols)] = self._build((rows, cols))
             return self._maps[(rows, cols)]
+
+    def _build(self, shape) -> CorrectionMap:
+        """The map for frames of ``shape`` (the size was checked by :meth:`get`); its trust
+        region from a predicted error already computed for this size and geometry, if given."""
+        seed, limit = self.predicted.get(shape), self.options.get("max_error_px")
+        if seed is None or limit is None or not hasattr(self.calibration, "covariance"):
+            return correction_map(self.calibration, shape, allow_size_mismatch=True, **self.options)
+        options = {k: v for k, v in self.options.items() if k != "max_error_px"}
+        cmap = correction_map(self.calibration, shape, allow_size_mismatch=True, **options)
+        geometry, predicted = seed
+        if cmap.geometry != geometry:  # computed for another output: not this map's
+            return correction_map(self.calibration, shape, allow_size_mismatch=True, **self.options)
+        return mask_untrusted(cmap, predicted, limit)  # what correction_map(max_error_px=...) does
 
 
 def correct_stack(
@@ -420,6 +439,7 @@ def correct_stack(
     progress=None,
     output_format: str | None = None,
     max_error_px: float | None = None,
+    predicted_errors=None,
 ) -> StackReport:
     """Correct every image and stack of ``inputs`` into ``out_dir`` (see the module doc).
 
@@ -435,7 +455,10 @@ def correct_stack(
     every frame corrected (:mod:`oapcal.progress`).  Raises
     :class:`~oapcal.errors.OutputError` before writing anything when the output directory
     is not allowed; per-file problems are results.  ``max_error_px`` builds each map with
-    that trust region (:func:`~oapcal.imaging.remap.correction_map`).
+    that trust region (:func:`~oapcal.imaging.remap.correction_map`); ``predicted_errors``
+    ``{(rows, cols): (geometry, predicted)}`` are predicted-error maps the caller already
+    computed (:func:`~oapcal.imaging.remap.predicted_error_map`), used for frames of that
+    size when their output geometry is the same instead of computing them again.
     """
     files, failures, dirs = expand_inputs([str(p) for p in inputs])
     output_name(".", output_format)  # an unknown format is refused before any work
@@ -454,6 +477,7 @@ def correct_stack(
         extent=extent,
         um_per_px=um_per_px,
         out_size=out_size,
+        predicted_errors=predicted_errors,
         **({} if max_error_px is None else {"max_error_px": max_error_px}),
     )
     digest = correction_digest(

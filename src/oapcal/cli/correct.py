@@ -301,7 +301,8 @@ def correct_command(
 
         for module in EXTRAS["dask"]:
             require(module, "dask")
-    trust = _trust(cal, cmap, files, geometry, max_pixels, limit, border, calib)
+    seeds: dict = {}  # the trust region's predicted error, computed once for the map too
+    trust = _trust(cal, cmap, files, geometry, max_pixels, limit, border, calib, seeds)
     if not inputs:
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
         return 0
@@ -331,6 +332,7 @@ def correct_command(
             reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
             progress=update, **({} if cmap else geometry),
             max_error_px=None if cmap is not None or map_file else limit, output_format=output_format,
+            predicted_errors=seeds,
         )  # fmt: skip
     results = [_result(r) for r in report.results]
     return _finish(results, report.summary(), report.count("failed"), as_json, trust)
@@ -406,11 +408,13 @@ def _prepare_map(
 
 
 def _trust(
-    cal, cmap, files, geometry, max_pixels, limit, border, calib_name="the calibration"
+    cal, cmap, files, geometry, max_pixels, limit, border, calib_name="the calibration", seeds=None
 ) -> dict | None:
     """Say on stderr how far the output lies beyond the landmarks' hull and with what
     predicted error (:func:`trust_message`); the summary for --json, or None when the output
-    size is unknown.  Refuses, naming the calibration, a trust region with no pixel in it."""
+    size is unknown.  Refuses, naming the calibration, a trust region with no pixel in it.
+    A predicted-error map it computes is put in ``seeds`` ``{(rows, cols): (geometry,
+    predicted)}`` (for :func:`oapcal.batch.stack.correct_stack`'s ``predicted_errors``)."""
     from oapcal.errors import DataError
     from oapcal.imaging.remap import output_geometry, trust_summary
 
@@ -443,6 +447,8 @@ def _trust(
 
             predicted = predicted_error_map(cal, geo)
             _refuse_empty_trust(predicted, limit, calib_name)
+            if seeds is not None:
+                seeds[tuple(shape)] = (geo, predicted)
     from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
 
     summary = trust_summary(cal, geo, limit if limit is not None else DEFAULT_MAX_ERROR_PX, predicted)
