@@ -538,6 +538,76 @@ def correct_stack_dask(
     return DaskResult(str(shown_in), str(shown_out), int(stack.shape[0]), n_chunks, note=note)
 
 
+def correct_stacks_dask(
+    calibration,
+    plan,
+    out_dir: str | Path,
+    cmap: CorrectionMap | None = None,
+    settings: DaskSettings = DaskSettings(),
+    *,
+    map_path: str | Path | None = None,
+):
+    """Correct every stack of ``plan`` (:func:`oapcal.batch.stack.plan_batch` with a
+    ``dask_format``) with :func:`correct_stack_dask` on one scheduler, opened once for the
+    batch (:func:`dask_scheduler`); the library form of ``oapcal correct --dask``.
+
+    Returns a :class:`~oapcal.batch.stack.StackReport`: the plan's failures, then one
+    :class:`~oapcal.batch.stack.FileResult` per stack (a stack the correction refuses, or
+    that fails to read or write, is a failed result naming the file, and the batch goes on);
+    its ``notes`` say where the run went, once.  Temporary outputs that workers leave after
+    an interruption are removed.  Dask's own log messages are kept off the terminal.
+    """
+    from oapcal.batch.stack import FileResult, StackReport
+    from oapcal.errors import OapcalError
+    from oapcal.extras import EXTRAS, require
+    from oapcal.io.atomic import remove_stale_temps
+
+    for module in EXTRAS["dask"]:  # before any work: a missing extra is one clear error
+        require(module, "dask")
+    # Dask's event loop reports the tasks a Ctrl-C cancelled when they are garbage collected,
+    # at exit; the caller reports the interruption itself, in one line.
+    for logger in ("asyncio", "distributed", "tornado"):
+        logging.getLogger(logger).setLevel(logging.CRITICAL)
+    results = list(plan.failures)
+    notes: list[str] = []
+    try:
+        with dask_scheduler(settings.scheduler, settings.workers) as session:
+            for path in plan.files:
+                try:
+                    r = correct_stack_dask(
+                        calibration, path, out_dir, cmap, settings, map_path=map_path, session=session
+                    )
+                except (OapcalError, OSError, MemoryError) as exc:
+                    results.append(_failed(path, out_dir, exc))
+                    continue
+                if r.note and r.note not in notes:
+                    notes.append(r.note)
+                status = "skipped" if r.skipped else "corrected"
+                results.append(FileResult(r.input, r.output, status, r.frames))
+    finally:
+        # Workers may have written into a temporary store after an interruption: now that
+        # they are gone, remove what is left.
+        if Path(out_dir).is_dir():
+            remove_stale_temps(out_dir, plan.outputs)
+    return StackReport(tuple(results), notes=tuple(notes))
+
+
+def _failed(path: Path, out_dir, exc: BaseException):
+    """The failed :class:`~oapcal.batch.stack.FileResult` of a stack, its message naming
+    the file (``output`` None, as nothing was written)."""
+    from oapcal.batch.stack import FileResult
+    from oapcal.errors import OapcalError
+
+    if isinstance(exc, MemoryError):
+        message = f"{path}: not enough memory; lower chunk_frames or workers"
+        return FileResult(str(path), None, "failed", 0, message, ("chunk_frames", "workers"), "out_of_memory")
+    message = str(exc)
+    if str(path) not in message and str(out_dir) not in message:  # name the file
+        message = f"{path}: {message}"
+    reason = "refused" if isinstance(exc, OapcalError) else "os_error"
+    return FileResult(str(path), None, "failed", 0, message, getattr(exc, "param", None), reason)
+
+
 def _plan_output(input_path: Path, out_dir: Path, output_format: str) -> Path:
     """The output path of ``input_path``; refuses an unknown format or overwriting the input."""
     if output_format not in OUTPUT_FORMATS:

@@ -36,7 +36,13 @@ from pathlib import Path
 import numpy as np
 
 from oapcal.errors import DataError, InputFileError, OapcalError, OutputError
-from oapcal.imaging.remap import CorrectionMap, check_map_samples, correct_image, correction_map
+from oapcal.imaging.remap import (
+    CorrectionMap,
+    check_map_samples,
+    correct_image,
+    correction_map,
+    mask_untrusted,
+)
 from oapcal.io.atomic import (
     atomic_dir,
     atomic_path,
@@ -122,10 +128,13 @@ FAILURE_REASONS = ("not_found", "unsupported", "refused", "out_of_memory", "os_e
 
 @dataclass(frozen=True)
 class StackReport:
-    """Per-input results of :func:`correct_stack`, in input order."""
+    """Per-input results of :func:`correct_stack` (or
+    :func:`oapcal.batch.distributed.correct_stacks_dask`), in input order; ``notes`` what the
+    run decided for the user, each once (where a Dask run went)."""
 
     results: tuple[FileResult, ...]
     geometries: dict = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
 
     def count(self, status: str) -> int:
         return sum(r.status == status for r in self.results)
@@ -280,6 +289,48 @@ def plan_outputs(
     return outputs
 
 
+@dataclass(frozen=True)
+class BatchPlan:
+    """What a batch will correct (:func:`plan_batch`): the input ``files`` in order, their
+    ``outputs``, and a failed :class:`FileResult` for every input that names nothing usable."""
+
+    files: tuple[Path, ...]
+    failures: tuple[FileResult, ...]
+    outputs: tuple[Path, ...]
+
+
+def plan_batch(
+    inputs: Iterable[str | Path],
+    out_dir: str | Path,
+    *,
+    dask_format: str | None = None,
+    output_format: str | None = None,
+    protect: Sequence[str | Path] = (),
+    reserved: Sequence[tuple[str | Path, str]] = (),
+) -> BatchPlan:
+    """Expand the inputs and check every output path before any work
+    (:func:`expand_inputs`, :func:`plan_outputs`): for :func:`correct_stack` with its
+    ``output_format``, or, with ``dask_format`` (:data:`oapcal.batch.distributed.OUTPUT_FORMATS`),
+    for the Dask correction (TIFF stacks and zarr arrays, named by
+    :func:`~oapcal.batch.distributed.dask_output_name`).  Raises
+    :class:`~oapcal.errors.OutputError` for two inputs with one output name, an output that
+    is an input or a ``protect`` file, and an output that is one of the ``reserved``."""
+    from oapcal.io.images import TIFF_SUFFIXES
+
+    if dask_format is not None:
+        from oapcal.batch.distributed import ZARR_SUFFIX, dask_output_name
+
+        files, failures, dirs = expand_inputs(
+            [str(p) for p in inputs], suffixes=(*TIFF_SUFFIXES, ZARR_SUFFIX)
+        )
+        naming = lambda p: dask_output_name(p, dask_format)  # noqa: E731
+    else:
+        files, failures, dirs = expand_inputs([str(p) for p in inputs])
+        naming = None if output_format is None else (lambda p: output_name(p, output_format))
+    outputs = plan_outputs(files, out_dir, dirs, protect, output_name=naming, reserved=reserved)
+    return BatchPlan(tuple(files), tuple(failures), tuple(outputs))
+
+
 def correction_digest(calibration, cmap: CorrectionMap | None = None, **settings) -> str:
     """A digest of everything that decides a corrected image: the model parameters (or the
     map's values), the output geometry options, interpolation and border value."""
@@ -313,6 +364,7 @@ class MapCache:
         cmap: CorrectionMap | None = None,
         image_size=None,
         allow_size_mismatch: bool = False,
+        predicted_errors=None,
         **geometry_options,
     ):
         self.calibration = calibration
@@ -320,6 +372,7 @@ class MapCache:
         self.image_size = tuple(image_size) if image_size else None
         self.allow = allow_size_mismatch
         self.options = geometry_options
+        self.predicted = dict(predicted_errors or {})
         self._maps: dict[tuple[int, int], CorrectionMap] = {}
         self._checked: set[tuple[int, int]] = set()
         self._lock = threading.Lock()
@@ -348,10 +401,21 @@ class MapCache:
             return self.cmap
         with self._lock:
             if (rows, cols) not in self._maps:
-                self._maps[(rows, cols)] = correction_map(
-                    self.calibration, (rows, cols), allow_size_mismatch=True, **self.options
-                )  # the size was checked above
+                self._maps[(rows, cols)] = self._build((rows, cols))
             return self._maps[(rows, cols)]
+
+    def _build(self, shape) -> CorrectionMap:
+        """The map for frames of ``shape`` (the size was checked by :meth:`get`); its trust
+        region from a predicted error already computed for this size and geometry, if given."""
+        seed, limit = self.predicted.get(shape), self.options.get("max_error_px")
+        if seed is None or limit is None or not hasattr(self.calibration, "covariance"):
+            return correction_map(self.calibration, shape, allow_size_mismatch=True, **self.options)
+        options = {k: v for k, v in self.options.items() if k != "max_error_px"}
+        cmap = correction_map(self.calibration, shape, allow_size_mismatch=True, **options)
+        geometry, predicted = seed
+        if cmap.geometry != geometry:  # computed for another output: not this map's
+            return correction_map(self.calibration, shape, allow_size_mismatch=True, **self.options)
+        return mask_untrusted(cmap, predicted, limit)  # what correction_map(max_error_px=...) does
 
 
 def correct_stack(
@@ -375,6 +439,7 @@ def correct_stack(
     progress=None,
     output_format: str | None = None,
     max_error_px: float | None = None,
+    predicted_errors=None,
 ) -> StackReport:
     """Correct every image and stack of ``inputs`` into ``out_dir`` (see the module doc).
 
@@ -390,7 +455,10 @@ def correct_stack(
     every frame corrected (:mod:`oapcal.progress`).  Raises
     :class:`~oapcal.errors.OutputError` before writing anything when the output directory
     is not allowed; per-file problems are results.  ``max_error_px`` builds each map with
-    that trust region (:func:`~oapcal.imaging.remap.correction_map`).
+    that trust region (:func:`~oapcal.imaging.remap.correction_map`); ``predicted_errors``
+    ``{(rows, cols): (geometry, predicted)}`` are predicted-error maps the caller already
+    computed (:func:`~oapcal.imaging.remap.predicted_error_map`), used for frames of that
+    size when their output geometry is the same instead of computing them again.
     """
     files, failures, dirs = expand_inputs([str(p) for p in inputs])
     output_name(".", output_format)  # an unknown format is refused before any work
@@ -409,6 +477,7 @@ def correct_stack(
         extent=extent,
         um_per_px=um_per_px,
         out_size=out_size,
+        predicted_errors=predicted_errors,
         **({} if max_error_px is None else {"max_error_px": max_error_px}),
     )
     digest = correction_digest(

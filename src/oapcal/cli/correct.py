@@ -276,7 +276,13 @@ def correct_command(
     check_output(save_map, calib, map_file, *inputs)
     plan = None
     if inputs:
-        plan = _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map, output_format)
+        from oapcal.batch.stack import plan_batch
+
+        plan = plan_batch(
+            inputs, out_dir, dask_format=dask_format if use_dask else None, output_format=output_format,
+            protect=[calib] + ([map_file] if map_file else []),
+            reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else [],
+        )  # fmt: skip
     if inputs:
         from oapcal.io.atomic import check_directory_writable
 
@@ -286,23 +292,24 @@ def correct_command(
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
     # the sequential path builds a trust-region map per input size itself; --dask gets one map
     prebuild = limit if (use_dask or save_map) else None
-    files = plan[0] if plan else []
+    files = list(plan.files) if plan else []
     cmap = _prepare_map(cal, files, map_file, save_map, geometry, max_pixels, prebuild, calib)
     if inputs:
-        _check_samples(cal, cmap, plan[0], geometry, max_pixels)
+        _check_samples(cal, cmap, files, geometry, max_pixels)
     if use_dask:  # a missing extra is one clear error, before anything else is said
         from oapcal.extras import EXTRAS, require
 
         for module in EXTRAS["dask"]:
             require(module, "dask")
-    trust = _trust(cal, cmap, plan[0] if plan else [], geometry, max_pixels, limit, border, calib)
+    seeds: dict = {}  # the trust region's predicted error, computed once for the map too
+    trust = _trust(cal, cmap, files, geometry, max_pixels, limit, border, calib, seeds)
     if not inputs:
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
         return 0
+    bar, update = progress_bar("correcting", enabled=not (quiet or as_json))
     if use_dask:
-        from oapcal.batch.distributed import DaskSettings
+        from oapcal.batch.distributed import DaskSettings, correct_stacks_dask
 
-        bar, update = progress_bar("correcting", enabled=not (quiet or as_json))
         settings = DaskSettings(
             output_format=dask_format, chunk_frames=chunk_frames, interp=interp, border=border,
             allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, scheduler=scheduler,
@@ -310,10 +317,13 @@ def correct_command(
             progress=update, **({} if cmap is not None else geometry),
         )  # fmt: skip
         with bar:
-            return _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json, trust)
+            report = correct_stacks_dask(cal, plan, out_dir, cmap, settings, map_path=map_file)
+        for note in () if as_json else report.notes:
+            click.echo(f"oapcal: note: {note}", err=True)
+        results = [_result(r, dask=True) for r in report.results]
+        return _finish(results, report.summary(), report.count("failed"), as_json, trust)
     from oapcal.batch.stack import correct_stack
 
-    bar, update = progress_bar("correcting", enabled=not (quiet or as_json))
     with bar:
         report = correct_stack(
             cal, inputs, out_dir, interp=interp, border=border, workers=workers, cmap=cmap,
@@ -322,44 +332,26 @@ def correct_command(
             reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
             progress=update, **({} if cmap else geometry),
             max_error_px=None if cmap is not None or map_file else limit, output_format=output_format,
+            predicted_errors=seeds,
         )  # fmt: skip
     results = [_result(r) for r in report.results]
     return _finish(results, report.summary(), report.count("failed"), as_json, trust)
 
 
-def _result(r) -> dict:
+def _result(r, dask: bool = False) -> dict:
     """A :class:`~oapcal.batch.stack.FileResult` as the command reports it: its message
-    with the flags that set the parameters it names (a zarr array: the --dask option)."""
+    with the flags that set the parameters it names (a zarr array: the --dask option; with
+    --dask, running out of memory: the options that bound it)."""
     from oapcal.batch.stack import is_zarr_array
 
     out = {k: v for k, v in r.__dict__.items() if k != "param"}
-    if r.status == "failed" and r.output is None and is_zarr_array(r.input):
+    if dask and r.reason == "out_of_memory":
+        out["message"] = f"{r.input}: not enough memory; lower --chunk-frames or --workers"
+    elif r.status == "failed" and r.output is None and r.reason == "unsupported" and is_zarr_array(r.input):
         out["message"] = f"{r.input}: is a zarr array, which is corrected with Dask: give --dask"
     elif r.message:
         out["message"] = with_flag_hint(r.message, r.param)
     return out
-
-
-def _plan(inputs, out_dir, use_dask, dask_format, calib, map_file, save_map, output_format=None):
-    """Expand the inputs and check every output path before any work: ``(files, failures,
-    outputs)``.  Refuses (exit 2) two inputs with one output name, an output that is an input
-    or the calibration, and an image output that is the --save-map file."""
-    from oapcal.batch.distributed import ZARR_SUFFIX, dask_output_name
-    from oapcal.batch.stack import expand_inputs, output_name, plan_outputs
-    from oapcal.io.images import TIFF_SUFFIXES
-
-    if use_dask:
-        files, failures, dirs = expand_inputs(inputs, suffixes=(*TIFF_SUFFIXES, ZARR_SUFFIX))
-    else:
-        files, failures, dirs = expand_inputs(inputs)
-    protect = [calib] + ([map_file] if map_file else [])
-    reserved = [(save_map, f"the map --save-map {save_map}")] if save_map else []
-    if use_dask:
-        naming = lambda p: dask_output_name(p, dask_format)  # noqa: E731
-    else:
-        naming = None if output_format is None else (lambda p: output_name(p, output_format))
-    outputs = plan_outputs(files, out_dir, dirs, protect, output_name=naming, reserved=reserved)
-    return files, failures, outputs
 
 
 def _prepare_map(
@@ -416,11 +408,13 @@ def _prepare_map(
 
 
 def _trust(
-    cal, cmap, files, geometry, max_pixels, limit, border, calib_name="the calibration"
+    cal, cmap, files, geometry, max_pixels, limit, border, calib_name="the calibration", seeds=None
 ) -> dict | None:
     """Say on stderr how far the output lies beyond the landmarks' hull and with what
     predicted error (:func:`trust_message`); the summary for --json, or None when the output
-    size is unknown.  Refuses, naming the calibration, a trust region with no pixel in it."""
+    size is unknown.  Refuses, naming the calibration, a trust region with no pixel in it.
+    A predicted-error map it computes is put in ``seeds`` ``{(rows, cols): (geometry,
+    predicted)}`` (for :func:`oapcal.batch.stack.correct_stack`'s ``predicted_errors``)."""
     from oapcal.errors import DataError
     from oapcal.imaging.remap import output_geometry, trust_summary
 
@@ -453,6 +447,8 @@ def _trust(
 
             predicted = predicted_error_map(cal, geo)
             _refuse_empty_trust(predicted, limit, calib_name)
+            if seeds is not None:
+                seeds[tuple(shape)] = (geo, predicted)
     from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
 
     summary = trust_summary(cal, geo, limit if limit is not None else DEFAULT_MAX_ERROR_PX, predicted)
@@ -516,66 +512,6 @@ def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
     except DataError:  # a geometry refused for this size is reported with each file
         return
     check_model_samples(cal, shape, geometry)
-
-
-def _correct_dask(cal, plan, out_dir, cmap, map_file, settings, as_json, trust=None):
-    """Correct each planned stack with Dask on one scheduler; ``cmap`` is the --map or None
-    (a map built per stack size)."""
-    import logging
-    from pathlib import Path
-
-    from oapcal.errors import OapcalError
-    from oapcal.extras import EXTRAS, require
-
-    for module in EXTRAS["dask"]:  # before any work: a missing extra is one clear error
-        require(module, "dask")
-    from oapcal.batch.distributed import correct_stack_dask, dask_scheduler
-    from oapcal.io.atomic import remove_stale_temps
-
-    # Dask's event loop reports the tasks a Ctrl-C cancelled when they are garbage collected,
-    # at exit; the command reports the interruption itself, in one line.
-    for logger in ("asyncio", "distributed", "tornado"):
-        logging.getLogger(logger).setLevel(logging.CRITICAL)
-    files, failures, outputs = plan
-    results = [_result(f) for f in failures]
-    n_failed = len(failures)
-    frames = 0
-    said = set()
-    try:
-        with dask_scheduler(settings.scheduler, settings.workers) as session:
-            for path in files:
-                try:
-                    r = correct_stack_dask(
-                        cal, path, out_dir, cmap, settings, map_path=map_file, session=session
-                    )
-                except (OapcalError, OSError, MemoryError) as exc:
-                    n_failed += 1
-                    message = str(exc)
-                    if isinstance(exc, MemoryError):
-                        message = f"{path}: not enough memory; lower --chunk-frames or --workers"
-                    elif str(path) not in message and str(out_dir) not in message:  # name the file
-                        message = f"{path}: {message}"
-                    message = with_flag_hint(message, getattr(exc, "param", None))
-                    results.append({"input": str(path), "output": None, "status": "failed", "frames": 0,
-                                    "message": message})  # fmt: skip
-                    continue
-                frames += r.frames
-                if r.note and r.note not in said and not as_json:  # once per batch
-                    said.add(r.note)
-                    click.echo(f"oapcal: note: {r.note}", err=True)
-                results.append({"input": r.input, "output": r.output, "frames": r.frames, "message": "",
-                                "status": "skipped" if r.skipped else "corrected"})  # fmt: skip
-    finally:
-        # Workers may have written into a temporary store after an interruption: now that
-        # they are gone, remove what is left.
-        if Path(out_dir).is_dir():
-            remove_stale_temps(out_dir, outputs)
-    n_done = sum(r["status"] == "corrected" for r in results)
-    n_skip = sum(r["status"] == "skipped" for r in results)
-    summary = (
-        f"{n_done} corrected ({frames} frames), {n_skip} skipped (complete output exists), {n_failed} failed"
-    )
-    return _finish(results, summary, n_failed, as_json, trust)
 
 
 def _finish(results, summary, n_failed, as_json, trust=None) -> int:
