@@ -284,7 +284,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
     fitted = {}
     if subsets:
         masks = np.array([m for _, m in subsets])
-        scores = score_models(xy_u, xy_d, masks, p0, progress=progress, prior=prior)
+        scores = score_models(xy_u, xy_d, masks, p0, progress=progress, prior=prior, family=model_family)
         codes, reasons = invalid_reasons(scores, masks.sum(axis=1), len(xy_u))
         for i, (spec, mask) in enumerate(subsets):
             if codes[i]:
@@ -303,7 +303,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
         rows_top = [index[r[0]] for r in top]
         prior_top = None if prior is None else tuple(np.broadcast_to(a, masks.shape)[rows_top] for a in prior)
         errs, failed = cross_validate(
-            xy_u, xy_d, masks_top, folds=cv, init=starts, seed=seed, prior=prior_top
+            xy_u, xy_d, masks_top, folds=cv, init=starts, seed=seed, prior=prior_top, family=model_family
         )
         cv_err = {r[0]: (float(e), int(f)) for r, e, f in zip(top, errs, failed)}
     sigma = {}
@@ -365,7 +365,7 @@ def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progres
         constrained = np.array([np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
     ok, invalid = [], []
     for spec, mask in subsets:
-        ident = identifiability(xy_u, p0, mask & ~constrained, jac)
+        ident = identifiability(xy_u, p0, mask & ~constrained, jac, family=design.family)
         if ident.ok:
             ok.append((spec, mask))
         else:

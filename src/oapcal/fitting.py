@@ -41,6 +41,7 @@ from oapcal.model import (
     ModelFamily,
     family_named,
     family_of,
+    family_of_spec,
     identity_params,
     kernel_array,
     names_from_mask,
@@ -612,7 +613,7 @@ def fit(
     parameters + 2; otherwise returns a :class:`FitResult` whether or not it converged.
     """
     mask = parse_any_model(model)
-    family = family_of(mask)
+    family = family_of_spec(model)
     xy_u, xy_d = point_pairs(xy_u, xy_d)  # finite (N, 2) pairs, or a named DataError
     check_enough_points(len(xy_u), int(mask.sum()))
     if family.zero_when_fixed:  # Eq. (1), with or without the rotation (which starts at 0)
@@ -626,7 +627,7 @@ def fit(
                 "parameter vector (oapcal.optics.relay_model.relay_params)"
             )
         p0 = p0[None]
-    batch = fit_batch(xy_u, xy_d, np.repeat(mask[None], len(p0), 0), p0, **options)
+    batch = fit_batch(xy_u, xy_d, np.repeat(mask[None], len(p0), 0), p0, **{"family": family, **options})
     rss = np.where(batch.converged & np.isfinite(batch.rss), batch.rss, np.inf)
     if not np.isfinite(rss).any():
         return batch.item(0)

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from oapcal.records import ImageSize
 from oapcal.report import html as H
 
 if TYPE_CHECKING:
@@ -150,7 +151,7 @@ def output_shape(calibration, image: np.ndarray | None = None) -> tuple[int, int
     if image is not None:
         return tuple(image.shape[:2])
     if cal.image_size:
-        return (int(cal.image_size[1]), int(cal.image_size[0]))
+        return ImageSize(*(int(v) for v in cal.image_size)).shape
     if cal.bounds is not None:
         return (
             int(np.ceil(cal.bounds[3] + cal.bounds[1])) + 1,
