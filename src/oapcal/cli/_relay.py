@@ -132,8 +132,11 @@ RELAY_MODEL_HELP = (
 
 
 def is_relay(model: str | None) -> bool:
-    """Whether a ``--model`` value names the relay family."""
-    return isinstance(model, str) and (model.strip() == "relay" or model.strip().startswith("relay:"))
+    """Whether a ``--model`` value names the relay family (:func:`oapcal.entry.is_relay_spec`,
+    imported when asked so that loading the CLI loads no fitting code)."""
+    from oapcal.entry import is_relay_spec
+
+    return is_relay_spec(model)
 
 
 def field_option(text: str):
