@@ -20,10 +20,10 @@ from oapcal.cli._common import (
 )
 from oapcal.cli._priors import load_priors, priors_option
 from oapcal.cli._relay import (
-    RELAY_MODEL_HELP,
     check_relay_spec,
     design_from_options,
     is_relay,
+    model_option,
     refuse_normalize,
     relay_design_options,
 )
@@ -31,14 +31,7 @@ from oapcal.cli._relay import (
 
 @click.command("fit")
 @points_options
-@click.option(
-    "--model",
-    "model",
-    default="paper",
-    show_default=True,
-    help="Free parameters: a preset (full, paper, radial) or a comma list of names; add "
-    "'+rotation' (paper+rotation) to fit the target's in-plane rotation too." + RELAY_MODEL_HELP,
-)
+@model_option("'+rotation' (paper+rotation) to fit the target's in-plane rotation too.")
 @click.option("--init", "init", default="auto", show_default=True, help=INIT_HELP)
 @choice_option(
     "--normalize",

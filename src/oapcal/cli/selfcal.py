@@ -15,10 +15,10 @@ from oapcal.cli._common import (
     progress_bar,
 )
 from oapcal.cli._relay import (
-    RELAY_MODEL_HELP,
     check_relay_spec,
     design_from_options,
     is_relay,
+    model_option,
     relay_design_options,
 )
 
@@ -26,14 +26,9 @@ from oapcal.cli._relay import (
 @click.command("selfcal")
 @click.argument("frames", nargs=-1, required=True)
 @out_option("Write the calibration file (JSON) here; 'oapcal correct' and the others use it.", dash=False)
-@click.option(
-    "--model",
-    "model",
-    default="paper",
-    show_default=True,
-    help="Free parameters: a preset (full, paper, radial) or a comma list of names; add "
-    "'+rotation' for Eq. (1) with a rotation term." + RELAY_MODEL_HELP + " The relay model is "
-    "recommended where its design is known.",
+@model_option(
+    "'+rotation' for Eq. (1) with a rotation term.",
+    " The relay model is recommended where its design is known.",
 )
 @positive_option(
     "--um-per-px",
