@@ -427,7 +427,7 @@ def _started_relay(spec: str, pairs, image_size, relay_design):
     from oapcal.subsampling import StartedModel
 
     design = default_centre(design_from_options(relay_design), pairs.xy_u, parse_size(image_size))
-    return StartedModel(spec, relay_mask(spec, design.family), relay_params(design))
+    return StartedModel(spec, relay_mask(spec, design.family), relay_params(design), family=design.family)
 
 
 def print_robustness(result, source: str = "") -> None:
