@@ -382,7 +382,7 @@ def calibrate(
     if error_model and result.converged:
         from oapcal.error_model import estimate_error_model
 
-        errors = estimate_error_model(norm.xy_u, norm.xy_d, result.params, result.mask, **fit_options)
+        errors = estimate_error_model(norm.xy_u, norm.xy_d, result.model, **fit_options)
         cal = dataclasses.replace(cal, error_model=errors)
     return cal
 

@@ -67,9 +67,8 @@ from oapcal.cli._relay import (
     show_default=True,
     help="Frames overlap when they share at least this fraction of the frame.",
 )
-@click.option(
+@positive_option(
     "--max-rms",
-    type=click.FloatRange(min=0, min_open=True),
     default=0.3,
     show_default=True,
     help="Refuse (a moving sample) when the inlier matches' RMS is above this, px.",
