@@ -227,12 +227,12 @@ def _names_of_bits(bits: int) -> tuple[str, ...]:
     return _all_model_names()[bits]
 
 
-def _starts(init, xy_u, xy_d, masks) -> np.ndarray:
+def _starts(init, xy_u, xy_d, masks, family=None) -> np.ndarray:
     """Starting values ``(B, P)``: ``init`` itself when it is a ``(B, P)`` array (a family
     that starts from a design, e.g. the relay), else :func:`initial_params_many`."""
     if isinstance(init, np.ndarray) and init.ndim == 2:
         return np.broadcast_to(init, masks.shape).astype(float)
-    return initial_params_many(init, xy_u, xy_d, masks)
+    return initial_params_many(init, xy_u, xy_d, masks, family=family)
 
 
 def score_models(
@@ -260,7 +260,7 @@ def score_models(
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
     masks = np.atleast_2d(np.asarray(masks, bool))
-    p0 = _starts(init, xy_u, xy_d, masks)
+    p0 = _starts(init, xy_u, xy_d, masks, family)
     n_models = len(masks)
     chunk = max(1, min(n_models, 1024 if progress is not None else n_models))  # chunks only to report
     out = {
@@ -480,7 +480,7 @@ def cross_validate(
         )
     rng = np.random.default_rng(validate.seed(seed))
     parts = np.array_split(rng.permutation(n_points), folds)
-    p0 = _starts(init, xy_u, xy_d, masks)
+    p0 = _starts(init, xy_u, xy_d, masks, family)
     total = np.zeros(len(masks))
     count = np.zeros(len(masks), dtype=np.int64)
     failed = np.zeros(len(masks), dtype=np.int64)
