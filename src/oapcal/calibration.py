@@ -22,7 +22,7 @@ import numpy as np
 from oapcal import __version__, validate
 from oapcal.errors import DataError, InputFileError, ModelSpecError
 from oapcal.fitting import DEFAULT_INIT
-from oapcal.model import N_PARAMS, ROTATION_SUFFIX, Model, ModelFamily, family_named, family_of
+from oapcal.model import BROWN_CONRADY, N_PARAMS, ROTATION_SUFFIX, Model, ModelFamily, family_named, family_of
 from oapcal.normalize import normalize
 from oapcal.stats import ResidualStats, correction_residuals
 
@@ -418,7 +418,7 @@ def calibrate(
             normalize=normalization,
             aicc_corrected=_aicc_corrected(result, norm),
         ),  # fmt: skip
-        residuals=correction_residuals(result.params, norm.xy_u, norm.xy_d, scale),
+        residuals=correction_residuals(result.model, norm.xy_u, norm.xy_d, scale),
         um_per_px=scale,
         image_size=image_size,
         **_region(norm.xy_u),
@@ -434,7 +434,7 @@ def calibrate(
     if error_model and result.converged:
         from oapcal.error_model import estimate_error_model
 
-        errors = estimate_error_model(norm.xy_u, norm.xy_d, result.params, result.mask, **fit_options)
+        errors = estimate_error_model(norm.xy_u, norm.xy_d, result.model, **fit_options)
         cal = dataclasses.replace(cal, error_model=errors)
     return cal
 
@@ -468,7 +468,7 @@ def _fit_model(norm, model, init, rotation: str, fit_options):
     from oapcal.fitting import fit
 
     result = fit(norm.xy_u, norm.xy_d, model, init=init, **fit_options)
-    if rotation != "none" and len(result.params) == N_PARAMS:
+    if rotation != "none" and result.family is BROWN_CONRADY:
         return _with_rotation(result, norm, model, init, rotation, fit_options)
     return result, ()
 

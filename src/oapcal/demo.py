@@ -206,7 +206,6 @@ def _fit(out: Path, final: Path, files: dict, detection, image, chosen):
     the ray-traced truth: ``(calibration, truth_error)``."""
     from oapcal.calibration import calibrate
     from oapcal.io.calibration import save_calibration
-    from oapcal.model import distort
 
     cal = calibrate(
         detection.xy_u, detection.xy_d, chosen, um_per_px=PIXEL_UM, image_size=IMAGE_SIZE,
@@ -215,7 +214,7 @@ def _fit(out: Path, final: Path, files: dict, detection, image, chosen):
     files["calibration"] = out / "calibration.json"
     save_calibration(cal, files["calibration"])
     visible = np.asarray(image.visible, bool)
-    err = np.hypot(*(distort(image.xy_u[visible], cal.params) - image.xy_d[visible]).T)
+    err = np.hypot(*(cal.model(image.xy_u[visible]) - image.xy_d[visible]).T)
     return cal, {"n": int(err.size), "mean_px": float(err.mean()), "max_px": float(err.max())}
 
 

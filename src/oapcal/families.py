@@ -284,7 +284,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
     fitted = {}
     if subsets:
         masks = np.array([m for _, m in subsets])
-        scores = score_models(xy_u, xy_d, masks, p0, progress=progress, prior=prior)
+        scores = score_models(xy_u, xy_d, masks, p0, progress=progress, prior=prior, family=model_family)
         codes, reasons = invalid_reasons(scores, masks.sum(axis=1), len(xy_u))
         for i, (spec, mask) in enumerate(subsets):
             if codes[i]:
@@ -303,7 +303,7 @@ def _score(family: str, xy_u, xy_d, subsets, p0, invalid, cv: int, cv_top: int, 
         rows_top = [index[r[0]] for r in top]
         prior_top = None if prior is None else tuple(np.broadcast_to(a, masks.shape)[rows_top] for a in prior)
         errs, failed = cross_validate(
-            xy_u, xy_d, masks_top, folds=cv, init=starts, seed=seed, prior=prior_top
+            xy_u, xy_d, masks_top, folds=cv, init=starts, seed=seed, prior=prior_top, family=model_family
         )
         cv_err = {r[0]: (float(e), int(f)) for r, e, f in zip(top, errs, failed)}
     sigma = {}
@@ -365,7 +365,7 @@ def _relay_candidates(xy_u, xy_d, design: RelayDesign, cv, cv_top, seed, progres
         constrained = np.array([np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
     ok, invalid = [], []
     for spec, mask in subsets:
-        ident = identifiability(xy_u, p0, mask & ~constrained, jac)
+        ident = identifiability(xy_u, p0, mask & ~constrained, jac, family=design.family)
         if ident.ok:
             ok.append((spec, mask))
         else:
@@ -391,7 +391,7 @@ def _free_names(family, mask) -> tuple[str, ...]:
 def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
     """Every Eq. (1) subset (all 4,096), fitted from ``init`` on the points as given."""
     masks = all_masks()
-    p0 = initial_params_many(init, xy_u, xy_d, masks)
+    p0 = initial_params_many(init, xy_u, xy_d, masks, family=BROWN_CONRADY)
     subsets = [(",".join(_free_names(BROWN_CONRADY, m)), m) for m in masks]
     return _score(BROWN_CONRADY.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress, image_size,
                   region_points=region_points)  # fmt: skip
@@ -402,7 +402,7 @@ def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_siz
     """Every Eq. (1) subset with the target's rotation free as well."""
     masks = all_masks()
     masks = np.pad(masks, ((0, 0), (0, 1)), constant_values=True)
-    p0 = initial_params_many(init, xy_u, xy_d, masks)
+    p0 = initial_params_many(init, xy_u, xy_d, masks, family=BROWN_CONRADY_POSE)
     subsets = [(",".join(_free_names(BROWN_CONRADY_POSE, m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
     return _score(BROWN_CONRADY_POSE.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress,
                   image_size, region_points=region_points)  # fmt: skip
@@ -604,8 +604,9 @@ def _fitted_params(xy_u, xy_d, scored, design, init, priors) -> dict:
                                      family=family_named(c.family))  # fmt: skip
             else:
                 mask = parse_any_model(c.spec)
-                fits = fit_batch(xy_u, xy_d, mask[None], initial_params(init, xy_u, xy_d, mask)[None],
-                                 covariance=False, family=family_named(c.family))  # fmt: skip
+                fam = family_named(c.family)
+                start = initial_params(init, xy_u, xy_d, mask, family=fam)
+                fits = fit_batch(xy_u, xy_d, mask[None], start[None], covariance=False, family=fam)
             out[c.spec] = Model.from_mask(c.family, fits.params[0], mask)
         except Exception:  # noqa: BLE001 -- a model that cannot be refitted is not compared
             continue

@@ -36,11 +36,13 @@ import numpy as np
 
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.model import (
+    BROWN_CONRADY_POSE,
     N_PARAMS,
     Model,
     ModelFamily,
     family_named,
     family_of,
+    family_of_spec,
     identity_params,
     kernel_array,
     names_from_mask,
@@ -251,9 +253,10 @@ def centre_start(xy_u: np.ndarray, xy_d: np.ndarray, rotation: bool = False) -> 
     return np.append(p, np.degrees(theta)) if rotation else p
 
 
-def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Starting values ``(13,)`` for a fit (``(14,)`` when ``mask`` is the rotation
-    family's); fixed parameters are always 0 (``m`` is free).
+def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray, *,
+                   family: ModelFamily | None = None) -> np.ndarray:  # fmt: skip
+    """Starting values ``(13,)`` for a fit (``(14,)`` for the rotation family: ``family``,
+    or without it a mask of 14 entries); fixed parameters are always 0 (``m`` is free).
 
     ``init`` is ``"auto"`` (:data:`DEFAULT_INIT`) or ``"centre"``: :func:`centre_start`,
     the data's own centre, scale and turn; ``"zero"`` (the paper's start for normalized
@@ -266,7 +269,7 @@ def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray) -
     its ``rotation=`` value).
     """
     mask = np.asarray(mask, bool)
-    rotation = mask.shape == (N_PARAMS + 1,)
+    rotation = family is BROWN_CONRADY_POSE if family is not None else mask.shape == (N_PARAMS + 1,)
     extra = 0.0
     if isinstance(init, str) and init in ("auto", "centre"):
         p = centre_start(xy_u, xy_d, rotation=rotation)
@@ -296,12 +299,13 @@ def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray) -
     return np.append(p, extra) if rotation else p
 
 
-def initial_params_many(init, xy_u: np.ndarray, xy_d: np.ndarray, masks: np.ndarray) -> np.ndarray:
+def initial_params_many(init, xy_u: np.ndarray, xy_d: np.ndarray, masks: np.ndarray, *,
+                        family: ModelFamily | None = None) -> np.ndarray:  # fmt: skip
     """Starting values ``(B, 13)`` (or ``(B, 14)`` for the rotation family) for the models
-    ``masks`` from one ``init`` (as in :func:`initial_params`, evaluated once for the full
-    model, fixed entries 0)."""
+    ``masks`` from one ``init`` (as in :func:`initial_params`, with its ``family``, evaluated
+    once for the full model, fixed entries 0)."""
     masks = np.atleast_2d(np.asarray(masks, bool))
-    full = initial_params(init, xy_u, xy_d, np.ones(masks.shape[1], bool))
+    full = initial_params(init, xy_u, xy_d, np.ones(masks.shape[1], bool), family=family)
     return np.where(masks, full, 0.0)  # the rotation, when there, is always free
 
 
@@ -612,12 +616,12 @@ def fit(
     parameters + 2; otherwise returns a :class:`FitResult` whether or not it converged.
     """
     mask = parse_any_model(model)
-    family = family_of(mask)
+    family = family_of_spec(model)
     xy_u, xy_d = point_pairs(xy_u, xy_d)  # finite (N, 2) pairs, or a named DataError
     check_enough_points(len(xy_u), int(mask.sum()))
     if family.zero_when_fixed:  # Eq. (1), with or without the rotation (which starts at 0)
         starts = ["auto", "pixel", "zero"] if isinstance(init, str) and init == "auto" else [init]
-        p0 = np.stack([initial_params(s, xy_u, xy_d, mask) for s in starts])
+        p0 = np.stack([initial_params(s, xy_u, xy_d, mask, family=family) for s in starts])
     else:  # a design-based family starts from its design's vector
         p0 = np.asarray(init, float)
         if isinstance(init, str) or p0.shape != (family.n_params,):
@@ -626,7 +630,7 @@ def fit(
                 "parameter vector (oapcal.optics.relay_model.relay_params)"
             )
         p0 = p0[None]
-    batch = fit_batch(xy_u, xy_d, np.repeat(mask[None], len(p0), 0), p0, **options)
+    batch = fit_batch(xy_u, xy_d, np.repeat(mask[None], len(p0), 0), p0, **{"family": family, **options})
     rss = np.where(batch.converged & np.isfinite(batch.rss), batch.rss, np.inf)
     if not np.isfinite(rss).any():
         return batch.item(0)

@@ -45,6 +45,7 @@ from oapcal.model import (
     N_OPTIONAL,
     N_PARAMS,
     PARAM_NAMES,
+    ModelFamily,
     all_masks,
     bits_from_mask,
     correction_errors,
@@ -226,12 +227,12 @@ def _names_of_bits(bits: int) -> tuple[str, ...]:
     return _all_model_names()[bits]
 
 
-def _starts(init, xy_u, xy_d, masks) -> np.ndarray:
+def _starts(init, xy_u, xy_d, masks, family=None) -> np.ndarray:
     """Starting values ``(B, P)``: ``init`` itself when it is a ``(B, P)`` array (a family
     that starts from a design, e.g. the relay), else :func:`initial_params_many`."""
     if isinstance(init, np.ndarray) and init.ndim == 2:
         return np.broadcast_to(init, masks.shape).astype(float)
-    return initial_params_many(init, xy_u, xy_d, masks)
+    return initial_params_many(init, xy_u, xy_d, masks, family=family)
 
 
 def score_models(
@@ -243,9 +244,11 @@ def score_models(
     max_iter: int = 200,
     progress: Progress | None = None,
     prior=None,
+    family: ModelFamily | None = None,
 ):
-    """Fit and score the models ``masks (B, P)`` (any family: ``P`` names it, and ``init``
-    is then its ``(B, P)`` starts) on points already normalized.
+    """Fit and score the models ``masks (B, P)`` (any family: ``family``, or without it the
+    built-in family of ``P`` entries, and ``init`` is then its ``(B, P)`` starts) on points
+    already normalized.
 
     Returns a dict of arrays over the B models: ``params``, ``status``, ``rss`` (corrected
     residuals), ``mean_error``, ``n_bad`` (points whose inverse failed), ``n_folded``,
@@ -257,7 +260,7 @@ def score_models(
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
     masks = np.atleast_2d(np.asarray(masks, bool))
-    p0 = _starts(init, xy_u, xy_d, masks)
+    p0 = _starts(init, xy_u, xy_d, masks, family)
     n_models = len(masks)
     chunk = max(1, min(n_models, 1024 if progress is not None else n_models))  # chunks only to report
     out = {
@@ -273,12 +276,14 @@ def score_models(
     for start in range(0, n_models, chunk):
         sl = slice(start, min(start + chunk, n_models))
         if prior is None:
-            fits = fit_batch(xy_u, xy_d, masks[sl], p0[sl], covariance=False, max_iter=max_iter)
+            fits = fit_batch(xy_u, xy_d, masks[sl], p0[sl], covariance=False, max_iter=max_iter,
+                             family=family)  # fmt: skip
         else:
             part = tuple(np.broadcast_to(a, masks.shape)[sl] for a in prior)
-            fits = fit_batch(xy_u, xy_d, masks[sl], p0[sl], covariance=False, max_iter=max_iter, prior=part)
+            fits = fit_batch(xy_u, xy_d, masks[sl], p0[sl], covariance=False, max_iter=max_iter, prior=part,
+                             family=family)  # fmt: skip
             k_free[sl] = fits.k_eff
-        rss, mean_dist, n_bad, n_folded = correction_errors(fits.params, xy_d, xy_u)
+        rss, mean_dist, n_bad, n_folded = correction_errors(fits.params, xy_d, xy_u, family=fits.family)
         all_ok = n_bad == 0
         out["rss"][sl] = np.where(all_ok, rss, np.nan)
         out["mean_error"][sl] = np.where(all_ok, mean_dist, np.nan)
@@ -436,7 +441,16 @@ def _model_scores(columns: dict, order, codes, reasons, cv_err) -> tuple[ModelSc
 
 
 def cross_validate(
-    xy_u, xy_d, masks, *, folds: int = 5, init=DEFAULT_INIT, seed: int = 0, max_iter: int = 200, prior=None
+    xy_u,
+    xy_d,
+    masks,
+    *,
+    folds: int = 5,
+    init=DEFAULT_INIT,
+    seed: int = 0,
+    max_iter: int = 200,
+    prior=None,
+    family: ModelFamily | None = None,
 ):
     """K-fold cross-validated mean corrected error of each model ``masks (B, P)`` (``init``
     as in :func:`score_models`).
@@ -447,7 +461,8 @@ def cross_validate(
     reference points.  Returns ``(mean_error (B,), failed (B,))``: the mean Euclidean error
     over every held-out point that could be scored, and the number of held-out points that
     could not (fit did not converge, or inverse failed).  NaN where none could be scored.
-    ``prior``: as in :func:`score_models` (each fold's fit a maximum a posteriori one).
+    ``prior``: as in :func:`score_models` (each fold's fit a maximum a posteriori one);
+    ``family`` as there.
     """
     xy_u = np.asarray(xy_u, float)
     xy_d = np.asarray(xy_d, float)
@@ -465,15 +480,15 @@ def cross_validate(
         )
     rng = np.random.default_rng(validate.seed(seed))
     parts = np.array_split(rng.permutation(n_points), folds)
-    p0 = _starts(init, xy_u, xy_d, masks)
+    p0 = _starts(init, xy_u, xy_d, masks, family)
     total = np.zeros(len(masks))
     count = np.zeros(len(masks), dtype=np.int64)
     failed = np.zeros(len(masks), dtype=np.int64)
     for held in parts:
         train = np.setdiff1d(np.arange(n_points), held)
         fits = fit_batch(xy_u, xy_d, masks, p0, points=train[None], covariance=False, max_iter=max_iter,
-                         **({} if prior is None else {"prior": prior}))  # fmt: skip
-        inv = undistort(xy_d[held], fits.params)
+                         family=family, **({} if prior is None else {"prior": prior}))  # fmt: skip
+        inv = undistort(xy_d[held], fits.params, family=fits.family)
         ok = inv.converged & fits.converged[:, None]
         err = np.hypot(*np.moveaxis(inv.xy - xy_u[held][None], -1, 0))
         total += np.where(ok, err, 0.0).sum(axis=1)

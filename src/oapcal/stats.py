@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from oapcal.model import undistort
+from oapcal.model import as_model
 
 
 @dataclass(frozen=True)
@@ -135,6 +135,8 @@ def residual_stats(xy_corrected, xy_ref, um_per_px: float | None = None) -> Resi
 
 
 def correction_residuals(params, xy_u, xy_d, um_per_px: float | None = None) -> ResidualStats:
-    """Correct ``xy_d`` through the inverse of ``params`` and compare with ``xy_u`` (Table 1)."""
-    inverse = undistort(xy_d, params)
+    """Correct ``xy_d`` through the inverse of ``params`` (a :class:`~oapcal.model.Model`, a
+    fitted record or a bare vector, :func:`~oapcal.model.as_model`) and compare with ``xy_u``
+    (Table 1)."""
+    inverse = as_model(params).inverse(xy_d)
     return residual_stats(inverse.xy, xy_u, um_per_px)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.model import distort, params_from_dict
+from oapcal.model import as_model, params_from_dict
 
 #: Known parameters of the example data (px units, ``paper`` model).
 EXAMPLE_TRUTH = params_from_dict(
@@ -50,11 +50,11 @@ def synthetic_pairs(
     (minus ``margin``), distorted by ``params`` (default :data:`EXAMPLE_TRUTH`), plus
     Gaussian noise of ``noise_px`` per coordinate on the distorted points."""
     rng = np.random.default_rng(seed)
-    params = EXAMPLE_TRUTH if params is None else np.asarray(params, float)
+    model = as_model(EXAMPLE_TRUTH if params is None else np.asarray(params, float))
     w, h = size
     gx, gy = np.meshgrid(np.linspace(margin, w - margin, n_x), np.linspace(margin, h - margin, n_y))
     xy_u = np.stack([gx.ravel(), gy.ravel()], -1)
     xy_u = xy_u + rng.uniform(-3, 3, xy_u.shape)
-    xy_d_true = distort(xy_u, params)
+    xy_d_true = model(xy_u)
     xy_d = xy_d_true + rng.normal(0.0, noise_px, xy_d_true.shape)
-    return SyntheticPairs(xy_u, xy_d, xy_d_true, params, noise_px)
+    return SyntheticPairs(xy_u, xy_d, xy_d_true, model.params, noise_px)

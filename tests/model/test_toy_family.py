@@ -113,3 +113,22 @@ def test_toy_family_drives_an_image_simulation(toy):
     # formula there
     np.testing.assert_allclose(sim.xy_d, toy_numpy(sim.xy_u, field.params), atol=1e-6)
     assert sim.image.shape == (160, 200) and sim.visible.sum() > 10
+
+
+def test_toy_family_is_scored_and_cross_validated_by_name(toy):
+    from oapcal.select import cross_validate, score_models
+
+    xy_d = toy_numpy(XY, P) + np.random.default_rng(6).normal(0, 0.01, XY.shape)
+    masks = np.array([[True, True, True], [False, True, True]])  # k free, and the centre alone
+    starts = np.array([[1e-7, 320.0, 240.0], [0.0, 320.0, 240.0]])
+    scores = score_models(XY, xy_d, masks, starts, family=toy)
+    assert (scores["status"] > 0).all()
+    np.testing.assert_allclose(scores["params"][0], P, rtol=2e-3)
+    # corrected through the toy's inverse: the noise (mean distance of 2-D Gaussian noise of
+    # 0.01 px per coordinate: 0.01 sqrt(pi / 2)), and far more without the radial term
+    assert scores["mean_error"][0] == pytest.approx(0.01 * np.sqrt(np.pi / 2), rel=0.2)
+    assert scores["mean_error"][1] > 100 * scores["mean_error"][0]
+    errs, failed = cross_validate(XY, xy_d, masks, folds=3, init=starts, family=toy)
+    assert (failed == 0).all() and errs[0] == pytest.approx(0.01 * np.sqrt(np.pi / 2), rel=0.3)
+    with pytest.raises(ModelSpecError, match=r"shape \(\.\.\., 13\)"):
+        score_models(XY, xy_d, masks, starts)  # not named: a 3-vector is no built-in family

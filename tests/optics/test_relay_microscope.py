@@ -112,8 +112,13 @@ def test_the_plain_relay_is_unchanged():
     for key in ("created_utc", "oapcal_version"):
         new.pop(key), old.pop(key)
     assert new["relay_design"] == old["relay_design"] and new["free"] == old["free"]
+    # rel 1e-5: Numba compiles the relay's point function differently with the order the kernels
+    # are first compiled in (alone, or after the rest of tests/optics, each into an empty cache);
+    # measured: distort / undistort of this calibration differ by 5.2e-11 / 6.9e-11 px between
+    # the two, and the refit moves by up to 2.1e-6 relative (d1, the flattest direction; shift_y
+    # 1.0e-7, shift_x 5.7e-8, the others < 2e-7).  In the order that made the file it is exact.
     for name, value in old["params"].items():
-        assert new["params"][name] == pytest.approx(value, rel=1e-9, abs=1e-12), name
+        assert new["params"][name] == pytest.approx(value, rel=1e-5, abs=1e-12), name
     assert set(new) - {"error_model"} == set(old)  # the error model is a later, optional addition
 
 

@@ -131,9 +131,21 @@ RELAY_MODEL_HELP = (
 )
 
 
+def model_option(rotation: str, after: str = ""):
+    """``--model`` of ``fit`` and ``selfcal``: an Eq. (1) preset or names, ``+rotation``
+    (``rotation``: what it does there) or a relay spec (:data:`RELAY_MODEL_HELP`), then the
+    command's own ``after``."""
+    return click.option("--model", "model", default="paper", show_default=True,
+                        help="Free parameters: a preset (full, paper, radial) or a comma list of names; add "
+                        + rotation + RELAY_MODEL_HELP + after)  # fmt: skip
+
+
 def is_relay(model: str | None) -> bool:
-    """Whether a ``--model`` value names the relay family."""
-    return isinstance(model, str) and (model.strip() == "relay" or model.strip().startswith("relay:"))
+    """Whether a ``--model`` value names the relay family (:func:`oapcal.entry.is_relay_spec`,
+    imported when asked so that loading the CLI loads no fitting code)."""
+    from oapcal.entry import is_relay_spec
+
+    return is_relay_spec(model)
 
 
 def field_option(text: str):

@@ -10,20 +10,18 @@ from oapcal.cli._common import (
     check_output,
     load_pairs,
     load_usable_calibration,
+    out_option,
     points_options,
+    positive_option,
 )
 
 
 @click.command("correct-points")
 @click.argument("calib", type=click.Path(dir_okay=False))
 @points_options
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    required=True,
-    help="Output table: every input column (in order, TrackMate's header rows too) plus "
-    "x_c,y_c,converged; .csv, .tsv or (from a parquet input) .parquet.",
+@out_option(
+    "Output table: every input column (in order, TrackMate's header rows too) plus x_c,y_c,converged; "
+    ".csv, .tsv or (from a parquet input) .parquet."
 )
 @click.option(
     "--preset",
@@ -40,10 +38,8 @@ from oapcal.cli._common import (
     "--table-um-per-px; x_c,y_c in the calibration's object-space um). Default: px, or what a "
     "TrackMate units row says.",
 )
-@click.option(
+@positive_option(
     "--table-um-per-px",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
     help="With --units um: the camera pixel size the tracker used (default: the calibration's um_per_px).",
 )
 @allow_unconverged_option

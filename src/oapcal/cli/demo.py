@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import click
 
+from oapcal.cli._common import count_option, flag_option
+
 
 @click.command("demo")
 @click.option(
@@ -14,14 +16,8 @@ import click
     help="Directory for the demo's outputs (created).",
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the simulated image noise.")
-@click.option(
-    "--trials",
-    type=click.IntRange(min=0),
-    default=1000,
-    show_default=True,
-    help="Robustness trials (0 skips the robustness test).",
-)
-@click.option("--no-report", is_flag=True, help="Skip the HTML report (faster).")
+@count_option("--trials", least=0, default=1000, help="Robustness trials (0 skips the robustness test).")
+@flag_option("--no-report", help="Skip the HTML report (faster).")
 def demo_command(out_dir, seed, trials, no_report):
     """Run the whole method on built-in data: trace the relay, select the model, simulate
     and detect a USAF target, fit, test robustness, correct the image, write a report."""

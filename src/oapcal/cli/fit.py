@@ -7,18 +7,23 @@ import click
 from oapcal.cli._common import (
     INIT_HELP,
     check_output,
+    choice_option,
     console,
+    flag_option,
+    json_option,
     load_pairs,
+    out_option,
     parse_size,
     points_options,
+    positive_option,
     print_json,
 )
 from oapcal.cli._priors import load_priors, priors_option
 from oapcal.cli._relay import (
-    RELAY_MODEL_HELP,
     check_relay_spec,
     design_from_options,
     is_relay,
+    model_option,
     refuse_normalize,
     relay_design_options,
 )
@@ -26,53 +31,32 @@ from oapcal.cli._relay import (
 
 @click.command("fit")
 @points_options
-@click.option(
-    "--model",
-    "model",
-    default="paper",
-    show_default=True,
-    help="Free parameters: a preset (full, paper, radial) or a comma list of names; add "
-    "'+rotation' (paper+rotation) to fit the target's in-plane rotation too." + RELAY_MODEL_HELP,
-)
+@model_option("'+rotation' (paper+rotation) to fit the target's in-plane rotation too.")
 @click.option("--init", "init", default="auto", show_default=True, help=INIT_HELP)
-@click.option(
+@choice_option(
     "--normalize",
     "normalization",
-    type=click.Choice(["none", "experiment"]),
+    choices=["none", "experiment"],
     default="none",
-    show_default=True,
-    help="'experiment': scale and align the reference points onto the distorted "
-    "ones as the paper did for points from another microscope.",
+    help="'experiment': scale and align the reference points onto the distorted ones as the paper did "
+    "for points from another microscope.",
 )
-@click.option(
-    "--um-per-px",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="Object-space size (um) of one unit of the reference points as given.",
-)
+@positive_option("--um-per-px", help="Object-space size (um) of one unit of the reference points as given.")
 @click.option("--image-size", default=None, help="Camera image size WxH in px, e.g. 640x480.")
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    default=None,
-    help="Write the calibration file (JSON) here.",
-)
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
-@click.option(
+@out_option("Write the calibration file (JSON) here.", required=False)
+@json_option()
+@choice_option(
     "--rotation",
-    type=click.Choice(["auto", "fit", "none"]),
+    choices=["auto", "fit", "none"],
     default="auto",
-    show_default=True,
-    help="The target's in-plane rotation with an Eq. (1) model: 'auto' fits it too when the "
-    "points need it (Eq. 1 alone does not converge, or AICc drops by > 10) and says so; "
-    "'fit' always; 'none' never.",
+    help="The target's in-plane rotation with an Eq. (1) model: 'auto' fits it too when the points need "
+    "it (Eq. 1 alone does not converge, or AICc drops by > 10) and says so; 'fit' always; 'none' "
+    "never.",
 )
-@click.option(
+@flag_option(
     "--keep-unconverged",
-    is_flag=True,
-    help="Write the calibration even when the fit did not converge (exit 3 still); "
-    "'oapcal correct' then needs --allow-unconverged to use it.",
+    help="Write the calibration even when the fit did not converge (exit 3 still); 'oapcal correct' then "
+    "needs --allow-unconverged to use it.",
 )
 @relay_design_options
 @priors_option

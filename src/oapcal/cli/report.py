@@ -4,36 +4,28 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, load_pairs, print_json, progress_bar, sanitize
+from oapcal.cli._common import (
+    check_output,
+    file_option,
+    json_option,
+    load_pairs,
+    out_option,
+    print_json,
+    progress_bar,
+    sanitize,
+)
 
 
 @click.command("report")
 @click.argument("calib", type=click.Path(dir_okay=False))
-@click.option(
-    "--points",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Landmark pairs (CSV x_u,y_u,x_d,y_d): residual vectors and Table 1 from them.",
-)
-@click.option(
-    "--image",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="A distorted image of a bar target: before/after, straightness, aspect, ESF.",
-)
-@click.option(
+@file_option("--points", help="Landmark pairs (CSV x_u,y_u,x_d,y_d): residual vectors and Table 1 from them.")
+@file_option("--image", help="A distorted image of a bar target: before/after, straightness, aspect, ESF.")
+@file_option(
     "--selection",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Model-selection JSON to tabulate: of 'oapcal select --json', or of "
-    "'oapcal select --families ... --json' (the families compared).",
+    help="Model-selection JSON to tabulate: of 'oapcal select --json', or of 'oapcal select --families "
+    "... --json' (the families compared).",
 )
-@click.option(
-    "--robustness",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Robustness JSON (per model: trials, not_converged, ...) to tabulate.",
-)
+@file_option("--robustness", help="Robustness JSON (per model: trials, not_converged, ...) to tabulate.")
 @click.option(
     "--expected-ratios",
     default="5,1",
@@ -41,8 +33,8 @@ from oapcal.cli._common import check_output, load_pairs, print_json, progress_ba
     help="Known aspect ratios (long/short side) of the target's bars and squares.",
 )
 @click.option("--title", default=None, help="Title of the page.")
-@click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="The HTML file to write.")
-@click.option("--json", "as_json", is_flag=True, help="Print the report's numbers as one JSON object.")
+@out_option("The HTML file to write.", dash=False)
+@json_option("Print the report's numbers as one JSON object.")
 # one parameter per command-line option (click)
 def report_command(calib, points, image, selection, robustness, expected_ratios, title, out, as_json):
     """Write an HTML report of a calibration (self-contained: images embedded)."""  # fmt: skip
@@ -79,13 +71,15 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
                 "crop the image to the target or bin it"
             ) from None
         from oapcal.io.calibration import check_model_region
+        from oapcal.records import ImageSize
 
-        if cal.image_size and tuple(cal.image_size) != (img.shape[1], img.shape[0]):  # as correct does
+        size = ImageSize.of(img)
+        if cal.image_size and tuple(cal.image_size) != size:  # as correct does
             raise InputFileError(
-                f"{image}: is {img.shape[1]}x{img.shape[0]} px but the calibration is for "
+                f"{image}: is {size.width}x{size.height} px but the calibration is for "
                 f"{cal.image_size[0]}x{cal.image_size[1]} px images; give an image of that camera"
             )
-        check_model_region(cal, (img.shape[1], img.shape[0]), source=calib)
+        check_model_region(cal, size, source=calib)
     sel = load_any_selection(selection) if selection else None
     rob = load_robustness(robustness) if robustness else None
     bar, update = progress_bar("report")

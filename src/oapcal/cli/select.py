@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, check_work, console, load_pairs, points_options, progress_bar
+from oapcal.cli._common import (
+    check_output,
+    check_work,
+    console,
+    count_option,
+    file_option,
+    load_pairs,
+    points_options,
+    progress_bar,
+)
 from oapcal.cli._priors import load_priors, priors_option
 from oapcal.cli._relay import refuse_normalize, relay_design_options
 
@@ -57,7 +66,7 @@ def _fmt(value, spec: str) -> str:
 @points_options
 @normalize_option
 @init_option
-@click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help="Rows in the table.")
+@count_option("--top", least=1, default=10, help="Rows in the table.")
 @click.option(
     "--cv",
     "cv",
@@ -66,12 +75,11 @@ def _fmt(value, spec: str) -> str:
     help="Add the K-fold cross-validated mean corrected error of the top models.",
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the cross-validation folds.")
-@click.option(
+@file_option(
     "--json",
     "json_out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    default=None,
     help="Write all 4,096 models, best first, to this JSON file ('-': stdout, no table).",
+    dash=True,
 )
 @click.option(
     "--families",
@@ -350,12 +358,8 @@ _INVALID_TEXT = {
     help="A converged fit whose RMS on the kept points exceeds this times the model's "
     "all-points RMS counts as a wrong local minimum.",
 )
-@click.option(
-    "--json",
-    "json_out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    default=None,
-    help="Write the results to this JSON file ('-': stdout, no table).",
+@file_option(
+    "--json", "json_out", help="Write the results to this JSON file ('-': stdout, no table).", dash=True
 )
 @click.option("--image-size", default=None, help="With a relay model: camera image size WxH in px.")
 @relay_design_options
@@ -423,7 +427,7 @@ def _started_relay(spec: str, pairs, image_size, relay_design):
     from oapcal.subsampling import StartedModel
 
     design = default_centre(design_from_options(relay_design), pairs.xy_u, parse_size(image_size))
-    return StartedModel(spec, relay_mask(spec, design.family), relay_params(design))
+    return StartedModel(spec, relay_mask(spec, design.family), relay_params(design), family=design.family)
 
 
 def print_robustness(result, source: str = "") -> None:

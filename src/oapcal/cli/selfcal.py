@@ -4,48 +4,42 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, print_json, progress_bar
+from oapcal.cli._common import (
+    check_output,
+    console,
+    file_option,
+    json_option,
+    out_option,
+    positive_option,
+    print_json,
+    progress_bar,
+)
 from oapcal.cli._relay import (
-    RELAY_MODEL_HELP,
     check_relay_spec,
     design_from_options,
     is_relay,
+    model_option,
     relay_design_options,
 )
 
 
 @click.command("selfcal")
 @click.argument("frames", nargs=-1, required=True)
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False),
-    required=True,
-    help="Write the calibration file (JSON) here; 'oapcal correct' and the others use it.",
+@out_option("Write the calibration file (JSON) here; 'oapcal correct' and the others use it.", dash=False)
+@model_option(
+    "'+rotation' for Eq. (1) with a rotation term.",
+    " The relay model is recommended where its design is known.",
 )
-@click.option(
-    "--model",
-    "model",
-    default="paper",
-    show_default=True,
-    help="Free parameters: a preset (full, paper, radial) or a comma list of names; add "
-    "'+rotation' for Eq. (1) with a rotation term." + RELAY_MODEL_HELP + " The relay model is "
-    "recommended where its design is known.",
-)
-@click.option(
+@positive_option(
     "--um-per-px",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
     help="Object um per corrected px (Eq. 1 models with --steps; the relay takes it from its design).",
 )
-@click.option(
+@file_option(
     "--steps",
     "steps_file",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Known stage positions: a CSV with columns frame,x_um,y_um (frame = the index of the frame "
-    "in the order given, from 0). A positive x_um moves the sample's image towards larger "
-    "columns, a positive y_um towards larger rows (docs/selfcal.md). They fix the scale and aspect.",
+    help="Known stage positions: a CSV with columns frame,x_um,y_um (frame = the index of the frame in "
+    "the order given, from 0). A positive x_um moves the sample's image towards larger columns, a "
+    "positive y_um towards larger rows (docs/selfcal.md). They fix the scale and aspect.",
 )
 @click.option(
     "--stage-rotation/--no-stage-rotation",
@@ -53,18 +47,10 @@ from oapcal.cli._relay import (
     show_default=True,
     help="With --steps: fit the stage's turn against the camera's axes.",
 )
-@click.option(
-    "--residuals",
-    "residuals_out",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Write every match and its residual (CSV) here.",
-)
-@click.option(
+@file_option("--residuals", "residuals_out", help="Write every match and its residual (CSV) here.")
+@file_option(
     "--plot",
     "plot_out",
-    type=click.Path(dir_okay=False),
-    default=None,
     help="Write a picture of the matches here (PNG); the residual field goes beside it (NAME-residuals.png).",
 )
 @click.option(
@@ -81,9 +67,8 @@ from oapcal.cli._relay import (
     show_default=True,
     help="Frames overlap when they share at least this fraction of the frame.",
 )
-@click.option(
+@positive_option(
     "--max-rms",
-    type=click.FloatRange(min=0, min_open=True),
     default=0.3,
     show_default=True,
     help="Refuse (a moving sample) when the inlier matches' RMS is above this, px.",
@@ -99,7 +84,7 @@ from oapcal.cli._relay import (
 @click.option(
     "--progress/--no-progress", default=True, show_default=True, help="A progress bar on a terminal."
 )
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of text.")
+@json_option("Print one JSON object instead of text.")
 @relay_design_options
 def selfcal_command(
     frames,

@@ -9,6 +9,10 @@ from oapcal.cli._common import (
     OutputSet,
     check_output,
     check_work,
+    choice_option,
+    file_option,
+    flag_option,
+    out_option,
     parse_size,
     progress_bar,
     sanitize,
@@ -28,21 +32,15 @@ BYTES_PER_SUBPIXEL = 100
 @click.command("image")
 @click.option("--groups", default="4-5", show_default=True, help="USAF groups to draw, e.g. 4-5 or 2,4-5.")
 @design_options("image", "setup", "d1_mm")
-@click.option(
+@choice_option(
     "--field",
     "field_name",
-    type=click.Choice(["setup1-model", "none"]),
+    choices=["setup1-model", "none"],
     default="setup1-model",
-    show_default=True,
-    help="Built-in distortion when no relay or calibration is given: an Eq. 1 field like "
-    "setup 1 (~40 px), or none.",
+    help="Built-in distortion when no relay or calibration is given: an Eq. 1 field like setup 1 (~40 "
+    "px), or none.",
 )
-@click.option(
-    "--calibration",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Distort with a fitted calibration (JSON) instead.",
-)
+@file_option("--calibration", help="Distort with a fitted calibration (JSON) instead.")
 @click.option(
     "--sigma-px",
     type=Finite(min=0, max=MAX_SIGMA_PX),
@@ -69,7 +67,7 @@ BYTES_PER_SUBPIXEL = 100
     show_default=True,
     help="Signal-to-noise ratio of the brightest level (shot + read noise).",
 )
-@click.option("--no-noise", is_flag=True, help="No noise (the image is only quantized).")
+@flag_option("--no-noise", help="No noise (the image is only quantized).")
 @click.option(
     "--read-noise-e",
     type=Finite(min=0, max=1e6),
@@ -77,18 +75,11 @@ BYTES_PER_SUBPIXEL = 100
     show_default=True,
     help="Read noise (electrons).",
 )
-@click.option(
-    "--bits",
-    type=click.Choice(["8", "16"]),
-    default="8",
-    show_default=True,
-    help="Bits per pixel of the output.",
-)
-@click.option(
+@choice_option("--bits", choices=["8", "16"], default="8", help="Bits per pixel of the output.")
+@choice_option(
     "--polarity",
-    type=click.Choice(["bright", "dark"]),
+    choices=["bright", "dark"],
     default="bright",
-    show_default=True,
     help="Bright bars on a dark field, or dark bars on a bright field.",
 )
 @design_option("image", "pixel_size_um")
@@ -109,25 +100,15 @@ BYTES_PER_SUBPIXEL = 100
 @click.option(
     "--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True, help="Seed of the noise."
 )
-@click.option(
+@choice_option(
     "--layout",
-    type=click.Choice(["compact", "spaced", "whole-target"]),
+    choices=["compact", "spaced", "whole-target"],
     default="compact",
-    show_default=True,
     help="Layout of the target: makers differ in gaps, square and nesting (docs/usaf.md).",
 )
-@click.option(
-    "--bars-only", is_flag=True, help="Draw only the bars (no reference squares, no printed numbers)."
-)
-@click.option(
-    "--out", "out", type=click.Path(dir_okay=False), required=True, help="Output image (.png, .tif)."
-)
-@click.option(
-    "--truth",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Ground-truth CSV: id,x_u,y_u,x_d,y_d,visible.",
-)
+@flag_option("--bars-only", help="Draw only the bars (no reference squares, no printed numbers).")
+@out_option("Output image (.png, .tif).", dash=False)
+@file_option("--truth", help="Ground-truth CSV: id,x_u,y_u,x_d,y_d,visible.")
 # one parameter per command-line option (click)
 def simulate_image_command(
     groups, relay_setup, d1_mm, field_name, calibration, sigma_px, na, wavelength_um, snr, no_noise,

@@ -9,7 +9,10 @@ from oapcal.cli._common import (
     OutputSet,
     check_output,
     check_plot_suffix,
+    choice_option,
     console,
+    file_option,
+    json_option,
     parse_size,
     print_json,
     progress_bar,
@@ -75,8 +78,9 @@ def misalignment_options(func):
 @click.option("--grid", "n", type=click.IntRange(max=MAX_GRID), default=17, show_default=True,
               help="Grid points per side.")  # fmt: skip
 @field_option("Full width of the square object field, mm.")
-@click.option("--units", type=click.Choice(["mm", "px"]), default="mm", show_default=True,
-              help="Units of x_u,y_u,x_d,y_d in the CSV (image plane).")  # fmt: skip
+@choice_option(
+    "--units", choices=["mm", "px"], default="mm", help="Units of x_u,y_u,x_d,y_d in the CSV (image plane)."
+)
 @design_option("simulate", "pixel_size_um")
 @click.option(
     "--image-size",
@@ -97,24 +101,23 @@ def misalignment_options(func):
 )
 @click.option("--rings", type=click.IntRange(max=MAX_RINGS), default=8, show_default=True,
               help="Hexapolar rings of rays per spot diagram.")  # fmt: skip
-@click.option("--out", type=click.Path(dir_okay=False, allow_dash=True), default=None,
-              help="Write the grid CSV (x_obj,y_obj,x_u,y_u,x_d,y_d,clear).")  # fmt: skip
-@click.option("--plot", type=click.Path(dir_okay=False), default=None, help="Grid distortion figure (PNG).")
-@click.option("--spots", type=click.Path(dir_okay=False), default=None,
-              help="Spot diagrams of both orientations (PNG).")  # fmt: skip
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+@file_option("--out", help="Write the grid CSV (x_obj,y_obj,x_u,y_u,x_d,y_d,clear).", dash=True)
+@file_option("--plot", help="Grid distortion figure (PNG).")
+@file_option("--spots", help="Spot diagrams of both orientations (PNG).")
+@json_option()
 @design_option("simulate", "focal_length_2_mm")
 @misalignment_options
-@click.option(
-    "--reference", type=click.Choice(["paraxial", "design"]), default="paraxial", show_default=True,
-    help="x_u,y_u of the CSV: the paraxial image through this (misaligned) relay, or through the "
-    "aligned design (the ideal image of the target, as an experiment's reference points are; "
-    "what 'oapcal fit --model relay' takes).",
-)  # fmt: skip
-@click.option(
-    "--layout", type=click.Path(dir_okay=False), default=None,
-    help="Figure of the relay in its fold plane with the frames of the misalignment conventions.",
-)  # fmt: skip
+@choice_option(
+    "--reference",
+    choices=["paraxial", "design"],
+    default="paraxial",
+    help="x_u,y_u of the CSV: the paraxial image through this (misaligned) relay, or through the aligned "
+    "design (the ideal image of the target, as an experiment's reference points are; what 'oapcal "
+    "fit --model relay' takes).",
+)
+@file_option(
+    "--layout", help="Figure of the relay in its fold plane with the frames of the misalignment conventions."
+)
 @design_option("simulate", "microscope_magnification")
 # The command's options, one parameter each (click); the body calls helpers.
 def relay_command(setup, d1, orientation, stop_distance, focal_length, n, field_mm, units, pixel_size,

@@ -9,7 +9,11 @@ from oapcal.cli._common import (
     PointsUsageError,
     check_output,
     check_plot_suffix,
+    choice_option,
     console,
+    file_option,
+    flag_option,
+    json_option,
     print_json,
     progress_bar,
 )
@@ -87,16 +91,17 @@ DESIGN_OPTIONS = ("setup", "d1", "orientation", "stop_distance", "focal_length",
 @click.option("--trials", type=int, default=500, show_default=True,
               help=f"Monte Carlo trials (at most {MAX_TRIALS:,}).")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the Monte Carlo.")
-@click.option("--distribution", type=click.Choice(["uniform", "normal"]), default="uniform",
-              show_default=True,
-              help="uniform in +/- tolerance, or normal with sigma = tolerance / 2.")  # fmt: skip
+@choice_option(
+    "--distribution",
+    choices=["uniform", "normal"],
+    default="uniform",
+    help="uniform in +/- tolerance, or normal with sigma = tolerance / 2.",
+)
 @click.option("--percentiles", default="50,90,95", show_default=True,
               help="Percentiles of the Monte Carlo summary, comma-separated.")  # fmt: skip
-@click.option("--refit", is_flag=True,
-              help="Also refit the model to each Monte Carlo relay (its own floor; slower).")  # fmt: skip
-@click.option("--plot", type=click.Path(dir_okay=False), default=None,
-              help="Figure (PNG): sensitivities, and the Monte Carlo distributions.")  # fmt: skip
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of tables.")
+@flag_option("--refit", help="Also refit the model to each Monte Carlo relay (its own floor; slower).")
+@file_option("--plot", help="Figure (PNG): sensitivities, and the Monte Carlo distributions.")
+@json_option()
 # The command's options, one parameter each (click); the body calls helpers.
 def tolerance_command(setup, d1, orientation, stop_distance, focal_length, focal_length_2, n, field_mm,
                       pixel_size, model, groups, tol, trials, seed, distribution, percentiles, refit, plot,

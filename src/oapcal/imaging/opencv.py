@@ -37,7 +37,15 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.remap import CorrectionMap, OutputGeometry
-from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE, INDEX, N_PARAMS, family_of, scale_params
+from oapcal.model import (
+    BROWN_CONRADY,
+    BROWN_CONRADY_POSE,
+    INDEX,
+    N_PARAMS,
+    ModelFamily,
+    family_of,
+    scale_params,
+)
 from oapcal.records import ImageSize
 
 #: Memory of a relay export per output pixel: the exact maps (8 B), the approximation's maps
@@ -46,6 +54,14 @@ from oapcal.records import ImageSize
 EXPORT_BYTES_PER_PX = 48
 #: Largest memory estimate of an export (4 GiB): about 9,400 x 9,400 output px.
 MAX_EXPORT_BYTES = 4 * 2**30
+
+
+def _params_and_family(value) -> tuple[np.ndarray, ModelFamily]:
+    """The parameter vector of a calibration, a :class:`~oapcal.model.Model` or a bare vector,
+    and its family: the one it carries, else (a bare vector) the built-in family of its length."""
+    params = np.asarray(getattr(value, "params", value), float)
+    carried = getattr(value, "family", None)
+    return params, family_of(params, carried if isinstance(carried, ModelFamily) else None)
 
 
 def opencv_parameters(params, image_size: tuple[int, int], geometry: OutputGeometry | None = None) -> dict:
@@ -64,8 +80,7 @@ def opencv_parameters(params, image_size: tuple[int, int], geometry: OutputGeome
     >>> d["camera_matrix"][0], round(d["dist_coeffs"][0], 12), d["new_camera_matrix"][0]
     ([640.0, 0.0, 320.0], 0.04096, [640.0, 0.0, 320.0])
     """
-    params = np.asarray(getattr(params, "params", params), float)
-    family = family_of(params)
+    params, family = _params_and_family(params)
     if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE) or params.shape != (family.n_params,):
         raise DataError(
             f"no OpenCV camera parameters reproduce the {family.name} model; export it with "
@@ -308,8 +323,7 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
     """
     from oapcal.imaging.remap import correction_map
 
-    params = np.asarray(getattr(calibration_or_params, "params", calibration_or_params), float)
-    family = family_of(params)
+    params, family = _params_and_family(calibration_or_params)
     size = _image_size(image_size)
     if geometry is None:
         geometry = OutputGeometry(size.shape)

@@ -27,6 +27,7 @@ import numpy as np
 
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.model import Model, as_model
+from oapcal.records import ImageSize
 from oapcal.validate import image as _valid_image
 
 INTERPOLATIONS = ("nearest", "linear", "cubic", "lanczos")
@@ -213,7 +214,7 @@ def _layout(region, scale: float, out_size, um_per_px) -> tuple[tuple[int, int],
             raise DataError(f"the output size must be at least 2x2 px, got {w}x{h}")
         scale = max((x1 - x0) / (w - 1), (y1 - y0) / (h - 1))
         cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
-        return (h, w), cx - scale * (w - 1) / 2, cy - scale * (h - 1) / 2, scale
+        return ImageSize(w, h).shape, cx - scale * (w - 1) / 2, cy - scale * (h - 1) / 2, scale
     if not (math.isfinite(scale) and scale > 0):
         raise DataError(
             f"the output scale {um_per_px} um per px is outside what a float can represent here; "

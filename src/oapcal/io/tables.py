@@ -305,7 +305,7 @@ def correct_xy(xy: np.ndarray, calibration, *, units: str = "px", table_um_per_p
     convention (NaN where the row has no point or the inverse did not converge), whether
     each converged, and whether each row had a point.  The inverse is
     :func:`oapcal.model.undistort` of the calibration's model."""
-    from oapcal.model import undistort
+    from oapcal.model import as_model
 
     if origin not in ("center", "corner"):
         raise DataError(f"pixel origin {origin!r}: expected 'center' or 'corner'", param="origin")
@@ -316,8 +316,7 @@ def correct_xy(xy: np.ndarray, calibration, *, units: str = "px", table_um_per_p
     xy_c = np.full_like(xy, np.nan)
     converged = np.zeros(len(xy), bool)
     if present.any():
-        params = np.asarray(getattr(calibration, "params", calibration), float)
-        inverse = undistort(xy[present] / in_scale - offset, params)
+        inverse = as_model(calibration).inverse(xy[present] / in_scale - offset)
         ok = np.asarray(inverse.converged, bool)
         done = np.where(ok[:, None], (inverse.xy + offset) * out_scale, np.nan)
         xy_c[present] = done

@@ -511,7 +511,6 @@ def radial_fit(grid: GridDistortion, max_side: int = RADIAL_FIT_MAX_SIDE):
     residuals are always means over every grid point, normalized with the whole grid.
     """
     from oapcal.fitting import fit
-    from oapcal.model import distort
     from oapcal.normalize import normalize_grid
     from oapcal.stats import correction_residuals
 
@@ -521,6 +520,6 @@ def radial_fit(grid: GridDistortion, max_side: int = RADIAL_FIT_MAX_SIDE):
         k = np.unique(np.round(np.linspace(0, grid.n - 1, int(max_side))).astype(int))
         use = (k[:, None] * grid.n + k[None, :]).ravel()  # rows are y, columns x
     result = fit(norm.xy_u[use], norm.xy_d[use], "radial", init="zero")
-    forward = np.hypot(*(distort(norm.xy_u, result.params) - norm.xy_d).T).mean() / norm.scale_d
-    corrected = correction_residuals(result.params, norm.xy_u, norm.xy_d).mean_px / norm.scale_u
+    forward = np.hypot(*(result.model(norm.xy_u) - norm.xy_d).T).mean() / norm.scale_d
+    corrected = correction_residuals(result.model, norm.xy_u, norm.xy_d).mean_px / norm.scale_u
     return result, float(forward), float(corrected)

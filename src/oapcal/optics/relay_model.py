@@ -395,16 +395,19 @@ class Identifiability:
         )
 
 
-def identifiability(xy_u, params, mask, jac: np.ndarray | None = None) -> Identifiability:
+def identifiability(xy_u, params, mask, jac: np.ndarray | None = None, *, family=None) -> Identifiability:
     """The identifiability of the free parameters ``mask`` of the relay model ``params`` at
     the reference points ``xy_u (N, 2)`` (:class:`Identifiability`).  ``jac`` is the
-    parameter Jacobian ``(N, 2, 36)`` there if already known (many subsets of one model)."""
+    parameter Jacobian ``(N, 2, P)`` there if already known (many subsets of one model).
+    ``family``: the model's family (a design's ``family``); None: the relay family of the
+    mask's length."""
     from oapcal.model import family_of, jacobian_params
 
     mask = np.asarray(mask, bool)
-    names = tuple(n for n, m in zip(family_of(mask).param_names, mask) if m)
+    family = family_of(mask, family)
+    names = tuple(n for n, m in zip(family.param_names, mask) if m)
     if jac is None:
-        jac = jacobian_params(np.asarray(xy_u, float), np.asarray(params, float))
+        jac = jacobian_params(np.asarray(xy_u, float), np.asarray(params, float), family=family)
     jac = jac[..., mask]
     a = jac.reshape(-1, int(mask.sum()))
     if not np.isfinite(a).all():
@@ -697,7 +700,7 @@ def _imaging_start(design: RelayDesign, xy_u: np.ndarray, source: str | None) ->
     relay does not image every reference point (a trace that is not finite)."""
     p0 = relay_params(design)
     with np.errstate(all="ignore"):
-        start = distort(xy_u, p0)
+        start = distort(xy_u, p0, family=design.family)
     bad = ~np.isfinite(start).all(axis=1)
     if not np.isfinite(p0).all() or bad.any():
         raise DataError(
@@ -716,7 +719,7 @@ def _check_identifiable(xy_u, p0, mask, design: RelayDesign, priors, source: str
     if priors is not None:
         sig = priors.sigma(design)
         unconstrained &= np.array([not np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
-    ident = identifiability(xy_u, p0, unconstrained)
+    ident = identifiability(xy_u, p0, unconstrained, family=design.family)
     if not ident.ok:
         raise DataError(f"{source or 'the point data'}: {ident.message()}", param="free")
 

@@ -258,11 +258,9 @@ class Tolerancing:
         """Residuals ``(T, N, 2)`` of the corrected real points after the best rigid motion,
         and of the recentred ones after the best similarity (NaN where the aligned
         calibration's inverse fails)."""
-        from oapcal.model import undistort
-
         xy_d = np.stack([t.xy_d for t in traced])
         shift = np.stack([t.offset for t in traced])[:, None, :]
-        both = undistort(np.concatenate([xy_d, xy_d - shift]), self.calibration.params).xy
+        both = self.calibration.model.inverse(np.concatenate([xy_d, xy_d - shift])).xy
         k = len(traced)
         with np.errstate(all="ignore"):
             return _rigid_residuals(both[:k], self.truth), _similarity_residuals(both[k:], self.truth)
@@ -446,7 +444,6 @@ class Tolerancing:
 
     def _refit(self, traced: list[_Traced]) -> dict[str, np.ndarray]:
         from oapcal.fitting import fit
-        from oapcal.model import undistort
 
         mean, worst = np.full(len(traced), np.nan), np.full(len(traced), np.nan)
         for i, t in enumerate(traced):
@@ -454,6 +451,6 @@ class Tolerancing:
                 continue  # a lost relay
             result = fit(t.xy_u, t.xy_d, self.model)
             if result.converged:
-                err = np.hypot(*(undistort(t.xy_d, result.params).xy - t.xy_u).T)
+                err = np.hypot(*(result.model.inverse(t.xy_d).xy - t.xy_u).T)
                 mean[i], worst[i] = err.mean(), err.max()
         return {"refit_mean_px": mean, "refit_max_px": worst}

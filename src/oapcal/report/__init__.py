@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from oapcal.records import ImageSize
 from oapcal.report import html as H
 
 if TYPE_CHECKING:
@@ -150,7 +151,7 @@ def output_shape(calibration, image: np.ndarray | None = None) -> tuple[int, int
     if image is not None:
         return tuple(image.shape[:2])
     if cal.image_size:
-        return (int(cal.image_size[1]), int(cal.image_size[0]))
+        return ImageSize(*(int(v) for v in cal.image_size)).shape
     if cal.bounds is not None:
         return (
             int(np.ceil(cal.bounds[3] + cal.bounds[1])) + 1,
@@ -385,7 +386,7 @@ def _summary_html(cal, r: dict, from_points: bool) -> str:
         "distances)." + ("" if um else " No scale (um per px) is known, so no um columns.")
     )
     f = cal.fit
-    criteria = (f.aic, f.aicc, f.bic)
+    criteria = (f.aic, f.aicc_forward, f.bic)
     status = "" if f.converged else "NOT converged: "
     stats = [
         ["model family", _family_text(cal)],
@@ -393,7 +394,11 @@ def _summary_html(cal, r: dict, from_points: bool) -> str:
         ["fit", f"{status}{f.message} ({'?' if f.n_iter is None else f.n_iter} iterations)"],
         ["points / residuals", f"{f.n_points} / {f.n_residuals}"],
         ["RSS of the fit (forward residuals: model(reference) - distorted)", H.fmt(f.rss, 6)],
-        ["AIC / AICc / BIC of the fit (forward residuals)", " / ".join(H.fmt(v, 6) for v in criteria)],
+        [
+            "AIC / AICc forward / BIC of the fit (forward residuals)",
+            " / ".join(H.fmt(v, 6) for v in criteria),
+        ],
+        ["AICc corrected (after correction, as model selection scores it)", H.fmt(f.aicc_corrected, 6)],
         ["normalization", f.normalize],
         ["scale", f"{um:.4g} um per px" if um else "unknown"],
     ]
@@ -632,7 +637,7 @@ def _selection_html(sel: Selection, cal, source: str | None = None) -> str:
         rows.append([i + 1, ", ".join(m.free), int(m.k), *numbers, bool(m.valid), m.reason])
         classes.append("best" if tuple(m.free) == tuple(cal.free) else ("dim" if not m.valid else ""))
     caption = f"Models by AICc ({len(shown)} of {len(models)} shown; {sel.n_points} points)"
-    header = ["rank", "free parameters", "k", "AICc (corrected)", "delta AICc", "weight", "RSS (corrected)",
+    header = ["rank", "free parameters", "k", "AICc corrected", "delta AICc", "weight", "RSS (corrected)",
               "valid", "reason"]  # fmt: skip
     out = H.table(header, rows, caption, classes)
     return out + H.paragraph(
@@ -672,7 +677,7 @@ def _family_selection_html(sel: FamilySelection, cal, source: str | None = None)
     n_bad = sum(not c.valid for c in sel.candidates)
     caption = (f"Best {FAMILY_TOP} models of each family by AICc ({len(sel.candidates)} models, "
                f"{sel.n_points} points)")  # fmt: skip
-    out = H.table(["family", "model", "K", "AICc", "delta AICc", "mean error [px]",
+    out = H.table(["family", "model", "K", "AICc corrected", "delta AICc", "mean error [px]",
                    f"{sel.cv_folds}-fold held-out error [px]", ""], rows, caption, classes)  # fmt: skip
     if sel.recommended is not None:
         r = sel.recommended
