@@ -7,9 +7,15 @@ import click
 from oapcal.cli._common import (
     allow_unconverged_option,
     check_output,
+    choice_option,
     console,
+    count_option,
+    file_option,
+    flag_option,
+    json_option,
     load_usable_calibration,
     parse_size,
+    positive_option,
     print_json,
     progress_bar,
     with_flag_hint,
@@ -139,87 +145,59 @@ def geometry_options(func):
     default=None,
     help="Directory for the corrected images (created; must not hold the inputs).",
 )
-@click.option(
+@choice_option(
     "--interp",
-    type=click.Choice(["linear", "cubic", "lanczos", "nearest"]),
+    choices=["linear", "cubic", "lanczos", "nearest"],
     default="linear",
-    show_default=True,
     help="Interpolation of cv2.remap.",
 )
 @click.option(
     "--border", type=float, default=0.0, show_default=True, help="Value of pixels outside the input."
 )
-@click.option(
+@count_option(
     "--workers",
-    type=click.IntRange(min=1),
+    least=1,
     default=1,
-    show_default=True,
     help="Files corrected at once (threads); with --dask, local-cluster workers.",
 )
 @geometry_options
-@click.option(
-    "--max-error-px",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help=MAX_ERROR_HELP,
+@positive_option("--max-error-px", help=MAX_ERROR_HELP)
+@file_option("--save-map", help="Write the correction map (.npz, .npy or .tif/.tiff).")
+@file_option(
+    "--map", "map_file", help="Use a saved map instead of building one (excludes the geometry options)."
 )
-@click.option(
-    "--save-map",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Write the correction map (.npz, .npy or .tif/.tiff).",
-)
-@click.option(
-    "--map",
-    "map_file",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Use a saved map instead of building one (excludes the geometry options).",
-)
-@click.option(
-    "--allow-size-mismatch",
-    is_flag=True,
-    help="Correct images whose size differs from the calibration's.",
-)
+@flag_option("--allow-size-mismatch", help="Correct images whose size differs from the calibration's.")
 @click.option(
     "--max-pixels",
     type=click.IntRange(min=1),
     default=None,
     help="Largest frame (pixels) read; checked before decoding. Default 2**28.",
 )
-@click.option("--overwrite", is_flag=True, help="Redo outputs that already exist (default: skip them).")
-@click.option("--dask", "use_dask", is_flag=True, help="Correct TIFF/zarr stacks with Dask, lazily.")
+@flag_option("--overwrite", help="Redo outputs that already exist (default: skip them).")
+@flag_option("--dask", "use_dask", help="Correct TIFF/zarr stacks with Dask, lazily.")
 @click.option(
     "--scheduler",
     default=None,
     help="With --dask: a dask.distributed scheduler address (tcp://host:8786), or 'threads', "
     "'synchronous', 'processes'. Default: a new local cluster.",
 )
-@click.option(
-    "--chunk-frames",
-    type=click.IntRange(min=1),
-    default=16,
-    show_default=True,
-    help="With --dask: frames per chunk (memory per task).",
-)
-@click.option(
+@count_option("--chunk-frames", least=1, default=16, help="With --dask: frames per chunk (memory per task).")
+@choice_option(
     "--dask-format",
-    type=click.Choice(["zarr", "ome-zarr", "tiff"]),
+    choices=["zarr", "ome-zarr", "tiff"],
     default="zarr",
-    show_default=True,
     help="With --dask: write NAME.zarr, NAME.ome.zarr (OME-Zarr, NGFF 0.4) or NAME.tif.",
 )
-@click.option(
+@choice_option(
     "--format",
     "output_format",
-    type=click.Choice(["same", "tiff", "ome-tiff", "ome-zarr"]),
+    choices=["same", "tiff", "ome-tiff", "ome-zarr"],
     default="same",
-    show_default=True,
     help="Without --dask: write each input in its own format (same), or as NAME.tif, NAME.ome.tif "
     "(OME-TIFF with the pixel size and the calibration's provenance) or NAME.ome.zarr.",
 )
-@click.option("--quiet", is_flag=True, help="No progress bar.")
-@click.option("--json", "as_json", is_flag=True, help="Print the per-file results as one JSON object.")
+@flag_option("--quiet", help="No progress bar.")
+@json_option("Print the per-file results as one JSON object.")
 @allow_unconverged_option
 def correct_command(
     calib, inputs, out_dir, interp, border, workers, extent, um_per_px, out_size, max_error_px, save_map,
@@ -370,7 +348,7 @@ def _prepare_map(
     elif save_map or limit is not None:
         shape = None
         if cal.image_size:
-            shape = (cal.image_size[1], cal.image_size[0])
+            shape = _shape(cal.image_size)
             if shape[0] * shape[1] > max_pixels:
                 raise DataError(
                     f"the calibration's image_size {shape[1]}x{shape[0]} is {shape[0] * shape[1]} px, "
@@ -426,7 +404,7 @@ def _trust(
         if cmap.predicted_error is None:  # a --map file
             hint = "a map saved by 'oapcal correct --save-map' without --extent input holds the trust region"
     else:
-        shape = (cal.image_size[1], cal.image_size[0]) if cal.image_size else None
+        shape = _shape(cal.image_size) if cal.image_size else None
         if shape is None and files:
             from oapcal.errors import OapcalError
             from oapcal.io.images import probe
@@ -489,7 +467,7 @@ def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
     or else the first input's; every other size is checked as its map is built."""
     from oapcal.imaging.remap import check_map_samples, check_model_samples, output_geometry
 
-    shape = (cal.image_size[1], cal.image_size[0]) if cal.image_size else None
+    shape = _shape(cal.image_size) if cal.image_size else None
     if cmap is not None:
         shape = cmap.input_shape or shape
     if shape is None and files:
@@ -526,3 +504,11 @@ def _finish(results, summary, n_failed, as_json, trust=None) -> int:
     else:
         console().print(summary)
     return 4 if n_failed else 0
+
+
+def _shape(image_size) -> tuple[int, int]:
+    """``(rows, cols)`` of a calibration's ``(width, height)`` (:class:`oapcal.records.ImageSize`,
+    imported here: loading the command imports no NumPy)."""
+    from oapcal.records import ImageSize
+
+    return ImageSize(*image_size).shape

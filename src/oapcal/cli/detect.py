@@ -4,7 +4,18 @@ from __future__ import annotations
 
 import click
 
-from oapcal.cli._common import check_output, console, print_json, with_flag_hint, write_detected_points
+from oapcal.cli._common import (
+    check_output,
+    choice_option,
+    console,
+    file_option,
+    json_option,
+    out_option,
+    positive_option,
+    print_json,
+    with_flag_hint,
+    write_detected_points,
+)
 
 #: ``auto`` and the keys of ``oapcal.imaging.usaf.ORIENTATIONS`` (written out so that this
 #: module imports only click; a test checks that they agree).
@@ -15,11 +26,10 @@ ORIENTATION_CHOICES = (
 
 @click.command("detect")
 @click.argument("image", type=click.Path(dir_okay=False))
-@click.option(
+@choice_option(
     "--target",
-    type=click.Choice(["usaf", "dots", "chessboard"]),
+    choices=["usaf", "dots", "chessboard"],
     default="usaf",
-    show_default=True,
     help="The target in the image (dots, chessboard: docs/detection.md, 'Dot grids and chessboards').",
 )
 @click.option("--groups", default="4-5", show_default=True, help="USAF groups in the image, e.g. 4-5.")
@@ -30,26 +40,9 @@ ORIENTATION_CHOICES = (
     help="The camera's object-space pixel size (um per px), to within 30 % (6 % decides the element "
     "when one element alone is in view); also the scale of x_u,y_u.  Leave it out to find the scale.",
 )
-@click.option(
-    "--out",
-    "out",
-    type=click.Path(dir_okay=False, allow_dash=True),
-    required=True,
-    help="Point-pair CSV: id,x_u,y_u,x_d,y_d.",
-)
-@click.option(
-    "--truth",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Ground truth of a simulated image (id,x_d,y_d,visible) to score against.",
-)
-@click.option(
-    "--plot",
-    "plot",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Save a PNG of the image with the detected corners.",
-)
+@out_option("Point-pair CSV: id,x_u,y_u,x_d,y_d.")
+@file_option("--truth", help="Ground truth of a simulated image (id,x_d,y_d,visible) to score against.")
+@file_option("--plot", "plot", help="Save a PNG of the image with the detected corners.")
 @click.option(
     "--max-stderr-px",
     type=click.FloatRange(min=0, min_open=True),
@@ -57,19 +50,17 @@ ORIENTATION_CHOICES = (
     show_default=True,
     help="Drop triplets whose corners are less certain than this.",
 )
-@click.option(
+@choice_option(
     "--orientation",
-    type=click.Choice(ORIENTATION_CHOICES),
+    choices=ORIENTATION_CHOICES,
     default="auto",
-    show_default=True,
     help="The target's orientation in the image (turned about the image centre; "
     "docs/detection.md); auto: find it.",
 )
-@click.option(
+@choice_option(
     "--mirror",
-    type=click.Choice(["auto", "yes", "no"]),
+    choices=["auto", "yes", "no"],
     default="auto",
-    show_default=True,
     help="Whether the image is mirrored (auto: find it; a single element in view cannot tell).",
 )
 @click.option(
@@ -81,25 +72,10 @@ ORIENTATION_CHOICES = (
     "where it is in the image, G6E3@512,300 (camera px), or one triplet, G6E3V.  It decides the "
     "scale and the element that the bars alone may leave open; repeat for more elements.",
 )
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
-@click.option(
-    "--pitch-um",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="--target dots: the dot pitch (um).",
-)
-@click.option(
-    "--dot-um",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="--target dots: the dot diameter (um), optional.",
-)
-@click.option(
-    "--square-um",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    help="--target chessboard: the square's side (um).",
-)
+@json_option("Print one JSON object instead of a table.")
+@positive_option("--pitch-um", help="--target dots: the dot pitch (um).")
+@positive_option("--dot-um", help="--target dots: the dot diameter (um), optional.")
+@positive_option("--square-um", help="--target chessboard: the square's side (um).")
 @click.option(
     "--rows",
     type=click.IntRange(min=2),
@@ -115,8 +91,8 @@ ORIENTATION_CHOICES = (
     default=None,
     help="A named grid target (its kind, pitch, dot and size), e.g. thorlabs-r2l2s3p3 (docs/detection.md).",
 )
-@click.option("--polarity", type=click.Choice(["auto", "dark", "bright"]), default="auto", show_default=True,
-              help="--target dots: dark dots on a bright field, bright on dark, or find out.")  # fmt: skip
+@choice_option("--polarity", choices=["auto", "dark", "bright"], default="auto",
+               help="--target dots: dark dots on a bright field, bright on dark, or find out.")  # fmt: skip
 # (one parameter per option of the command, as click passes them)
 def detect_command(
     image,

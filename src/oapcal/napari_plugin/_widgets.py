@@ -28,6 +28,7 @@ from magicgui.widgets import (
 )
 
 from oapcal.napari_plugin import _layers as L
+from oapcal.records import ImageSize
 from oapcal.select import FRAME_TERMS, with_frame_terms  # noqa: F401 (FRAME_TERMS: the name as before)
 
 #: Models offered by *Fit & inspect*: oapcal's presets and AICc selection.
@@ -337,7 +338,7 @@ class LabelWidget(_OapcalWidget):
         if layer is None:
             return
         image = _plane(layer, self.viewer)
-        size = (image.shape[1], image.shape[0])
+        size = ImageSize.of(image)
         clicks = self.clicks()
         refine = self.refine.value
         um = self.um_per_px.value or None
@@ -575,7 +576,7 @@ class CorrectWidget(_OapcalWidget):
         data = layer.data
         spatial = 3 if layer.rgb else 2
         shape = data.shape[data.ndim - spatial : data.ndim - spatial + 2]
-        if cal.image_size and tuple(cal.image_size) != (shape[1], shape[0]):  # as 'oapcal correct'
+        if cal.image_size and tuple(cal.image_size) != ImageSize.of(shape):  # as 'oapcal correct'
             self._fail(f"{layer.name} is {shape[1]}x{shape[0]} px but the calibration is for "
                        f"{cal.image_size[0]}x{cal.image_size[1]} px images: choose an image of that "
                        "camera, or refit the calibration for this one")  # fmt: skip
