@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oapcal import eq1_closed_form
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.model import Model, as_model
 from oapcal.validate import image as _valid_image
@@ -552,7 +553,13 @@ def _check_map_memory(rows: int, cols: int) -> None:
 
 
 def _grid_map(model: Model, xs, ys, out_x, out_y) -> None:
-    """The model's compiled point function over the separable grid, rows in parallel."""
+    """The model's compiled point function over the separable grid, rows in parallel; for
+    an Eq. (1) map of a process that has not loaded the kernels, at most
+    :data:`oapcal.eq1_closed_form.MAX_POINTS` px, the same expressions in NumPy
+    (:func:`oapcal.eq1_closed_form.applies`: the map costs less than loading the kernels)."""
+    if eq1_closed_form.applies(model.family, out_x.size, model.params):
+        eq1_closed_form.grid_map(model.params, xs, ys, out_x, out_y)
+        return
     from oapcal import _kernels
     from oapcal.model import kernel_array
 
