@@ -42,8 +42,9 @@ VALUE, POINT_JAC, PARAM_JAC = 0, 1, 2
 #: about 2 Mpx (1920 x 1080 is 2.07 Mpx) the compiled map builder, on both cores, pays for
 #: loading it; below, the NumPy map costs less than the load (a 640 x 480 map ~10 ms).
 MAX_POINTS = 2**21
-#: Points evaluated at a time (bounds the float64 temporaries, about 20 of this size).
-BLOCK = 1 << 16
+#: Points evaluated at a time: the float64 temporaries (about 20 of this size, 128 KiB each)
+#: stay in the cache; 2**16 points is 3x slower per point on this machine, 2**12 1.5x.
+BLOCK = 1 << 14
 
 
 def applies(family, n_points: int, params=None) -> bool:
@@ -176,11 +177,59 @@ def grid_map(params, xs, ys, out_x, out_y) -> None:
     """The model on the grid ``xs (C,) x ys (R,)`` of undistorted points into ``out_x,
     out_y (R, C)`` (float32): a correction map, as ``_kernels.grid_map`` builds it (each
     float64 value rounded once to float32)."""
+    params = np.asarray(params, float)
+    xs, ys = np.asarray(xs, float), np.asarray(ys, float)
     rows = max(1, BLOCK // max(len(xs), 1))
-    for lo in range(0, len(ys), rows):
+    if len(params) == 13:
+        _separable_map(params, xs, ys, rows, out_x, out_y)
+        return
+    for lo in range(0, len(ys), rows):  # the rotation mixes x and y: every point in full
         xd, yd, _, _ = point(params, xs[None, :], ys[lo : lo + rows, None], VALUE)
         out_x[lo : lo + rows] = xd
         out_y[lo : lo + rows] = yd
+
+
+def _separable_map(params, xs, ys, rows: int, out_x, out_y) -> None:
+    """:func:`grid_map` of Eq. (1) without the rotation, where ``xb`` depends on the column
+    only and ``yb`` on the row only.  The same polynomial as :func:`point`, regrouped in
+    powers of ``r2`` so that every coefficient that belongs to one column or one row is
+    computed once, and each pixel costs 7 operations per coordinate instead of about 16
+    (a 640 x 480 map in about a third of the time)::
+
+        x_d = r2 ((k1 xb + p2 + s1) + r2 (k2 xb + s2)) + xb (1 + 2 p1 yb) + (2 p2 xb^2 + c_x)
+        y_d = r2 ((k1 yb + p1 + s3) + r2 (k2 yb + s4)) + yb (1 + 2 p2 xb) + (2 p1 yb^2 + c_y)
+
+    The regrouping changes the rounding only (about 1e-13 px on a 640 x 480 map; the tests
+    compare the float64 values and the float32 maps with the kernels')."""
+    k1, k2, p1, p2, s1, s2, s3, s4, xo, yo, cx, cy, m = params
+    xb = m * (xs + xo)
+    xx = xb * xb
+    # the columns' coefficients (C,)
+    x_lin, x_sq, x_cross, x_tail = k1 * xb + (p2 + s1), k2 * xb + s2, 1.0 + 2.0 * p2 * xb, 2.0 * p2 * xx + cx
+    r2, acc, term = (np.empty((rows, len(xs))) for _ in range(3))
+    for lo in range(0, len(ys), rows):
+        yb = (m * (ys[lo : lo + rows] + yo))[:, None]
+        n = len(yb)
+        r2_, acc_, term_ = r2[:n], acc[:n], term[:n]
+        np.add(xx, yb * yb, out=r2_)
+        # the rows' coefficients (n, 1)
+        y_lin, y_sq, y_cross, y_tail = (
+            k1 * yb + (p1 + s3),
+            k2 * yb + s4,
+            1.0 + 2.0 * p1 * yb,
+            2.0 * p1 * yb * yb + cy,
+        )
+        for out, lin, sq, own, cross, tail in (
+            (out_x, x_lin, x_sq, xb, y_cross, x_tail),
+            (out_y, y_lin, y_sq, yb, x_cross, y_tail),
+        ):
+            np.multiply(r2_, sq, out=acc_)
+            acc_ += lin
+            acc_ *= r2_
+            np.multiply(own, cross, out=term_)
+            acc_ += term_
+            acc_ += tail
+            out[lo : lo + n] = acc_
 
 
 def region_check(xy: np.ndarray, params: np.ndarray):
