@@ -12,7 +12,7 @@ SRC = Path(__file__).resolve().parent.parent / "src" / "oapcal"
 #: Layers, lowest first.  Keys are top-level modules or packages of oapcal.
 LAYERS = [
     {"errors", "extras", "records", "progress", "validate"},
-    {"model", "_kernels", "_relay_kernel"},
+    {"model", "_kernels", "_relay_kernel", "eq1_closed_form"},
     {"stats", "normalize", "synthetic", "uncertainty"},
     {"fitting"},
     {"select", "subsampling", "calibration", "error_model"},

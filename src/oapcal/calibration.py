@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from oapcal import __version__, validate
+from oapcal import __version__, eq1_closed_form, validate
 from oapcal.errors import DataError, InputFileError, ModelSpecError
 from oapcal.fitting import DEFAULT_INIT
 from oapcal.model import BROWN_CONRADY, N_PARAMS, ROTATION_SUFFIX, Model, ModelFamily, family_named, family_of
@@ -305,7 +305,7 @@ def check_fit_usable(calibration, source: str | None = None, *, sign: bool = Tru
 
 #: Family codes of Eq. (1) and Eq. (1) with the target's rotation (``ModelFamily.code``),
 #: whose region check evaluates the closed form in NumPy (:func:`_eq1_region_check`).
-_EQ1_CODES = (0, 1)
+_EQ1_CODES = tuple(eq1_closed_form.FAMILY_PARAMS)
 
 
 def _kernel_region_check(xy: np.ndarray, params: np.ndarray, family=None):
@@ -317,38 +317,12 @@ def _kernel_region_check(xy: np.ndarray, params: np.ndarray, family=None):
     return np.isfinite(distort(xy, params, family=family)).all(-1), det
 
 
-def _eq1_region_check(xy: np.ndarray, params: np.ndarray):
-    """:func:`_kernel_region_check` for Eq. (1) (13 parameters) and Eq. (1) after the
-    target's rotation (14: ``params[13]`` degrees), in NumPy.
-
-    Why not the kernels: loading them costs a command about 0.3-0.8 s before its first frame
-    (importing Numba, loading the cached machine code), while this closed form on the check's
-    grids takes about a millisecond.  The same expressions as ``_kernels.bc_point`` and
-    ``bc_pose_point`` (``docs/models.md``); a test checks it against the kernels.
-    """
-    k1, k2, p1, p2, s1, s2, s3, s4, xo, yo, cx, cy, m = params[:13]
-    x, y = xy[:, 0], xy[:, 1]
-    cs, sn = 1.0, 0.0
-    if len(params) > 13:  # the rotation of the reference points, counter-clockwise
-        th = params[13] * (np.pi / 180.0)
-        cs, sn = np.cos(th), np.sin(th)
-        x, y = cs * x - sn * y, sn * x + cs * y
-    xb, yb = m * (x + xo), m * (y + yo)
-    r2 = xb * xb + yb * yb
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    xy2 = 2.0 * xb * yb
-    xd = xb * radial + p1 * xy2 + p2 * (r2 + 2.0 * xb * xb) + r2 * (s1 + s2 * r2) + cx
-    yd = yb * radial + p1 * (r2 + 2.0 * yb * yb) + p2 * xy2 + r2 * (s3 + s4 * r2) + cy
-    drad = 2.0 * (k1 + 2.0 * k2 * r2)
-    sx = 2.0 * (s1 + 2.0 * s2 * r2)
-    sy = 2.0 * (s3 + 2.0 * s4 * r2)
-    a = m * (radial + drad * xb * xb + 2.0 * p1 * yb + 6.0 * p2 * xb + xb * sx)
-    b = m * (drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + yb * sx)
-    c = m * (drad * xb * yb + 2.0 * p1 * xb + 2.0 * p2 * yb + xb * sy)
-    d = m * (radial + drad * yb * yb + 6.0 * p1 * yb + 2.0 * p2 * xb + yb * sy)
-    # the point Jacobian times the rotation's: [[a, b], [c, d]] @ [[cs, -sn], [sn, cs]]
-    a, b, c, d = a * cs + b * sn, b * cs - a * sn, c * cs + d * sn, d * cs - c * sn
-    return np.isfinite(xd) & np.isfinite(yd), a * d - b * c
+#: :func:`_kernel_region_check` for Eq. (1) (13 parameters) and Eq. (1) after the target's
+#: rotation (14), in NumPy: the closed form of :mod:`oapcal.eq1_closed_form`.  Why not the
+#: kernels: loading them costs a command about 0.3-0.8 s before its first frame (importing
+#: Numba, loading the cached machine code), while the closed form on the check's grids takes
+#: about a millisecond; a test checks it against the kernels.
+_eq1_region_check = eq1_closed_form.region_check
 
 
 def calibrate(

@@ -50,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oapcal import eq1_closed_form
 from oapcal.errors import DataError
 from oapcal.model import as_model
 
@@ -72,8 +73,14 @@ def position_covariance(xy_u, params, covariance, free=None, *, family=None) -> 
         raise DataError(
             f"covariance must be {len(idx)} x {len(idx)} (one per free parameter), got {cov.shape}"
         )
-    jp = model.jacobian_params(xy_u)[..., idx]  # (..., N, 2, k)
-    ju = model.jacobian(xy_u)  # (..., N, 2, 2)
+    n_points = int(np.prod(xy_u.shape[:-1])) if xy_u.ndim >= 2 and xy_u.shape[-1] == 2 else -1
+    if n_points >= 0 and eq1_closed_form.applies(model.family, n_points, model.params):
+        # a few Eq. (1) points in a process without the kernels: the same Jacobians in NumPy
+        _, ju, jp = eq1_closed_form.evaluate(xy_u, model.params, eq1_closed_form.PARAM_JAC)
+        jp = jp[..., idx]
+    else:
+        jp = model.jacobian_params(xy_u)[..., idx]  # (..., N, 2, k)
+        ju = model.jacobian(xy_u)  # (..., N, 2, 2)
     det = ju[..., 0, 0] * ju[..., 1, 1] - ju[..., 0, 1] * ju[..., 1, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = (

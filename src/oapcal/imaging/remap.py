@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oapcal import eq1_closed_form
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.model import Model, as_model
 from oapcal.records import ImageSize
@@ -344,8 +345,6 @@ def predicted_error_map(calibration, geometry: OutputGeometry, *, samples: int |
     ``geometry.scale``), ``float32 (rows, cols)``: computed on a grid of ``samples`` points
     along the longer side (default :data:`ERROR_SAMPLES`) and interpolated linearly in
     between; inf where the map folds."""
-    from scipy.ndimage import map_coordinates
-
     from oapcal.uncertainty import predicted_error
 
     family = _model_of(calibration).family
@@ -367,11 +366,37 @@ def predicted_error_map(calibration, geometry: OutputGeometry, *, samples: int |
     for lo in range(0, rows, SPLINE_ROWS):
         r = np.arange(lo, min(lo + SPLINE_ROWS, rows), dtype=float)
         rows_f = np.interp(r, cy, np.arange(ny, dtype=float))
-        ri, ci = np.meshgrid(rows_f, cols_f, indexing="ij")
         with np.errstate(invalid="ignore"):
-            out[lo : lo + len(r)] = map_coordinates(coarse, [ri, ci], order=1, mode="nearest")
+            out[lo : lo + len(r)] = _bilinear_on_grid(coarse, rows_f, cols_f)
     out[~np.isfinite(out)] = np.inf
     return out
+
+
+def _cells(f: np.ndarray, n: int):
+    """The lower node ``i0``, the upper node ``i1 = min(i0 + 1, n - 1)`` and the fraction
+    ``f - i0`` of fractional grid indices ``f`` in ``[0, n - 1]``."""
+    i0 = np.clip(np.floor(f).astype(np.intp), 0, n - 1)
+    return i0, np.minimum(i0 + 1, n - 1), f - i0
+
+
+def _bilinear_on_grid(values: np.ndarray, rows_f: np.ndarray, cols_f: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of ``values (ny, nx)`` at the fractional grid indices
+    ``rows_f (R,) x cols_f (C,)`` (each in ``[0, n - 1]``), ``(R, C)`` float64: the result of
+    ``scipy.ndimage.map_coordinates(values, ..., order=1, mode="nearest")`` on the grid.
+
+    Written out because the grid is regular and separable (one node and fraction per row
+    and per column: interpolate the rows, then the columns), and because importing
+    ``scipy.ndimage`` costs a command about a third of a second, more than the whole
+    trust region.  Like ``map_coordinates``, all four nodes of a cell enter the sum, with
+    their weights: a non-finite node makes its cell non-finite even at a zero weight
+    (``0 * inf`` is NaN), so a pixel next to an untrusted node is never trusted.
+    (``tests/imaging/test_remap_bilinear.py`` compares the two.)"""
+    values = np.asarray(values, float)
+    r0, r1, fr = _cells(np.asarray(rows_f, float), values.shape[0])
+    c0, c1, fc = _cells(np.asarray(cols_f, float), values.shape[1])
+    with np.errstate(invalid="ignore"):
+        along = (1.0 - fr)[:, None] * values[r0] + fr[:, None] * values[r1]  # (R, nx)
+        return (1.0 - fc) * along[:, c0] + fc * along[:, c1]
 
 
 def trust_summary(
@@ -529,7 +554,13 @@ def _check_map_memory(rows: int, cols: int) -> None:
 
 
 def _grid_map(model: Model, xs, ys, out_x, out_y) -> None:
-    """The model's compiled point function over the separable grid, rows in parallel."""
+    """The model's compiled point function over the separable grid, rows in parallel; for
+    an Eq. (1) map of a process that has not loaded the kernels, at most
+    :data:`oapcal.eq1_closed_form.MAX_POINTS` px, the same expressions in NumPy
+    (:func:`oapcal.eq1_closed_form.applies`: the map costs less than loading the kernels)."""
+    if eq1_closed_form.applies(model.family, out_x.size, model.params):
+        eq1_closed_form.grid_map(model.params, xs, ys, out_x, out_y)
+        return
     from oapcal import _kernels
     from oapcal.model import kernel_array
 
