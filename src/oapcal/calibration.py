@@ -218,7 +218,12 @@ class Calibration:
 
 
 def check_model_region(
-    calibration, size: tuple[int, int] | None = None, *, source: str = "calibration", boxes=()
+    calibration,
+    size: tuple[int, int] | None = None,
+    *,
+    source: str = "calibration",
+    boxes=(),
+    error=InputFileError,
 ):
     """Refuse a model that is not finite or folds over (Jacobian determinant <= 0) where it is
     applied: over the reference points' ``bounds``, the calibration's ``image_size`` frame,
@@ -227,7 +232,8 @@ def check_model_region(
     ``boxes`` adds regions ``((x0, y0, x1, y1), description)`` in undistorted coordinates
     (an output region of a correction).  The model is evaluated on a :data:`CHECK_GRID` x
     :data:`CHECK_GRID` grid over each region.
-    Raises :class:`InputFileError` naming the first bad point.
+    Raises ``error`` naming the first bad point: :class:`InputFileError` (the default) for
+    a calibration read from a file, :class:`DataError` for a model given as a value.
 
     >>> from oapcal.model import params_from_dict
     >>> check_model_region(params_from_dict({"k1": 1e-7}), (640, 480))
@@ -260,7 +266,7 @@ def check_model_region(
             if bad.any():
                 x, y = xy[np.argmax(bad)]
                 how = "folds over" if np.isfinite(det[np.argmax(bad)]) else "is not finite"
-                raise InputFileError(
+                raise error(
                     f"{source}: the model {how} at (x, y) = ({x:.6g}, {y:.6g}) inside the {what}; "
                     "it cannot correct there (refit with more points or a smaller model)"
                 )

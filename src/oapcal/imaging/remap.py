@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal import eq1_closed_form
-from oapcal.errors import DataError, ModelSpecError
+from oapcal.errors import DataError, InputFileError, ModelSpecError
 from oapcal.model import Model, as_model
 from oapcal.records import ImageSize
 from oapcal.validate import image as _valid_image
@@ -194,11 +194,13 @@ def output_geometry(
     if um_per_px is not None and out_size is not None:
         raise DataError("give either an output scale (um per px) or an output size, not both")
     x0, y0, x1, y1 = _region(calibration_or_params, model, extent, rows, cols)
-    from oapcal.calibration import check_model_region
+    from oapcal.calibration import Calibration, check_model_region
 
-    # the model must be finite and not fold over where the output samples it
+    # the model must be finite and not fold over where the output samples it; a calibration
+    # (read from a file) is an input file's mistake, a Model or vector given in memory a value's
     what = f"{cols}x{rows} px image" if extent == "input" else f"output region of a {cols}x{rows} px image"
-    check_model_region(model, boxes=[((x0, y0, x1, y1), what)], source="the calibration")
+    error = InputFileError if isinstance(calibration_or_params, Calibration) else DataError
+    check_model_region(model, boxes=[((x0, y0, x1, y1), what)], source="the calibration", error=error)
     shape, x0, y0, scale = _layout((x0, y0, x1, y1), _output_scale(um_per_px, cal_um), out_size, um_per_px)
     _check_output_shape(shape, (rows, cols), (x1 - x0, y1 - y0), um_per_px, cal_um)
     out_um = None if not cal_um else float(cal_um) * scale
