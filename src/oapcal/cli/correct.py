@@ -219,31 +219,9 @@ def correct_command(
 
     from oapcal.io.images import MAX_PIXELS
 
-    if not inputs and save_map is None:
-        raise click.UsageError("give INPUT images (with --out-dir), or --save-map to only write the map")
-    if inputs and out_dir is None:
-        raise click.UsageError("give --out-dir DIR for the corrected images")
-    if map_file and (extent != "input" or um_per_px or out_size):
-        raise click.UsageError("--map fixes the output geometry: drop --extent, --um-per-px and --out-size")
-    ctx = click.get_current_context()
-    if map_file and max_error_px is not None:
-        raise click.UsageError(
-            "--map holds its own output (and trust region, if built with one): drop --max-error-px"
-        )
-    whole = extent == "input" and ctx.get_parameter_source("extent") != click.core.ParameterSource.DEFAULT
-    from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
-
-    limit = (
-        max_error_px if max_error_px is not None else (None if whole or map_file else DEFAULT_MAX_ERROR_PX)
-    )
-    if not use_dask:
-        for option in ("scheduler", "chunk_frames", "dask_format"):
-            if ctx.get_parameter_source(option) != click.core.ParameterSource.DEFAULT:
-                flag = "--" + option.replace("_", "-")
-                raise click.UsageError(f"{flag} applies to --dask only: add --dask or drop {flag}")
+    limit = _check_usage(inputs, out_dir, extent, um_per_px, out_size, max_error_px, save_map, map_file,
+                         use_dask, output_format)  # fmt: skip
     output_format = None if output_format == "same" else output_format
-    if use_dask and output_format is not None:
-        raise click.UsageError("with --dask the output format is --dask-format: drop --format")
     size = parse_size(out_size, "--out-size")
     if use_dask and scheduler is not None:  # an address is checked before anything else
         from oapcal.batch.distributed import LOCAL_SCHEDULERS, parse_scheduler_address
@@ -314,6 +292,36 @@ def correct_command(
         )  # fmt: skip
     results = [_result(r) for r in report.results]
     return _finish(results, report.summary(), report.count("failed"), as_json, trust)
+
+
+# the options whose combinations it checks, as the command received them
+def _check_usage(inputs, out_dir, extent, um_per_px, out_size, max_error_px, save_map, map_file, use_dask,
+                 output_format):  # fmt: skip
+    """Refuse combinations of ``correct``'s options that cannot work (a ``click.UsageError``
+    each), and return the trust region's limit: ``--max-error-px``, or the default unless
+    ``--extent input`` was given explicitly or ``--map`` holds its own."""
+    from oapcal.imaging.remap import DEFAULT_MAX_ERROR_PX
+
+    if not inputs and save_map is None:
+        raise click.UsageError("give INPUT images (with --out-dir), or --save-map to only write the map")
+    if inputs and out_dir is None:
+        raise click.UsageError("give --out-dir DIR for the corrected images")
+    if map_file and (extent != "input" or um_per_px or out_size):
+        raise click.UsageError("--map fixes the output geometry: drop --extent, --um-per-px and --out-size")
+    ctx = click.get_current_context()
+    if map_file and max_error_px is not None:
+        raise click.UsageError(
+            "--map holds its own output (and trust region, if built with one): drop --max-error-px"
+        )
+    whole = extent == "input" and ctx.get_parameter_source("extent") != click.core.ParameterSource.DEFAULT
+    if not use_dask:
+        for option in ("scheduler", "chunk_frames", "dask_format"):
+            if ctx.get_parameter_source(option) != click.core.ParameterSource.DEFAULT:
+                flag = "--" + option.replace("_", "-")
+                raise click.UsageError(f"{flag} applies to --dask only: add --dask or drop {flag}")
+    if use_dask and output_format != "same":
+        raise click.UsageError("with --dask the output format is --dask-format: drop --format")
+    return max_error_px if max_error_px is not None else (None if whole or map_file else DEFAULT_MAX_ERROR_PX)
 
 
 def _result(r, dask: bool = False) -> dict:
