@@ -6,8 +6,8 @@ import pytest
 from oapcal.errors import DataError
 from oapcal.imaging.field import ModelDistortionField, distortion_stats, identity_field, setup1_like_field
 from oapcal.imaging.simulate import (
-    _bilinear_upsample,
     airy_kernel,
+    bilinear_upsample,
     peak_electrons_for_snr,
     simulate_image,
 )
@@ -138,7 +138,7 @@ def test_bilinear_upsample_matches_scipy():
     rng = np.random.default_rng(2)
     coarse = rng.normal(size=(7 + 2, 9 + 2, 2))
     q = 3
-    fine = _bilinear_upsample(coarse, q, (7, 9))
+    fine = bilinear_upsample(coarse, q, (7, 9))
     pos_x = (np.arange(9 * q) + 0.5) / q - 0.5 + 1
     pos_y = (np.arange(7 * q) + 0.5) / q - 0.5 + 1
     gy, gx = np.meshgrid(pos_y, pos_x, indexing="ij")

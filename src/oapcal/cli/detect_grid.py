@@ -110,9 +110,9 @@ def detect_grid_command(image, target, um_per_px, out, truth, plot, as_json, opt
 
 def _plot(img, det, path) -> None:
     """The image with the indexed landmarks (crosses) and every 5th id."""
-    from oapcal.report.plots import _figure, save_figure
+    from oapcal.report.plots import new_figure, save_figure
 
-    fig = _figure(8, 8 * img.shape[0] / img.shape[1])
+    fig = new_figure(8, 8 * img.shape[0] / img.shape[1])
     ax = fig.add_subplot(111)
     ax.imshow(img, cmap="gray", interpolation="nearest")
     if len(det.xy_d):

@@ -22,7 +22,7 @@ each camera pixel centre ``p``:
 
 Steps 1-4 are evaluated exactly at every pixel centre (and one pixel beyond the border);
 the ``oversample x oversample`` sub-pixels between them are interpolated bilinearly
-(:func:`oapcal.imaging.simulate._bilinear_upsample`: exact for affine maps, ~1e-4 px for
+(:func:`oapcal.imaging.simulate.bilinear_upsample`: exact for affine maps, ~1e-4 px for
 the relay's smooth field).  The source is sampled at the sub-pixels with ``cv2.remap``
 (bilinear; outside the source: the ``background`` level), blurred by the camera's Gaussian
 PSF, averaged over each camera pixel and exposed (shot and read noise at ``snr``,
@@ -299,7 +299,7 @@ def render(
     Steps 5 of the module docstring; :func:`render_scene` is the whole chain."""
     import cv2
 
-    from oapcal.imaging.simulate import _bilinear_upsample, _blur, _expose
+    from oapcal.imaging.simulate import bilinear_upsample, blur, expose
 
     w, h = camera.size
     q = int(oversample)
@@ -309,15 +309,15 @@ def render(
     level = median if background is None else float(background)
     gx, gy = np.meshgrid(np.arange(-1.0, w + 1.0), np.arange(-1.0, h + 1.0))
     coarse = np.asarray(to_source(np.stack([gx, gy], -1).reshape(-1, 2)), float).reshape(h + 2, w + 2, 2)
-    fine = _bilinear_upsample(coarse, q, (h, w)).astype(np.float32)  # (q h, q w, 2) source px
+    fine = bilinear_upsample(coarse, q, (h, w)).astype(np.float32)  # (q h, q w, 2) source px
     # NaN (no inverse) -> far outside, so the border value is used
     fine[~np.isfinite(fine)] = -1e6
     sub = cv2.remap(rel, fine[..., 0], fine[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                     borderValue=level)  # fmt: skip
     settings = camera.settings(q)
-    sub = _blur(sub, q, settings.sigma_px, None, None, camera.pixel_size_um)
+    sub = blur(sub, q, settings.sigma_px, None, None, camera.pixel_size_um)
     clean = sub.reshape(h, q, w, q).mean(axis=(1, 3), dtype=np.float64)
-    image, peak = _expose(clean, settings, seed)
+    image, peak = expose(clean, settings, seed)
     return image, clean, peak, coarse
 
 

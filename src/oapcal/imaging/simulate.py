@@ -83,7 +83,7 @@ def _paraxial_affine(field) -> tuple[np.ndarray, np.ndarray]:
     return p0, mat
 
 
-def _bilinear_upsample(coarse: np.ndarray, q: int, shape: tuple[int, int]) -> np.ndarray:
+def bilinear_upsample(coarse: np.ndarray, q: int, shape: tuple[int, int]) -> np.ndarray:
     """Sub-pixel values from a map sampled at pixel centres ``-1 .. w`` x ``-1 .. h``.
 
     ``coarse`` is ``(h + 2, w + 2, c)``; the result ``(q h, q w, c)`` at sub-pixel centres
@@ -214,11 +214,11 @@ def simulate_image(
         stages.advance(description="mapped pixels through the field")
         sub = _sample_target(target, obj, field, settings)
         stages.advance(description="sampled the target")
-        sub = _blur(sub, q, settings.sigma_px, settings.na, settings.wavelength_um, field.pixel_size_um)
+        sub = blur(sub, q, settings.sigma_px, settings.na, settings.wavelength_um, field.pixel_size_um)
         stages.advance(description="blurred")
         clean = sub.reshape(h, q, w, q).mean(axis=(1, 3), dtype=np.float64)  # over each camera pixel
         stages.advance(description="integrated over pixels")
-        image, peak = _expose(clean, settings, seed)
+        image, peak = expose(clean, settings, seed)
         stages.advance(description="added noise")
 
     xy_d, visible = _true_corners(target, field)
@@ -256,7 +256,7 @@ def _object_positions(field, target, q: int) -> np.ndarray:
     gx, gy = np.meshgrid(np.arange(-1.0, w + 1.0), np.arange(-1.0, h + 1.0))
     coarse = np.asarray(field.inverse(np.stack([gx, gy], -1).reshape(-1, 2)), float)
     coarse = coarse.reshape(h + 2, w + 2, 2)
-    fine = _bilinear_upsample(coarse, q, (h, w))  # (q h, q w, 2) paraxial px
+    fine = bilinear_upsample(coarse, q, (h, w))  # (q h, q w, 2) paraxial px
     return (fine - p0) @ np.linalg.inv(mat).T + target.centre_um
 
 
@@ -286,7 +286,7 @@ def _sample_target(target, obj: np.ndarray, field, settings: ImageSettings) -> n
     return intensity(cover, settings.polarity, settings.background).astype(np.float32)
 
 
-def _expose(clean: np.ndarray, settings: ImageSettings, seed: int) -> tuple[np.ndarray, float | None]:
+def expose(clean: np.ndarray, settings: ImageSettings, seed: int) -> tuple[np.ndarray, float | None]:
     """Step 5: shot and read noise, then quantization: the image and the electrons at the
     brightest level (None without noise)."""
     rng = np.random.default_rng(seed)
@@ -322,7 +322,7 @@ def _true_corners(target, field) -> tuple[np.ndarray, np.ndarray]:
     return xy_d, visible
 
 
-def _blur(sub, q, sigma_px, na, wavelength_um, pixel_size_um):
+def blur(sub, q, sigma_px, na, wavelength_um, pixel_size_um):
     import cv2
 
     if na is not None:

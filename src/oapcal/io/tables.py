@@ -224,9 +224,9 @@ def _finite(value: float, name: str, where: str, column: str) -> float:
 
 
 def _column(header, wanted: str, name: str, param: str) -> int:
-    from oapcal.io.landmarks.tables import _column as find
+    from oapcal.io.landmarks.tables import find_column
 
-    return find(list(header), wanted, name, param)
+    return find_column(list(header), wanted, name, param)
 
 
 def _pandas():

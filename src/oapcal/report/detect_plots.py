@@ -1,6 +1,6 @@
 """Pictures of simulated images, detected corners and corrected images.
 
-Each figure is built with :func:`oapcal.report.plots._figure` (a ``Figure`` with its own
+Each figure is built with :func:`oapcal.report.plots.new_figure` (a ``Figure`` with its own
 Agg canvas: no pyplot state, the caller's Matplotlib backend is left as it is) and written
 atomically with :func:`oapcal.report.plots.save_figure`.  Axes are in px with the
 pixel-centre convention of ``docs/conventions.md``.
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from oapcal.report.plots import _figure, save_figure
+from oapcal.report.plots import new_figure, save_figure
 
 
 def image_figure(
@@ -29,7 +29,7 @@ def image_figure(
     ``crop`` ``(x0, y0, x1, y1)`` limits the axes; a colour bar shows the grey levels.
     """
     h, w = image.shape[:2]
-    fig = _figure(6.4, 4.6, dpi=100)
+    fig = new_figure(6.4, 4.6, dpi=100)
     ax = fig.add_subplot()
     im = ax.imshow(image, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5), interpolation="nearest")
     fig.colorbar(im, ax=ax, label=units, shrink=0.85)
@@ -69,7 +69,7 @@ def detection_figure(image: np.ndarray, det, *, groups: str = ""):
     from matplotlib.patches import Circle
 
     h, w = image.shape[:2]
-    fig = _figure(7.2, 6.0, dpi=100)
+    fig = new_figure(7.2, 6.0, dpi=100)
     ax = fig.add_subplot()
     ax.imshow(image, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5), interpolation="nearest")
     dbg = getattr(det, "debug", {}) or {}

@@ -1,7 +1,7 @@
 """Figures of a traced relay: grid distortion arrows, spot diagrams, the tolerancing
 figure and the relay's layout in its fold plane.
 
-Each ``*_figure`` function returns a :class:`matplotlib.figure.Figure` with its own Agg
+Each ``*new_figure`` function returns a :class:`matplotlib.figure.Figure` with its own Agg
 canvas (no pyplot state, the caller's backend untouched); each ``plot_*`` function draws
 one and writes it as a PNG (120 dpi) atomically with :func:`oapcal.report.plots.save_figure`.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from oapcal.report.plots import _figure, save_figure
+from oapcal.report.plots import new_figure, save_figure
 
 #: Resolution of the written figures (dots per inch).
 DPI = 120
@@ -33,7 +33,7 @@ def grid_figure(grid, *, units: str = "mm", pixel_size_um: float = 4.8, max_side
     u = grid.xy_u[use] * scale
     d = grid.xy_d[use] * scale
     colour = 100.0 * grid.distortion[use] / radius
-    fig = _figure(6.4, 5.6, dpi=None)
+    fig = new_figure(6.4, 5.6, dpi=None)
     ax = fig.add_subplot()
     arrows = ax.quiver(
         u[:, 0], u[:, 1], d[:, 0] - u[:, 0], d[:, 1] - u[:, 1], colour,
@@ -70,7 +70,7 @@ def spots_figure(spots: dict, *, airy_radius_um: float | None = None):
     keys = list(spots)
     n_col = max(len(v) for v in spots.values())
     extent = max(np.abs(s.xy_um[s.clear]).max() for row in spots.values() for s in row) * 1.1 or 1.0
-    fig = _figure(2.6 * n_col, 2.7 * len(keys), dpi=None)
+    fig = new_figure(2.6 * n_col, 2.7 * len(keys), dpi=None)
     axes = fig.subplots(len(keys), n_col, squeeze=False)
     for i, key in enumerate(keys):
         for j, spot in enumerate(spots[key]):
@@ -101,7 +101,7 @@ def tolerance_figure(result: dict):
     rows = [r for r in result["sensitivity"] if max(r[k] for k in keys) >= RESOLUTION_PX]
     mc = result.get("monte_carlo")
     n_panels = 2 if mc else 1
-    fig = _figure(6.0 * n_panels, 0.28 * len(rows) + 2.2, dpi=None)
+    fig = new_figure(6.0 * n_panels, 0.28 * len(rows) + 2.2, dpi=None)
     axes = fig.subplots(1, n_panels, squeeze=False)
     ax = axes[0, 0]
     y = np.arange(len(rows))
@@ -152,7 +152,7 @@ def layout_figure(relay, *, title: str | None = None):
         p = np.asarray(p, dtype=float)
         return p[..., 2], p[..., 1]
 
-    fig = _figure(9.0, 4.8, dpi=None)
+    fig = new_figure(9.0, 4.8, dpi=None)
     ax = fig.add_subplot()
     f1, f2 = relay.focal_lengths_mm
     size = 0.45 * min(f1, f2)

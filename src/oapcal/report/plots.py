@@ -12,7 +12,7 @@ import numpy as np
 CMAP = "viridis"
 
 
-def _figure(width: float, height: float, dpi: float | None = 110):
+def new_figure(width: float, height: float, dpi: float | None = 110):
     """A figure with its own Agg canvas: no pyplot state, and the caller's (e.g. a
     notebook's) Matplotlib backend is left as it is.  ``dpi=None`` is Matplotlib's default."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -56,7 +56,7 @@ def _hull_outline(ax, hull, **kwargs) -> None:
 
 def residual_vectors_figure(vectors, um_per_px=None, shape=None, title_suffix: str = ""):
     """Quiver of corrected-minus-reference vectors at the reference points, magnified."""
-    fig = _figure(7.5, 5.6)
+    fig = new_figure(7.5, 5.6)
     ax = fig.add_subplot()
     ok = np.isfinite(vectors.dxy).all(axis=1)
     xy, dxy, length = vectors.xy_u[ok], vectors.dxy[ok], vectors.length[ok]
@@ -104,7 +104,7 @@ def distortion_field_figure(params, shape, hull=None, um_per_px=None, n_arrows: 
     gx, gy = np.meshgrid(np.arange(0, cols, step, float), np.arange(0, rows, step, float))
     d = model(np.stack([gx, gy], -1)) - np.stack([gx, gy], -1)
     mag = np.hypot(d[..., 0], d[..., 1])
-    fig = _figure(7.5, 5.6)
+    fig = new_figure(7.5, 5.6)
     ax = fig.add_subplot()
     im = ax.imshow(mag, cmap=CMAP, extent=(-0.5, cols - 0.5, rows - 0.5, -0.5), interpolation="bilinear")
     _colorbar(fig, im, ax, "distortion |x_d - x_u| [px]", um_per_px)
@@ -131,7 +131,7 @@ def _map_extent(umap) -> tuple[float, float, float, float]:
 
 def uncertainty_figure(umap):
     """The 1-sigma positional uncertainty of the correction; extrapolated region hatched."""
-    fig = _figure(7.5, 5.6)
+    fig = new_figure(7.5, 5.6)
     ax = fig.add_subplot()
     extent = _map_extent(umap)
     im = ax.imshow(umap.sigma_px, cmap="magma", extent=extent, interpolation="nearest")
@@ -161,7 +161,7 @@ def predicted_error_figure(umap, max_error_px: float = 1.0):
     trust region's border (predicted error = ``max_error_px``) and the landmarks' hull."""
     from matplotlib.colors import LogNorm
 
-    fig = _figure(7.5, 5.6)
+    fig = new_figure(7.5, 5.6)
     ax = fig.add_subplot()
     pred = umap.sigma_px if umap.predicted_px is None else umap.predicted_px
     extent = _map_extent(umap)
@@ -194,7 +194,7 @@ def before_after_figure(before, after, check_before, check_after, um_per_px=None
     from matplotlib.colors import Normalize
     from matplotlib.patches import Rectangle
 
-    fig = _figure(12.0, 5.2)
+    fig = new_figure(12.0, 5.2)
     axes = fig.subplots(1, 2)
     values = [e.rms_px for c in (check_before, check_after) for e in c.edges]
     vmax = max(0.5, float(np.percentile(values, 98))) if values else 1.0
@@ -240,7 +240,7 @@ def esf_figure(summary, n_examples: int = 8):
 
     good = sorted(summary.good, key=lambda e: -e.sigma_px)
     n_examples = min(n_examples, len(good))
-    fig = _figure(12.0, 5.6)
+    fig = new_figure(12.0, 5.6)
     grid = fig.add_gridspec(2, 1 + (n_examples + 1) // 2)
     ax = fig.add_subplot(grid[:, 0])
     um = summary.um_per_px

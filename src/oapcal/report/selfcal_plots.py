@@ -1,7 +1,7 @@
 """Pictures of a self-calibration (``docs/selfcal.md``): the matches over a frame, and the
 residual field of the solve with the correction's displacement.
 
-Built with :func:`oapcal.report.plots._figure` (a ``Figure`` with its own Agg canvas) and
+Built with :func:`oapcal.report.plots.new_figure` (a ``Figure`` with its own Agg canvas) and
 written with :func:`oapcal.report.plots.save_figure`.  Axes in camera px, pixel centres at
 integers (``docs/conventions.md``).
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from oapcal.report.plots import _figure
+from oapcal.report.plots import new_figure
 
 
 def matches_figure(result, frame=None, *, frame_index: int | None = None):
@@ -19,7 +19,7 @@ def matches_figure(result, frame=None, *, frame_index: int | None = None):
     outliers as crosses, over ``frame`` (an image, optional)."""
     m = result.matches
     w, h = m.image_size
-    fig = _figure(7.2, 7.2 * h / w + 0.8)
+    fig = new_figure(7.2, 7.2 * h / w + 0.8)
     ax = fig.add_subplot(1, 1, 1)
     if frame is not None:
         ax.imshow(np.asarray(frame), cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5))
@@ -53,7 +53,7 @@ def residual_figure(result, *, arrow_scale: float | None = None):
     e = result.residuals[inl]
     xy = m.xy_a[inl]
     size = np.linalg.norm(e, axis=1)
-    fig = _figure(11.0, 11.0 * h / (2 * w) + 1.2)
+    fig = new_figure(11.0, 11.0 * h / (2 * w) + 1.2)
     ax1, ax2 = fig.subplots(1, 2)
     scale = arrow_scale or (0.05 * w / max(float(np.percentile(size, 95)), 1e-9))
     q = ax1.quiver(xy[:, 0], xy[:, 1], e[:, 0] * scale, e[:, 1] * scale, size, angles="xy",

@@ -206,8 +206,8 @@ def read_table(path, *, x_column: str = "x", y_column: str = "y", origin: str = 
     rows = csv_rows(text, name, sniff_delimiter(text))
     _, header = first_row(rows, name)
     header = [h.strip() for h in header]
-    ix = _column(header, x_column, name, "x_column")
-    iy = _column(header, y_column, name, "y_column")
+    ix = find_column(header, x_column, name, "x_column")
+    iy = find_column(header, y_column, name, "y_column")
     offset = 0.5 if origin == "corner" else 0.0
     landmarks = []
     for line, cells in rows:
@@ -226,7 +226,7 @@ def read_table(path, *, x_column: str = "x", y_column: str = "y", origin: str = 
     return LandmarkSet(name, tuple(landmarks))
 
 
-def _column(header: list[str], wanted: str, name: str, param: str) -> int:
+def find_column(header: list[str], wanted: str, name: str, param: str) -> int:
     if wanted in header:
         if header.count(wanted) > 1:
             raise InputFileError(f"{name}: line 1: column {wanted!r} appears more than once; keep one")
