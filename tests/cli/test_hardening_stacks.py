@@ -47,6 +47,14 @@ def _frames(n=5, shape=(48, 64), dtype=np.uint16, seed=1):
     return np.random.default_rng(seed).integers(0, 60000, (n, *shape)).astype(dtype)
 
 
+def _interruptible():
+    """In the child: Ctrl-C back to its default. A shell without job control starts
+    background jobs with SIGINT ignored, and a process inherits that (Python then installs
+    no KeyboardInterrupt handler), so a suite started in the background would see Ctrl-C
+    ignored, as it should be under ``nohup``; these tests are about what Ctrl-C does."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _imwrite(path, data):
     """A grey stack (tifffile would store 3 or 4 frames as one RGB image)."""
     tifffile.imwrite(path, data, photometric="minisblack")
@@ -485,7 +493,7 @@ def test_terminated_run_leaves_no_temporary_file(tmp_path, sig):
     out = tmp_path / "o"
     proc = subprocess.Popen([sys.executable, "-m", "oapcal", "correct", str(calib), str(tmp_path / "s.tif"),
                              "--out-dir", str(out), "--quiet", "--interp", "lanczos"],
-                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_interruptible)  # fmt: skip
     deadline = time.monotonic() + 60
     while not any(p.name.startswith(".s.") for p in (out.iterdir() if out.exists() else [])):
         assert time.monotonic() < deadline and proc.poll() is None
@@ -505,7 +513,8 @@ def test_ctrl_c_under_the_local_cluster_is_one_line(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "oapcal", "correct", str(calib), str(tmp_path / "s.tif"),
                              "--out-dir", str(out), "--dask", "--chunk-frames", "200", "--quiet",
                              "--interp", "lanczos"],
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)  # fmt: skip
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_interruptible)  # fmt: skip
     deadline = time.monotonic() + 120
     while not any(p.name.startswith(".s.zarr.") for p in (out.iterdir() if out.exists() else [])):
         assert time.monotonic() < deadline and proc.poll() is None
