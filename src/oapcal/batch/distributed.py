@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from oapcal.batch.stack import ZARR_SUFFIX, dask_output_name  # noqa: F401 (named here as before)
 from oapcal.errors import DataError, InputFileError, OutputError
 from oapcal.imaging.remap import CorrectionMap, OutputGeometry, correct_image, correction_map
 from oapcal.io.images import (
@@ -46,7 +47,6 @@ from oapcal.io.images import (
 from oapcal.io.maps import load_map
 from oapcal.progress import Stages
 
-ZARR_SUFFIX = ".zarr"
 LOCAL_SCHEDULERS = ("threads", "synchronous", "processes")
 #: ``DaskSettings.output_format``: a zarr array, an OME-Zarr (NGFF 0.4) group, a TIFF.
 OUTPUT_FORMATS = ("zarr", "ome-zarr", "tiff")
@@ -423,21 +423,6 @@ def _workers_ignore_sigint():
 
 
 # ---------------------------------------------------------------------- the pipeline
-
-
-def dask_output_name(input_path: str | Path, output_format: str = "zarr") -> str:
-    """The output name of a stack: ``STEM.zarr``, ``STEM.tif`` or ``STEM.ome.zarr``.
-
-    >>> dask_output_name("a/run.ome.tif", "ome-zarr"), dask_output_name("run.tif")
-    ('run.ome.zarr', 'run.zarr')
-    """
-    input_path = Path(input_path)
-    if output_format == "ome-zarr":
-        from oapcal.batch.stack import output_name
-
-        return output_name(input_path, "ome-zarr")
-    suffix = ZARR_SUFFIX if output_format == "zarr" else ".tif"
-    return input_path.name.removesuffix(input_path.suffix) + suffix
 
 
 @dataclass(frozen=True)

@@ -76,6 +76,10 @@ _GLOB_CHARS = set("*?[")
 OUTPUT_FORMATS = (None, "tiff", "ome-tiff", "ome-zarr")
 
 
+#: The suffix of a zarr array (a directory), read and written by ``--dask``.
+ZARR_SUFFIX = ".zarr"
+
+
 def output_name(path: str | Path, output_format: str | None = None) -> str:
     """The output name of an input for ``output_format`` (:data:`OUTPUT_FORMATS`).
 
@@ -95,6 +99,20 @@ def output_name(path: str | Path, output_format: str | None = None) -> str:
     lower = name.lower()
     stem = next((name[: -len(s)] for s in OME_TIFF_SUFFIXES if lower.endswith(s)), Path(name).stem)
     return stem + {"tiff": ".tif", "ome-tiff": ".ome.tif", "ome-zarr": OME_ZARR_SUFFIX}[output_format]
+
+
+def dask_output_name(input_path: str | Path, output_format: str = "zarr") -> str:
+    """The output name of a stack corrected with Dask: ``STEM.zarr``, ``STEM.tif`` or
+    ``STEM.ome.zarr``.
+
+    >>> dask_output_name("a/run.ome.tif", "ome-zarr"), dask_output_name("run.tif")
+    ('run.ome.zarr', 'run.zarr')
+    """
+    input_path = Path(input_path)
+    if output_format == "ome-zarr":
+        return output_name(input_path, "ome-zarr")
+    suffix = ZARR_SUFFIX if output_format == "zarr" else ".tif"
+    return input_path.name.removesuffix(input_path.suffix) + suffix
 
 
 @dataclass(frozen=True)
@@ -312,14 +330,12 @@ def plan_batch(
     (:func:`expand_inputs`, :func:`plan_outputs`): for :func:`correct_stack` with its
     ``output_format``, or, with ``dask_format`` (:data:`oapcal.batch.distributed.OUTPUT_FORMATS`),
     for the Dask correction (TIFF stacks and zarr arrays, named by
-    :func:`~oapcal.batch.distributed.dask_output_name`).  Raises
+    :func:`dask_output_name`).  Raises
     :class:`~oapcal.errors.OutputError` for two inputs with one output name, an output that
     is an input or a ``protect`` file, and an output that is one of the ``reserved``."""
     from oapcal.io.images import TIFF_SUFFIXES
 
     if dask_format is not None:
-        from oapcal.batch.distributed import ZARR_SUFFIX, dask_output_name
-
         files, failures, dirs = expand_inputs(
             [str(p) for p in inputs], suffixes=(*TIFF_SUFFIXES, ZARR_SUFFIX)
         )
