@@ -106,13 +106,7 @@ def main_bench():
         src = tmp / "stack.tif"
         tifffile.imwrite(src, stack, photometric="minisblack")
         del stack
-        free = PRESETS["paper"]
-        cal = Calibration(free=free, params=EXAMPLE_TRUTH, stderr=np.full(13, np.nan),
-                          covariance=np.zeros((len(free), len(free))),
-                          fit=FitSummary(n_points=1, rss=0.0, converged=True),
-                          residuals=ResidualStats(*[float("nan")] * 4, n_points=0),
-                          um_per_px=4.8, image_size=(640, 480), name="bench")  # fmt: skip
-        save_calibration(cal, tmp / "calib.json")
+        _calibration_file(tmp / "calib.json")
 
         def direct():
             mx, my = correction_map(EXAMPLE_TRUTH, (480, 640))  # the maps, built once per run

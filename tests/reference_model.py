@@ -8,7 +8,7 @@ broadcasting as in :mod:`oapcal.model`.
 
 import numpy as np
 
-from oapcal.model import INDEX, N_PARAMS, InverseResult  # the result container only
+from oapcal.model import INDEX, N_PARAMS, InverseResult, all_masks  # the result container and the masks
 
 
 def _split(xy_u: np.ndarray, params: np.ndarray):
@@ -188,3 +188,16 @@ def jacobian_determinant(xy_u: np.ndarray, params: np.ndarray) -> np.ndarray:
     """``det d(x_d, y_d)/d(x_u, y_u)`` at each point, ``(..., N)``; <= 0 where the map folds."""
     jac = jacobian_point(xy_u, params)
     return jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+
+
+def random_eq1_models(n, seed, rotation):
+    """Eq. (1) models of a 640 x 480 px camera with random subsets of the terms, strong
+    enough to fold over inside the frame for some, optionally with a rotation."""
+    rng = np.random.default_rng(seed)
+    masks = all_masks()[rng.integers(0, len(all_masks()), n)]
+    scale = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-4, 1e-10, 1e-4, 1e-10, 50, 50, 50, 50, 0.3])
+    p = rng.standard_normal((n, 13)) * scale * masks
+    p[:, 12] += 1.0
+    if rotation:
+        p = np.hstack([p, rng.uniform(-180, 180, (n, 1))])
+    return p

@@ -16,28 +16,15 @@ from oapcal.model import (
     BROWN_CONRADY,
     BROWN_CONRADY_POSE,
     RELAY,
-    all_masks,
     distort,
     jacobian_params,
     jacobian_point,
 )
 from oapcal.synthetic import EXAMPLE_TRUTH, synthetic_pairs
 from oapcal.uncertainty import position_covariance
+from reference_model import random_eq1_models
 
 FAMILIES = {False: BROWN_CONRADY, True: BROWN_CONRADY_POSE}
-
-
-def _models(n, seed, rotation):
-    """Eq. (1) models of a 640 x 480 px camera with random subsets of the terms, strong
-    enough to fold over inside the frame for some, optionally with a rotation."""
-    rng = np.random.default_rng(seed)
-    masks = all_masks()[rng.integers(0, len(all_masks()), n)]
-    scale = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-4, 1e-10, 1e-4, 1e-10, 50, 50, 50, 50, 0.3])
-    p = rng.standard_normal((n, 13)) * scale * masks
-    p[:, 12] += 1.0
-    if rotation:
-        p = np.hstack([p, rng.uniform(-180, 180, (n, 1))])
-    return p
 
 
 def _points(seed, n=400):
@@ -49,7 +36,7 @@ def _points(seed, n=400):
 def test_values_and_jacobians_match_the_kernels(rotation):
     family = FAMILIES[rotation]
     xy = _points(1 + rotation)
-    for p in _models(60, 3 + rotation, rotation):
+    for p in random_eq1_models(60, 3 + rotation, rotation):
         want = distort(xy, p, family=family)
         got, jac, cols = cf.evaluate(xy, p)
         # rounding only: the kernels may contract and reassociate (fastmath) the same sums

@@ -7,8 +7,9 @@ import pytest
 
 from oapcal.calibration import CHECK_GRID, _eq1_region_check, _kernel_region_check, check_model_region
 from oapcal.errors import InputFileError
-from oapcal.model import PARAM_NAMES, all_masks, params_from_dict
+from oapcal.model import PARAM_NAMES, params_from_dict
 from oapcal.synthetic import EXAMPLE_TRUTH
+from reference_model import random_eq1_models
 
 
 def _grid(x1=639.0, y1=479.0):
@@ -16,24 +17,11 @@ def _grid(x1=639.0, y1=479.0):
     return np.stack([gx.ravel(), gy.ravel()], -1)
 
 
-def _random_models(n, seed, rotation):
-    """Eq. (1) models of every size of term (strong enough to fold over inside the frame
-    for some), each with a random subset of the terms, optionally with a rotation."""
-    rng = np.random.default_rng(seed)
-    masks = all_masks()[rng.integers(0, len(all_masks()), n)]
-    scale = np.array([1e-6, 1e-12, 1e-4, 1e-4, 1e-4, 1e-10, 1e-4, 1e-10, 50, 50, 50, 50, 0.3])
-    p = rng.standard_normal((n, 13)) * scale * masks
-    p[:, 12] += 1.0
-    if rotation:
-        p = np.hstack([p, rng.uniform(-180, 180, (n, 1))])
-    return p
-
-
 @pytest.mark.parametrize("rotation", [False, True], ids=["eq1", "eq1+rotation"])
 def test_closed_form_matches_the_kernels(rotation):
     xy = _grid()
     folds = 0
-    for p in _random_models(300, 5 + rotation, rotation):
+    for p in random_eq1_models(300, 5 + rotation, rotation):
         finite_np, det_np = _eq1_region_check(xy, p)
         finite_k, det_k = _kernel_region_check(xy, p)
         np.testing.assert_array_equal(finite_np, finite_k)
@@ -53,8 +41,8 @@ def test_the_verdicts_and_messages_are_those_of_the_kernels(monkeypatch):
 
     cases = [params_from_dict({"k1": 1e-7}), params_from_dict({"k1": -1e-5}), EXAMPLE_TRUTH,
              np.append(EXAMPLE_TRUTH, 30.0), params_from_dict({"k1": np.inf}),
-             params_from_dict({"s2": 3e-8, "m": 1.0}), *_random_models(40, 9, False),
-             *_random_models(40, 10, True)]  # fmt: skip
+             params_from_dict({"s2": 3e-8, "m": 1.0}), *random_eq1_models(40, 9, False),
+             *random_eq1_models(40, 10, True)]  # fmt: skip
 
     def verdict(p):
         try:
