@@ -19,7 +19,8 @@ from models import GRID_N, _frame, draw_truth, errors, landmark_positions, refer
 
 from oapcal.fitting import fit
 
-MODELS = ("paper", "paper+tilt", "paper+rotation", "paper+rotation+tilt", "full+rotation", "full+rotation+tilt")
+MODELS = ("paper", "paper+tilt", "paper+rotation", "paper+rotation+tilt", "full+rotation",
+          "full+rotation+tilt")  # fmt: skip
 
 
 def fit_eq1(lm_u, lm_d, spec):

@@ -303,7 +303,8 @@ def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray, *
     p = np.where(mask[:N_PARAMS], p, 0.0)
     if n_extra <= 0:
         return p
-    return np.concatenate([p, [extra if rotation else 0.0], np.where(mask[N_PARAMS + 1 :], tilt[: n_extra - 1], 0.0)])
+    tilt = np.where(mask[N_PARAMS + 1 :], tilt[: n_extra - 1], 0.0)
+    return np.concatenate([p, [extra if rotation else 0.0], tilt])
 
 
 def initial_params_many(init, xy_u: np.ndarray, xy_d: np.ndarray, masks: np.ndarray, *,

@@ -98,3 +98,18 @@ def test_a_known_tilt_is_recovered_and_counted_in_aicc():
     assert plain.rss > 5 * tilted.rss and tilted.aicc < plain.aicc - 100
     eq1_free = tuple(n for n in PARAM_NAMES if n in tilted.model.free)
     assert eq1_free == names_from_mask(parse_any_model("paper"))
+
+
+def test_opencv_export_is_exact_through_a_homography_r():
+    # cv2.initUndistortRectifyMap on the exported coefficients gives, at every output pixel,
+    # the tilt formula's distorted point (the map's float32 rounding aside)
+    from oapcal.imaging.opencv import opencv_export, opencv_maps
+
+    export = opencv_export(Model(BROWN_CONRADY_TILT, P, ("k1", "m")), (640, 480))
+    assert export["exact"] and export["model_family"] == "brown-conrady+tilt"
+    map_x, map_y = opencv_maps(export)
+    gx, gy = np.meshgrid(np.arange(640.0), np.arange(480.0))
+    want = tilt_numpy(np.stack([gx, gy], -1), P)
+    np.testing.assert_allclose(map_x, want[..., 0], atol=2e-3)
+    np.testing.assert_allclose(map_y, want[..., 1], atol=2e-3)
+    assert np.abs(np.array(export["R"])[2, :2]).max() > 1e-3  # R is no rotation: the keystone is in it
