@@ -113,3 +113,20 @@ def test_opencv_export_is_exact_through_a_homography_r():
     np.testing.assert_allclose(map_x, want[..., 0], atol=2e-3)
     np.testing.assert_allclose(map_y, want[..., 1], atol=2e-3)
     assert np.abs(np.array(export["R"])[2, :2]).max() > 1e-3  # R is no rotation: the keystone is in it
+
+
+def test_select_families_ranks_the_tilt_variant_with_its_terms_counted():
+    from oapcal.families import select_families
+
+    truth = P.copy()
+    truth[13] = 0.0
+    xy_u = XY[:60]  # few points: 8,192 fits
+    xy_d = tilt_numpy(xy_u, truth) + np.random.default_rng(13).normal(0, 0.05, xy_u.shape)
+    sel = select_families(xy_u, xy_d, None, "bc,bc+tilt", cv=2, cv_top=1)  # no relay: no design
+    best = sel.candidates[0]
+    assert best.family == "brown-conrady+tilt" and best.spec.endswith("+tilt")
+    assert {"tilt_x", "tilt_y"} <= set(best.free) and "rotation" not in best.free
+    assert best.k == len(best.free)  # the two terms count in AICc like every other
+    plain = min(c.aicc for c in sel.candidates if c.family == "brown-conrady" and c.valid)
+    assert best.aicc < plain - 50
+    assert sel.recommended.family == "brown-conrady+tilt"

@@ -85,7 +85,8 @@ def _fmt(value, spec: str) -> str:
     "--families",
     default=None,
     help="Rank model families together: a comma list of bc (Eq. 1), bc+rotation (Eq. 1 with the "
-    "target's rotation) and relay (the physical relay, from the design options), by AICc and "
+    "target's rotation), bc+tilt and bc+rotation+tilt (Eq. 1 with the perspective terms tilt_x, "
+    "tilt_y) and relay (the physical relay, from the design options), by AICc and "
     "--cv-fold held-out error (default 5 folds); recommends by the held-out error.",
 )
 @click.option(
