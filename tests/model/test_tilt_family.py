@@ -130,3 +130,15 @@ def test_select_families_ranks_the_tilt_variant_with_its_terms_counted():
     plain = min(c.aicc for c in sel.candidates if c.family == "brown-conrady" and c.valid)
     assert best.aicc < plain - 50
     assert sel.recommended.family == "brown-conrady+tilt"
+
+
+def test_calibrate_fits_the_rotation_of_paper_plus_tilt_by_the_aicc_rule():
+    import oapcal
+
+    xy_d = tilt_numpy(XY, P) + np.random.default_rng(14).normal(0, 0.05, XY.shape)  # turned 0.4 deg
+    cal = oapcal.calibrate(XY, xy_d, "paper+tilt", image_size=(640, 480))
+    assert cal.model.family is BROWN_CONRADY_TILT and "rotation" in cal.model.free
+    assert any("paper+rotation+tilt" in n for n in cal.notes)
+    assert cal.model.value("rotation") == pytest.approx(0.4, abs=0.01)
+    kept = oapcal.calibrate(XY, xy_d, "paper+tilt", image_size=(640, 480), rotation="none")
+    assert "rotation" not in kept.model.free and kept.model.value("rotation") == 0.0
