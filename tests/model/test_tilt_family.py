@@ -73,6 +73,10 @@ def test_tilt_specs_name_the_family_and_its_terms():
     assert family_of_spec("paper+tilt") is BROWN_CONRADY_TILT
     assert names_from_mask(parse_any_model("k1,c_x+tilt")) == ("k1", "c_x", "m", "tilt_x", "tilt_y")
     assert "rotation" in names_from_mask(parse_any_model("paper+rotation+tilt"))
+    from oapcal.cli.select import _robustness_spec  # robustness --models: '+'-joined names
+
+    assert _robustness_spec("k1+s3+rotation+tilt") == "k1,s3+rotation+tilt"
+    assert _robustness_spec("paper+tilt") == "paper+tilt"
 
 
 def test_a_known_tilt_is_recovered_and_counted_in_aicc():
