@@ -119,6 +119,7 @@ def test_opencv_export_is_exact_through_a_homography_r():
     assert np.abs(np.array(export["R"])[2, :2]).max() > 1e-3  # R is no rotation: the keystone is in it
 
 
+@pytest.mark.slow  # 8,192 fits and their cross-validation: 4-8 s on 2 shared cores
 def test_select_families_ranks_the_tilt_variant_with_its_terms_counted():
     from oapcal.families import select_families
 
@@ -136,6 +137,7 @@ def test_select_families_ranks_the_tilt_variant_with_its_terms_counted():
     assert sel.recommended.family == "brown-conrady+tilt"
 
 
+@pytest.mark.slow  # four fits with their checks and error model: the default suite keeps the fit test above
 def test_calibrate_fits_the_rotation_of_paper_plus_tilt_by_the_aicc_rule():
     import oapcal
 
