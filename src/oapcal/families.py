@@ -98,8 +98,8 @@ REFUSED_PREFIX = "fit would refuse it"
 @dataclass(frozen=True)
 class Candidate:
     """One model of a cross-family selection: its ``family`` (``"brown-conrady"``,
-    ``"brown-conrady+rotation"``, ``"relay"`` or ``"relay+microscope"``), ``spec`` (what
-    ``--model`` takes to fit it again), ``free`` parameters, ``k`` (free count), ``aicc``
+    ``"brown-conrady+rotation"``, ``"brown-conrady+tilt"``, ``"relay"`` or ``"relay+microscope"``),
+    ``spec`` (what ``--model`` takes to fit it again), ``free`` parameters, ``k`` (free count), ``aicc``
     and ``delta_aicc`` over all families, ``mean_error`` (px) of the corrected calibration
     points, ``cv_mean_error`` (px, the K-fold held-out error;
     None when not cross-validated), ``valid`` and ``reason``; for the cross-validated ones
