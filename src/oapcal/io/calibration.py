@@ -141,13 +141,21 @@ CHECKED_KEY = "checked"
 
 @functools.cache
 def _code_digest() -> bytes:
-    """SHA-256 of every source file of this oapcal (and the file schema): a record of checks
-    made by other code is not trusted."""
-    root = Path(__file__).resolve().parents[1]
+    """SHA-256 of every source file of this oapcal (and the file schema), read as package
+    data: a record of checks made by other code is not trusted."""
+    package = resources.files("oapcal")
+    names, folders = [], [()]
+    while folders:  # the package's own files, not a user's
+        parts = folders.pop()
+        for item in package.joinpath(*parts).iterdir():
+            if item.is_dir() and item.name != "__pycache__":
+                folders.append((*parts, item.name))
+            elif item.name.endswith(".py") or item.name == "calibration.schema.json":
+                names.append((*parts, item.name))
     digest = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")) + [root / "io" / "calibration.schema.json"]:
-        digest.update(path.relative_to(root).as_posix().encode())
-        digest.update(path.read_bytes())
+    for parts in sorted(names):
+        digest.update("/".join(parts).encode())
+        digest.update(resources.files("oapcal").joinpath(*parts).read_bytes())
     return digest.digest()
 
 
