@@ -11,6 +11,10 @@ With ``--session relay`` the session is the physical relay's instead: a relay
 calibration (fit, covariance, residual statistics), an inverse and a correction map.
 
     PYTHONPATH=src python benchmarks/bench_compile.py [--repeats 2] [--session eq1|relay]
+
+With ``--variants`` it also lists what the empty-cache run compiled: one line per cached
+kernel with its number of compiled signatures (the cache's ``.nbc`` files), and the total,
+so two checkouts can be compared variant by variant.
 """
 
 from __future__ import annotations
@@ -68,11 +72,25 @@ def run(code: str, cache: str) -> tuple[float, float, float]:
     return cpu, inner, wall
 
 
+def cached_variants(cache: str) -> dict[str, int]:
+    """``{kernel: compiled signatures}`` of a Numba cache directory (its ``.nbc`` files are
+    named ``<module>.<function>-<line>.py<ver>.<n>.nbc``)."""
+    counts: dict[str, int] = {}
+    for _root, _dirs, names in os.walk(cache):
+        for name in names:
+            if name.endswith(".nbc"):
+                kernel = name.split("-", 1)[0]
+                counts[kernel] = counts.get(kernel, 0) + 1
+    return dict(sorted(counts.items()))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--session", choices=("eq1", "relay"), default="eq1",
                     help="the Brown-Conrady session (default) or the relay's")  # fmt: skip
+    ap.add_argument("--variants", action="store_true",
+                    help="list the kernels and signatures the empty-cache run compiled")  # fmt: skip
     args = ap.parse_args()
     session = SESSION if args.session == "eq1" else RELAY_SESSION
     for i in range(args.repeats):
@@ -80,9 +98,14 @@ def main():
             cold = run(session, cache)
             warm = run(session, cache)
             bare = run("import time, numpy; print(time.process_time(), 0)", cache)
+            variants = cached_variants(cache)
         print(f"run {i + 1}: empty cache (compile): {cold[0]:5.1f} s CPU, {cold[1]:5.1f} s wall; "
               f"warm cache (load): {warm[0]:4.2f} s CPU, {warm[1]:4.2f} s wall; "
               f"bare python+numpy process {bare[2]:.2f} s")  # fmt: skip
+        if args.variants:
+            for kernel, n in variants.items():
+                print(f"  {n} x {kernel}")
+            print(f"  {sum(variants.values())} compiled signatures of {len(variants)} kernels")
     print(f"load average: {os.getloadavg()[0]:.1f} (2 = both cores of a 2-core machine busy)")
 
 

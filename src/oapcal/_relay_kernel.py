@@ -301,14 +301,17 @@ def _paraboloid_hit(q, d, vertex, axis, fp):
     return min(t1, t2)
 
 
-@numba.njit(**_JIT)
-def relay_point_value(p, x, y):
-    """The distorted point ``(xd, yd)`` px of the reference point ``(x, y)`` px (module
-    docstring); NaN where the ray misses a surface."""
-    f1 = p[_D + 1]
-    f2 = p[_D + 2]
-    orient = p[_D + 3]
-    stop = p[_D + 4]
+@numba.njit(inline="always", **_JIT)
+def _frames_of(p):
+    """:func:`relay_frames` of the parameter vector ``p`` (its misalignment and design)."""
+    return relay_frames(p[_M:_D], p[_D], p[_D + 1], p[_D + 2], p[_D + 3], p[_D + 4])
+
+
+@numba.njit(inline="always", **_JIT)
+def _trace_point(p, frames, x, y):
+    """The distorted point ``(xd, yd)`` px of the reference point ``(x, y)`` px through the
+    relay whose geometry ``frames`` (:func:`_frames_of` of ``p``) is already built; NaN
+    where the ray misses a surface."""
     pix = p[_D + 5]
     cx = p[_D + 6]
     cy = p[_D + 7]
@@ -328,7 +331,7 @@ def relay_point_value(p, x, y):
     ox = p[_D + 8] * ix + p[_D + 9] * iy
     oy = p[_D + 10] * ix + p[_D + 11] * iy
     (ex, ey, _, v1, a1, fp1, e1, e2, _, v2, a2, fp2, _, sp, sx, sy, sn, ip, jx, jy,
-     jn) = relay_frames(p[_M:_D], p[_D], f1, f2, orient, stop)  # fmt: skip
+     jn) = frames  # fmt: skip
     obj = _add(_mul(ox, ex), _mul(oy, ey))
     q, d = _aim_chief_ray(v1, a1, fp1, e1, e2, obj, sp, sx, sy, sn)
     t = _paraboloid_hit(q, d, v2, a2, fp2)
@@ -351,21 +354,42 @@ def relay_point_value(p, x, y):
 
 
 @numba.njit(**_JIT)
+def relay_point_value(p, x, y):
+    """The distorted point ``(xd, yd)`` px of the reference point ``(x, y)`` px (module
+    docstring); NaN where the ray misses a surface."""
+    return _trace_point(p, _frames_of(p), x, y)
+
+
+@numba.njit(**_JIT)
 def relay_point(p, x, y, need):
     """The point contract of :func:`oapcal._kernels.bc_point` for the relay family: the
     distorted point and, when ``need >= 1``, its point Jacobian by central differences
     (step :data:`POINT_STEP` px).  The parameter columns come from the caller's central
     differences (the family has no analytic ones)."""
-    xd, yd = relay_point_value(p, x, y)
+    # The frames once for the point and the four steps of its Jacobian; the trace at one
+    # call site (inlined once: a loop over the five points, not five inlined copies, which
+    # would compile ~5x the code), each result kept by its index.
+    frames = _frames_of(p)
+    h = POINT_STEP
+    xd = yd = xp = yp = xm = ym = up = vp = um = vm = 0.0
+    for k in range(1 if need == 0 else 5):
+        xs = x + h if k == 1 else (x - h if k == 2 else x)
+        ys = y + h if k == 3 else (y - h if k == 4 else y)
+        u, v = _trace_point(p, frames, xs, ys)
+        if k == 0:
+            xd, yd = u, v
+        elif k == 1:
+            xp, yp = u, v
+        elif k == 2:
+            xm, ym = u, v
+        elif k == 3:
+            up, vp = u, v
+        else:
+            um, vm = u, v
     if need == 0:
         return xd, yd, 0.0, 0.0, 0.0, 0.0
-    h = POINT_STEP
-    xp, yp = relay_point_value(p, x + h, y)
-    xm, ym = relay_point_value(p, x - h, y)
     a = (xp - xm) / (2.0 * h)
     c = (yp - ym) / (2.0 * h)
-    xp, yp = relay_point_value(p, x, y + h)
-    xm, ym = relay_point_value(p, x, y - h)
-    b = (xp - xm) / (2.0 * h)
-    d = (yp - ym) / (2.0 * h)
+    b = (up - um) / (2.0 * h)
+    d = (vp - vm) / (2.0 * h)
     return xd, yd, a, b, c, d

@@ -23,6 +23,7 @@ whole.  One correction map is built per input frame size and reused.
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 import hashlib
 import itertools
@@ -434,30 +435,48 @@ class MapCache:
         return mask_untrusted(cmap, predicted, limit)  # what correction_map(max_error_px=...) does
 
 
+@dataclass(frozen=True)
+class StackSettings:
+    """The options of :func:`correct_stack` as one record (each keyword of
+    :func:`correct_stack` is a field of the same name and default).
+
+    ``extent``, ``um_per_px``, ``out_size`` and ``max_error_px`` shape the map built for each
+    input frame size (:func:`~oapcal.imaging.remap.correction_map`), unless ``cmap`` is a
+    prebuilt map.
+    """
+
+    interp: str = "linear"
+    border: float = 0
+    workers: int = 1
+    extent: str = "input"
+    um_per_px: float | None = None
+    out_size: tuple[int, int] | None = None
+    cmap: CorrectionMap | None = None
+    allow_size_mismatch: bool = False
+    max_pixels: int = MAX_PIXELS
+    overwrite: bool = False
+    calibration_name: str | None = None
+    protect: Sequence[str | Path] = ()
+    reserved: Sequence[tuple[str | Path, str]] = ()
+    #: ``progress(done, total, description)`` over the frames corrected (:mod:`oapcal.progress`).
+    progress: object = None
+    output_format: str | None = None
+    max_error_px: float | None = None
+    #: ``{(rows, cols): (geometry, predicted)}``: predicted-error maps already computed.
+    predicted_errors: object = None
+
+
 def correct_stack(
     calibration,
     inputs: Iterable[str | Path],
     out_dir: str | Path,
-    *,
-    interp: str = "linear",
-    border: float = 0,
-    workers: int = 1,
-    extent: str = "input",
-    um_per_px: float | None = None,
-    out_size: tuple[int, int] | None = None,
-    cmap: CorrectionMap | None = None,
-    allow_size_mismatch: bool = False,
-    max_pixels: int = MAX_PIXELS,
-    overwrite: bool = False,
-    calibration_name: str | None = None,
-    protect: Sequence[str | Path] = (),
-    reserved: Sequence[tuple[str | Path, str]] = (),
-    progress=None,
-    output_format: str | None = None,
-    max_error_px: float | None = None,
-    predicted_errors=None,
+    settings: StackSettings | None = None,
+    **options,
 ) -> StackReport:
     """Correct every image and stack of ``inputs`` into ``out_dir`` (see the module doc).
+
+    The options are a :class:`StackSettings` ``settings``, or its fields as keywords (both:
+    the keywords replace the settings' fields; an unknown keyword is a ``TypeError``).
 
     ``calibration`` is a :class:`~oapcal.io.calibration.Calibration` (or a parameter vector);
     the output geometry options are those of :func:`~oapcal.imaging.remap.output_geometry`,
@@ -476,38 +495,70 @@ def correct_stack(
     computed (:func:`~oapcal.imaging.remap.predicted_error_map`), used for frames of that
     size when their output geometry is the same instead of computing them again.
     """
+    opts = dataclasses.replace(settings or StackSettings(), **options)
+    files, failures, outputs = _prepare_outputs(inputs, out_dir, opts)
+    cache = _map_cache(calibration, opts)
+    digest = _stack_digest(calibration, opts)
+    results, jobs, n_frames = _plan_jobs(files, outputs, digest, opts)
+    name = opts.calibration_name or getattr(calibration, "name", None)
+    _run_jobs(jobs, results, n_frames, cache, name, opts)
+    ordered = tuple(failures) + tuple(results[i] for i in sorted(results))
+    geometries = {shape: m.geometry for shape, m in cache._maps.items()}
+    return StackReport(ordered, geometries)
+
+
+def _prepare_outputs(inputs, out_dir, opts: StackSettings):
+    """The input files, the failed inputs and each file's output path, checked; the output
+    directory made and cleared of a killed run's temporary files."""
     files, failures, dirs = expand_inputs([str(p) for p in inputs])
-    output_name(".", output_format)  # an unknown format is refused before any work
-    naming = None if output_format is None else (lambda p: output_name(p, output_format))
-    outputs = plan_outputs(files, out_dir, dirs, protect, reserved=reserved, output_name=naming)
+    output_name(".", opts.output_format)  # an unknown format is refused before any work
+    fmt = opts.output_format
+    naming = None if fmt is None else (lambda p: output_name(p, fmt))
+    outputs = plan_outputs(files, out_dir, dirs, opts.protect, reserved=opts.reserved, output_name=naming)
     check_directory_writable(out_dir)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     remove_stale_temps(out_dir, outputs)
-    name = calibration_name or getattr(calibration, "name", None)
-    cal_size = getattr(calibration, "image_size", None)
-    cache = MapCache(
+    return files, failures, outputs
+
+
+def _trust_option(opts: StackSettings) -> dict:
+    """``max_error_px`` as a keyword when it is set (absent otherwise, as before)."""
+    return {} if opts.max_error_px is None else {"max_error_px": opts.max_error_px}
+
+
+def _map_cache(calibration, opts: StackSettings) -> MapCache:
+    return MapCache(
         calibration,
-        cmap=cmap,
-        image_size=cal_size,
-        allow_size_mismatch=allow_size_mismatch,
-        extent=extent,
-        um_per_px=um_per_px,
-        out_size=out_size,
-        predicted_errors=predicted_errors,
-        **({} if max_error_px is None else {"max_error_px": max_error_px}),
+        cmap=opts.cmap,
+        image_size=getattr(calibration, "image_size", None),
+        allow_size_mismatch=opts.allow_size_mismatch,
+        extent=opts.extent,
+        um_per_px=opts.um_per_px,
+        out_size=opts.out_size,
+        predicted_errors=opts.predicted_errors,
+        **_trust_option(opts),
     )
-    digest = correction_digest(
-        calibration, cmap, interp=interp, border=float(border), extent=extent, um_per_px=um_per_px,
-        out_size=None if out_size is None else list(out_size),
-        **({} if output_format is None else {"output_format": output_format}),
-        **({} if max_error_px is None else {"max_error_px": max_error_px}),
+
+
+def _stack_digest(calibration, opts: StackSettings) -> str:
+    """The resume digest of the calibration (or map) and every setting that decides an output."""
+    return correction_digest(
+        calibration, opts.cmap, interp=opts.interp, border=float(opts.border), extent=opts.extent,
+        um_per_px=opts.um_per_px, out_size=None if opts.out_size is None else list(opts.out_size),
+        **({} if opts.output_format is None else {"output_format": opts.output_format}),
+        **_trust_option(opts),
     )  # fmt: skip
+
+
+def _plan_jobs(files, outputs, digest: str, opts: StackSettings):
+    """Probe each input: ``(results, jobs, n_frames)``, the failed and skipped (complete)
+    inputs by index, the ``(i, src, dst, info, record)`` to correct and their frame count."""
     jobs = []
     results: dict[int, FileResult] = {}
     n_frames = 0
     for i, (src, dst) in enumerate(zip(files, outputs)):
         try:
-            info = probe(src, max_pixels)
+            info = probe(src, opts.max_pixels)
             record = {"calibration": digest, "input": file_fingerprint(src), "frames": info.n_frames}
         except (OapcalError, OSError) as exc:
             results[i] = FileResult(
@@ -515,28 +566,30 @@ def correct_stack(
                 reason="refused" if isinstance(exc, OapcalError) else "os_error",
             )  # fmt: skip
             continue
-        if dst.exists() and not overwrite and resume_complete(dst, record):
+        if dst.exists() and not opts.overwrite and resume_complete(dst, record):
             results[i] = FileResult(str(src), str(dst), "skipped")
             continue
         n_frames += info.n_frames
         jobs.append((i, src, dst, info, record))
+    return results, jobs, n_frames
+
+
+def _run_jobs(jobs, results: dict, n_frames: int, cache: MapCache, name, opts: StackSettings) -> None:
+    """Correct the ``jobs`` (``opts.workers`` files at once), their results into ``results``."""
 
     def run(job):
         i, src, dst, info, record = job
-        results[i] = _correct_file(src, dst, info, record, cache, interp, border, name, bar)
+        results[i] = _correct_file(src, dst, info, record, cache, opts.interp, opts.border, name, bar)
         bar.stage(f"files {next(finished)}/{len(jobs)}")  # next() of a count: atomic under the GIL
 
     finished = itertools.count(1)
-    with Stages(progress if jobs else None, n_frames, f"files 0/{len(jobs)}") as bar:
-        if workers > 1 and len(jobs) > 1:
-            with ThreadPoolExecutor(max_workers=workers) as pool:
+    with Stages(opts.progress if jobs else None, n_frames, f"files 0/{len(jobs)}") as bar:
+        if opts.workers > 1 and len(jobs) > 1:
+            with ThreadPoolExecutor(max_workers=opts.workers) as pool:
                 list(pool.map(run, jobs))
         else:
             for job in jobs:
                 run(job)
-    ordered = tuple(failures) + tuple(results[i] for i in sorted(results))
-    geometries = {shape: m.geometry for shape, m in cache._maps.items()}
-    return StackReport(ordered, geometries)
 
 
 def _correct_file(src: Path, dst: Path, info, record, cache, interp, border, name, bar) -> FileResult:

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import click
 
+from oapcal.cli._design_flags import DESIGN_OPTIONS
+
 #: Characters that must not reach a terminal raw: C0 and C1 controls (escape sequences can
 #: set the title, move the cursor, rewrite the screen), DEL, and Unicode line separators and
 #: bidirectional overrides (which can make text read differently than it is).
@@ -28,16 +30,6 @@ def sanitize(text) -> str:
     corner\x1b]0;pwned\x07 1\n
     """
     return _UNSAFE.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), str(text))
-
-
-#: The Python names of the options that give a relay's design (``fit``, ``select`` and
-#: ``tolerance`` spell them ``relay_*``, ``simulate relay`` without the prefix): an error
-#: whose ``param`` is ``"design"`` names those the command has.
-DESIGN_OPTIONS = (
-    "relay_setup", "relay_d1", "relay_focal_length", "relay_focal_length_2", "relay_stop", "relay_pixel_size",
-    "relay_centre", "microscope_magnification", "setup", "d1", "d1_mm", "focal_length", "focal_length_2",
-    "stop_distance", "pixel_size",
-)  # fmt: skip
 
 
 def flag_hint(command, param) -> str:

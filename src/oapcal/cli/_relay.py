@@ -12,6 +12,7 @@ import math
 import click
 
 from oapcal.cli._common import Finite
+from oapcal.cli._design_flags import OPTION_STYLES
 from oapcal.optics.design import FIELDS, MICROSCOPE_MAGNIFICATION_RANGE
 
 #: |M| of --microscope-magnification at least, and at most (the design table's range).
@@ -19,68 +20,6 @@ MIN_MICROSCOPE_MAGNIFICATION, MAX_MICROSCOPE_MAGNIFICATION = MICROSCOPE_MAGNIFIC
 #: Defaults of the design options (the paper's OAPs and camera, as ``simulate relay``).
 DEFAULT_FOCAL_LENGTH_MM = FIELDS["focal_length_mm"].default
 DEFAULT_PIXEL_SIZE_UM = FIELDS["pixel_size_um"].default
-
-_W = "With --model relay: "
-#: How each command spells the design's fields (:data:`oapcal.optics.design.DESIGN_FIELDS`):
-#: style -> field -> (flag, Python name, help[, changes]).  Types, ranges and defaults come
-#: from the table; ``changes`` replace some for that style: ``simulate relay`` and
-#: ``tolerance`` leave the low end of d1, the second focal length and the pixel size to the
-#: tracer and the command, whose messages name the geometry ("d1 (the collimated path
-#: length) must be a positive number of mm"), and put the stop at the first mirror by
-#: None; ``simulate image`` traces a relay only when a setup or d1 is given.
-OPTION_STYLES: dict[str, dict[str, tuple]] = {
-    # fit, select, selfcal, robustness: with --model relay
-    "relay": {
-        "setup": ("--relay-setup", "relay_setup", _W + "the paper's setup 1 (d1 = 860 mm) or 2 (660 mm)."),
-        "d1_mm": ("--d1", "relay_d1", _W + "collimated path length, mm (overrides --relay-setup)."),
-        "focal_length_mm": ("--focal-length", "relay_focal_length",
-                            _W + "reflected focal length of the mirrors, mm."),
-        "focal_length_2_mm": ("--focal-length-2", "relay_focal_length_2",
-                              _W + "the second mirror's, mm (default: --focal-length)."),
-        "orientation": ("--orientation", "relay_orientation", _W + "U or Z."),
-        "stop_distance_mm": ("--stop-distance", "relay_stop",
-                             _W + "aperture stop, mm after the first mirror."),
-        "pixel_size_um": ("--pixel-size", "relay_pixel_size", _W + "camera pixel size, um."),
-        "centre": ("--relay-centre", "relay_centre", _W + "the point (px) on the relay's axis (default: the "
-                   "image centre with --image-size, else the middle of the reference points)."),
-        "microscope_magnification": ("--microscope-magnification", "microscope_magnification", _W + "a "
-                                     "finite-conjugate microscope between the relay and the camera, its "
-                                     "magnification; negative when it inverts the image (-5: a 5x objective "
-                                     "forming a real image). The model is then relay+microscope "
-                                     "(docs/models.md)."),
-    },
-    # simulate relay, tolerance: the relay traced
-    "simulate": {
-        "setup": ("--setup", "setup", "The paper's setup: 1 (d1 = 860 mm) or 2 (d1 = 660 mm)."),
-        "d1_mm": ("--d1", "d1", "Collimated path length in mm (overrides --setup).", {"low": None}),
-        "orientation": ("--orientation", "orientation",
-                        "U: parent axes coincide (cancels astigmatism); Z: rotated 180 degrees."),
-        "stop_distance_mm": ("--stop-distance", "stop_distance",
-                             "Aperture stop on the collimated path, mm after the first mirror "
-                             "(default: at it).",
-                             {"default": None}),
-        "focal_length_mm": ("--focal-length", "focal_length", "Reflected focal length of both mirrors, mm."),
-        "focal_length_2_mm": ("--focal-length-2", "focal_length_2",
-                              "Reflected focal length of the second mirror, mm (default: --focal-length).",
-                              {"low": None, "high": None}),
-        "pixel_size_um": ("--pixel-size", "pixel_size", "Camera pixel size, um.", {"low": None}),
-        "microscope_magnification": ("--microscope-magnification", "microscope_magnification", "The grid "
-                                     "CSV's image points (x_u..y_d) behind an ideal microscope of this "
-                                     "magnification (negative: it inverts the image, -5 for a 5x objective), "
-                                     "as "
-                                     "'oapcal fit --model relay --microscope-magnification' takes them; the "
-                                     "tables and figures stay at the relay's image."),
-    },
-    # simulate image: a ray-traced relay only when asked for
-    "image": {
-        "setup": ("--relay-setup", "relay_setup", "Ray-traced relay of the paper's setup 1 or 2.",
-                  {"default": None}),
-        "d1_mm": ("--d1", "d1_mm", "Ray-traced relay with this OAP 2 - OAP 3 distance (mm).",
-                  {"low": 1, "low_open": False}),
-        "pixel_size_um": ("--pixel-size-um", "pixel_size_um", "Camera pixel size (um).",
-                          {"low": 0.01, "low_open": False}),
-    },
-}  # fmt: skip
 
 
 def design_option(style: str, name: str, **changes):
@@ -158,7 +97,7 @@ def field_option(text: str):
 def relay_design_options(func):
     """Add the design options of a relay model to a command (passed as ``relay_design``, a
     dict of their values, to keep the command's signature short)."""
-    keys = tuple(dest for _, dest, _ in OPTION_STYLES["relay"].values())
+    keys = tuple(dest for _, dest, *_ in OPTION_STYLES["relay"].values())
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import click
 
 from oapcal.cli._common import (
@@ -217,81 +219,102 @@ def correct_command(
     """
     from pathlib import Path
 
-    from oapcal.io.images import MAX_PIXELS
-
+    o = SimpleNamespace(**locals())  # the command's values by name, for the steps below
     limit = _check_usage(inputs, out_dir, extent, um_per_px, out_size, max_error_px, save_map, map_file,
                          use_dask, output_format)  # fmt: skip
-    output_format = None if output_format == "same" else output_format
+    o.output_format = None if output_format == "same" else output_format
     size = parse_size(out_size, "--out-size")
-    if use_dask and scheduler is not None:  # an address is checked before anything else
-        from oapcal.batch.distributed import LOCAL_SCHEDULERS, parse_scheduler_address
-
-        if scheduler not in LOCAL_SCHEDULERS:
-            parse_scheduler_address(scheduler)
-    max_pixels = max_pixels or MAX_PIXELS
-    check_output(save_map, calib, map_file, *inputs)
-    plan = None
-    if inputs:
-        from oapcal.batch.stack import plan_batch
-
-        plan = plan_batch(
-            inputs, out_dir, dask_format=dask_format if use_dask else None, output_format=output_format,
-            protect=[calib] + ([map_file] if map_file else []),
-            reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else [],
-        )  # fmt: skip
-    if inputs:
-        from oapcal.io.atomic import check_directory_writable
-
-        check_directory_writable(out_dir)  # before any work, as every command probes its outputs
+    plan = _plan(o)
     cal = load_usable_calibration(calib, allow_unconverged)
     name = cal.name or Path(calib).name
     geometry = {"extent": extent, "um_per_px": um_per_px, "out_size": size}
     # the sequential path builds a trust-region map per input size itself; --dask gets one map
     prebuild = limit if (use_dask or save_map) else None
     files = list(plan.files) if plan else []
-    cmap = _prepare_map(cal, files, map_file, save_map, geometry, max_pixels, prebuild, calib)
+    cmap = _prepare_map(cal, files, map_file, save_map, geometry, o.max_pixels, prebuild, calib)
     if inputs:
-        _check_samples(cal, cmap, files, geometry, max_pixels)
+        _check_samples(cal, cmap, files, geometry, o.max_pixels)
     if use_dask:  # a missing extra is one clear error, before anything else is said
         from oapcal.extras import EXTRAS, require
 
         for module in EXTRAS["dask"]:
             require(module, "dask")
     seeds: dict = {}  # the trust region's predicted error, computed once for the map too
-    trust = _trust(cal, cmap, files, geometry, max_pixels, limit, border, calib, seeds)
+    trust = _trust(cal, cmap, files, geometry, o.max_pixels, limit, border, calib, seeds)
     if not inputs:
         click.echo(f"wrote the correction map {save_map} ({cmap.shape[1]}x{cmap.shape[0]} px output)")
         return 0
-    bar, update = progress_bar("correcting", enabled=not (quiet or as_json))
-    if use_dask:
-        from oapcal.batch.distributed import DaskSettings, correct_stacks_dask
+    o.bar, o.update = progress_bar("correcting", enabled=not (quiet or as_json))
+    o.name, o.geometry, o.limit, o.seeds, o.trust = name, geometry, limit, seeds, trust
+    return (_run_dask if use_dask else _run_sequential)(o, cal, plan, cmap)
 
-        settings = DaskSettings(
-            output_format=dask_format, chunk_frames=chunk_frames, interp=interp, border=border,
-            allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, scheduler=scheduler,
-            workers=workers, calibration_name=name, overwrite=overwrite,
-            progress=update, **({} if cmap is not None else geometry),
-        )  # fmt: skip
-        with bar:
-            report = correct_stacks_dask(cal, plan, out_dir, cmap, settings, map_path=map_file)
-        for note in () if as_json else report.notes:
-            click.echo(f"oapcal: note: {note}", err=True)
-        results = [_result(r, dask=True) for r in report.results]
-        return _finish(results, report.summary(), report.count("failed"), as_json, trust)
-    from oapcal.batch.stack import correct_stack
 
-    with bar:
-        report = correct_stack(
-            cal, inputs, out_dir, interp=interp, border=border, workers=workers, cmap=cmap,
-            allow_size_mismatch=allow_size_mismatch, max_pixels=max_pixels, overwrite=overwrite,
-            calibration_name=name, protect=[calib] + ([map_file] if map_file else []),
-            reserved=[(save_map, f"the map --save-map {save_map}")] if save_map else (),
-            progress=update, **({} if cmap else geometry),
-            max_error_px=None if cmap is not None or map_file else limit, output_format=output_format,
-            predicted_errors=seeds,
-        )  # fmt: skip
+def _plan(o):
+    """Check what ``correct`` (options ``o``) will write before any work: the scheduler's
+    address, the outputs (:func:`oapcal.batch.stack.plan_batch`) and the output directory;
+    the plan, or None with no inputs.  Sets ``o.max_pixels`` (its default filled in)."""
+    from oapcal.io.images import MAX_PIXELS
+
+    if o.use_dask and o.scheduler is not None:  # an address is checked before anything else
+        from oapcal.batch.distributed import LOCAL_SCHEDULERS, parse_scheduler_address
+
+        if o.scheduler not in LOCAL_SCHEDULERS:
+            parse_scheduler_address(o.scheduler)
+    o.max_pixels = o.max_pixels or MAX_PIXELS
+    check_output(o.save_map, o.calib, o.map_file, *o.inputs)
+    if not o.inputs:
+        return None
+    from oapcal.batch.stack import plan_batch
+    from oapcal.io.atomic import check_directory_writable
+
+    plan = plan_batch(
+        o.inputs, o.out_dir, dask_format=o.dask_format if o.use_dask else None,
+        output_format=o.output_format, protect=_protected(o),
+        reserved=[(o.save_map, f"the map --save-map {o.save_map}")] if o.save_map else [],
+    )  # fmt: skip
+    check_directory_writable(o.out_dir)  # before any work, as every command probes its outputs
+    return plan
+
+
+def _protected(o) -> list:
+    """The files no output may overwrite: the calibration and the ``--map`` file."""
+    return [o.calib] + ([o.map_file] if o.map_file else [])
+
+
+def _run_dask(o, cal, plan, cmap) -> int:
+    """``correct --dask``: the planned stacks through Dask; the exit code."""
+    from oapcal.batch.distributed import DaskSettings, correct_stacks_dask
+
+    settings = DaskSettings(
+        output_format=o.dask_format, chunk_frames=o.chunk_frames, interp=o.interp, border=o.border,
+        allow_size_mismatch=o.allow_size_mismatch, max_pixels=o.max_pixels, scheduler=o.scheduler,
+        workers=o.workers, calibration_name=o.name, overwrite=o.overwrite,
+        progress=o.update, **({} if cmap is not None else o.geometry),
+    )  # fmt: skip
+    with o.bar:
+        report = correct_stacks_dask(cal, plan, o.out_dir, cmap, settings, map_path=o.map_file)
+    for note in () if o.as_json else report.notes:
+        click.echo(f"oapcal: note: {note}", err=True)
+    results = [_result(r, dask=True) for r in report.results]
+    return _finish(results, report.summary(), report.count("failed"), o.as_json, o.trust)
+
+
+def _run_sequential(o, cal, plan, cmap) -> int:
+    """``correct`` without ``--dask``: every input, frame by frame; the exit code."""
+    from oapcal.batch.stack import StackSettings, correct_stack
+
+    settings = StackSettings(
+        interp=o.interp, border=o.border, workers=o.workers, cmap=cmap,
+        allow_size_mismatch=o.allow_size_mismatch, max_pixels=o.max_pixels, overwrite=o.overwrite,
+        calibration_name=o.name, protect=_protected(o),
+        reserved=[(o.save_map, f"the map --save-map {o.save_map}")] if o.save_map else (),
+        progress=o.update, max_error_px=None if cmap is not None or o.map_file else o.limit,
+        output_format=o.output_format, predicted_errors=o.seeds,
+    )  # fmt: skip
+    with o.bar:
+        report = correct_stack(cal, o.inputs, o.out_dir, settings, **({} if cmap else o.geometry))
     results = [_result(r) for r in report.results]
-    return _finish(results, report.summary(), report.count("failed"), as_json, trust)
+    return _finish(results, report.summary(), report.count("failed"), o.as_json, o.trust)
 
 
 # the options whose combinations it checks, as the command received them

@@ -19,7 +19,9 @@ Layout (``docs/file-formats.md`` has an annotated example)::
      "hull": convex hull of the reference points [[x, y], ...], or null,
      "priors": the priors of a maximum a posteriori relay fit (only then),
      "error_model": {"floor_px", "noise_px", "extrapolation", "ramp_px", ...} (optional:
-                    oapcal.uncertainty.ErrorModel; files without it load, with None)}
+                    oapcal.uncertainty.ErrorModel; files without it load, with None),
+     "checked": {"sha256": ...} (relay families only, optional: the content passed every
+                check below under this oapcal's code; see _checks_passed)}
 
 Version 1 (no ``model_family``: Eq. 1) is still read.  Non-finite numbers are written as
 null.  On reading, every number must be finite (NaN, Infinity and numbers too large for
@@ -29,10 +31,19 @@ with ``m`` in :data:`M_RANGE`, ``um_per_px`` in
 ``bounds`` must be ordered and ``hull`` a polygon; and the model must be usable where it
 is applied: finite and not folding over (Jacobian determinant > 0) on the reference points'
 bounds and on the ``image_size`` frame (:func:`check_model_region`).
+
+Loading a relay calibration is light when its ``checked`` record matches: the design's
+constants and the region are checked by tracing rays through the relay (Numba's kernels,
+~0.5 s in a fresh process), and a file that passed them, written by this same code and
+unchanged since, passes them again.  The record is a digest, not a signature: it tells an
+edited or foreign file from the one written, nothing more; such a file is checked in full
+and refused with the same message as before.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import math
 from importlib import resources
@@ -80,8 +91,12 @@ def _schema() -> dict:
 
 
 def calibration_to_dict(calibration: Calibration) -> dict:
-    """The JSON object of a calibration file."""
-    return json_safe(
+    """The JSON object of a calibration file.
+
+    A relay calibration's object carries ``checked``, the record that this very content
+    passed every check of :func:`calibration_from_dict` (:func:`_checks_passed`), when it
+    does; loading it then skips the checks that trace rays."""
+    data = json_safe(
         {
             "format": FORMAT,
             "version": VERSION,
@@ -109,6 +124,60 @@ def calibration_to_dict(calibration: Calibration) -> dict:
             **({"error_model": calibration.error_model.to_dict()} if calibration.error_model else {}),
         }
     )
+    if calibration.family in RELAY_FAMILIES:
+        try:
+            calibration_from_dict(data)
+        except Exception:  # noqa: BLE001 - whatever fails, the file is written without the record
+            pass  # (as before: loading it then reports the problem)
+        else:
+            data[CHECKED_KEY] = {"sha256": _content_digest(data)}
+    return data
+
+
+#: The key of a relay calibration file's record of its checks: ``{"sha256": digest}``, the
+#: digest (:func:`_content_digest`) of the file's other content and of this oapcal's code.
+CHECKED_KEY = "checked"
+
+
+@functools.cache
+def _code_digest() -> bytes:
+    """SHA-256 of every source file of this oapcal (and the file schema), read as package
+    data: a record of checks made by other code is not trusted."""
+    package = resources.files("oapcal")
+    names, folders = [], [()]
+    while folders:  # the package's own files, not a user's
+        parts = folders.pop()
+        for item in package.joinpath(*parts).iterdir():
+            if item.is_dir() and item.name != "__pycache__":
+                folders.append((*parts, item.name))
+            elif item.name.endswith(".py") or item.name == "calibration.schema.json":
+                names.append((*parts, item.name))
+    digest = hashlib.sha256()
+    for parts in sorted(names):
+        digest.update("/".join(parts).encode())
+        digest.update(resources.files("oapcal").joinpath(*parts).read_bytes())
+    return digest.digest()
+
+
+def _content_digest(data: dict) -> str:
+    """The digest of a calibration object's content (all but :data:`CHECKED_KEY`, as
+    canonical JSON) under this oapcal's code."""
+    content = {k: v for k, v in data.items() if k != CHECKED_KEY}
+    text = json.dumps(content, sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(_code_digest() + text.encode()).hexdigest()
+
+
+def _checks_passed(data: dict) -> bool:
+    """Whether ``data`` (a relay calibration) records that its content, exactly as it is,
+    passed every check of :func:`calibration_from_dict` under this oapcal's code: then the
+    design's constants (:func:`~oapcal.optics.relay_model.design_from_record`) and the
+    region (:func:`check_model_region`) need not be traced again, as their outcome is
+    decided by that content.  A file edited anywhere, or written by other code, is checked
+    in full."""
+    record = data.get(CHECKED_KEY)
+    if not isinstance(record, dict) or not isinstance(record.get("sha256"), str):
+        return False
+    return record["sha256"] == _content_digest(data)
 
 
 def _fit_summary(fit: dict) -> FitSummary:
@@ -165,7 +234,8 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         )
     cov = np.array([[np.nan if v is None else float(v) for v in row] for row in rows], float)
     cov = cov.reshape(k, k)
-    if family in RELAY_FAMILIES:
+    traced = family in RELAY_FAMILIES and not _checks_passed(data)
+    if traced:
         from oapcal.optics.relay_model import design_from_record
 
         design_from_record(data.get("relay_design"), params, source)
@@ -191,7 +261,8 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         error_model=ErrorModel.from_dict(data.get("error_model")),
         family=family,
     )
-    check_model_region(cal, source=source)
+    if traced or family not in RELAY_FAMILIES:
+        check_model_region(cal, source=source)
     return cal
 
 
@@ -320,6 +391,11 @@ def load_calibration(path: str | Path, image_size: tuple[int, int] | None = None
         path, "calibration file", missing="no such calibration file; run 'oapcal fit' to make one"
     )
     cal = calibration_from_dict(data, source=name)
-    if image_size is not None:
-        check_model_region(cal, image_size, source=name)
+    if image_size is not None and _frame(image_size) != _frame(cal.image_size):
+        check_model_region(cal, image_size, source=name)  # (its own frame was checked)
     return cal
+
+
+def _frame(size):
+    """``(width, height)`` as :func:`check_model_region` reads a frame (None: none)."""
+    return None if size is None else (int(size[0]), int(size[1]))
