@@ -4,6 +4,7 @@ robustness); --priors off is the least-squares fit exactly."""
 import json
 
 import numpy as np
+import pytest
 
 from oapcal.model import distort
 from oapcal.optics.relay_model import RelayDesign, calibrate_relay, relay_params
@@ -56,6 +57,27 @@ def test_eq1_fit_and_select_take_no_priors_by_default(tmp_path, run_cli):
     assert code == 0, err
 
 
+def test_select_families_passes_the_default_priors_unless_off(tmp_path, run_cli, monkeypatch):
+    """Fast: what select --families hands to select_families (the slow test below runs it)."""
+    import oapcal.families
+    from oapcal.errors import DataError
+
+    seen = []
+
+    def capture(*args, priors=None, **kwargs):
+        seen.append(priors)
+        raise DataError("stop here")
+
+    monkeypatch.setattr(oapcal.families, "select_families", capture)
+    points, _, _ = _central_points(tmp_path)
+    for priors in ("auto", "off", "tilt=0.1"):
+        code, _, err = run_cli("select", points, "--families", "relay", "--priors", priors)
+        assert code != 0 and "stop here" in err
+    assert seen[0].spec == "default" and dict(seen[0].widths)["tilt"] == 0.05
+    assert seen[1] is None and dict(seen[2].widths)["tilt"] == 0.1
+
+
+@pytest.mark.slow
 def test_select_families_uses_the_default_priors(tmp_path, run_cli):
     points, _, _ = _central_points(tmp_path)
     args = ("select", points, "--families", "relay", "--relay-centre", "319.5,239.5", "--top", "2", "--json")
