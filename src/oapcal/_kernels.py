@@ -59,6 +59,8 @@ VALUE, POINT_JAC, PARAM_JAC = 0, 1, 2
 FAMILY_BC = 0
 FAMILY_BC_POSE = 1
 FAMILY_RELAY = 2
+#: Eq. (1) of the reference points in perspective (the keystone terms, with the rotation).
+FAMILY_BC_TILT = 3
 
 
 # ---------------------------------------------------------------------- model families
@@ -164,6 +166,69 @@ def bc_pose_inverse_start(p, xd, yd):
     return np.cos(th) * xr + np.sin(th) * yr, np.cos(th) * yr - np.sin(th) * xr
 
 
+@numba.njit(inline="always", fastmath=_FASTMATH, **_JIT)
+def bc_tilt_point(p, x, y, need, jp, j, want):
+    """Eq. (1) of the reference point in perspective: the point turned by ``p[13]`` degrees
+    (as :func:`bc_pose_point`), its offset coordinates ``s = x_r + x_off``, ``t = y_r +
+    y_off`` divided by ``w = 1 + tilt_x s + tilt_y t`` (``p[14], p[15]``), then Eq. (1)
+    (:func:`bc_point`) of that point.  The contract of :func:`bc_point`; the offsets' and
+    the new columns by the chain rule through the projection ``(u, v) = (s, t) / w``."""
+    deg = np.pi / 180.0
+    cs = np.cos(p[13] * deg)
+    sn = np.sin(p[13] * deg)
+    xr = cs * x - sn * y
+    yr = sn * x + cs * y
+    tx = p[14]
+    ty = p[15]
+    s = xr + p[8]
+    t = yr + p[9]
+    iw = 1.0 / (1.0 + tx * s + ty * t)
+    u = s * iw
+    v = t * iw
+    xd, yd, a, b, c, d = bc_point(p, u - p[8], v - p[9], need, jp, j, want)
+    if need == VALUE:
+        return xd, yd, 0.0, 0.0, 0.0, 0.0
+    # e = (Eq. 1's point Jacobian) . d(u, v) / d(s, t)
+    p11 = iw * (1.0 - u * tx)
+    p12 = -u * ty * iw
+    p21 = -v * tx * iw
+    p22 = iw * (1.0 - v * ty)
+    e11 = a * p11 + b * p21
+    e12 = a * p12 + b * p22
+    e21 = c * p11 + d * p21
+    e22 = c * p12 + d * p22
+    if need == PARAM_JAC:
+        # the offsets move the point before the projection: d(s, t) / d(x_off, y_off) = I
+        jp[0, 8, j] = e11
+        jp[1, 8, j] = e21
+        jp[0, 9, j] = e12
+        jp[1, 9, j] = e22
+        # d(xr, yr) / d(theta) = (-yr, xr), per radian
+        jp[0, 13, j] = (e12 * xr - e11 * yr) * deg
+        jp[1, 13, j] = (e22 * xr - e21 * yr) * deg
+        # d(u, v) / d(tilt_x) = -(u, v) u, d(u, v) / d(tilt_y) = -(u, v) v
+        jp[0, 14, j] = -(a * u + b * v) * u
+        jp[1, 14, j] = -(c * u + d * v) * u
+        jp[0, 15, j] = -(a * u + b * v) * v
+        jp[1, 15, j] = -(c * u + d * v) * v
+    # times the rotation's point Jacobian
+    return xd, yd, e11 * cs + e12 * sn, e12 * cs - e11 * sn, e21 * cs + e22 * sn, e22 * cs - e21 * sn
+
+
+@numba.njit(inline="always", **_JIT)
+def bc_tilt_inverse_start(p, xd, yd):
+    """The Newton start of Eq. (1) in perspective: the inverse of the linear part, of the
+    projection (``(s, t) = (u, v) / (1 - tilt_x u - tilt_y v)``) and of the rotation."""
+    xp, yp = bc_inverse_start(p, xd, yd)
+    u = xp + p[8]
+    v = yp + p[9]
+    w = 1.0 / (1.0 - p[14] * u - p[15] * v)
+    xr = u * w - p[8]
+    yr = v * w - p[9]
+    th = p[13] * (np.pi / 180.0)
+    return np.cos(th) * xr + np.sin(th) * yr, np.cos(th) * yr - np.sin(th) * xr
+
+
 @numba.njit(inline="always", **_JIT)
 def relay_point_any(p, x, y, need, jp, j, want):
     """:func:`relay_point` with the point contract's arguments.  No analytic parameter
@@ -206,14 +271,17 @@ def no_rounding_scale(p, jmax):
 
 
 #: Each family's point function and Newton start, by code: a new family adds one entry.
-_POINT = {FAMILY_BC: bc_point, FAMILY_BC_POSE: bc_pose_point, FAMILY_RELAY: relay_point_any}
-_START = {FAMILY_BC: bc_inverse_start, FAMILY_BC_POSE: bc_pose_inverse_start, FAMILY_RELAY: identity_start}
+_POINT = {FAMILY_BC: bc_point, FAMILY_BC_POSE: bc_pose_point, FAMILY_RELAY: relay_point_any,
+          FAMILY_BC_TILT: bc_tilt_point}  # fmt: skip
+_START = {FAMILY_BC: bc_inverse_start, FAMILY_BC_POSE: bc_pose_inverse_start, FAMILY_RELAY: identity_start,
+          FAMILY_BC_TILT: bc_tilt_inverse_start}  # fmt: skip
 #: The magnitudes (distorted units) each family's evaluation rounds at, beyond the point's
 #: own (:func:`rounding_level`); a family without an entry has none
 #: (:func:`no_rounding_scale`).
 _ROUNDING = {
     FAMILY_BC: bc_rounding_scale,
     FAMILY_BC_POSE: bc_rounding_scale,
+    FAMILY_BC_TILT: bc_rounding_scale,
     FAMILY_RELAY: relay_rounding_scale,
 }
 #: Compiled functions from other modules that a family's kernels contain (their source

@@ -22,7 +22,17 @@ import numpy as np
 from oapcal import __version__, eq1_closed_form, validate
 from oapcal.errors import DataError, InputFileError, ModelSpecError
 from oapcal.fitting import DEFAULT_INIT
-from oapcal.model import BROWN_CONRADY, N_PARAMS, ROTATION_SUFFIX, Model, ModelFamily, family_named, family_of
+from oapcal.model import (
+    BROWN_CONRADY,
+    BROWN_CONRADY_TILT,
+    N_PARAMS,
+    ROTATION_SUFFIX,
+    TILT_SUFFIX,
+    Model,
+    ModelFamily,
+    family_named,
+    family_of,
+)
 from oapcal.normalize import normalize
 from oapcal.stats import ResidualStats, correction_residuals
 
@@ -363,7 +373,8 @@ def calibrate(
     with ``normalization="experiment"`` it is converted through the normalization scale.
     The residual statistics are those of :func:`oapcal.stats.correction_residuals`.
 
-    ``rotation`` applies to an Eq. (1) model given without ``+rotation``: ``"auto"`` (the
+    ``rotation`` applies to an Eq. (1) model given without ``+rotation`` (with or without the
+    perspective terms: ``"paper+tilt"`` may become ``"paper+rotation+tilt"``): ``"auto"`` (the
     default) fits it both without and with the target's in-plane rotation and keeps the
     rotation when Eq. (1) alone does not converge or needs ``m < 0`` (a target turned by
     180 deg) and the rotation converges, or when the
@@ -448,7 +459,8 @@ def _fit_model(norm, model, init, rotation: str, fit_options):
     from oapcal.fitting import fit
 
     result = fit(norm.xy_u, norm.xy_d, model, init=init, **fit_options)
-    if rotation != "none" and result.family is BROWN_CONRADY:
+    unturned_tilt = result.family is BROWN_CONRADY_TILT and not result.mask[N_PARAMS]  # "paper+tilt"
+    if rotation != "none" and (result.family is BROWN_CONRADY or unturned_tilt):
         return _with_rotation(result, norm, model, init, rotation, fit_options)
     return result, ()
 
@@ -487,10 +499,13 @@ def _with_rotation(plain, norm, model, init, rotation: str, fit_options):
     from oapcal.fitting import fit
     from oapcal.model import names_from_mask, parse_any_model
 
-    mask = np.append(parse_any_model(model), True)
+    mask = parse_any_model(model)
+    tilt = plain.family is BROWN_CONRADY_TILT  # the rotation is its entry N_PARAMS
+    mask = np.concatenate([mask[:N_PARAMS], [True], mask[N_PARAMS + 1 :]])
     turned = fit(norm.xy_u, norm.xy_d, mask, init=init, **fit_options)
-    base = model.strip() if isinstance(model, str) else ",".join(names_from_mask(mask)[:-1])
-    spec = base + ROTATION_SUFFIX
+    base = model.strip() if isinstance(model, str) else ",".join(names_from_mask(mask[:N_PARAMS]))
+    base = base.removesuffix(TILT_SUFFIX) if tilt else base
+    spec = base + ROTATION_SUFFIX + (TILT_SUFFIX if tilt else "")
     angle = f"{turned.params[N_PARAMS]:+.3g} deg"
     if rotation == "fit":
         return turned, (f"fitted {spec} (the target's rotation, {angle})",)

@@ -1,5 +1,6 @@
 """Choosing across model families: Brown-Conrady subsets (Eq. 1), the same with the
-target's rotation (``bc+rotation``) and physical-relay subsets ranked together, by AICc
+target's rotation (``bc+rotation``) or the perspective terms (``bc+tilt``,
+``bc+rotation+tilt``) and physical-relay subsets ranked together, by AICc
 and by K-fold cross-validated held-out error (``oapcal select --families bc,relay``; ``docs/models.md``).
 
 Both families are scored the same way as :func:`oapcal.select.select_models` scores Eq. (1):
@@ -40,9 +41,12 @@ from oapcal.fitting import DEFAULT_INIT, initial_params_many
 from oapcal.model import (
     BROWN_CONRADY,
     BROWN_CONRADY_POSE,
+    BROWN_CONRADY_TILT,
+    N_PARAMS,
     RELAY,
     RELAY_POSE_NAMES,
     ROTATION_SUFFIX,
+    TILT_SUFFIX,
     Model,
     all_masks,
     as_model,
@@ -74,7 +78,16 @@ RELAY_BLOCKS: dict[str, tuple[str, ...]] = {
 MICROSCOPE_BLOCKS: dict[str, tuple[str, ...]] = {"microscope": ("microscope_k1",)}
 #: The ``--families`` keys; ``relay`` is the relay family of the design (``relay`` or,
 #: with a microscope, ``relay+microscope``).
-FAMILY_NAMES = {"bc": "brown-conrady", "bc+rotation": "brown-conrady+rotation", "relay": "relay"}
+FAMILY_NAMES = {"bc": "brown-conrady", "bc+rotation": "brown-conrady+rotation", "relay": "relay",
+                "bc+tilt": "brown-conrady+tilt", "bc+rotation+tilt": "brown-conrady+tilt"}  # fmt: skip
+#: The Eq. (1) variants among them: key -> (family, the entries after Eq. (1)'s 13 that every
+#: subset fits, the spec's suffix).  ``bc+tilt`` fits the perspective terms with the rotation
+#: fixed at 0, ``bc+rotation+tilt`` both.
+EQ1_VARIANTS = {
+    "bc+rotation": (BROWN_CONRADY_POSE, (True,), ROTATION_SUFFIX),
+    "bc+tilt": (BROWN_CONRADY_TILT, (False, True, True), TILT_SUFFIX),
+    "bc+rotation+tilt": (BROWN_CONRADY_TILT, (True, True, True), ROTATION_SUFFIX + TILT_SUFFIX),
+}
 Progress = Callable[[int, int], None]
 #: The relay subset of every misalignment value (with priors: always cross-validated).
 FULL_RELAY_SPEC = "relay:all"
@@ -85,8 +98,8 @@ REFUSED_PREFIX = "fit would refuse it"
 @dataclass(frozen=True)
 class Candidate:
     """One model of a cross-family selection: its ``family`` (``"brown-conrady"``,
-    ``"brown-conrady+rotation"``, ``"relay"`` or ``"relay+microscope"``), ``spec`` (what
-    ``--model`` takes to fit it again), ``free`` parameters, ``k`` (free count), ``aicc``
+    ``"brown-conrady+rotation"``, ``"brown-conrady+tilt"``, ``"relay"`` or ``"relay+microscope"``),
+    ``spec`` (what ``--model`` takes to fit it again), ``free`` parameters, ``k`` (free count), ``aicc``
     and ``delta_aicc`` over all families, ``mean_error`` (px) of the corrected calibration
     points, ``cv_mean_error`` (px, the K-fold held-out error;
     None when not cross-validated), ``valid`` and ``reason``; for the cross-validated ones
@@ -398,14 +411,17 @@ def _bc_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None
 
 
 # select_families' settings handed on unchanged (as to _score)
-def _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None, region_points=None):
-    """Every Eq. (1) subset with the target's rotation free as well."""
+def _variant_candidates(key, xy_u, xy_d, init, cv, cv_top, seed, progress, image_size=None,
+                        region_points=None):  # fmt: skip
+    """Every Eq. (1) subset with the terms of the variant ``key`` of :data:`EQ1_VARIANTS`
+    free as well (the target's rotation, the perspective terms)."""
+    family, extra, suffix = EQ1_VARIANTS[key]
     masks = all_masks()
-    masks = np.pad(masks, ((0, 0), (0, 1)), constant_values=True)
-    p0 = initial_params_many(init, xy_u, xy_d, masks, family=BROWN_CONRADY_POSE)
-    subsets = [(",".join(_free_names(BROWN_CONRADY_POSE, m)[:-1]) + ROTATION_SUFFIX, m) for m in masks]
-    return _score(BROWN_CONRADY_POSE.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress,
-                  image_size, region_points=region_points)  # fmt: skip
+    masks = np.concatenate([masks, np.broadcast_to(np.array(extra), (len(masks), len(extra)))], axis=1)
+    p0 = initial_params_many(init, xy_u, xy_d, masks, family=family)
+    subsets = [(",".join(_free_names(BROWN_CONRADY, m[:N_PARAMS])) + suffix, m) for m in masks]
+    return _score(family.name, xy_u, xy_d, subsets, p0, [], cv, cv_top, seed, progress, image_size,
+                  region_points=region_points)  # fmt: skip
 
 
 #: Points per side of the grid over the region on which the propagated uncertainty is
@@ -552,9 +568,9 @@ def select_families(
         candidates.extend(_relay_candidates(xy_u, xy_d, design, cv, cv_top, seed, progress, image_size,
                                             priors,
                                             points))  # fmt: skip
-    if "bc+rotation" in families:
+    for key in (k for k in EQ1_VARIANTS if k in families):
         candidates.extend(
-            _rotation_candidates(xy_u, xy_d, init, cv, cv_top, seed, progress, image_size, points)
+            _variant_candidates(key, xy_u, xy_d, init, cv, cv_top, seed, progress, image_size, points)
         )
     valid_aicc = [c.aicc for c in candidates if c.valid and np.isfinite(c.aicc)]
     best = min(valid_aicc) if valid_aicc else np.nan

@@ -36,8 +36,8 @@ import numpy as np
 
 from oapcal.errors import DataError, ModelSpecError
 from oapcal.model import (
-    BROWN_CONRADY_POSE,
     N_PARAMS,
+    TILT_NAMES,
     Model,
     ModelFamily,
     family_named,
@@ -255,8 +255,9 @@ def centre_start(xy_u: np.ndarray, xy_d: np.ndarray, rotation: bool = False) -> 
 
 def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray, *,
                    family: ModelFamily | None = None) -> np.ndarray:  # fmt: skip
-    """Starting values ``(13,)`` for a fit (``(14,)`` for the rotation family: ``family``,
-    or without it a mask of 14 entries); fixed parameters are always 0 (``m`` is free).
+    """Starting values ``(13,)`` for a fit (``(14,)`` for the rotation family, ``(16,)`` for
+    the tilt family: ``family``, or without it a mask of that length); fixed parameters are
+    always 0 (``m`` is free), the tilt terms start at 0 (or their ``tilt_x=`` values).
 
     ``init`` is ``"auto"`` (:data:`DEFAULT_INIT`) or ``"centre"``: :func:`centre_start`,
     the data's own centre, scale and turn; ``"zero"`` (the paper's start for normalized
@@ -269,8 +270,11 @@ def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray, *
     its ``rotation=`` value).
     """
     mask = np.asarray(mask, bool)
-    rotation = family is BROWN_CONRADY_POSE if family is not None else mask.shape == (N_PARAMS + 1,)
+    # the entries after Eq. (1)'s 13: none, the rotation, or the rotation and the tilt terms
+    n_extra = (family.n_params if family is not None else mask.shape[0]) - N_PARAMS
+    rotation = n_extra > 0 and bool(mask[N_PARAMS])
     extra = 0.0
+    tilt = [0.0] * len(TILT_NAMES)
     if isinstance(init, str) and init in ("auto", "centre"):
         p = centre_start(xy_u, xy_d, rotation=rotation)
         if rotation:
@@ -290,13 +294,17 @@ def initial_params(init, xy_u: np.ndarray, xy_d: np.ndarray, mask: np.ndarray, *
         if isinstance(values, Mapping):
             values = dict(values)
             extra = float(values.pop("rotation", 0.0))
+            tilt = [float(values.pop(n, 0.0)) for n in TILT_NAMES]
             p = params_from_dict(values)
         else:
             p = np.array(values, dtype=float)
             if p.shape != (N_PARAMS,):
                 raise ModelSpecError(f"initial values must have {N_PARAMS} entries, got shape {p.shape}")
     p = np.where(mask[:N_PARAMS], p, 0.0)
-    return np.append(p, extra) if rotation else p
+    if n_extra <= 0:
+        return p
+    tilt = np.where(mask[N_PARAMS + 1 :], tilt[: n_extra - 1], 0.0)
+    return np.concatenate([p, [extra if rotation else 0.0], tilt])
 
 
 def initial_params_many(init, xy_u: np.ndarray, xy_d: np.ndarray, masks: np.ndarray, *,
@@ -306,7 +314,12 @@ def initial_params_many(init, xy_u: np.ndarray, xy_d: np.ndarray, masks: np.ndar
     once for the full model, fixed entries 0)."""
     masks = np.atleast_2d(np.asarray(masks, bool))
     full = initial_params(init, xy_u, xy_d, np.ones(masks.shape[1], bool), family=family)
-    return np.where(masks, full, 0.0)  # the rotation, when there, is always free
+    if masks.shape[1] > N_PARAMS + 1 and not masks[:, N_PARAMS].all():  # the tilt family, rotation fixed
+        unturned = np.ones(masks.shape[1], bool)
+        unturned[N_PARAMS] = False
+        plain = initial_params(init, xy_u, xy_d, unturned, family=family)
+        full = np.where(masks[:, N_PARAMS : N_PARAMS + 1], full, plain)
+    return np.where(masks, full, 0.0)
 
 
 def _parse_assignments(text: str) -> dict[str, float]:

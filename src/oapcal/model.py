@@ -128,20 +128,35 @@ def parse_model(spec: str | Mapping | np.ndarray | tuple | list) -> np.ndarray:
 ROTATION_SUFFIX = "+rotation"
 
 
+#: A specification ending in this adds the perspective (keystone) terms ``tilt_x, tilt_y``
+#: to Eq. (1) (:data:`BROWN_CONRADY_TILT`): ``"paper+tilt"``, or with the target's rotation
+#: as well ``"paper+rotation+tilt"``.
+TILT_SUFFIX = "+tilt"
+
+
 def parse_any_model(spec) -> np.ndarray:
     """The free-parameter mask of a model of any family: :func:`parse_model`'s specs
     (Eq. 1), the same with :data:`ROTATION_SUFFIX` (``"paper+rotation"``: ``(14,)``, Eq. 1
-    with the target's rotation), or a boolean mask of any family's length (returned as
-    is).  Relay subsets are parsed by :func:`oapcal.optics.relay_model.relay_mask`.
+    with the target's rotation), with :data:`TILT_SUFFIX` (``"paper+tilt"``,
+    ``"paper+rotation+tilt"``: ``(16,)``, Eq. 1 with the perspective terms), or a boolean
+    mask of any family's length (returned as is).  Relay subsets are parsed by
+    :func:`oapcal.optics.relay_model.relay_mask`.
 
     >>> names_from_mask(parse_any_model("k1+rotation"))
     ('k1', 'm', 'rotation')
+    >>> names_from_mask(parse_any_model("k1+tilt"))
+    ('k1', 'm', 'tilt_x', 'tilt_y')
     """
     if isinstance(spec, np.ndarray) and spec.dtype == bool and spec.shape != (N_PARAMS,):
         if spec.ndim != 1 or spec.shape[0] not in _BY_SIZE:
             sizes = ", ".join(str(n) for n in sorted(_BY_SIZE))
             raise ModelSpecError(f"a model mask must have {sizes} entries, got shape {spec.shape}")
         return spec.copy()
+    if isinstance(spec, str) and spec.strip().endswith(TILT_SUFFIX):
+        base = spec.strip()[: -len(TILT_SUFFIX)]
+        rotation = base.endswith(ROTATION_SUFFIX)
+        base = base[: -len(ROTATION_SUFFIX)] if rotation else base
+        return np.concatenate([parse_model(base or "paper"), [rotation, True, True]])
     if isinstance(spec, str) and spec.strip().endswith(ROTATION_SUFFIX):
         base = spec.strip()[: -len(ROTATION_SUFFIX)]
         return np.append(parse_model(base or "paper"), True)
@@ -150,7 +165,8 @@ def parse_any_model(spec) -> np.ndarray:
 
 def family_of_spec(spec) -> ModelFamily:
     """The family a specification of :func:`parse_any_model` names: Eq. (1) with the
-    target's rotation for ``"...+rotation"``, Eq. (1) for its other specs; a bare boolean
+    target's rotation for ``"...+rotation"``, with the perspective terms for ``"...+tilt"``,
+    Eq. (1) for its other specs; a bare boolean
     mask carries nothing but its length (:func:`family_of`).
 
     >>> family_of_spec("paper+rotation").name
@@ -158,6 +174,8 @@ def family_of_spec(spec) -> ModelFamily:
     """
     if isinstance(spec, np.ndarray) and spec.dtype == bool:
         return family_of(spec)
+    if isinstance(spec, str) and spec.strip().endswith(TILT_SUFFIX):
+        return BROWN_CONRADY_TILT
     if isinstance(spec, str) and spec.strip().endswith(ROTATION_SUFFIX):
         return BROWN_CONRADY_POSE
     return BROWN_CONRADY
@@ -309,6 +327,27 @@ BROWN_CONRADY_POSE = ModelFamily(
     moves=BROWN_CONRADY.moves + ("xy",),
 )
 
+#: The perspective (keystone) terms of :data:`BROWN_CONRADY_TILT`, in 1 / (units of the
+#: reference points).
+TILT_NAMES = ("tilt_x", "tilt_y")
+
+#: Eq. (1) of the reference points seen in perspective (a tilted target or camera: the
+#: keystone): ``s = x_r + x_off``, ``t = y_r + y_off`` (``(x_r, y_r)`` the reference point
+#: turned by ``rotation``, which a model may fix at 0), ``w = 1 + tilt_x s + tilt_y t``, and
+#: Eq. (1) of the point whose offset coordinates are ``(s / w, t / w)``: a projective map of
+#: the reference plane about the distortion centre before the distortion
+#: (``docs/conventions.md``, ``docs/models.md``).  Its models are Eq. (1)'s with ``tilt_x``
+#: and ``tilt_y`` free (two more parameters in AICc), ``"paper+tilt"``, and optionally the
+#: rotation, ``"paper+rotation+tilt"``.
+BROWN_CONRADY_TILT = ModelFamily(
+    name="brown-conrady+tilt",
+    code=3,
+    param_names=PARAM_NAMES + ("rotation",) + TILT_NAMES,
+    always_free=("m",),
+    scale_exponents=np.append(SCALE_EXPONENTS, [0.0, 1.0, 1.0]),
+    moves=BROWN_CONRADY.moves + ("xy",) * 3,
+)
+
 #: Names of the physical relay family's parameters (:mod:`oapcal._relay_kernel` has the
 #: model): the target's pose, the relay's 20 misalignment values
 #: (:data:`oapcal.optics.misalign.PARAMETERS`), and the design's constants.
@@ -364,14 +403,17 @@ RELAY_MICROSCOPE = ModelFamily(
 #: The relay families (the physical relay, with or without a microscope behind it).
 RELAY_FAMILIES = (RELAY, RELAY_MICROSCOPE)
 
-FAMILIES = {f.name: f for f in (BROWN_CONRADY, BROWN_CONRADY_POSE, RELAY, RELAY_MICROSCOPE)}
+FAMILIES = {
+    f.name: f for f in (BROWN_CONRADY, BROWN_CONRADY_POSE, BROWN_CONRADY_TILT, RELAY, RELAY_MICROSCOPE)
+}
 _BY_SIZE = {f.n_params: f for f in FAMILIES.values()}
 
 
 def family_of(params, family: ModelFamily | None = None) -> ModelFamily:
     """The family of a *bare* parameter vector ``(..., P)``, for the legacy calls that pass
     one (``distort(xy, params)``): ``family`` if given, else the built-in family whose
-    vector has ``P`` entries (13 Eq. 1, 14 Eq. 1 with rotation, 36 the relay, 39 the relay
+    vector has ``P`` entries (13 Eq. 1, 14 Eq. 1 with rotation, 16 Eq. 1 with the
+    perspective terms, 36 the relay, 39 the relay
     with a microscope; the sizes are distinct).  Any other size raises
     :class:`ModelSpecError` naming the sizes.  Code that knows its family passes it (a
     :class:`Model`, or ``family=``): a registered family (:func:`register_family`) is never
@@ -693,9 +735,9 @@ class Model:
         """The identity of Eq. (1) (all terms 0, ``m = 1``), with or without the rotation;
         the relay families have no identity (their design sets the map)."""
         family = family_named(family)
-        if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE):
+        if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE, BROWN_CONRADY_TILT):
             raise ModelSpecError(f"the {family.name} family has no identity model", param="family")
-        params = identity_params() if family is BROWN_CONRADY else np.append(identity_params(), 0.0)
+        params = np.append(identity_params(), np.zeros(family.n_params - N_PARAMS))  # extra terms 0
         return cls(family, params, family.always_free)
 
     @classmethod
@@ -751,10 +793,10 @@ class Model:
         if self.family is BROWN_CONRADY:
             params = np.append(self.params, float(rotation_deg))
             return Model(BROWN_CONRADY_POSE, params, self.free + ("rotation",))
-        if self.family is BROWN_CONRADY_POSE:
+        if self.family in (BROWN_CONRADY_POSE, BROWN_CONRADY_TILT):
             params = self.params.copy()
-            params[-1] += float(rotation_deg)
-            return Model(BROWN_CONRADY_POSE, params, self.free)
+            params[N_PARAMS] += float(rotation_deg)
+            return Model(self.family, params, tuple(dict.fromkeys(self.free + ("rotation",))))
         raise ModelSpecError(
             f"the {self.family.name} family carries the target's pose in its own parameters "
             "(scale, rotation, shift_x, shift_y): set them with with_params",

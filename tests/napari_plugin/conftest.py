@@ -23,6 +23,12 @@ except ImportError:
 
 
 def pytest_collection_modifyitems(config, items):
+    # one pytest-xdist worker runs every napari test (``--dist loadgroup``): they share the
+    # session's display and napari's settings, and one Qt application per process is enough
+    group = pytest.mark.xdist_group("napari")
+    for item in items:
+        if "napari_plugin" in str(item.fspath):
+            item.add_marker(group)
     if HAVE_NAPARI:
         return
     skip = pytest.mark.skip(reason="the napari extra is not installed (pip install -e '.[napari]')")

@@ -46,13 +46,14 @@ def _say_trust(cal, geometry) -> None:
 def _say_written(out, side, family, export) -> None:
     """Say what was written and, for a family without exact coefficients, how far the
     coefficients (the best Eq. (1) approximation) are from the exact maps."""
-    from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE
+    from oapcal.imaging.opencv import EXACT_FAMILIES
+    from oapcal.model import BROWN_CONRADY
 
     approx = export.get("approximation")
     w, h = export["new_image_size"]
     if family is BROWN_CONRADY:
         click.echo(f"wrote {out}: pass new_image_size {w}x{h} to cv2.initUndistortRectifyMap")
-    elif family is BROWN_CONRADY_POSE:
+    elif family in EXACT_FAMILIES:
         click.echo(
             f"wrote {out} (exact for the {family.name} model): pass R and new_image_size {w}x{h} "
             "to cv2.initUndistortRectifyMap"
@@ -98,10 +99,9 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, a
     from pathlib import Path
 
     from oapcal.errors import DataError
-    from oapcal.imaging.opencv import opencv_export
+    from oapcal.imaging.opencv import EXACT_FAMILIES, opencv_export
     from oapcal.imaging.remap import output_geometry
     from oapcal.io.opencv_export import maps_path, save_opencv
-    from oapcal.model import BROWN_CONRADY, BROWN_CONRADY_POSE
     from oapcal.records import ImageSize
 
     check_output(out, calib)
@@ -110,7 +110,7 @@ def export_opencv_command(calib, out, image_size, extent, um_per_px, out_size, a
     cal = load_usable_calibration(calib, allow_unconverged)
     family = cal.family
     side = None
-    if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE) and Path(out).suffix.lower() == ".json":
+    if family not in EXACT_FAMILIES and Path(out).suffix.lower() == ".json":
         side = maps_path(out)
         check_output(str(side), calib)
     size = size or cal.image_size

@@ -85,7 +85,8 @@ def _fmt(value, spec: str) -> str:
     "--families",
     default=None,
     help="Rank model families together: a comma list of bc (Eq. 1), bc+rotation (Eq. 1 with the "
-    "target's rotation) and relay (the physical relay, from the design options), by AICc and "
+    "target's rotation), bc+tilt and bc+rotation+tilt (Eq. 1 with the perspective terms tilt_x, "
+    "tilt_y) and relay (the physical relay, from the design options), by AICc and "
     "--cv-fold held-out error (default 5 folds); recommends by the held-out error.",
 )
 @click.option(
@@ -411,19 +412,21 @@ def robustness_command(
 
 def _robustness_spec(text: str) -> str:
     """One --models entry: '+'-joined names become a comma list (``k1+s3`` -> ``k1,s3``),
-    keeping a ``+rotation`` suffix (``k1+s3+rotation``) and relay subsets
-    (``relay:d1+tilt2x``); checked before any file is read."""
+    keeping ``+rotation`` and ``+tilt`` suffixes (``k1+s3+rotation``, ``paper+rotation+tilt``)
+    and relay subsets (``relay:d1+tilt2x``); checked before any file is read."""
     from oapcal.cli._relay import check_relay_spec, is_relay
-    from oapcal.model import ROTATION_SUFFIX, parse_any_model
+    from oapcal.model import ROTATION_SUFFIX, TILT_SUFFIX, parse_any_model
 
     text = text.strip()
     if is_relay(text):
         spec = text.replace("+", ",")
         check_relay_spec(spec)
         return spec
-    rotation = text.endswith(ROTATION_SUFFIX)
-    base = text[: -len(ROTATION_SUFFIX)] if rotation else text
-    spec = base.replace("+", ",") + (ROTATION_SUFFIX if rotation else "")
+    suffix = ""
+    for end in (TILT_SUFFIX, ROTATION_SUFFIX):
+        if text.endswith(end):
+            text, suffix = text[: -len(end)], end + suffix
+    spec = text.replace("+", ",") + suffix
     parse_any_model(spec)
     return spec
 
@@ -481,9 +484,9 @@ def print_robustness(result, source: str = "") -> None:
     spread.add_column("parameter")
     for m in result.models:
         spread.add_column(m.name, justify="right")
-    from oapcal.model import BROWN_CONRADY_POSE, RELAY_MICROSCOPE
+    from oapcal.model import BROWN_CONRADY_TILT, RELAY_MICROSCOPE
 
-    order = list(dict.fromkeys(BROWN_CONRADY_POSE.param_names + RELAY_MICROSCOPE.param_names))
+    order = list(dict.fromkeys(BROWN_CONRADY_TILT.param_names + RELAY_MICROSCOPE.param_names))
     names = [n for n in order if any(n in m.free for m in result.models)]
     for name in names:
         cells = (_fmt(m.param_std.get(name), ".3g") if name in m.free else "" for m in result.models)

@@ -23,6 +23,15 @@ The other model families (:func:`opencv_export`):
   ``R = [[cos, sin, 0], [-sin, cos, 0], [0, 0, 1]]`` (``R^-1`` turns the normalized
   coordinates by ``theta``), with the offsets turned back by ``theta`` into
   ``new_camera_matrix``; pass ``R`` to ``initUndistortRectifyMap``.
+* Eq. (1) with the perspective terms (``brown-conrady+tilt``) is exact as well, through the
+  same ``R``, which is then a homography: the terms act on the reference points before the
+  distortion, ``w = 1 + tilt . (Rot(theta) u + off)``, and in OpenCV's normalized
+  coordinates ``q = m (Rot(theta) u + off) / F`` that is ``w = 1 + (F / m) tilt . q``, so
+  ``R = Rot(-theta) T^-1`` with ``T^-1 = [[1, 0, 0], [0, 1, 0], [-F tilt_x / m, -F tilt_y / m, 1]]``
+  (``initUndistortRectifyMap`` and ``undistortPoints`` divide by the third coordinate).
+  OpenCV's own tilted model (``tauX``, ``tauY``, ``dist_coeffs`` 13-14) is not used: it tilts
+  the image after the distortion, and its angles also set an anisotropic scale and shear
+  that no Eq. (1) model has, so it cannot hold these terms exactly.
 * The physical relay has no OpenCV coefficient set: the export holds the exact dense maps
   (``map_x``, ``map_y`` for ``cv2.remap``, oapcal's :func:`~oapcal.imaging.remap.correction_map`)
   and the best Eq. (1) approximation's coefficients, with that approximation's error in
@@ -40,6 +49,7 @@ from oapcal.imaging.remap import CorrectionMap, OutputGeometry
 from oapcal.model import (
     BROWN_CONRADY,
     BROWN_CONRADY_POSE,
+    BROWN_CONRADY_TILT,
     INDEX,
     N_PARAMS,
     ModelFamily,
@@ -54,6 +64,10 @@ from oapcal.records import ImageSize
 EXPORT_BYTES_PER_PX = 48
 #: Largest memory estimate of an export (4 GiB): about 9,400 x 9,400 output px.
 MAX_EXPORT_BYTES = 4 * 2**30
+
+
+#: The families OpenCV's coefficients (with ``R`` for the rotation and the tilt) reproduce exactly.
+EXACT_FAMILIES = (BROWN_CONRADY, BROWN_CONRADY_POSE, BROWN_CONRADY_TILT)
 
 
 def _params_and_family(value) -> tuple[np.ndarray, ModelFamily]:
@@ -71,9 +85,10 @@ def opencv_parameters(params, image_size: tuple[int, int], geometry: OutputGeome
 
     ``image_size`` is the distorted input's ``(width, height)``; ``geometry`` the output
     geometry (default: the input's size and coordinates).  ``params`` is Eq. (1) ``(13,)``,
-    or Eq. (1) with the target's rotation ``(14,)``: then the export also holds ``R``, the
-    rectification rotation to pass to ``initUndistortRectifyMap``, plus ``model_family``
-    and ``exact``.  The relay has no such parameters (:func:`opencv_export`).
+    or Eq. (1) with the target's rotation ``(14,)`` or the perspective terms ``(16,)``: then
+    the export also holds ``R``, the rectification rotation (with the perspective terms a
+    homography) to pass to ``initUndistortRectifyMap``, plus ``model_family`` and ``exact``.
+    The relay has no such parameters (:func:`opencv_export`).
 
     >>> from oapcal.model import params_from_dict
     >>> d = opencv_parameters(params_from_dict({"k1": 1e-7, "c_x": 320, "x_off": -320}), (640, 480))
@@ -81,13 +96,15 @@ def opencv_parameters(params, image_size: tuple[int, int], geometry: OutputGeome
     ([640.0, 0.0, 320.0], 0.04096, [640.0, 0.0, 320.0])
     """
     params, family = _params_and_family(params)
-    if family not in (BROWN_CONRADY, BROWN_CONRADY_POSE) or params.shape != (family.n_params,):
+    if family not in EXACT_FAMILIES or params.shape != (family.n_params,):
         raise DataError(
             f"no OpenCV camera parameters reproduce the {family.name} model; export it with "
             "opencv_export (the exact maps and the best Eq. (1) approximation)"
         )
-    rotation = None
-    if family is BROWN_CONRADY_POSE:
+    rotation = tilt = None
+    if family is BROWN_CONRADY_TILT:
+        params, tilt = params[: N_PARAMS + 1], params[N_PARAMS + 1 :]
+    if family is not BROWN_CONRADY:
         params, rotation = _rectification(params)
     size = _image_size(image_size)
     width, height = size
@@ -120,6 +137,8 @@ def opencv_parameters(params, image_size: tuple[int, int], geometry: OutputGeome
         "new_image_size": list(ImageSize.of(geometry)),
         "um_per_px": geometry.um_per_px,
     }
+    if tilt is not None:  # R = Rot(-theta) T^-1 (the module's docstring)
+        rotation = (np.array(rotation) @ [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [*(-f * tilt / m), 1.0]]).tolist()
     if rotation is not None:
         out = {"model_family": family.name, "exact": True, **out, "R": rotation}
     return out
@@ -312,7 +331,8 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
     """What ``oapcal export-opencv`` writes, for a calibration of any model family.
 
     Eq. (1): :func:`opencv_parameters` (exact).  Eq. (1) with the target's rotation: the
-    same with the rectification rotation ``R`` (exact).  The relay: ``model_family``,
+    same with the rectification rotation ``R`` (exact); with the perspective terms, ``R`` a
+    homography (exact).  The relay: ``model_family``,
     ``exact`` False, ``maps`` (the exact :class:`~oapcal.imaging.remap.CorrectionMap` for
     ``cv2.remap``), the best Eq. (1) approximation's ``camera_matrix``, ``dist_coeffs``
     and ``new_camera_matrix`` (:func:`brown_conrady_approximation`) and its error in
@@ -327,7 +347,7 @@ def opencv_export(calibration_or_params, image_size: tuple[int, int], geometry: 
     size = _image_size(image_size)
     if geometry is None:
         geometry = OutputGeometry(size.shape)
-    if family in (BROWN_CONRADY, BROWN_CONRADY_POSE):
+    if family in EXACT_FAMILIES:
         # coefficients only, but a calibration whose map samples nothing of the image is refused
         _check_samples(calibration_or_params, params, size, geometry)
         return opencv_parameters(params, size, geometry)
