@@ -148,12 +148,19 @@ def hull_grid(xy: np.ndarray, n: int = 41) -> np.ndarray:
 class StartedModel:
     """A model of a family that starts from a design (the relay): its ``name``, free-parameter
     ``mask (P,)`` and starting vector ``p0 (P,)`` (:func:`oapcal.optics.relay_model.relay_params`);
-    ``family`` the model family (by name; None: the built-in family of the mask's length)."""
+    ``family`` the model family (by name; None: the built-in family of the mask's length);
+    ``prior`` Gaussian priors ``(mean, sigma)`` as :func:`oapcal.fitting.fit_batch` takes
+    them (every trial and the reference fit are then maximum a posteriori fits), or None."""
 
     name: str
     mask: np.ndarray
     p0: np.ndarray
     family: ModelFamily | str | None = None
+    prior: tuple | None = None
+
+
+def _prior_of(spec):
+    return spec.prior if isinstance(spec, StartedModel) else None
 
 
 def _model_name(spec) -> str:
@@ -244,7 +251,8 @@ def robustness(
         sl = slice(start, min(start + chunk, trials))
         for j in range(n_models):
             fits = fit_batch(u, d, np.repeat(masks[j][None], sl.stop - sl.start, 0), p0[j], points=keep[sl],
-                             covariance=False, max_iter=max_iter, family=trial.families[j])  # fmt: skip
+                             covariance=False, max_iter=max_iter, family=trial.families[j],
+                             prior=_prior_of(specs[j]))  # fmt: skip
             trial.record(j, sl, fits, held[sl])
             if progress is not None:
                 progress(sl.start * n_models + (j + 1) * (sl.stop - sl.start), trials * n_models)
@@ -300,9 +308,22 @@ def _reference_rms(u: np.ndarray, d: np.ndarray, specs, masks, init, max_iter: i
                 for s in ([spec] if isinstance(spec, StartedModel) else starts)]  # fmt: skip
         owner = np.array([j for j, _ in rows])
         ref = fit_batch(u, d, np.stack([masks[j] for j in owner]), np.stack([p for _, p in rows]),
-                        covariance=False, max_iter=max_iter, family=family)  # fmt: skip
+                        covariance=False, max_iter=max_iter, family=family,
+                        prior=_stacked_priors([specs[j] for j in owner], family.n_params))  # fmt: skip
         np.minimum.at(out, owner, np.where(ref.converged, ref.rss, np.inf))
     return np.sqrt(out / len(u))
+
+
+def _stacked_priors(specs, n_params: int):
+    """The priors of a batch of models, ``(mean, sigma)`` of ``(B, P)`` (inf: none for a
+    model without priors), or None when none has priors (the fit exactly as without)."""
+    priors = [_prior_of(s) for s in specs]
+    if all(p is None for p in priors):
+        return None
+    none = (np.zeros(n_params), np.full(n_params, np.inf))
+    pairs = [none if p is None else tuple(np.broadcast_to(np.asarray(a, float), (n_params,)) for a in p)
+             for p in priors]  # fmt: skip
+    return np.stack([m for m, _ in pairs]), np.stack([w for _, w in pairs])
 
 
 def _draw_subsets(seed: int, trials: int, n_points: int, n_keep: int) -> tuple[np.ndarray, np.ndarray]:

@@ -186,7 +186,7 @@ def test_report_shows_a_cross_family_selection():
     assert rows[0][-1] == "recommended" and rows[1][-1] == "this calibration" and rows[2][-1] == ""
     assert rows[1][2] == str(len(cal.free) + 1) and rows[2][6] == "0.2084"
     assert '<tr class="best"><td>relay</td><td>relay</td>' in page
-    assert "Recommended by the held-out error: relay:tilt2,camera (relay, 0.0628 px)." in page
+    assert "Recommended in the selection file: relay:tilt2,camera (relay, held-out error 0.0628 px)." in page
     assert "1 models could not be scored" in page and "From fam.json." in page
 
 

@@ -62,7 +62,7 @@ from oapcal.cli._relay import (
 @priors_option
 # one parameter per command-line option (Click passes them so)
 def fit_command(points, model, init, normalization, um_per_px, image_size, out, as_json, rotation,
-                keep_unconverged, relay_design, priors="off"):  # fmt: skip
+                keep_unconverged, relay_design, priors="auto"):  # fmt: skip
     """Fit a distortion model to point pairs: a CSV with x_u,y_u,x_d,y_d (POINTS), or
     landmark files --distorted FILE --reference FILE (VIA, napari, BigWarp, CSV)."""
     from oapcal.calibration import UnusableFitError
@@ -70,7 +70,7 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
 
     check_output(out, points)
     size = parse_size(image_size)
-    relay_priors = load_priors(priors)
+    relay_priors = load_priors(priors, relay=is_relay(model))
     if relay_priors is not None and not is_relay(model):
         raise click.UsageError(f"--priors {priors} applies to a relay model (--model relay); drop it")
     try:

@@ -115,7 +115,7 @@ def _fmt(value, spec: str) -> str:
 @priors_option
 # one parameter per command-line option (Click passes them so)
 def select_command(points, normalization, init, top, cv, seed, json_out, families=None, image_size=None,
-                   relay_design=None, model=None, region="auto", priors="off"):  # fmt: skip
+                   relay_design=None, model=None, region="auto", priors="auto"):  # fmt: skip
     """Rank all 4,096 models of Eq. 1 by AICc of the corrected points (with --families: Eq. 1,
     its rotation variant and the physical relay together)."""
     check_output(json_out, points)
@@ -127,7 +127,7 @@ def select_command(points, normalization, init, top, cv, seed, json_out, familie
                 param_hint="--model",
             )
         families = "relay"
-    relay_priors = load_priors(priors)
+    relay_priors = load_priors(priors, relay=families is not None)
     if families is None and (relay_priors is not None or region != "auto"):
         flag = "--priors" if relay_priors is not None else "--region"
         raise click.UsageError(
@@ -364,24 +364,30 @@ _INVALID_TEXT = {
 )
 @click.option("--image-size", default=None, help="With a relay model: camera image size WxH in px.")
 @relay_design_options
+@priors_option
 # one parameter per command-line option (Click passes them so)
 def robustness_command(
     points, models, trials, fraction, seed, init, normalization, wrong_minimum_ratio, json_out,
-    image_size=None, relay_design=None,
+    image_size=None, relay_design=None, priors="auto",
 ):  # fmt: skip
     """Subsampling test: refit each model on random subsets, count non-convergence."""
     check_output(json_out, points)
     from oapcal.cli._relay import is_relay
 
     specs = [_robustness_spec(s) for s in models.split(",") if s.strip()]
-    if any(is_relay(s) for s in specs):
+    relay = any(is_relay(s) for s in specs)
+    if relay:
         refuse_normalize(normalization, "a relay model fits the points as given")
+    relay_priors = load_priors(priors, relay=relay)
+    if relay_priors is not None and not relay:
+        raise click.UsageError(f"--priors {priors} applies to a relay model (--models relay...); drop it")
     pairs = load_pairs(points)
     from oapcal.fitting import initial_params
     from oapcal.select import robustness
 
     initial_params(init, pairs.xy_u[:1], pairs.xy_d[:1], [True] * 13)
-    specs = [_started_relay(s, pairs, image_size, relay_design) if is_relay(s) else s for s in specs]
+    specs = [_started_relay(s, pairs, image_size, relay_design, relay_priors) if is_relay(s) else s
+             for s in specs]  # fmt: skip
     check_work(
         trials * (BYTES_PER_TRIAL_POINT * len(pairs) + BYTES_PER_TRIAL_MODEL * len(specs)),
         f"{trials} trials of {len(pairs)} points x {len(specs)} models", "give fewer --trials",
@@ -398,6 +404,9 @@ def robustness_command(
         save_robustness(result, json_out)
     if json_out != "-":
         print_robustness(result, source=pairs.source)
+        if relay_priors is not None:
+            click.echo(f"relay models: maximum a posteriori fits, priors {relay_priors.spec} "
+                       "(docs/models.md; --priors off: least squares)")  # fmt: skip
     return 0
 
 
@@ -422,15 +431,22 @@ def _robustness_spec(text: str) -> str:
     return spec
 
 
-def _started_relay(spec: str, pairs, image_size, relay_design):
-    """A relay --models entry as a model with its design's start."""
+def _started_relay(spec: str, pairs, image_size, relay_design, priors=None):
+    """A relay --models entry as a model with its design's start; with ``priors``
+    (:class:`~oapcal.optics.relay_model.RelayPriors`) its trials are maximum a posteriori
+    fits, the rows weighed by the noise of the all-points fit (as select's folds)."""
     from oapcal.cli._common import parse_size
     from oapcal.cli._relay import design_from_options
-    from oapcal.optics.relay_model import default_centre, relay_mask, relay_params
+    from oapcal.optics.relay_model import default_centre, map_fit, relay_mask, relay_params
     from oapcal.subsampling import StartedModel
 
     design = default_centre(design_from_options(relay_design), pairs.xy_u, parse_size(image_size))
-    return StartedModel(spec, relay_mask(spec, design.family), relay_params(design), family=design.family)
+    mask = relay_mask(spec, design.family)
+    prior = None
+    if priors is not None:
+        _, noise = map_fit(pairs.xy_u, pairs.xy_d, design, mask[None], priors, covariance=False)
+        prior = priors.arrays(design, float(noise[0]))
+    return StartedModel(spec, mask, relay_params(design), family=design.family, prior=prior)
 
 
 def print_robustness(result, source: str = "") -> None:

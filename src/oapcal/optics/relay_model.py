@@ -470,6 +470,15 @@ PRIOR_UNITS = {"scale": "%", "tilt": "deg", "decentre": "mm", "clock": "deg", "f
                "object_tilt": "deg"}  # fmt: skip
 #: The noise-scale iterations of a MAP fit without a given noise (:func:`map_fit`).
 NOISE_ITERATIONS = 4
+#: The least landmark noise (px per coordinate) that weighs the priors when the noise is
+#: estimated from the fit (:func:`map_fit`; ``--priors noise_floor_px=...`` sets it).  A
+#: prior row is ``s (p - p0) / width``: as the estimate ``s`` goes to 0 (landmarks traced
+#: without noise) the priors become rigid constraints that fight the data, and ``relay:all``
+#: hit the iteration cap (1,000 Jacobians, 47 s) on a noise-free 11 x 11 grid.  No landmark
+#: is located better than about 0.05 px (rendered dot grids and chessboards: 0.017-0.050 px,
+#: docs/detection.md) and a relay fit's residual carries a 0.03-0.1 px model floor (mirror
+#: figure, sensor), so a noise below 0.05 px is not evidence the priors should tighten.
+NOISE_FLOOR_PX = 0.05
 
 
 @dataclass(frozen=True)
@@ -482,12 +491,14 @@ class RelayPriors:
     without priors); ``0``: fixed at the design.  Every prior is centred on the design (no
     misalignment, scale 1).  ``noise_px``: the landmarks' noise (px per coordinate) that
     weighs the priors against the residuals; None (default): estimated from the fit's own
-    residuals, ``sqrt(RSS / (n - k_eff))``.
+    residuals, ``sqrt(RSS / (n - k_eff))``, and never below ``noise_floor_px``
+    (:data:`NOISE_FLOOR_PX`; a given ``noise_px`` is used as given).
     """
 
     widths: Mapping[str, float]
     noise_px: float | None = None
     spec: str = "default"
+    noise_floor_px: float = NOISE_FLOOR_PX
 
     def sigma(self, design: RelayDesign) -> dict[str, float]:
         """The width (deg or mm) of every misalignment value of :data:`PARAMETERS`, and of the
@@ -524,7 +535,8 @@ class RelayPriors:
         prior (deg or mm)."""
         out = {"spec": self.spec, "widths": {k: float(v) for k, v in self.widths.items() if np.isfinite(v)},
                "free_of_prior": sorted(k for k, v in self.widths.items() if not np.isfinite(v)),
-               "noise_px": None if self.noise_px is None else float(self.noise_px)}  # fmt: skip
+               "noise_px": None if self.noise_px is None else float(self.noise_px),
+               "noise_floor_px": float(self.noise_floor_px)}  # fmt: skip
         if design is not None:
             out["sigma"] = {k: float(v) for k, v in self.sigma(design).items() if np.isfinite(v)}
         return out
@@ -557,6 +569,7 @@ def priors_from_dict(data: Mapping, spec: str = "file") -> RelayPriors:
     if isinstance(data.get("widths"), Mapping):
         data = {**data.pop("widths"), **data}
     noise = data.pop("noise_px", data.pop("noise", None))
+    floor = data.pop("noise_floor_px", NOISE_FLOOR_PX)
     base = data.pop("base", "default")
     if base not in ("default", "none"):
         raise ModelSpecError(f"prior 'base' must be 'default' or 'none', got {base!r}", param="priors")
@@ -566,7 +579,7 @@ def priors_from_dict(data: Mapping, spec: str = "file") -> RelayPriors:
         if key not in known:
             raise ModelSpecError(
                 f"unknown prior {key!r}: use {', '.join(DEFAULT_PRIORS)} (d1 and scale in %), a "
-                "misalignment name of oapcal.optics.misalign.PARAMETERS, d1_mm, or noise_px",
+                "misalignment name of oapcal.optics.misalign.PARAMETERS, d1_mm, noise_px or noise_floor_px",
                 param="priors",
             )
         widths[key] = _prior_value(key, value)
@@ -575,7 +588,11 @@ def priors_from_dict(data: Mapping, spec: str = "file") -> RelayPriors:
         if not 0 < noise < np.inf:
             raise ModelSpecError(f"prior 'noise_px' must be a positive number of px, got {noise!r}",
                                  param="priors")  # fmt: skip
-    return RelayPriors(widths, noise, spec)
+    floor = _prior_value("noise_floor_px", floor)
+    if not floor < np.inf:
+        raise ModelSpecError(f"prior 'noise_floor_px' must be a number of px >= 0, got {floor!r}",
+                             param="priors")  # fmt: skip
+    return RelayPriors(widths, noise, spec, floor)
 
 
 def parse_priors(text) -> RelayPriors | None:
@@ -611,9 +628,9 @@ def map_fit(xy_u, xy_d, design: RelayDesign, masks, priors: RelayPriors, *, p0=N
     """The maximum a posteriori fit of relay subsets ``masks (B, P)`` under ``priors``:
     :func:`oapcal.fitting.fit_batch` with the priors' rows.  Without a noise in the priors
     (or ``noise_px``, one per item or shared) the landmarks' noise that weighs the rows is
-    estimated from the fit itself: from 1 px, refitted at ``sqrt(RSS / (n - k_eff))`` until
-    it changes by under 5 % (at most :data:`NOISE_ITERATIONS` fits).  Returns
-    ``(BatchFit, noise_px (B,))``."""
+    estimated from the fit itself: from 1 px, refitted at ``sqrt(RSS / (n - k_eff))``, but
+    at least the priors' ``noise_floor_px`` (:data:`NOISE_FLOOR_PX`), until it changes by
+    under 5 % (at most :data:`NOISE_ITERATIONS` fits).  Returns ``(BatchFit, noise_px (B,))``."""
     from oapcal.fitting import fit_batch
 
     masks = np.atleast_2d(np.asarray(masks, bool))
@@ -631,7 +648,7 @@ def map_fit(xy_u, xy_d, design: RelayDesign, masks, priors: RelayPriors, *, p0=N
             break
         with np.errstate(invalid="ignore", divide="ignore"):
             new = np.sqrt(fits.rss / np.maximum(fits.n - fits.k_eff, 1.0))
-        noise = np.where(np.isfinite(new) & (new > 0), new, used)
+        noise = np.where(np.isfinite(new) & (new > 0), np.maximum(new, priors.noise_floor_px), used)
         if np.all(np.abs(noise / used - 1.0) < 0.05):
             break
     return fits, used
@@ -714,12 +731,18 @@ def _imaging_start(design: RelayDesign, xy_u: np.ndarray, source: str | None) ->
 
 def _check_identifiable(xy_u, p0, mask, design: RelayDesign, priors, source: str | None) -> None:
     """Refuse a subset the points do not determine (:func:`identifiability`); the values
-    with a finite prior count as determined."""
+    with a finite prior count as determined, but their derivatives must be finite too (a
+    design that images nothing is refused by name, with priors or without)."""
+    from oapcal.model import jacobian_params
+
     unconstrained = mask.copy()
+    jac = None
     if priors is not None:
         sig = priors.sigma(design)
         unconstrained &= np.array([not np.isfinite(sig.get(n, np.inf)) for n in design.family.param_names])
-    ident = identifiability(xy_u, p0, unconstrained, family=design.family)
+        jac = jacobian_params(np.asarray(xy_u, float), np.asarray(p0, float), family=design.family)
+        identifiability(xy_u, p0, mask, jac, family=design.family)  # raises where not finite
+    ident = identifiability(xy_u, p0, unconstrained, jac, family=design.family)
     if not ident.ok:
         raise DataError(f"{source or 'the point data'}: {ident.message()}", param="free")
 
@@ -797,4 +820,4 @@ def describe(calibration) -> list[str]:
 __all__ = ["RELAY", "RELAY_MICROSCOPE", "RelayDesign", "relay_params", "relay_mask", "DEFAULT_FREE",
            "DEFAULT_FREE_MICROSCOPE", "ALIASES", "identifiability", "Identifiability", "calibrate_relay",
            "describe", "DEFAULT_PRIORS", "RelayPriors", "parse_priors", "priors_from_dict",
-           "map_fit", "implausible", "PLAUSIBLE_ANGLE_DEG"]  # fmt: skip
+           "map_fit", "NOISE_FLOOR_PX", "implausible", "PLAUSIBLE_ANGLE_DEG"]  # fmt: skip

@@ -686,8 +686,8 @@ def _family_selection_html(sel: FamilySelection, cal, source: str | None = None)
                        f"({r.family}, {H.fmt(_shown(r.predicted_error))} px: the held-out error "
                        f"{H.fmt(_shown(r.cv_mean_error))} px with the uncertainty propagated over the "
                        f"region, {H.fmt(_shown(r.region_sigma))} px).")  # fmt: skip
-        else:  # a selection file written before the region-based choice
-            verdict = (f"Recommended by the held-out error: {r.spec} ({r.family}, "
+        else:  # read from a selection file (its reader keeps the choice, not the predicted errors)
+            verdict = (f"Recommended in the selection file: {r.spec} ({r.family}, held-out error "
                        f"{H.fmt(_shown(r.cv_mean_error))} px).")  # fmt: skip
     else:
         verdict = "No model could be cross-validated, so none is recommended."
