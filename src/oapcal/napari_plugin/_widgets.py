@@ -266,6 +266,9 @@ class LabelWidget(_OapcalWidget):
         self.um_per_px = FloatSpinBox(
             label="um per px (0: from clicks)", value=0.0, min=0.0, max=1e6, step=0.1
         )
+        from oapcal.imaging.usaf import LAYOUTS
+
+        self.target_layout = ComboBox(label="target layout", choices=["auto", *LAYOUTS], value="auto")
         self.refine = CheckBox(label="refine with detection", value=True)
         self.start = PushButton(text="Start labelling")
         self.propose = PushButton(text="Propose the other corners")
@@ -273,8 +276,8 @@ class LabelWidget(_OapcalWidget):
         self.propose.changed.connect(self.run)
         self.corner.changed.connect(self._corner_changed)
         self.groups.changed.connect(lambda _v: self.corner.reset_choices())
-        super().__init__(napari_viewer, [self.image, self.groups, self.corner, self.um_per_px, self.refine,
-                                         self.start, self.propose])  # fmt: skip
+        fields = [self.image, self.groups, self.corner, self.um_per_px, self.target_layout, self.refine]
+        super().__init__(napari_viewer, [*fields, self.start, self.propose])
         self.proposal = None
 
     def _ids(self, _w=None):
@@ -343,39 +346,53 @@ class LabelWidget(_OapcalWidget):
         refine = self.refine.value
         um = self.um_per_px.value or None
         groups_text = self.groups.value
+        layout_name = self.target_layout.value
 
         def work():
             groups = parse_groups(groups_text)
-            prop = propose_corners(clicks, size, groups, um)
+            prop = propose_corners(clicks, size, groups, um, layout_name)
             det = None
             if refine:
                 hints = {"um_per_px": prop.um_per_px, "orientation": prop.orientation,
                          "mirror": "yes" if prop.mirrored else "no"}  # fmt: skip
                 det = oapcal.detect_usaf(image, groups, **hints)
-                prop = refine_with_detection(prop, det, size, groups)
+                prop = refine_with_detection(prop, det, size, groups, um)
             return prop, det
 
         def done(out):
             prop, det = out
             self.proposal = prop
-            source = np.where(prop.clicked, "clicked", "proposed").astype(object)
-            if det is not None and det.status == 0:
-                found = set(det.ids)
-                source = np.array(
-                    [("detected" if i in found else s) for i, s in zip(prop.ids, source)], object
-                )
+            detected = det is not None and det.status == 0
+            source = np.full(len(prop.ids), "detected", object) if detected else (
+                np.where(prop.clicked, "clicked", "proposed").astype(object))  # fmt: skip
             for t in L.points_layers(prop.xy_u, prop.xy_d, prop.ids, um_per_px=prop.um_per_px,
                                      source=layer.name, extra={"source": source}):  # fmt: skip
                 _replace_layer(self.viewer, t)
-            note = "" if det is None else (f"; detection at that pose: {det.message}" if det.status else
-                                           f"; detection at that pose found {len(det.ids)}")  # fmt: skip
-            self._set_status(
-                f"{len(prop.ids)} corners ({int(prop.clicked.sum())} clicked) from a {prop.map_kind} map, "
-                f"{prop.um_per_px:.4g} um/px, {prop.orientation}, clicks off the map by "
-                f"{prop.click_rms_px:.2g} px rms{note}; drag or delete in 'distorted', then fit"
-            )
+            self._set_status(_proposal_words(prop, det, clicks))
 
         self._run("propose", work, done)
+
+
+def _proposal_words(prop, det, clicks) -> str:
+    """The Label widget's status line after a proposal (and the detection that refined it)."""
+    head = (f"{len(prop.ids)} corners from a {prop.map_kind} map ({prop.layout} layout), "
+            f"{prop.um_per_px:.4g} um/px, {prop.orientation}, clicks off the map by "
+            f"{prop.click_rms_px:.2g} px rms")  # fmt: skip
+    if det is None:
+        return (f"{head}; {int(prop.clicked.sum())} clicked, the others proposed (neither is sub-pixel: "
+                "drag them onto their corners, or tick 'refine with detection'), then fit")  # fmt: skip
+    if det.status != 0:
+        return (f"{head}; detection at that pose: {det.message} (the corners are the clicked and "
+                "proposed ones, not sub-pixel: drag them onto their corners before fitting)")  # fmt: skip
+    lost = [i for i in prop.dropped if i in clicks]
+    words = f"{head}; detection at that pose found {len(det.ids)}, all sub-pixel"
+    if lost:
+        more = f" and {len(lost) - 5} more" if len(lost) > 5 else ""
+        words += (f"; left out {len(lost)} clicked corner{'s' * (len(lost) > 1)} that detection did not "
+                  f"find ({', '.join(lost[:5])}{more}; a click is not sub-pixel)")  # fmt: skip
+    if len(prop.dropped) > len(lost):
+        words += f"; left out {len(prop.dropped) - len(lost)} proposed corners that detection did not find"
+    return words + "; then fit"
 
 
 class FitWidget(_OapcalWidget):
