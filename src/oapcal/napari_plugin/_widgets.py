@@ -81,8 +81,10 @@ class _OapcalWidget(Container):
     def __init__(self, napari_viewer, widgets):
         self._status = Label(value="")
         self._busy_bar = ProgressBar(min=0, max=0, visible=False, label="working")
-        super().__init__(widgets=[*widgets, self._busy_bar, self._status], labels=True)
+        # scrollable: docked widgets never make the window taller than a 1080 px screen
+        super().__init__(widgets=[*widgets, self._busy_bar, self._status], labels=True, scrollable=True)
         self._status.native.setWordWrap(True)
+        self.root_native_widget._magic_widget = self  # napari finds the widget from its dock
         self.native.setMaximumWidth(MAX_WIDTH_PX)
         self.viewer = napari_viewer
         self.busy = False
@@ -95,6 +97,13 @@ class _OapcalWidget(Container):
         napari_viewer.layers.events.inserted.connect(self._refresh)
         napari_viewer.layers.events.removed.connect(self._refresh)
         napari_viewer.layers.events.reordered.connect(self._refresh)
+        self.reset_choices()  # the choices that need the viewer (it was not set while they were made)
+
+    @property
+    def native(self):
+        """The scroll area around the fields: what napari docks (it docks ``native``), so that a
+        docked widget scrolls instead of making the window taller than the screen."""
+        return self.root_native_widget
 
     def _refresh(self, _event=None):
         self.reset_choices()
