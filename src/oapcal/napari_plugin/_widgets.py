@@ -412,16 +412,23 @@ class FitWidget(_OapcalWidget):
     step_name = "Fit"
 
     def __init__(self, napari_viewer):
-        import oapcal
 
         points = lambda _w: _layers_of(napari_viewer, "points")  # noqa: E731
         self.distorted = ComboBox(label="distorted", choices=points)
         self.reference = ComboBox(label="reference", choices=points)
-        turned = [f"{name}+rotation" for name in oapcal.PRESETS]  # the target's rotation fitted too
-        self.model = ComboBox(label="model", choices=[*oapcal.PRESETS, *turned, SELECT], value="paper")
+        self.model = ComboBox(label="model", choices=_model_choices(), value=RECOMMENDED)
         self.um_per_px = FloatSpinBox(
             label="um per px (0: from layers)", value=0.0, min=0.0, max=1e6, step=0.1
         )
+        # the relay's design (relay models only), as oapcal fit --relay-setup / --relay-pixel-size /
+        # --microscope-magnification / --priors
+        self.relay_setup = ComboBox(label="relay setup", choices=[1, 2], value=1)
+        self.relay_pixel = FloatSpinBox(label="relay camera pixel (um)", value=4.8, min=0.01, max=1e3)
+        self.microscope = FloatSpinBox(
+            label="microscope magnification (0: none)", value=0.0, min=-1e3, max=1e3
+        )
+        self.priors = ComboBox(label="relay priors", choices=["off", "default"], value="off")
+        self.model.changed.connect(self._show_relay_fields)
         self.n_worst = SpinBox(label="worst landmarks", value=5, min=0, max=100)
         self.exaggerate = FloatSpinBox(label="residual arrows x", value=20.0, min=1.0, max=1000.0)
         self.button = PushButton(text="Fit")
@@ -430,13 +437,22 @@ class FitWidget(_OapcalWidget):
         self.table1.native.setStyleSheet("font-family: monospace")
         self.params = Table(label="parameters", value={"parameter": [], "value": [], "stderr": []})
         self.worst_text = Label(label="worst", value="")
-        super().__init__(napari_viewer, [self.distorted, self.reference, self.model, self.um_per_px,
+        relay = [self.relay_setup, self.relay_pixel, self.microscope, self.priors]
+        super().__init__(napari_viewer, [self.distorted, self.reference, self.model, *relay, self.um_per_px,
                                          self.n_worst, self.exaggerate, self.button, self.table1,
                                          self.params, self.worst_text])  # fmt: skip
+        self._show_relay_fields()
         self.calibration = None
         self.residual_px = None
         self.ids: list[str] = []
         self._default_layers()
+
+    def _show_relay_fields(self, _=None):
+        from oapcal.entry import is_relay_spec
+
+        relay = is_relay_spec(self.model.value)
+        for w in (self.relay_setup, self.relay_pixel, self.microscope, self.priors):
+            w.visible = relay
 
     def _default_layers(self):
         for combo, name in ((self.distorted, L.DISTORTED), (self.reference, L.REFERENCE)):
@@ -469,18 +485,31 @@ class FitWidget(_OapcalWidget):
             shape = image.data.shape[-3:-1] if image.rgb else image.data.shape[-2:]
             size = (int(shape[1]), int(shape[0]))
 
+        relay = self._relay_options(model)
+
         def work():
             if model == SELECT:
                 chosen = with_frame_terms(oapcal.select_models(xy_u, xy_d))  # the shared default start
             else:
                 chosen = model
             return oapcal.calibrate(xy_u, xy_d, chosen, um_per_px=scale, image_size=size,
-                                    name=f"{model} fit in napari", source=d_layer.name)  # fmt: skip
+                                    name=f"{model} fit in napari", source=d_layer.name, **relay)  # fmt: skip
 
         def done(cal):
             self.show_calibration(cal, xy_u, xy_d, ids)
 
         self._run("fit", work, done)
+
+    def _relay_options(self, model: str) -> dict:
+        """``design`` and ``priors`` of a relay model from the widget's fields (else none)."""
+        from oapcal.entry import is_relay_spec
+        from oapcal.optics.relay_model import RelayDesign, parse_priors
+
+        if not is_relay_spec(model):
+            return {}
+        design = RelayDesign(setup=int(self.relay_setup.value), pixel_size_um=float(self.relay_pixel.value),
+                             microscope_magnification=float(self.microscope.value) or None)  # fmt: skip
+        return {"design": design, "priors": parse_priors(self.priors.value)}
 
     def show_calibration(self, cal, xy_u, xy_d, ids) -> None:
         """Show a calibration's residuals, Table 1, parameters and worst landmarks."""
@@ -512,6 +541,24 @@ class FitWidget(_OapcalWidget):
         trust = _trust_words(cal)
         self._set_status(f"{cal.fit.n_points} pairs, model {', '.join(cal.free)}: {state}; "
                          f"mean residual {cal.residuals.mean_px:.3g} px{notes}{trust}")  # fmt: skip
+
+
+#: The model *Fit & inspect* preselects: the paper's (``oapcal fit``'s default; with
+#: ``rotation="auto"`` the target's rotation is fitted too when the points need it).
+RECOMMENDED = "paper"
+
+
+def _model_choices() -> list[tuple[str, str]]:
+    """Every model family a fit can use, as ``(label, model spec)``: the Eq. (1) presets,
+    the same with the target's rotation, the physical relay (``relay+microscope`` when the
+    microscope's magnification is given) and AICc selection; the recommended one says so."""
+    import oapcal
+
+    eq1 = [*oapcal.PRESETS, *(f"{name}+rotation" for name in oapcal.PRESETS)]
+    # the relay family with a microscope behind it (relay+microscope) is the relay with the
+    # microscope's magnification given in its design
+    labels = {RECOMMENDED: f"{RECOMMENDED} (recommended)", "relay": "relay (physical: the design below)"}
+    return [(labels.get(m, m), m) for m in [*eq1, "relay", SELECT]]
 
 
 def _trust_words(cal) -> str:
