@@ -29,3 +29,15 @@ def test_docked_widgets_fit_a_1080_px_screen(viewer, qtbot, names):
     assert window.height() <= SCREEN_PX, window.height()
     for w in widgets:  # each can still show all of its fields (by scrolling)
         assert w.native.minimumSizeHint().height() < 400
+
+
+def test_a_docked_widget_scrolls_only_vertically(viewer):
+    from qtpy.QtCore import Qt
+
+    from oapcal.napari_plugin._widgets import MAX_WIDTH_PX, FitWidget
+
+    w = FitWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Fit & inspect")
+    assert w.native.horizontalScrollBarPolicy() == Qt.ScrollBarPolicy.ScrollBarAlwaysOff
+    assert w.native.widget().maximumWidth() < MAX_WIDTH_PX
+    assert w.native.minimumWidth() == w.native.maximumWidth() == MAX_WIDTH_PX  # nothing clipped

@@ -55,12 +55,15 @@ def _landmark_format(path: Path) -> str | None:
     from oapcal.io.landmarks.tables import is_bigwarp_row
     from oapcal.io.landmarks.via import is_via_csv_header
 
+    head = sniff(path, SNIFF_BYTES)  # "" for anything but a regular file (never blocks)
     if path.suffix.lower() == ".json":
-        try:  # VIA JSON is told apart by its structure: the whole file is read
+        if not head.lstrip().startswith(("{", "[")):
+            return None
+        try:  # VIA JSON is told apart by its structure: the whole (regular) file is read
             return "via" if detect_format(path) == "via" else None
         except (OapcalError, OSError, ValueError):
             return None
-    lines = sniff(path, SNIFF_BYTES).lstrip().splitlines()
+    lines = head.lstrip().splitlines()
     first = lines[0] if lines else ""
     return "bigwarp" if is_bigwarp_row(first) else "via" if is_via_csv_header(first) else None
 

@@ -85,7 +85,16 @@ class _OapcalWidget(Container):
         super().__init__(widgets=[*widgets, self._busy_bar, self._status], labels=True, scrollable=True)
         self._status.native.setWordWrap(True)
         self.root_native_widget._magic_widget = self  # napari finds the widget from its dock
-        self.native.setMaximumWidth(MAX_WIDTH_PX)
+        from qtpy.QtCore import Qt
+
+        scroll = self.root_native_widget  # the fields wrap to the dock's width; only vertical scrolling
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        bar = scroll.verticalScrollBar().sizeHint().width() + 2 * scroll.frameWidth()
+        scroll.widget().setMaximumWidth(MAX_WIDTH_PX - bar)
+        # one width: the fields' own (their table, say) may grow after they are shown, and
+        # the scroll area would clip what its viewport cannot show
+        scroll.setFixedWidth(MAX_WIDTH_PX)
+        scroll.widget().layout().addStretch(1)  # the fields at the top, as napari docks a plain widget
         self.viewer = napari_viewer
         self.busy = False
         self.worker = None
