@@ -21,7 +21,8 @@ def without_dask(monkeypatch):
 
 
 def test_require_names_the_extra(without_dask):
-    with pytest.raises(MissingExtraError, match=r"pip install 'oapcal\[dask\]'"):
+    expected = r"pip install 'dask\[array,distributed\]>=2024.1' 'zarr>=3.0' \(or, in a clone of oapcal: "
+    with pytest.raises(MissingExtraError, match=expected + r"pip install -e '\.\[dask\]'\)"):
         require("dask.array")
     assert issubclass(MissingExtraError, ImportError)
 
@@ -31,6 +32,28 @@ def test_correct_dask_without_the_extra_says_how_to_install_it(tmp_path, without
     tifffile.imwrite(tmp_path / "s.tif", np.zeros((2, 480, 640), np.uint8))
     code, out, err = run_cli("correct", cal_path, tmp_path / "s.tif", "--dask", "--out-dir", tmp_path / "out")
     assert code == 2, err
-    assert "pip install 'oapcal[dask]'" in err
+    assert "pip install 'dask[array,distributed]>=2024.1' 'zarr>=3.0' (or, in a clone of oapcal: " in err
+    assert "oapcal[dask]'" not in err.replace("-e '.[dask]'", "")  # oapcal is not on PyPI
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "out" / "s.zarr").exists()
+
+
+@pytest.mark.parametrize("extra", sorted(EXTRAS))
+def test_the_install_command_installs_the_extras_packages(extra):
+    """The packages in the message are exactly the extra's requirements in pyproject.toml,
+    so that ``pip install`` of them gives what the extra gives, and pip reads them."""
+    import shlex
+    import tomllib
+    from pathlib import Path
+
+    from oapcal.extras import install_command
+
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    wanted = pyproject["project"]["optional-dependencies"][extra]
+    command = install_command(extra)
+    packages = shlex.split(command.split(" (or")[0].removeprefix("pip install "))
+    assert packages == wanted
+    from packaging.requirements import Requirement  # what pip parses a requirement with
+
+    assert [str(Requirement(p)) for p in packages] == wanted
+    assert command.endswith(f"pip install -e '.[{extra}]')")

@@ -123,7 +123,10 @@ def test_a_truncated_page_chain_is_refused_not_shortened(tmp_path):
 
 def test_planar_rgb_tiff_stays_one_planar_colour_image(run_cli, tmp_path, small_calib):
     rgb = np.random.default_rng(2).integers(0, 255, (48, 64, 3), dtype=np.uint8)
-    tifffile.imwrite(tmp_path / "p.tif", np.moveaxis(rgb, -1, 0), photometric="rgb", planarconfig="separate")
+    # without tifffile's shape description (as other writers store planar RGB): tifffile's own
+    # (3, rows, cols) with it is a 3-frame stack (tests/io/test_tifffile_grey_planes.py)
+    tifffile.imwrite(tmp_path / "p.tif", np.moveaxis(rgb, -1, 0), photometric="rgb", planarconfig="separate",
+                     metadata=None)  # fmt: skip
     code, stdout, err = run_cli("correct", small_calib, tmp_path / "p.tif", "--out-dir", tmp_path / "o")
     assert code == 0, err
     assert "1 corrected (1 frames)" in stdout

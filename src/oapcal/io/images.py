@@ -231,9 +231,24 @@ def _scan_tiff(path: Path, tif):
                 next_offset = int(page.dataoffsets[0]) + int(page.nbytes)
     if contiguous:
         segments = (("raw", int(first.dataoffsets[0]), n_pages),)
+        if planar and _tifffile_grey_stack(tif, n_pages, frame):
+            # the planes are the frames, stored one after the other
+            return frame[2], frame[:2], dtype, False, (("raw", segments[0][1], frame[2]),)
     else:
         segments = (("pages", tuple(ifds)),)
     return n_pages, frame, dtype, planar, segments
+
+
+def _tifffile_grey_stack(tif, n_pages: int, frame: tuple[int, ...]) -> bool:
+    """Whether a one-page TIFF of 3 or 4 separate sample planes is a stack of grey frames:
+    tifffile stores an array ``(3 or 4, rows, cols)`` written without ``photometric`` so
+    (as RGB planes; its future default: separate grey pages), and records the array's shape
+    in its description, ``{"shape": [3, rows, cols]}``, which is what it reads back.  A
+    colour image from tifffile is ``(rows, cols, 3)`` (interleaved, not planar)."""
+    if n_pages != 1 or not tif.is_shaped:
+        return False
+    shape = (tif.shaped_metadata or [{}])[0].get("shape")
+    return list(shape or ()) == [frame[2], frame[0], frame[1]]
 
 
 def _check_ifd_chain(path: Path, tif, n_pages: int) -> None:

@@ -1,6 +1,6 @@
 """oapcal in napari (``docs/napari.md``): a plugin for the npe2 plugin engine.
 
-Installed with the ``napari`` extra (``pip install "oapcal[napari]"``) and found by napari
+Installed with the ``napari`` extra (in a clone of oapcal: ``pip install -e ".[napari]"``) and found by napari
 through the ``napari.manifest`` entry point (the manifest is ``napari.yaml`` beside this
 file).  It contributes
 

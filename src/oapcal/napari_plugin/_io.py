@@ -20,7 +20,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from oapcal.io.userfile import sniff
+from oapcal.napari_plugin import _layers as L
 from oapcal.napari_plugin._layers import (
     DISTORTED,
     REFERENCE,
@@ -44,8 +47,30 @@ def _is_point_pairs(path: Path) -> bool:
     return {"x_u", "y_u", "x_d", "y_d"} <= names
 
 
+def _landmark_format(path: Path) -> str | None:
+    """``"bigwarp"`` or ``"via"`` for a BigWarp landmarks CSV or a VIA CSV/JSON file
+    (:mod:`oapcal.io.landmarks`), else None."""
+    from oapcal.errors import OapcalError
+    from oapcal.io.landmarks import detect_format
+    from oapcal.io.landmarks.tables import is_bigwarp_row
+    from oapcal.io.landmarks.via import is_via_csv_header
+
+    head = sniff(path, SNIFF_BYTES)  # "" for anything but a regular file (never blocks)
+    if path.suffix.lower() == ".json":
+        if not head.lstrip().startswith(("{", "[")):
+            return None
+        try:  # VIA JSON is told apart by its structure: the whole (regular) file is read
+            return "via" if detect_format(path) == "via" else None
+        except (OapcalError, OSError, ValueError):
+            return None
+    lines = head.lstrip().splitlines()
+    first = lines[0] if lines else ""
+    return "bigwarp" if is_bigwarp_row(first) else "via" if is_via_csv_header(first) else None
+
+
 def napari_get_reader(path):
-    """The reader for ``path`` when it is an oapcal calibration or point-pair file, else None."""
+    """The reader for ``path`` when it is an oapcal calibration, a point-pair file, a BigWarp
+    or VIA landmark file or a zarr image, else None."""
     if isinstance(path, list | tuple):
         if len(path) != 1:
             return None
@@ -54,11 +79,80 @@ def napari_get_reader(path):
     suffix = p.suffix.lower()
     if suffix == ".zarr" and _ome_zarr_array(p) is not None:
         return read_ome_zarr
+    if suffix == ".zarr" and _zarr_array(p):
+        return read_zarr_array
     if suffix == ".json" and _is_calibration(p):
         return read_calibration
     if suffix in (".csv", ".tsv") and _is_point_pairs(p):
         return read_point_pairs
+    if suffix in (".csv", ".json") and _landmark_format(p) is not None:
+        return read_landmark_file
     return None
+
+
+def _zarr_array(path: Path) -> bool:
+    """Is ``path`` a plain zarr array (what ``oapcal correct --dask`` writes by default)?"""
+    from oapcal.io.userfile import read_json
+
+    if (path / ".zarray").is_file():
+        return True
+    if not (path / "zarr.json").is_file():
+        return False
+    try:
+        return read_json(path / "zarr.json", "zarr metadata").get("node_type") == "array"
+    except Exception:  # unreadable metadata: not ours to open
+        return False
+
+
+def read_zarr_array(path) -> list[tuple]:
+    """A plain zarr array as an image layer, read lazily (Dask)."""
+    from oapcal.extras import require
+
+    da = require("dask.array")
+    path = Path(path[0] if isinstance(path, list | tuple) else path)
+    return [(da.from_zarr(str(path)), {"name": path.name.removesuffix(".zarr")}, "image")]
+
+
+def read_landmark_file(path) -> list[tuple]:
+    """A BigWarp landmarks CSV as the ``distorted`` (moving) and ``reference`` (fixed) points
+    layers paired by landmark name; a VIA file's point regions as one points layer per
+    labelled image (at most :data:`MAX_VIA_LAYERS`; the others are named in a warning), the
+    regions' attributes as features.  (To fit, pair a VIA file's two images with ``oapcal
+    fit --distorted-image ... --reference-image ...``, docs/landmarks.md.)"""
+    from oapcal.io.landmarks import read_landmark_pairs
+    from oapcal.io.landmarks._base import read_text
+    from oapcal.io.landmarks.via import point_images, read_via
+
+    path = Path(path[0] if isinstance(path, list | tuple) else path)
+    if _landmark_format(path) == "bigwarp":
+        pairs = read_landmark_pairs(path, check_geometry=False)
+        return points_layers(pairs.xy_u, pairs.xy_d, pairs.ids, source=str(path))
+    text = read_text(path, "VIA file")
+    images = point_images(path, text=text)
+    if not images:
+        read_via(path, text=text)  # raises oapcal's message: what the file holds instead
+    if len(images) > MAX_VIA_LAYERS:
+        from napari.utils.notifications import show_warning
+
+        left = ", ".join(images[MAX_VIA_LAYERS:][:3])
+        show_warning(f"oapcal: {path.name} has point regions on {len(images)} images; opened the first "
+                     f"{MAX_VIA_LAYERS} ({left}, ... left out)")  # fmt: skip
+    return [_via_layer(read_via(path, image, text=text), f"{path.stem}: {image}", path)
+            for image in images[:MAX_VIA_LAYERS]]  # fmt: skip
+
+
+#: Most points layers opened from one VIA file (one per labelled image).
+MAX_VIA_LAYERS = 16
+
+
+def _via_layer(marks, name: str, path: Path) -> tuple:
+    xy = np.array([(m.x, m.y) for m in marks.landmarks], float).reshape(-1, 2)
+    names = sorted({k for m in marks.landmarks for k in m.attrs})
+    features = {k: np.array([m.attrs.get(k, "") for m in marks.landmarks], object) for k in names}
+    text = {"string": "{" + names[0] + "}", "size": 7, "color": "white"} if names else None
+    kwargs = {"name": name, "features": features, "face_color": "yellow", "size": 5, "text": text,
+              "metadata": {"oapcal_source": str(path)}}  # fmt: skip
+    return L.xy_to_rc(xy), kwargs, "points"
 
 
 def _ome_zarr_array(path: Path):

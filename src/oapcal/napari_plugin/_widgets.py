@@ -81,9 +81,20 @@ class _OapcalWidget(Container):
     def __init__(self, napari_viewer, widgets):
         self._status = Label(value="")
         self._busy_bar = ProgressBar(min=0, max=0, visible=False, label="working")
-        super().__init__(widgets=[*widgets, self._busy_bar, self._status], labels=True)
+        # scrollable: docked widgets never make the window taller than a 1080 px screen
+        super().__init__(widgets=[*widgets, self._busy_bar, self._status], labels=True, scrollable=True)
         self._status.native.setWordWrap(True)
-        self.native.setMaximumWidth(MAX_WIDTH_PX)
+        self.root_native_widget._magic_widget = self  # napari finds the widget from its dock
+        from qtpy.QtCore import Qt
+
+        scroll = self.root_native_widget  # the fields wrap to the dock's width; only vertical scrolling
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        bar = scroll.verticalScrollBar().sizeHint().width() + 2 * scroll.frameWidth()
+        scroll.widget().setMaximumWidth(MAX_WIDTH_PX - bar)
+        # one width: the fields' own (their table, say) may grow after they are shown, and
+        # the scroll area would clip what its viewport cannot show
+        scroll.setFixedWidth(MAX_WIDTH_PX)
+        scroll.widget().layout().addStretch(1)  # the fields at the top, as napari docks a plain widget
         self.viewer = napari_viewer
         self.busy = False
         self.worker = None
@@ -95,6 +106,13 @@ class _OapcalWidget(Container):
         napari_viewer.layers.events.inserted.connect(self._refresh)
         napari_viewer.layers.events.removed.connect(self._refresh)
         napari_viewer.layers.events.reordered.connect(self._refresh)
+        self.reset_choices()  # the choices that need the viewer (it was not set while they were made)
+
+    @property
+    def native(self):
+        """The scroll area around the fields: what napari docks (it docks ``native``), so that a
+        docked widget scrolls instead of making the window taller than the screen."""
+        return self.root_native_widget
 
     def _refresh(self, _event=None):
         self.reset_choices()
@@ -266,6 +284,9 @@ class LabelWidget(_OapcalWidget):
         self.um_per_px = FloatSpinBox(
             label="um per px (0: from clicks)", value=0.0, min=0.0, max=1e6, step=0.1
         )
+        from oapcal.imaging.usaf import LAYOUTS
+
+        self.target_layout = ComboBox(label="target layout", choices=["auto", *LAYOUTS], value="auto")
         self.refine = CheckBox(label="refine with detection", value=True)
         self.start = PushButton(text="Start labelling")
         self.propose = PushButton(text="Propose the other corners")
@@ -273,8 +294,8 @@ class LabelWidget(_OapcalWidget):
         self.propose.changed.connect(self.run)
         self.corner.changed.connect(self._corner_changed)
         self.groups.changed.connect(lambda _v: self.corner.reset_choices())
-        super().__init__(napari_viewer, [self.image, self.groups, self.corner, self.um_per_px, self.refine,
-                                         self.start, self.propose])  # fmt: skip
+        fields = [self.image, self.groups, self.corner, self.um_per_px, self.target_layout, self.refine]
+        super().__init__(napari_viewer, [*fields, self.start, self.propose])
         self.proposal = None
 
     def _ids(self, _w=None):
@@ -343,39 +364,53 @@ class LabelWidget(_OapcalWidget):
         refine = self.refine.value
         um = self.um_per_px.value or None
         groups_text = self.groups.value
+        layout_name = self.target_layout.value
 
         def work():
             groups = parse_groups(groups_text)
-            prop = propose_corners(clicks, size, groups, um)
+            prop = propose_corners(clicks, size, groups, um, layout_name)
             det = None
             if refine:
                 hints = {"um_per_px": prop.um_per_px, "orientation": prop.orientation,
                          "mirror": "yes" if prop.mirrored else "no"}  # fmt: skip
                 det = oapcal.detect_usaf(image, groups, **hints)
-                prop = refine_with_detection(prop, det, size, groups)
+                prop = refine_with_detection(prop, det, size, groups, um)
             return prop, det
 
         def done(out):
             prop, det = out
             self.proposal = prop
-            source = np.where(prop.clicked, "clicked", "proposed").astype(object)
-            if det is not None and det.status == 0:
-                found = set(det.ids)
-                source = np.array(
-                    [("detected" if i in found else s) for i, s in zip(prop.ids, source)], object
-                )
+            detected = det is not None and det.status == 0
+            source = np.full(len(prop.ids), "detected", object) if detected else (
+                np.where(prop.clicked, "clicked", "proposed").astype(object))  # fmt: skip
             for t in L.points_layers(prop.xy_u, prop.xy_d, prop.ids, um_per_px=prop.um_per_px,
                                      source=layer.name, extra={"source": source}):  # fmt: skip
                 _replace_layer(self.viewer, t)
-            note = "" if det is None else (f"; detection at that pose: {det.message}" if det.status else
-                                           f"; detection at that pose found {len(det.ids)}")  # fmt: skip
-            self._set_status(
-                f"{len(prop.ids)} corners ({int(prop.clicked.sum())} clicked) from a {prop.map_kind} map, "
-                f"{prop.um_per_px:.4g} um/px, {prop.orientation}, clicks off the map by "
-                f"{prop.click_rms_px:.2g} px rms{note}; drag or delete in 'distorted', then fit"
-            )
+            self._set_status(_proposal_words(prop, det, clicks))
 
         self._run("propose", work, done)
+
+
+def _proposal_words(prop, det, clicks) -> str:
+    """The Label widget's status line after a proposal (and the detection that refined it)."""
+    head = (f"{len(prop.ids)} corners from a {prop.map_kind} map ({prop.layout} layout), "
+            f"{prop.um_per_px:.4g} um/px, {prop.orientation}, clicks off the map by "
+            f"{prop.click_rms_px:.2g} px rms")  # fmt: skip
+    if det is None:
+        return (f"{head}; {int(prop.clicked.sum())} clicked, the others proposed (neither is sub-pixel: "
+                "drag them onto their corners, or tick 'refine with detection'), then fit")  # fmt: skip
+    if det.status != 0:
+        return (f"{head}; detection at that pose: {det.message} (the corners are the clicked and "
+                "proposed ones, not sub-pixel: drag them onto their corners before fitting)")  # fmt: skip
+    lost = [i for i in prop.dropped if i in clicks]
+    words = f"{head}; detection at that pose found {len(det.ids)}, all sub-pixel"
+    if lost:
+        more = f" and {len(lost) - 5} more" if len(lost) > 5 else ""
+        words += (f"; left out {len(lost)} clicked corner{'s' * (len(lost) > 1)} that detection did not "
+                  f"find ({', '.join(lost[:5])}{more}; a click is not sub-pixel)")  # fmt: skip
+    if len(prop.dropped) > len(lost):
+        words += f"; left out {len(prop.dropped) - len(lost)} proposed corners that detection did not find"
+    return words + "; then fit"
 
 
 class FitWidget(_OapcalWidget):
@@ -386,16 +421,23 @@ class FitWidget(_OapcalWidget):
     step_name = "Fit"
 
     def __init__(self, napari_viewer):
-        import oapcal
 
         points = lambda _w: _layers_of(napari_viewer, "points")  # noqa: E731
         self.distorted = ComboBox(label="distorted", choices=points)
         self.reference = ComboBox(label="reference", choices=points)
-        turned = [f"{name}+rotation" for name in oapcal.PRESETS]  # the target's rotation fitted too
-        self.model = ComboBox(label="model", choices=[*oapcal.PRESETS, *turned, SELECT], value="paper")
+        self.model = ComboBox(label="model", choices=_model_choices(), value=RECOMMENDED)
         self.um_per_px = FloatSpinBox(
             label="um per px (0: from layers)", value=0.0, min=0.0, max=1e6, step=0.1
         )
+        # the relay's design (relay models only), as oapcal fit --relay-setup / --relay-pixel-size /
+        # --microscope-magnification / --priors
+        self.relay_setup = ComboBox(label="relay setup", choices=[1, 2], value=1)
+        self.relay_pixel = FloatSpinBox(label="relay camera pixel (um)", value=4.8, min=0.01, max=1e3)
+        self.microscope = FloatSpinBox(
+            label="microscope magnification (0: none)", value=0.0, min=-1e3, max=1e3
+        )
+        self.priors = ComboBox(label="relay priors", choices=["off", "default"], value="off")
+        self.model.changed.connect(self._show_relay_fields)
         self.n_worst = SpinBox(label="worst landmarks", value=5, min=0, max=100)
         self.exaggerate = FloatSpinBox(label="residual arrows x", value=20.0, min=1.0, max=1000.0)
         self.button = PushButton(text="Fit")
@@ -404,13 +446,22 @@ class FitWidget(_OapcalWidget):
         self.table1.native.setStyleSheet("font-family: monospace")
         self.params = Table(label="parameters", value={"parameter": [], "value": [], "stderr": []})
         self.worst_text = Label(label="worst", value="")
-        super().__init__(napari_viewer, [self.distorted, self.reference, self.model, self.um_per_px,
+        relay = [self.relay_setup, self.relay_pixel, self.microscope, self.priors]
+        super().__init__(napari_viewer, [self.distorted, self.reference, self.model, *relay, self.um_per_px,
                                          self.n_worst, self.exaggerate, self.button, self.table1,
                                          self.params, self.worst_text])  # fmt: skip
+        self._show_relay_fields()
         self.calibration = None
         self.residual_px = None
         self.ids: list[str] = []
         self._default_layers()
+
+    def _show_relay_fields(self, _=None):
+        from oapcal.entry import is_relay_spec
+
+        relay = is_relay_spec(self.model.value)
+        for w in (self.relay_setup, self.relay_pixel, self.microscope, self.priors):
+            w.visible = relay
 
     def _default_layers(self):
         for combo, name in ((self.distorted, L.DISTORTED), (self.reference, L.REFERENCE)):
@@ -443,18 +494,31 @@ class FitWidget(_OapcalWidget):
             shape = image.data.shape[-3:-1] if image.rgb else image.data.shape[-2:]
             size = (int(shape[1]), int(shape[0]))
 
+        relay = self._relay_options(model)
+
         def work():
             if model == SELECT:
                 chosen = with_frame_terms(oapcal.select_models(xy_u, xy_d))  # the shared default start
             else:
                 chosen = model
             return oapcal.calibrate(xy_u, xy_d, chosen, um_per_px=scale, image_size=size,
-                                    name=f"{model} fit in napari", source=d_layer.name)  # fmt: skip
+                                    name=f"{model} fit in napari", source=d_layer.name, **relay)  # fmt: skip
 
         def done(cal):
             self.show_calibration(cal, xy_u, xy_d, ids)
 
         self._run("fit", work, done)
+
+    def _relay_options(self, model: str) -> dict:
+        """``design`` and ``priors`` of a relay model from the widget's fields (else none)."""
+        from oapcal.entry import is_relay_spec
+        from oapcal.optics.relay_model import RelayDesign, parse_priors
+
+        if not is_relay_spec(model):
+            return {}
+        design = RelayDesign(setup=int(self.relay_setup.value), pixel_size_um=float(self.relay_pixel.value),
+                             microscope_magnification=float(self.microscope.value) or None)  # fmt: skip
+        return {"design": design, "priors": parse_priors(self.priors.value)}
 
     def show_calibration(self, cal, xy_u, xy_d, ids) -> None:
         """Show a calibration's residuals, Table 1, parameters and worst landmarks."""
@@ -486,6 +550,24 @@ class FitWidget(_OapcalWidget):
         trust = _trust_words(cal)
         self._set_status(f"{cal.fit.n_points} pairs, model {', '.join(cal.free)}: {state}; "
                          f"mean residual {cal.residuals.mean_px:.3g} px{notes}{trust}")  # fmt: skip
+
+
+#: The model *Fit & inspect* preselects: the paper's (``oapcal fit``'s default; with
+#: ``rotation="auto"`` the target's rotation is fitted too when the points need it).
+RECOMMENDED = "paper"
+
+
+def _model_choices() -> list[tuple[str, str]]:
+    """Every model family a fit can use, as ``(label, model spec)``: the Eq. (1) presets,
+    the same with the target's rotation, the physical relay (``relay+microscope`` when the
+    microscope's magnification is given) and AICc selection; the recommended one says so."""
+    import oapcal
+
+    eq1 = [*oapcal.PRESETS, *(f"{name}+rotation" for name in oapcal.PRESETS)]
+    # the relay family with a microscope behind it (relay+microscope) is the relay with the
+    # microscope's magnification given in its design
+    labels = {RECOMMENDED: f"{RECOMMENDED} (recommended)", "relay": "relay (physical: the design below)"}
+    return [(labels.get(m, m), m) for m in [*eq1, "relay", SELECT]]
 
 
 def _trust_words(cal) -> str:

@@ -78,6 +78,19 @@ def read_via(
     """
     name = str(path)
     text = read_text(path, "VIA file") if text is None else text
+    return _pick_image(_images(name, text), name, image, role)
+
+
+def point_images(path, *, text: str | None = None) -> list[str]:
+    """The names of the images of a VIA file that have point regions (each one a ``image``
+    for :func:`read_via`), in the file's order."""
+    name = str(path)
+    text = read_text(path, "VIA file") if text is None else text
+    return [im[0] for im in _images(name, text) if any(isinstance(r, Landmark) for r in im[1])]
+
+
+def _images(name: str, text: str):
+    """The images of a VIA file's text, each ``(file name, regions, key)``."""
     stripped = text.lstrip()
     if stripped.startswith(("{", "[")):
         data = load_json(text, name)
@@ -98,7 +111,7 @@ def read_via(
             f"{name}: line 1: not a VIA file (a VIA 2 CSV starts with filename,file_size,...; "
             "VIA JSON starts with '{')"
         )
-    return _pick_image(images, name, image, role)
+    return images
 
 
 # -- VIA 2 ------------------------------------------------------------------------------------
