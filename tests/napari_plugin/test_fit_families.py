@@ -15,11 +15,13 @@ def test_every_family_is_offered_and_the_recommended_one_chosen(viewer):
     w = FitWidget(viewer)
     values = [c for c in w.model.choices]
     presets = list(oapcal.PRESETS)
-    assert values == [*presets, *(f"{p}+rotation" for p in presets), "relay", SELECT]
+    turned = [f"{p}+rotation" for p in presets]
+    assert values == [*presets, *turned, *(f"{p}+tilt" for p in turned), "relay", SELECT]
     assert w.model.value == "paper" and w.model.current_choice == "paper (recommended)"
     assert not w.priors.visible and not w.relay_setup.visible  # relay fields only for the relay
     w.model.value = "relay"
     assert w.priors.choices == ("off", "default")
+    assert w.priors.value == "default"  # as the command line's --priors auto for a relay
     w.model.value = "full+rotation"
     assert not w.microscope.visible
 
@@ -27,7 +29,7 @@ def test_every_family_is_offered_and_the_recommended_one_chosen(viewer):
 @pytest.mark.slow  # a relay fit (about 8 s); the choices are tested above
 def test_relay_fit_in_the_widget_is_calibrates(viewer, demo, wait):
     from oapcal.napari_plugin._widgets import FitWidget
-    from oapcal.optics.relay_model import RelayDesign
+    from oapcal.optics.relay_model import RelayDesign, parse_priors
 
     viewer.add_image(demo["image"], name="camera")
     rng = np.random.default_rng(7)
@@ -43,6 +45,7 @@ def test_relay_fit_in_the_widget_is_calibrates(viewer, demo, wait):
     wait(w, timeout=300)
     assert w.last_error is None, w.status
     direct = oapcal.calibrate(demo["xy_u"], xy_d, "relay", design=RelayDesign(setup=1, pixel_size_um=4.8),
-                              um_per_px=4.8, image_size=(640, 480))  # fmt: skip
+                              um_per_px=4.8, image_size=(640, 480),
+                              priors=parse_priors("default"))  # the widget's default  # fmt: skip
     np.testing.assert_allclose(w.calibration.params, direct.params, rtol=1e-7, atol=1e-9)
     assert w.calibration.residuals.mean_px < 0.3  # the demo's own relay, with 0.2 px noise

@@ -436,7 +436,8 @@ class FitWidget(_OapcalWidget):
         self.microscope = FloatSpinBox(
             label="microscope magnification (0: none)", value=0.0, min=-1e3, max=1e3
         )
-        self.priors = ComboBox(label="relay priors", choices=["off", "default"], value="off")
+        # the relay's priors on by default, as oapcal fit's --priors auto
+        self.priors = ComboBox(label="relay priors", choices=["off", "default"], value="default")
         self.model.changed.connect(self._show_relay_fields)
         self.n_worst = SpinBox(label="worst landmarks", value=5, min=0, max=100)
         self.exaggerate = FloatSpinBox(label="residual arrows x", value=20.0, min=1.0, max=1000.0)
@@ -559,11 +560,13 @@ RECOMMENDED = "paper"
 
 def _model_choices() -> list[tuple[str, str]]:
     """Every model family a fit can use, as ``(label, model spec)``: the Eq. (1) presets,
-    the same with the target's rotation, the physical relay (``relay+microscope`` when the
+    the same with the target's rotation and with the camera's tilt too, the physical relay (``relay+microscope`` when the
     microscope's magnification is given) and AICc selection; the recommended one says so."""
     import oapcal
 
-    eq1 = [*oapcal.PRESETS, *(f"{name}+rotation" for name in oapcal.PRESETS)]
+    # with the target's rotation, and with the camera's tilt (keystone) as well
+    turned = [f"{name}+rotation" for name in oapcal.PRESETS]
+    eq1 = [*oapcal.PRESETS, *turned, *(f"{name}+tilt" for name in turned)]
     # the relay family with a microscope behind it (relay+microscope) is the relay with the
     # microscope's magnification given in its design
     labels = {RECOMMENDED: f"{RECOMMENDED} (recommended)", "relay": "relay (physical: the design below)"}
