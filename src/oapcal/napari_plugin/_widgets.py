@@ -560,8 +560,9 @@ RECOMMENDED = "paper"
 
 def _model_choices() -> list[tuple[str, str]]:
     """Every model family a fit can use, as ``(label, model spec)``: the Eq. (1) presets,
-    the same with the target's rotation and with the camera's tilt too, the physical relay (``relay+microscope`` when the
-    microscope's magnification is given) and AICc selection; the recommended one says so."""
+    the same with the target's rotation and with the camera's tilt too, the physical relay
+    (``relay+microscope`` when the microscope's magnification is given) and AICc selection;
+    the recommended one says so."""
     import oapcal
 
     # with the target's rotation, and with the camera's tilt (keystone) as well
