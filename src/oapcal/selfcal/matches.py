@@ -179,8 +179,6 @@ def find_matches(
 
     Raises :class:`SelfcalRefused` (reason ``"texture"``, ``"overlap"`` or ``"frames"``)
     when the frames cannot give matches, naming the frame."""
-    import cv2
-
     from oapcal.progress import Stages
 
     frames = list(frames)
@@ -200,57 +198,92 @@ def find_matches(
 
         prior = as_model(prior)
         frames8, valid = _precorrect(frames8, prior)
-    soft = cv2.GaussianBlur(cv2.erode(valid.astype(np.float32), np.ones((9, 9), np.uint8)), (0, 0), 6.0)
-    reduced = [_reduce(_apodize(f, soft), PHASE_MAX_SIDE) for f in frames8]
-    scale = reduced[0][1]
-    window = cv2.createHanningWindow(reduced[0][0].shape[::-1], cv2.CV_32F)
     with Stages(progress, total=n * (n - 1) // 2 + 1, description="phase correlation") as stages:
-        shifts, response = pair_shifts([r[0] for r in reduced], scale, window)
+        shifts, response = _phase_shifts(frames8, valid)
         stages.advance(description="matching pairs")
         candidates = _candidates(shifts, response, (w, h), min_overlap, min_response)
-        keep = _bounded_pairs(candidates, n, max_pairs_per_frame)
-        stages.total = len(keep) + 1
-        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-        out_a, out_b, xa, xb, wt, pairs = [], [], [], [], [], []
+        matcher = _PairMatcher(frames8, valid, shifts, response, (max_per_pair, max_fb_px), stages)
+        _match_until_connected(matcher, candidates, n, max_pairs_per_frame)
+    _check_connected(matcher.pairs, n, min_overlap)
+    return matcher.matches(prior, n, (w, h))
 
-        def match(candidate) -> None:
-            _, overlap, a, b = candidate
-            pa, pb, eig = _match_pair(
-                frames8[a], frames8[b], shifts[a, b], dis, max_per_pair, max_fb_px, valid
-            )
-            stages.advance(description=f"matching frames {a} and {b}")
-            if len(pa) < MIN_PAIR_MATCHES:
-                return
-            shift = (float(shifts[a, b, 0]), float(shifts[a, b, 1]))
-            pairs.append(Pair(a, b, shift, float(response[a, b]), float(overlap), len(pa)))
-            out_a.append(np.full(len(pa), a))
-            out_b.append(np.full(len(pa), b))
-            xa.append(pa)
-            xb.append(pb)
-            wt.append(eig)
 
-        for candidate in keep:
-            match(candidate)
-        # frames cut off (their clearest peaks were spurious or their pairs gave too few
-        # matches): their further candidates, clearest first, until they join the rest
-        tried = set(keep)
-        for candidate in sorted(candidates, reverse=True):
-            labels = _components(pairs, n)
-            if (labels == labels[0]).all():
-                break
-            _, _, a, b = candidate
-            if candidate in tried or labels[a] == labels[b]:
-                continue
-            tried.add(candidate)
-            stages.total += 1
-            match(candidate)
-    _check_connected(pairs, n, min_overlap)
-    xa, xb = np.concatenate(xa), np.concatenate(xb)
-    if prior is not None:  # back to the frames' own pixels
-        xa, xb = prior(xa), prior(xb)
-    weight = np.concatenate(wt)
-    weight = np.clip(weight / np.median(weight), 0.05, 20.0)
-    return Matches(np.concatenate(out_a), np.concatenate(out_b), xa, xb, weight, tuple(pairs), n, (w, h))
+def _phase_shifts(frames8, valid):
+    """:func:`pair_shifts` of the frames faded out where the (pre-)correction has no data,
+    reduced to at most :data:`PHASE_MAX_SIDE` px, with a Hanning window."""
+    import cv2
+
+    soft = cv2.GaussianBlur(cv2.erode(valid.astype(np.float32), np.ones((9, 9), np.uint8)), (0, 0), 6.0)
+    reduced = [_reduce(_apodize(f, soft), PHASE_MAX_SIDE) for f in frames8]
+    window = cv2.createHanningWindow(reduced[0][0].shape[::-1], cv2.CV_32F)
+    return pair_shifts([r[0] for r in reduced], reduced[0][1], window)
+
+
+class _PairMatcher:
+    """Matches pairs of the frames one at a time (:func:`_match_pair`), keeping the pairs
+    with at least :data:`MIN_PAIR_MATCHES` matches and their matches."""
+
+    def __init__(self, frames8, valid, shifts, response, limits, stages):
+        import cv2
+
+        self.frames8, self.valid, self.shifts, self.response = frames8, valid, shifts, response
+        self.max_per_pair, self.max_fb_px = limits
+        self.stages = stages
+        self.dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        self.pairs: list[Pair] = []
+        self._found: list[tuple] = []  # per kept pair: (points in a, points in b, eigenvalues)
+
+    def match(self, candidate) -> None:
+        _, overlap, a, b = candidate
+        pa, pb, eig = _match_pair(
+            self.frames8[a],
+            self.frames8[b],
+            self.shifts[a, b],
+            self.dis,
+            self.max_per_pair,
+            self.max_fb_px,
+            self.valid,
+        )
+        self.stages.advance(description=f"matching frames {a} and {b}")
+        if len(pa) < MIN_PAIR_MATCHES:
+            return
+        shift = (float(self.shifts[a, b, 0]), float(self.shifts[a, b, 1]))
+        self.pairs.append(Pair(a, b, shift, float(self.response[a, b]), float(overlap), len(pa)))
+        self._found.append((pa, pb, eig))
+
+    def matches(self, prior, n: int, size) -> Matches:
+        """The :class:`Matches` of the kept pairs (taken back to the frames' own pixels
+        through the ``prior``'s forward map when the frames were pre-corrected)."""
+        frame_a = np.concatenate([np.full(p.n_matches, p.a) for p in self.pairs])
+        frame_b = np.concatenate([np.full(p.n_matches, p.b) for p in self.pairs])
+        xa = np.concatenate([f[0] for f in self._found])
+        xb = np.concatenate([f[1] for f in self._found])
+        if prior is not None:  # back to the frames' own pixels
+            xa, xb = prior(xa), prior(xb)
+        weight = np.concatenate([f[2] for f in self._found])
+        weight = np.clip(weight / np.median(weight), 0.05, 20.0)
+        return Matches(frame_a, frame_b, xa, xb, weight, tuple(self.pairs), n, size)
+
+
+def _match_until_connected(matcher: _PairMatcher, candidates, n: int, per_frame: int) -> None:
+    """Match each frame's ``per_frame`` clearest candidates (:func:`_bounded_pairs`); then,
+    for frames cut off (their clearest peaks were spurious or their pairs gave too few
+    matches), their further candidates, clearest first, until they join the rest."""
+    keep = _bounded_pairs(candidates, n, per_frame)
+    matcher.stages.total = len(keep) + 1
+    for candidate in keep:
+        matcher.match(candidate)
+    tried = set(keep)
+    for candidate in sorted(candidates, reverse=True):
+        labels = _components(matcher.pairs, n)
+        if (labels == labels[0]).all():
+            break
+        _, _, a, b = candidate
+        if candidate in tried or labels[a] == labels[b]:
+            continue
+        tried.add(candidate)
+        matcher.stages.total += 1
+        matcher.match(candidate)
 
 
 def _frames8(frames: list) -> list:
