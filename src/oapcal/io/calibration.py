@@ -19,7 +19,9 @@ Layout (``docs/file-formats.md`` has an annotated example)::
      "hull": convex hull of the reference points [[x, y], ...], or null,
      "priors": the priors of a maximum a posteriori relay fit (only then),
      "error_model": {"floor_px", "noise_px", "extrapolation", "ramp_px", ...} (optional:
-                    oapcal.uncertainty.ErrorModel; files without it load, with None)}
+                    oapcal.uncertainty.ErrorModel; files without it load, with None),
+     "selfcal": {"frames", "pairs", "matches", "inliers", "gauge", "pair_table", ...} (only
+                from ``oapcal selfcal``: oapcal.selfcal.solve.selfcal_record)}
 
 Version 1 (no ``model_family``: Eq. 1) is still read.  Non-finite numbers are written as
 null.  On reading, every number must be finite (NaN, Infinity and numbers too large for
@@ -107,6 +109,7 @@ def calibration_to_dict(calibration: Calibration) -> dict:
             # written only for a fit with priors: other files are as before
             **({"priors": calibration.priors} if calibration.priors is not None else {}),
             **({"error_model": calibration.error_model.to_dict()} if calibration.error_model else {}),
+            **({"selfcal": calibration.selfcal} if calibration.selfcal is not None else {}),
         }
     )
 
@@ -190,6 +193,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         priors=data.get("priors"),
         error_model=ErrorModel.from_dict(data.get("error_model")),
         family=family,
+        selfcal=data.get("selfcal"),
     )
     check_model_region(cal, source=source)
     return cal

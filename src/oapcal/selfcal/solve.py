@@ -464,7 +464,7 @@ def self_calibrate(
         gauge, left = gauge_report(prob, p, matches, inlier)
     n_failed = int((~ok_all).sum())
     cal = _record(prob, p, cov, fit, dist[inlier], n_failed, matches, inlier, gauge, name, source)
-    return SelfCalibration(
+    result = SelfCalibration(
         calibration=cal,
         translations=t,
         stage_rotation_deg=float(theta) if prob.steps is not None else None,
@@ -476,6 +476,42 @@ def self_calibrate(
         um_per_px_centre=_centre_scale(p, prob),
         n_iter=int(fit.nfev),
     )
+    return dataclasses.replace(result, calibration=dataclasses.replace(cal, selfcal=selfcal_record(result)))
+
+
+def selfcal_record(result: SelfCalibration) -> dict:
+    """What a self-calibration found, as the calibration file's ``selfcal`` object (the
+    report's section): ``frames``, ``pairs``, ``matches``, ``inliers``, ``moves``
+    (``"unknown"`` or ``"known steps"``), ``translations_px`` (per frame), ``stage_rotation_deg``
+    and ``um_per_px_centre`` (None without steps / a scale), the ``gauge`` lines and
+    ``gauge_left``, and per overlapping pair ``pair_table`` rows ``{a, b, matches, inliers,
+    rms_px, shift_px, overlap, response}`` (the residuals of its inlier matches)."""
+    m = result.matches
+    e = np.linalg.norm(result.residuals, axis=1)
+    rows = []
+    for pair in m.pairs:
+        sel = (m.frame_a == pair.a) & (m.frame_b == pair.b)
+        inl = sel & result.inlier
+        rms = float(np.sqrt(np.mean(e[inl] ** 2))) if inl.any() else None
+        rows.append(
+            {"a": int(pair.a), "b": int(pair.b), "matches": int(sel.sum()), "inliers": int(inl.sum()),
+             "rms_px": rms, "shift_px": [float(v) for v in pair.shift], "overlap": float(pair.overlap),
+             "response": float(pair.response)}
+        )  # fmt: skip
+    centre = result.um_per_px_centre
+    return {
+        "frames": int(m.n_frames),
+        "pairs": len(m.pairs),
+        "matches": len(m),
+        "inliers": int(result.inlier.sum()),
+        "moves": "unknown" if result.stage_rotation_deg is None else "known steps",
+        "translations_px": [[float(v) for v in t] for t in result.translations],
+        "stage_rotation_deg": result.stage_rotation_deg,
+        "um_per_px_centre": None if centre is None else [float(v) for v in centre],
+        "gauge": list(result.gauge),
+        "gauge_left": {k: float(v) for k, v in result.gauge_left.items()},
+        "pair_table": rows,
+    }
 
 
 def _checked_steps(steps_um, matches: Matches):
