@@ -215,6 +215,11 @@ class _Residual:
 
     def correct(self, p):
         inv = undistort(self.d, p, xy_start=self.start_u, family=self.prob.family)
+        # the next evaluation's Newton inverse starts here: least_squares moves the parameters
+        # little between evaluations, so it converges in a step or two rather than from the
+        # family's start (9 frames of the relay: the inverse was half of the solve's time)
+        finite = np.isfinite(inv.xy).all()
+        self.start_u = inv.xy if finite else None
         return inv.xy
 
     def _state(self, x):
@@ -545,8 +550,11 @@ def _start(prob: _Problem, matches: Matches, use, t0, spec) -> tuple[_Problem, n
         with threadpool_limits(limits=1, user_api="blas"):
             x_free = _robust_start(_Residual(free, matches, use), x_free).x
         p_free, t_free, _ = _Residual(free, matches, use).split(x_free)
-        scale, theta0 = _similarity(prob.steps, t_free)
-        prob = dataclasses.replace(prob, params0=_rescaled(p_free, scale, prob))
+        # that solve may run away along a gauge the model leaves nearly free (paper's centre,
+        # by 850-900 px on a pure-translation scene), and the solve with steps then diverged or
+        # not by the turn of one match in 5,000: the model's own start, taken to the scale and
+        # turn of its own first moves, is kept instead when it fits the steps better
+        prob, theta0 = _better_start(prob, matches, use, ((p_free, t_free), (prob.params0, t0)))
     x0 = np.concatenate(
         [
             prob.params0[prob.solved],
@@ -554,6 +562,29 @@ def _start(prob: _Problem, matches: Matches, use, t0, spec) -> tuple[_Problem, n
         ]
     )
     return prob, x0
+
+
+def _better_start(prob: _Problem, matches: Matches, use, candidates) -> tuple[_Problem, float]:
+    """Of the ``candidates`` ``(params, moves)``, each taken to the scale and turn of its
+    moves onto the known steps, the start (problem, turn) of least Cauchy cost."""
+    best = None
+    for p_start, t_start in candidates:
+        scale, theta = _similarity(prob.steps, t_start)
+        start = dataclasses.replace(prob, params0=_rescaled(p_start, scale, prob))
+        x = np.concatenate([start.params0[start.solved], [theta] if prob.stage_rotation else []])
+        cost = _start_cost(_Residual(start, matches, use), x)
+        if best is None or cost < best[0]:
+            best = (cost, start, theta)
+    return best[1], best[2]
+
+
+def _start_cost(res: _Residual, x0: np.ndarray) -> float:
+    """The first solve's Cauchy cost (0.5 px) at ``x0``; inf where a correction fails."""
+    e, ok = res.raw(x0)
+    if not ok.all():
+        return float("inf")
+    z = (np.sum(e**2, axis=1) * res.sw**2) / 0.25
+    return float(np.sum(np.log1p(z)))
 
 
 def _first_inliers(res: _Residual, fit, use, n_matches: int) -> tuple[float, np.ndarray]:
