@@ -543,7 +543,7 @@ def _selfcal_html(cal, plots) -> str:
         out += "".join(f"<li>{H.esc(line)}</li>" for line in describe(cal)) + "</ul>"
     png = plots.figure_png(moves_figure(rec, cal.image_size))
     caption = ("Each frame's move (px of the corrected image) and each overlapping pair as a line, "
-               "coloured by the RMS residual of its inlier matches.")  # fmt: skip
+               "coloured by the RMS residual of its inlier matches; dashed: the frame's size.")  # fmt: skip
     out += H.png_figure(png, "frame moves and pairs", caption)
     pairs = sorted(rec.get("pair_table", []), key=lambda q: -(q["rms_px"] or 0.0))
     shown = pairs if len(pairs) <= SELFCAL_PAIR_ROWS else pairs[:SELFCAL_PAIR_ROWS]

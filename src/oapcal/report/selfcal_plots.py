@@ -83,7 +83,7 @@ def moves_figure(record: dict, image_size=None):
     """The frames' moves of a self-calibration record (the calibration file's ``selfcal``,
     :func:`oapcal.selfcal.solve.selfcal_record`): each frame a numbered dot, each
     overlapping pair a line coloured by the RMS residual of its inlier matches; the frame's
-    outline about frame 0 for scale (``image_size`` ``(w, h)``)."""
+    outline (dashed, ``image_size`` ``(w, h)``) about the moves' middle for scale."""
     from matplotlib.collections import LineCollection
 
     t = np.asarray(record["translations_px"], float).reshape(-1, 2)
@@ -98,11 +98,11 @@ def moves_figure(record: dict, image_size=None):
     ax.scatter(t[:, 0], t[:, 1], s=18, c="black", zorder=3)
     for i, (x, y) in enumerate(t):
         ax.annotate(str(i), (x, y), textcoords="offset points", xytext=(3, 3), fontsize=7)
-    if image_size:
+    if image_size:  # the frame's size, about the moves' middle
         w, h = image_size
-        ax.plot([-w / 2, w / 2, w / 2, -w / 2, -w / 2], [-h / 2, -h / 2, h / 2, h / 2, -h / 2], "--",
-                color="grey", lw=0.8, label="the frame's size")  # fmt: skip
-        ax.legend(loc="lower right", fontsize=8)
+        cx, cy = (t.min(axis=0) + t.max(axis=0)) / 2
+        xs = [cx - w / 2, cx + w / 2, cx + w / 2, cx - w / 2, cx - w / 2]
+        ax.plot(xs, [cy - h / 2, cy - h / 2, cy + h / 2, cy + h / 2, cy - h / 2], "--", color="grey", lw=0.8)
     ax.set_aspect("equal")
     ax.invert_yaxis()
     ax.set_xlabel("move x [px]")
