@@ -235,11 +235,12 @@ def run(seeds, quick: bool, plots: bool, cache=None):
 
 def _plots(res, frames):
     from oapcal.report.plots import save_figure
-    from oapcal.report.selfcal_plots import matches_figure, residual_figure
+    from oapcal.report.selfcal_plots import matches_figure, moves_figure, residual_figure
 
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     save_figure(matches_figure(res, frames[4]), OUT_DIR / "matches.png")
     save_figure(residual_figure(res), OUT_DIR / "residuals.png")
+    save_figure(moves_figure(res.calibration.selfcal, res.calibration.image_size), OUT_DIR / "moves.png")
 
 
 def table(rows, quick: bool):
