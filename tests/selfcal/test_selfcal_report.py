@@ -73,3 +73,23 @@ def test_report_command_on_a_selfcal_file(run_cli, radial, tmp_path):
     code, stdout, err = run_cli("report", path, "--out", out)
     assert code == 0, err
     assert '<section id="selfcal">' in out.read_text()
+
+
+@pytest.mark.slow  # renders 9 frames through a misaligned relay (~20 s)
+def test_the_report_shows_the_relay_misalignment_found():
+    from selfcal_scenes import texture
+    from test_selfcal_relay import DESIGN, TRUTH_MIS, _frames
+
+    from oapcal.optics.relay_model import describe, relay_params
+    from oapcal.selfcal import find_matches
+
+    moves = np.array([(i * 40.0, j * 30.0) for j in (-1, 0, 1) for i in (-1, 0, 1)])
+    frames = _frames(relay_params(DESIGN, TRUTH_MIS), moves, texture(3))
+    result = self_calibrate(find_matches(frames, prior=relay_params(DESIGN)), "relay", design=DESIGN)
+    page, _ = build_report(result.calibration)
+    text = html.unescape(page[page.index('<section id="selfcal">') :])
+    assert "The misalignment found" in text
+    lines = describe(result.calibration)
+    assert any(line.startswith("camera_defocus") for line in lines)
+    for line in lines:
+        assert line in text
