@@ -176,7 +176,9 @@ class Calibration:
     (:meth:`oapcal.optics.relay_model.RelayPriors.to_dict`, with the noise used); None
     without priors.  ``error_model`` is the model floor and extrapolation measured on the
     landmarks (:class:`oapcal.uncertainty.ErrorModel`, :mod:`oapcal.error_model`), None for
-    files written before it existed.
+    files written before it existed.  ``selfcal`` is what a self-calibration found (frames,
+    matches, gauge, per-pair residuals: :func:`oapcal.selfcal.solve.selfcal_record`), None
+    for a fit to landmarks.
     """
 
     free: tuple[str, ...]
@@ -198,6 +200,7 @@ class Calibration:
     priors: dict | None = None
     error_model: object | None = None
     family: ModelFamily | str | None = None
+    selfcal: dict | None = None
 
     def __post_init__(self):
         family = family_of(self.params) if self.family is None else family_named(self.family)

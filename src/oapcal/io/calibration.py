@@ -21,7 +21,9 @@ Layout (``docs/file-formats.md`` has an annotated example)::
      "error_model": {"floor_px", "noise_px", "extrapolation", "ramp_px", ...} (optional:
                     oapcal.uncertainty.ErrorModel; files without it load, with None),
      "checked": {"sha256": ...} (relay families only, optional: the content passed every
-                check below under this oapcal's code; see _checks_passed)}
+                check below under this oapcal's code; see _checks_passed),
+     "selfcal": {"frames", "pairs", "matches", "inliers", "gauge", "pair_table", ...} (only
+                from ``oapcal selfcal``: oapcal.selfcal.solve.selfcal_record)}
 
 Version 1 (no ``model_family``: Eq. 1) is still read.  Non-finite numbers are written as
 null.  On reading, every number must be finite (NaN, Infinity and numbers too large for
@@ -122,6 +124,7 @@ def calibration_to_dict(calibration: Calibration) -> dict:
             # written only for a fit with priors: other files are as before
             **({"priors": calibration.priors} if calibration.priors is not None else {}),
             **({"error_model": calibration.error_model.to_dict()} if calibration.error_model else {}),
+            **({"selfcal": calibration.selfcal} if calibration.selfcal is not None else {}),
         }
     )
     if calibration.family in RELAY_FAMILIES:
@@ -260,6 +263,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
         priors=data.get("priors"),
         error_model=ErrorModel.from_dict(data.get("error_model")),
         family=family,
+        selfcal=data.get("selfcal"),
     )
     if traced or family not in RELAY_FAMILIES:
         check_model_region(cal, source=source)

@@ -270,6 +270,8 @@ def render_report(
         H.section("Summary", _summary_html(cal, content.residuals, from_points)),
         H.section("Fitted parameters", _params_html(cal)),
     ]
+    if getattr(cal, "selfcal", None):
+        sections.append(H.section("Self-calibration", _selfcal_html(cal, plots), "selfcal"))
     if from_points:
         step("residual vectors")
         png = plots.figure_png(plots.residual_vectors_figure(content.vectors, um, shape))
@@ -493,6 +495,63 @@ def _relay_html(cal) -> str:
         rows = [[k, "-" if v is None else (", ".join(H.fmt(c) for c in v) if isinstance(v, list) else v)]
                 for k, v in design.items()]  # fmt: skip
         out += H.table(["design", "value"], rows, "The nominal relay the fit started from")
+    return out
+
+
+#: Pairs listed one by one in the self-calibration section (beyond: those of largest RMS).
+SELFCAL_PAIR_ROWS = 40
+
+
+def _selfcal_html(cal, plots) -> str:
+    """What a self-calibration found (the file's ``selfcal`` record): the frames and
+    matches, the gauge, the misalignment for the relay, the frames' moves and the pairs."""
+    from oapcal.report.selfcal_plots import moves_figure
+
+    rec = cal.selfcal
+    r = cal.residuals
+    out = H.paragraph(
+        f"Solved from {rec['frames']} frames of one moved, textured scene (oapcal selfcal), not from a "
+        f"target: {rec['inliers']} of {rec['matches']} matches in {rec['pairs']} overlapping pairs agree "
+        f"with one model and one move per frame (the rest are dropped as outliers); moves "
+        f"{rec['moves']}. The residuals of the summary (Table 1) are those of the inlier matches, "
+        "e = u(d_a) - t_a - (u(d_b) - t_b), u the correction and t a frame's move."
+    )
+    stage = rec.get("stage_rotation_deg")
+    centre = rec.get("um_per_px_centre")
+    rows = [
+        ["frames", rec["frames"]],
+        ["overlapping pairs", rec["pairs"]],
+        ["matches (inliers)", f"{rec['matches']} ({rec['inliers']})"],
+        ["moves", rec["moves"]],
+        ["match residuals: RMS / mean / max [px]", " / ".join(map(H.fmt, (r.rms_px, r.mean_px, r.max_px)))],
+        ["stage turned against the camera [deg]", "-" if stage is None else f"{stage:+.4f}"],
+        ["object um per px at the image centre (x, y)",
+         "-" if centre is None else " / ".join(H.fmt(v, 5) for v in centre)],
+    ]  # fmt: skip
+    out += H.table(["quantity", "value"], rows, "Self-calibration")
+    out += "<p><strong>The gauge</strong>: what fixes each affine part of the correction</p><ul>"
+    out += "".join(f"<li>{H.esc(line)}</li>" for line in rec.get("gauge", [])) + "</ul>"
+    left = rec.get("gauge_left") or {}
+    if left:
+        out += H.table(["part", *left], [["left after the model's best absorption", *left.values()]],
+                       "The fraction of each affine part the model cannot absorb (0: a free gauge, "
+                       "1: fixed by the model's form)")  # fmt: skip
+    if cal.relay_design is not None:
+        from oapcal.optics.relay_model import describe
+
+        out += "<p><strong>The misalignment found</strong> (in place, from the frames)</p><ul>"
+        out += "".join(f"<li>{H.esc(line)}</li>" for line in describe(cal)) + "</ul>"
+    png = plots.figure_png(moves_figure(rec, cal.image_size))
+    caption = ("Each frame's move (px of the corrected image) and each overlapping pair as a line, "
+               "coloured by the RMS residual of its inlier matches; dashed: the frame's size.")  # fmt: skip
+    out += H.png_figure(png, "frame moves and pairs", caption)
+    pairs = sorted(rec.get("pair_table", []), key=lambda q: -(q["rms_px"] or 0.0))
+    shown = pairs if len(pairs) <= SELFCAL_PAIR_ROWS else pairs[:SELFCAL_PAIR_ROWS]
+    rows = [[f"{q['a']} - {q['b']}", q["matches"], q["inliers"], q["rms_px"], *q["shift_px"], q["overlap"]]
+            for q in shown]  # fmt: skip
+    what = "" if len(shown) == len(pairs) else f" (the {len(shown)} of largest RMS of {len(pairs)})"
+    out += H.table(["frames", "matches", "inliers", "RMS [px]", "shift x [px]", "shift y [px]", "overlap"],
+                   rows, f"The overlapping pairs{what}, largest RMS first")  # fmt: skip
     return out
 
 

@@ -79,4 +79,36 @@ def residual_figure(result, *, arrow_scale: float | None = None):
     return fig
 
 
-__all__ = ["matches_figure", "residual_figure"]
+def moves_figure(record: dict, image_size=None):
+    """The frames' moves of a self-calibration record (the calibration file's ``selfcal``,
+    :func:`oapcal.selfcal.solve.selfcal_record`): each frame a numbered dot, each
+    overlapping pair a line coloured by the RMS residual of its inlier matches; the frame's
+    outline (dashed, ``image_size`` ``(w, h)``) about the moves' middle for scale."""
+    from matplotlib.collections import LineCollection
+
+    t = np.asarray(record["translations_px"], float).reshape(-1, 2)
+    fig = new_figure(6.4, 5.2)
+    ax = fig.add_subplot(1, 1, 1)
+    rows = [q for q in record.get("pair_table", []) if q.get("rms_px") is not None]
+    if rows:
+        segs = [[t[q["a"]], t[q["b"]]] for q in rows]
+        lines = LineCollection(segs, array=np.array([q["rms_px"] for q in rows]), cmap="viridis", lw=1.2)
+        ax.add_collection(lines)
+        fig.colorbar(lines, ax=ax, label="pair RMS residual [px]", shrink=0.8)
+    ax.scatter(t[:, 0], t[:, 1], s=18, c="black", zorder=3)
+    for i, (x, y) in enumerate(t):
+        ax.annotate(str(i), (x, y), textcoords="offset points", xytext=(3, 3), fontsize=7)
+    if image_size:  # the frame's size, about the moves' middle
+        w, h = image_size
+        cx, cy = (t.min(axis=0) + t.max(axis=0)) / 2
+        xs = [cx - w / 2, cx + w / 2, cx + w / 2, cx - w / 2, cx - w / 2]
+        ax.plot(xs, [cy - h / 2, cy - h / 2, cy + h / 2, cy + h / 2, cy - h / 2], "--", color="grey", lw=0.8)
+    ax.set_aspect("equal")
+    ax.invert_yaxis()
+    ax.set_xlabel("move x [px]")
+    ax.set_ylabel("move y [px] (down)")
+    ax.set_title(f"{len(t)} frames, {len(record.get('pair_table', []))} overlapping pairs", fontsize=9)
+    return fig
+
+
+__all__ = ["matches_figure", "moves_figure", "residual_figure"]

@@ -36,6 +36,8 @@ from oapcal.errors import DataError
 PHASE_MAX_SIDE = 512
 #: The dense flow runs on frames reduced to at most this side.
 FLOW_MAX_SIDE = 1024
+#: Reduced px of the frames around the overlap that the dense flow also sees.
+FLOW_PAD = 16
 #: Lucas-Kanade window (px, full resolution) and pyramid levels.
 LK_WINDOW = 21
 LK_LEVELS = 2
@@ -135,15 +137,22 @@ def _to_uint8(g: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 def pair_shifts(small: list[np.ndarray], scale: float, window) -> tuple[np.ndarray, np.ndarray]:
     """Phase-correlation shifts ``(F, F, 2)`` (full-resolution px) and responses ``(F, F)``
-    for every pair ``a < b`` of reduced frames."""
+    for every pair ``a < b`` of reduced frames, each with the Hanning ``window``; the frames
+    are left unchanged."""
     import cv2
 
+    # the window applied here, once per frame: cv2.phaseCorrelate given a window multiplies
+    # its *inputs* by it in place (OpenCV 5.0), so frame f of F was windowed F - 1 times over
+    # the loop and the last pairs correlated little more than the frames' centres (50 frames
+    # of 2048 x 2048: 408 of 455 candidate shifts wrong, the lower rows refused).  Without a
+    # window the call leaves its inputs alone and gives the same shifts.
+    windowed = [np.asarray(s, np.float32) * window for s in small]
     n = len(small)
     shifts = np.zeros((n, n, 2))
     response = np.zeros((n, n))
     for a in range(n):
         for b in range(a + 1, n):
-            (dx, dy), r = cv2.phaseCorrelate(small[a], small[b], window)
+            (dx, dy), r = cv2.phaseCorrelate(windowed[a], windowed[b])
             shifts[a, b] = (dx * scale, dy * scale)
             response[a, b] = r
     return shifts, response
@@ -172,8 +181,6 @@ def find_matches(
 
     Raises :class:`SelfcalRefused` (reason ``"texture"``, ``"overlap"`` or ``"frames"``)
     when the frames cannot give matches, naming the frame."""
-    import cv2
-
     from oapcal.progress import Stages
 
     frames = list(frames)
@@ -193,57 +200,93 @@ def find_matches(
 
         prior = as_model(prior)
         frames8, valid = _precorrect(frames8, prior)
-    soft = cv2.GaussianBlur(cv2.erode(valid.astype(np.float32), np.ones((9, 9), np.uint8)), (0, 0), 6.0)
-    reduced = [_reduce(_apodize(f, soft), PHASE_MAX_SIDE) for f in frames8]
-    scale = reduced[0][1]
-    window = cv2.createHanningWindow(reduced[0][0].shape[::-1], cv2.CV_32F)
     with Stages(progress, total=n * (n - 1) // 2 + 1, description="phase correlation") as stages:
-        shifts, response = pair_shifts([r[0] for r in reduced], scale, window)
+        shifts, response = _phase_shifts(frames8, valid)
         stages.advance(description="matching pairs")
         candidates = _candidates(shifts, response, (w, h), min_overlap, min_response)
-        keep = _bounded_pairs(candidates, n, max_pairs_per_frame)
-        stages.total = len(keep) + 1
-        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-        out_a, out_b, xa, xb, wt, pairs = [], [], [], [], [], []
+        matcher = _PairMatcher(frames8, valid, shifts, response, (max_per_pair, max_fb_px), stages)
+        _match_until_connected(matcher, candidates, n, max_pairs_per_frame)
+    _check_connected(matcher.pairs, n, min_overlap)
+    return matcher.matches(prior, n, (w, h))
 
-        def match(candidate) -> None:
-            _, overlap, a, b = candidate
-            pa, pb, eig = _match_pair(
-                frames8[a], frames8[b], shifts[a, b], dis, max_per_pair, max_fb_px, valid
-            )
-            stages.advance(description=f"matching frames {a} and {b}")
-            if len(pa) < MIN_PAIR_MATCHES:
-                return
-            shift = (float(shifts[a, b, 0]), float(shifts[a, b, 1]))
-            pairs.append(Pair(a, b, shift, float(response[a, b]), float(overlap), len(pa)))
-            out_a.append(np.full(len(pa), a))
-            out_b.append(np.full(len(pa), b))
-            xa.append(pa)
-            xb.append(pb)
-            wt.append(eig)
 
-        for candidate in keep:
-            match(candidate)
-        # frames cut off (their clearest peaks were spurious or their pairs gave too few
-        # matches): their further candidates, clearest first, until they join the rest
-        tried = set(keep)
-        for candidate in sorted(candidates, reverse=True):
-            labels = _components(pairs, n)
-            if (labels == labels[0]).all():
-                break
-            _, _, a, b = candidate
-            if candidate in tried or labels[a] == labels[b]:
-                continue
-            tried.add(candidate)
-            stages.total += 1
-            match(candidate)
-    _check_connected(pairs, n, min_overlap)
-    xa, xb = np.concatenate(xa), np.concatenate(xb)
-    if prior is not None:  # back to the frames' own pixels
-        xa, xb = prior(xa), prior(xb)
-    weight = np.concatenate(wt)
-    weight = np.clip(weight / np.median(weight), 0.05, 20.0)
-    return Matches(np.concatenate(out_a), np.concatenate(out_b), xa, xb, weight, tuple(pairs), n, (w, h))
+def _phase_shifts(frames8, valid):
+    """:func:`pair_shifts` of the frames faded out where the (pre-)correction has no data,
+    reduced to at most :data:`PHASE_MAX_SIDE` px, with a Hanning window."""
+    import cv2
+
+    soft = cv2.GaussianBlur(cv2.erode(valid.astype(np.float32), np.ones((9, 9), np.uint8)), (0, 0), 6.0)
+    reduced = [_reduce(_apodize(f, soft), PHASE_MAX_SIDE) for f in frames8]
+    window = cv2.createHanningWindow(reduced[0][0].shape[::-1], cv2.CV_32F)
+    return pair_shifts([r[0] for r in reduced], reduced[0][1], window)
+
+
+class _PairMatcher:
+    """Matches pairs of the frames one at a time (:func:`_match_pair`), keeping the pairs
+    with at least :data:`MIN_PAIR_MATCHES` matches and their matches."""
+
+    def __init__(self, frames8, valid, shifts, response, limits, stages):
+        import cv2
+
+        self.frames8, self.shifts, self.response = frames8, shifts, response
+        self.inside = _inside(valid)  # one mask for every pair
+        self.max_per_pair, self.max_fb_px = limits
+        self.stages = stages
+        self.dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        self.pairs: list[Pair] = []
+        self._found: list[tuple] = []  # per kept pair: (points in a, points in b, eigenvalues)
+
+    def match(self, candidate) -> None:
+        _, overlap, a, b = candidate
+        pa, pb, eig = _match_pair(
+            self.frames8[a],
+            self.frames8[b],
+            self.shifts[a, b],
+            self.dis,
+            self.max_per_pair,
+            self.max_fb_px,
+            self.inside,
+        )
+        self.stages.advance(description=f"matching frames {a} and {b}")
+        if len(pa) < MIN_PAIR_MATCHES:
+            return
+        shift = (float(self.shifts[a, b, 0]), float(self.shifts[a, b, 1]))
+        self.pairs.append(Pair(a, b, shift, float(self.response[a, b]), float(overlap), len(pa)))
+        self._found.append((pa, pb, eig))
+
+    def matches(self, prior, n: int, size) -> Matches:
+        """The :class:`Matches` of the kept pairs (taken back to the frames' own pixels
+        through the ``prior``'s forward map when the frames were pre-corrected)."""
+        frame_a = np.concatenate([np.full(p.n_matches, p.a) for p in self.pairs])
+        frame_b = np.concatenate([np.full(p.n_matches, p.b) for p in self.pairs])
+        xa = np.concatenate([f[0] for f in self._found])
+        xb = np.concatenate([f[1] for f in self._found])
+        if prior is not None:  # back to the frames' own pixels
+            xa, xb = prior(xa), prior(xb)
+        weight = np.concatenate([f[2] for f in self._found])
+        weight = np.clip(weight / np.median(weight), 0.05, 20.0)
+        return Matches(frame_a, frame_b, xa, xb, weight, tuple(self.pairs), n, size)
+
+
+def _match_until_connected(matcher: _PairMatcher, candidates, n: int, per_frame: int) -> None:
+    """Match each frame's ``per_frame`` clearest candidates (:func:`_bounded_pairs`); then,
+    for frames cut off (their clearest peaks were spurious or their pairs gave too few
+    matches), their further candidates, clearest first, until they join the rest."""
+    keep = _bounded_pairs(candidates, n, per_frame)
+    matcher.stages.total = len(keep) + 1
+    for candidate in keep:
+        matcher.match(candidate)
+    tried = set(keep)
+    for candidate in sorted(candidates, reverse=True):
+        labels = _components(matcher.pairs, n)
+        if (labels == labels[0]).all():
+            break
+        _, _, a, b = candidate
+        if candidate in tried or labels[a] == labels[b]:
+            continue
+        tried.add(candidate)
+        matcher.stages.total += 1
+        matcher.match(candidate)
 
 
 def _frames8(frames: list) -> list:
@@ -371,8 +414,54 @@ def _strongest_per_cell(eig, box, max_points: int) -> np.ndarray:
     return np.array(pts, float).reshape(-1, 3)
 
 
-def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, valid):
-    """Matches of one pair: points ``(k, 2)`` in ``a``, in ``b``, and their LK eigenvalues."""
+def _inside(valid) -> np.ndarray:
+    """Where matches may lie: where the (pre-)correction has data, a window's width from
+    its edge (the window and its coarser pyramid levels clear of the border streaks; less
+    in small frames)."""
+    import cv2
+
+    h, w = valid.shape
+    margin = LK_WINDOW // 2 + 2
+    edge = min(2 * LK_WINDOW + 1, max(margin, min(h, w) // 12))
+    return cv2.erode(valid.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)) > 0
+
+
+def _corner_strength(a8, inside_a, box) -> np.ndarray:
+    """``cv2.cornerMinEigenVal`` (7 px blocks) of frame ``a`` over the ``box = (x0, y0, x1,
+    y1)`` where candidates lie, 0 elsewhere and outside ``inside_a``: computed on the box
+    and a border of 8 px (the block and its Sobel reach 4), so its values in the box are the
+    whole frame's (50 frames of 2048 x 2048: 0.14 s a pair on the whole frame)."""
+    import cv2
+
+    h, w = a8.shape
+    x0, y0 = max(int(box[0]) - 8, 0), max(int(box[1]) - 8, 0)
+    x1, y1 = min(int(np.ceil(box[2])) + 8, w), min(int(np.ceil(box[3])) + 8, h)
+    eig = np.zeros((h, w), np.float32)
+    crop = cv2.cornerMinEigenVal(np.ascontiguousarray(a8[y0:y1, x0:x1]), 7)
+    eig[y0:y1, x0:x1] = np.where(inside_a[y0:y1, x0:x1], crop, 0.0)
+    return eig
+
+
+def _overlap_flow(a8, bs, box, dis):
+    """The dense flow ``a -> b_s`` over the ``box = (x0, y0, x1, y1)`` of the overlap and
+    :data:`FLOW_PAD` px of the reduced frames around it (the flow elsewhere would only be
+    discarded: 50 frames of 2048 x 2048 spent 0.24 s a pair on the whole frame): the flow
+    ``(rows, cols, 2)`` in reduced px, the reduction ``factor`` and the crop's corner
+    ``(col, row)`` in reduced px."""
+    small_a, factor = _reduce(a8, FLOW_MAX_SIDE)
+    small_b, _ = _reduce(bs, FLOW_MAX_SIDE)
+    rows, cols = small_a.shape
+    c0, r0 = max(int(box[0] / factor) - FLOW_PAD, 0), max(int(box[1] / factor) - FLOW_PAD, 0)
+    c1 = min(int(np.ceil(box[2] / factor)) + FLOW_PAD, cols)
+    r1 = min(int(np.ceil(box[3] / factor)) + FLOW_PAD, rows)
+    crop_a = np.ascontiguousarray(small_a[r0:r1, c0:c1])
+    crop_b = np.ascontiguousarray(small_b[r0:r1, c0:c1])
+    return dis.calc(crop_a, crop_b, None), factor, np.array([c0, r0])
+
+
+def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, inside_a):
+    """Matches of one pair: points ``(k, 2)`` in ``a``, in ``b``, and their LK eigenvalues
+    (``inside_a``: :func:`_inside`)."""
     import cv2
 
     h, w = a8.shape
@@ -382,27 +471,20 @@ def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, valid):
     bs = cv2.warpAffine(
         b8, move, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
     )
-    small_a, factor = _reduce(a8, FLOW_MAX_SIDE)
-    small_b, _ = _reduce(bs, FLOW_MAX_SIDE)
-    flow = dis.calc(small_a, small_b, None)
     margin = LK_WINDOW // 2 + 2
     x0, x1 = max(0.0, -dx) + margin, min(w, w - dx) - margin
     y0, y1 = max(0.0, -dy) + margin, min(h, h - dy) - margin
     if x1 - x0 < 2 * margin or y1 - y0 < 2 * margin:
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
-    eig = cv2.cornerMinEigenVal(a8, 7)
-    # only where the (pre-)correction has data, a window's width from its edge
-    # the window and its coarser pyramid levels clear of the border streaks (less in small frames)
-    edge = min(2 * LK_WINDOW + 1, max(margin, min(h, w) // 12))
-    inside_a = cv2.erode(valid.astype(np.uint8), np.ones((2 * edge + 1, 2 * edge + 1), np.uint8)) > 0
-    eig = np.where(inside_a, eig, 0.0)
+    flow, factor, corner = _overlap_flow(a8, bs, (x0, y0, x1, y1), dis)
+    eig = _corner_strength(a8, inside_a, (x0, y0, x1, y1))
     pts = _strongest_per_cell(eig, (x0, y0, x1, y1), max_points)
     if not len(pts):
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
     floor = 0.05 * float(np.percentile(pts[:, 2], 90))
     pts = pts[pts[:, 2] > max(floor, 1e-12)]
     pa = pts[:, :2].astype(np.float32)
-    fi = np.clip((pa / factor).round().astype(int), 0, [small_a.shape[1] - 1, small_a.shape[0] - 1])
+    fi = np.clip((pa / factor).round().astype(int) - corner, 0, [flow.shape[1] - 1, flow.shape[0] - 1])
     guess = pa + np.float32([dx, dy]) + flow[fi[:, 1], fi[:, 0]] * factor
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-3)
     flags = cv2.OPTFLOW_USE_INITIAL_FLOW | cv2.OPTFLOW_LK_GET_MIN_EIGENVALS

@@ -215,6 +215,11 @@ class _Residual:
 
     def correct(self, p):
         inv = undistort(self.d, p, xy_start=self.start_u, family=self.prob.family)
+        # the next evaluation's Newton inverse starts here: least_squares moves the parameters
+        # little between evaluations, so it converges in a step or two rather than from the
+        # family's start (9 frames of the relay: the inverse was half of the solve's time)
+        finite = np.isfinite(inv.xy).all()
+        self.start_u = inv.xy if finite else None
         return inv.xy
 
     def _state(self, x):
@@ -464,7 +469,7 @@ def self_calibrate(
         gauge, left = gauge_report(prob, p, matches, inlier)
     n_failed = int((~ok_all).sum())
     cal = _record(prob, p, cov, fit, dist[inlier], n_failed, matches, inlier, gauge, name, source)
-    return SelfCalibration(
+    result = SelfCalibration(
         calibration=cal,
         translations=t,
         stage_rotation_deg=float(theta) if prob.steps is not None else None,
@@ -476,6 +481,42 @@ def self_calibrate(
         um_per_px_centre=_centre_scale(p, prob),
         n_iter=int(fit.nfev),
     )
+    return dataclasses.replace(result, calibration=dataclasses.replace(cal, selfcal=selfcal_record(result)))
+
+
+def selfcal_record(result: SelfCalibration) -> dict:
+    """What a self-calibration found, as the calibration file's ``selfcal`` object (the
+    report's section): ``frames``, ``pairs``, ``matches``, ``inliers``, ``moves``
+    (``"unknown"`` or ``"known steps"``), ``translations_px`` (per frame), ``stage_rotation_deg``
+    and ``um_per_px_centre`` (None without steps / a scale), the ``gauge`` lines and
+    ``gauge_left``, and per overlapping pair ``pair_table`` rows ``{a, b, matches, inliers,
+    rms_px, shift_px, overlap, response}`` (the residuals of its inlier matches)."""
+    m = result.matches
+    e = np.linalg.norm(result.residuals, axis=1)
+    rows = []
+    for pair in m.pairs:
+        sel = (m.frame_a == pair.a) & (m.frame_b == pair.b)
+        inl = sel & result.inlier
+        rms = float(np.sqrt(np.mean(e[inl] ** 2))) if inl.any() else None
+        rows.append(
+            {"a": int(pair.a), "b": int(pair.b), "matches": int(sel.sum()), "inliers": int(inl.sum()),
+             "rms_px": rms, "shift_px": [float(v) for v in pair.shift], "overlap": float(pair.overlap),
+             "response": float(pair.response)}
+        )  # fmt: skip
+    centre = result.um_per_px_centre
+    return {
+        "frames": int(m.n_frames),
+        "pairs": len(m.pairs),
+        "matches": len(m),
+        "inliers": int(result.inlier.sum()),
+        "moves": "unknown" if result.stage_rotation_deg is None else "known steps",
+        "translations_px": [[float(v) for v in t] for t in result.translations],
+        "stage_rotation_deg": result.stage_rotation_deg,
+        "um_per_px_centre": None if centre is None else [float(v) for v in centre],
+        "gauge": list(result.gauge),
+        "gauge_left": {k: float(v) for k, v in result.gauge_left.items()},
+        "pair_table": rows,
+    }
 
 
 def _checked_steps(steps_um, matches: Matches):
@@ -509,8 +550,11 @@ def _start(prob: _Problem, matches: Matches, use, t0, spec) -> tuple[_Problem, n
         with threadpool_limits(limits=1, user_api="blas"):
             x_free = _robust_start(_Residual(free, matches, use), x_free).x
         p_free, t_free, _ = _Residual(free, matches, use).split(x_free)
-        scale, theta0 = _similarity(prob.steps, t_free)
-        prob = dataclasses.replace(prob, params0=_rescaled(p_free, scale, prob))
+        # that solve may run away along a gauge the model leaves nearly free (paper's centre,
+        # by 850-900 px on a pure-translation scene), and the solve with steps then diverged or
+        # not by the turn of one match in 5,000: the model's own start, taken to the scale and
+        # turn of its own first moves, is kept instead when it fits the steps better
+        prob, theta0 = _better_start(prob, matches, use, ((p_free, t_free), (prob.params0, t0)))
     x0 = np.concatenate(
         [
             prob.params0[prob.solved],
@@ -518,6 +562,29 @@ def _start(prob: _Problem, matches: Matches, use, t0, spec) -> tuple[_Problem, n
         ]
     )
     return prob, x0
+
+
+def _better_start(prob: _Problem, matches: Matches, use, candidates) -> tuple[_Problem, float]:
+    """Of the ``candidates`` ``(params, moves)``, each taken to the scale and turn of its
+    moves onto the known steps, the start (problem, turn) of least Cauchy cost."""
+    best = None
+    for p_start, t_start in candidates:
+        scale, theta = _similarity(prob.steps, t_start)
+        start = dataclasses.replace(prob, params0=_rescaled(p_start, scale, prob))
+        x = np.concatenate([start.params0[start.solved], [theta] if prob.stage_rotation else []])
+        cost = _start_cost(_Residual(start, matches, use), x)
+        if best is None or cost < best[0]:
+            best = (cost, start, theta)
+    return best[1], best[2]
+
+
+def _start_cost(res: _Residual, x0: np.ndarray) -> float:
+    """The first solve's Cauchy cost (0.5 px) at ``x0``; inf where a correction fails."""
+    e, ok = res.raw(x0)
+    if not ok.all():
+        return float("inf")
+    z = (np.sum(e**2, axis=1) * res.sw**2) / 0.25
+    return float(np.sum(np.log1p(z)))
 
 
 def _first_inliers(res: _Residual, fit, use, n_matches: int) -> tuple[float, np.ndarray]:
