@@ -46,6 +46,12 @@ MIN_FOUND_FRACTION_ANCHORED = 0.25
 #: and was refused without a given scale; 8 matches are 16 equations for the 12
 #: coefficients, and the correction is trusted only near the matches.
 QUADRATIC_MATCHES = 8
+#: Turns (deg) added to every seed when the seeds' own angles find no pose
+#: (:func:`_search_turned_seeds`): under a strongly distorted field a triplet's bars are
+#: turned against the whole target's pose by up to 8-12 degrees (measured through the
+#: aligned relay with the target turned 45 degrees: every seed 7-11 degrees off, so no
+#: seed's prediction reached the other triplets and the pose was refused).
+SEED_TURNS_DEG = (-7.0, 7.0)
 #: A different pose scoring more than this fraction of the best makes the answer ambiguous.
 AMBIGUITY_RATIO = 0.9
 #: ... or within this many triplets of it.
@@ -423,7 +429,33 @@ def search_pose(
         slips_judged = slips
     res = _judge(best, refined, slips_judged, um_per_px, scene, anchors)
     res.slip_scores = {k: v.score for k, v in slips.items()}
+    if res.kind == "not_found" and res.pose is not None and not anchors:
+        res = _search_turned_seeds(hyps, scene, top, um_per_px, res)
     return res
+
+
+def _search_turned_seeds(
+    hyps: _Hypotheses, scene: _Scene, top: int, um_per_px, first: PoseResult
+) -> PoseResult:
+    """The search again with every seed also turned by :data:`SEED_TURNS_DEG` about its
+    image triplet, after the seeds' own angles found no pose (``first``): returns the new
+    result when it finds one, else ``first``.  The new pose is judged like any other
+    (:func:`_judge`: its found fraction, rivals and slipped copies)."""
+    turned = [hyps]
+    for deg in SEED_TURNS_DEG:
+        r = _rot(np.deg2rad(deg))
+        lin = np.einsum("ij,hjk->hik", r, hyps.lin)
+        t = hyps.anchor + (hyps.t - hyps.anchor) @ r.T  # the seed triplet stays where it is
+        turned.append(_Hypotheses(hyps.s, lin, t, hyps.anchor))
+    hyps = _Hypotheses(
+        *(np.concatenate([getattr(h, f) for h in turned]) for f in ("s", "lin", "t", "anchor"))
+    )
+    refined = _refined_poses(hyps, _score_hypotheses(hyps, scene), scene, top)
+    best = _at_given_scale(refined, um_per_px)
+    slips = _slip_scores(best, scene)
+    res = _judge(best, refined, slips, um_per_px, scene)
+    res.slip_scores = {k: v.score for k, v in slips.items()}
+    return res if res.status == 0 else first
 
 
 @dataclass(frozen=True)
