@@ -34,15 +34,15 @@ def _image_triplets(turn_deg, bar_error_deg, um_per_px=4.8):
     return trips, ref, j, (s, phi)
 
 
-def _search(trips, ref):
-    return P.search_pose(trips, ref, SHAPE, listed=np.isin(ref.group, [4, 5]))
+def _search(trips, ref, turned_seeds):
+    return P.search_pose(trips, ref, SHAPE, listed=np.isin(ref.group, [4, 5]), turned_seeds=turned_seeds)
 
 
 @pytest.mark.slow  # 5-13 s: three times the seeds of one search
 @pytest.mark.parametrize("turn_deg", [45.0, 135.0])
 def test_turned_seeds_find_a_pose_whose_bars_are_turned_against_it(turn_deg):
     trips, ref, j, (s, phi) = _image_triplets(turn_deg, bar_error_deg=9.0)
-    res = _search(trips, ref)
+    res = _search(trips, ref, turned_seeds=True)
     assert res.status == 0, res.message
     best = res.pose
     assert best.s == pytest.approx(s, rel=0.02)
@@ -53,53 +53,74 @@ def test_turned_seeds_find_a_pose_whose_bars_are_turned_against_it(turn_deg):
     assert all(j[i] == jr for i, jr in best.matches)
 
 
-def test_turned_seeds_keep_their_triplet_in_place(monkeypatch):
-    """The second pass scores every seed turned by each of SEED_TURNS_DEG about its own
-    image triplet: the seed's reference triplet still lands on that triplet."""
-    trips, ref, j, _ = _image_triplets(45.0, bar_error_deg=9.0)
+@pytest.mark.slow  # 5-8 s: one whole search
+def test_without_turned_seeds_the_same_triplets_are_refused():
+    """The case above needs the turned seeds: the seeds' own angles find no pose."""
+    trips, ref, _, _ = _image_triplets(45.0, bar_error_deg=9.0)
+    res = _search(trips, ref, turned_seeds=False)
+    assert res.status != 0 and res.kind == "not_found"
+
+
+def test_turned_seeds_keep_their_triplet_in_place():
+    """Every seed also turned by each of SEED_TURNS_DEG about its own image triplet: the
+    seed's reference triplet still lands on that triplet."""
+    trips, ref, _, _ = _image_triplets(45.0, bar_error_deg=9.0)
     hyps = P._hypotheses(trips, ref, None, None, None, 120)
-    seen = {}
-
-    def spy(h, scene, chunk=2000):
-        seen["hyps"] = h
-        return np.full(len(h.s), -1.0)
-
-    monkeypatch.setattr(P, "_score_hypotheses", spy)
-    monkeypatch.setattr(P, "_refined_poses", lambda *a: [P.Pose(1.0, np.eye(2), np.zeros(2))])
-    monkeypatch.setattr(P, "_slip_scores", lambda *a: {})
-    monkeypatch.setattr(P, "_judge", lambda *a: P.PoseResult(None, None, 1, "no", {}, 0, kind="not_found"))
-    first = P.PoseResult(None, None, 1, "first", {}, 0, kind="not_found")
-    assert P._search_turned_seeds(hyps, None, 40, None, first) is first
-    h, n = seen["hyps"], len(hyps.s)
+    h, n = P._turned_seeds(hyps), len(hyps.s)
     assert len(h.s) == n * (1 + len(P.SEED_TURNS_DEG))
+    base = np.rad2deg(np.arctan2(hyps.lin[:, 1, 0], hyps.lin[:, 0, 0]))
+    # a point p maps to anchor + R (old(p) - anchor): old(p) = anchor (the seed) stays put
+    p = np.array([100.0, -50.0])
+    old = hyps.s[:, None] * np.einsum("hij,j->hi", hyps.lin, p) + hyps.t
     for k, deg in enumerate((0.0, *P.SEED_TURNS_DEG)):
         part = slice(k * n, (k + 1) * n)
         turn = np.rad2deg(np.arctan2(h.lin[part, 1, 0], h.lin[part, 0, 0]))
-        base = np.rad2deg(np.arctan2(hyps.lin[:, 1, 0], hyps.lin[:, 0, 0]))
         np.testing.assert_allclose((turn - base - deg + 180) % 360 - 180, 0.0, atol=1e-9)
-        # the seed's own reference triplet stays on its image triplet: a point p maps to
-        # anchor + R (old(p) - anchor), so old(p) = anchor stays at anchor
-        old = np.einsum("hij,hj->hi", hyps.lin, np.ones((n, 2))) * hyps.s[:, None] + hyps.t
-        new = np.einsum("hij,hj->hi", h.lin[part], np.ones((n, 2))) * h.s[part, None] + h.t[part]
         r = np.deg2rad(deg)
         rot = np.array([[np.cos(r), -np.sin(r)], [np.sin(r), np.cos(r)]])
+        new = h.s[part, None] * np.einsum("hij,j->hi", h.lin[part], p) + h.t[part]
         np.testing.assert_allclose(new, hyps.anchor + (old - hyps.anchor) @ rot.T, atol=1e-9)
 
 
-@pytest.mark.slow  # 5-8 s: one whole search
-def test_without_turned_seeds_the_same_triplets_are_refused(monkeypatch):
-    """The case above needs the second pass: with no turns added it is refused."""
-    monkeypatch.setattr(P, "SEED_TURNS_DEG", ())
-    trips, ref, _, _ = _image_triplets(45.0, bar_error_deg=9.0)
-    res = _search(trips, ref)
-    assert res.status != 0
+class _Res:
+    def __init__(self, status, kind, score):
+        self.status, self.kind, self.message, self.param = status, kind, kind, ()
+        self.pose = P.Pose(1.0, np.eye(2), np.zeros(2), score)
 
 
-@pytest.mark.slow  # 5-6 s: one whole search
-def test_turned_seeds_leave_a_found_pose_alone(monkeypatch):
-    """Bars along the pose: the first pass finds it and the second never runs."""
+@pytest.mark.parametrize(
+    ("results", "retried"),
+    [
+        ({"compact": (0, "ok", 9.0)}, False),  # a layout found the pose: no second search
+        ({"compact": (1, "not_found", 5.0), "spaced": (0, "ok", 4.0)}, False),
+        ({"compact": (1, "not_found", 5.0), "spaced": (1, "ambiguous", 4.0)}, True),  # the best: too little
+        ({"compact": (1, "ambiguous", 5.0), "spaced": (1, "not_found", 4.0)}, False),  # the best: ambiguous
+    ],
+)
+def test_detection_turns_the_seeds_only_when_no_layout_found_a_pose(monkeypatch, results, retried):
+    from oapcal.imaging.detect import core
+
     calls = []
-    monkeypatch.setattr(P, "_search_turned_seeds", lambda *a: calls.append(a) or a[-1])
-    trips, ref, j, _ = _image_triplets(45.0, bar_error_deg=0.0)
-    res = _search(trips, ref)
-    assert res.status == 0 and not calls
+
+    def fake_search(trips, ref, shape, *, turned_seeds=False, **kw):
+        layout = layouts[len(calls) % len(layouts)]
+        calls.append(turned_seeds)
+        return _Res(*results[layout])
+
+    layouts = list(results)
+    monkeypatch.setattr(core, "_layouts", lambda: layouts)
+    monkeypatch.setattr(P, "search_pose", fake_search)
+    opts = core._Options(None, "auto", "auto", 1.0, 0.3, 1.5, core.ORIENTATION_RATIO, "auto", ())
+    monkeypatch.setattr(
+        "oapcal.imaging.detect.bars.find_triplets", lambda img: Triplets(*(np.zeros((0, 2)),) * 6)
+    )
+
+    class _Bar:
+        def stage(self, *_):
+            pass
+
+        def advance(self, *_):
+            pass
+
+    core._search_pose(np.zeros(SHAPE), (4, 5), opts, _Bar())
+    assert calls == [False] * len(layouts) + ([True] * len(layouts) if retried else [])
