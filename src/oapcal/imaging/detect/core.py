@@ -391,22 +391,18 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
     """Bar triplets, then the pose search in every layout; the default layout is kept unless
     another one explains clearly more (2 triplets)."""
     from oapcal.imaging.detect.bars import find_triplets
-    from oapcal.imaging.detect.pose import search_pose
 
     bar.stage("finding bar triplets")
     trips = find_triplets(img)
     bar.advance()
     bar.stage("pose search")
-    tried = []
-    for layout in _layouts():
-        ref = _reference_triplets(layout)
-        res = search_pose(
-            trips, ref, img.shape, um_per_px=opts.um_per_px, listed=np.isin(ref.group, groups),
-            orientation=None if opts.orientation == "auto" else opts.orientation,
-            mirror=None if opts.mirror == "auto" else opts.mirror == "yes", anchors=opts.anchors,
-        )  # fmt: skip
-        score = res.pose.score if res.pose is not None else -np.inf
-        tried.append((score, res.status == 0, layout, ref, res))
+    tried = _try_layouts(trips, img.shape, groups, opts)
+    top = max(tried, key=lambda r: r[0])[4]
+    if not opts.anchors and not any(r[1] for r in tried) and top.kind == "not_found" and top.pose is not None:
+        # the seeds' own angles found no pose in any layout, the best one too little: every
+        # seed also turned by a few degrees (pose.SEED_TURNS_DEG; a strongly distorted field
+        # turns a triplet's bars against the target's pose)
+        tried = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
     default = tried[0]
     tried.sort(key=lambda r: (-r[0], not r[1]))
     if tried[0] is not default and tried[0][0] - default[0] < 2.0 and default[1]:
@@ -414,6 +410,25 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
     _, _, layout, ref, pres = tried[0]
     bar.advance()
     return _PoseFound(layout, usaf_target(groups, layout_name=layout), ref, pres, trips)
+
+
+def _try_layouts(trips, shape, groups, opts: _Options, turned_seeds: bool = False) -> list:
+    """The pose search in every layout: rows ``(score, found, layout, reference triplets,
+    result)``."""
+    from oapcal.imaging.detect.pose import search_pose
+
+    tried = []
+    for layout in _layouts():
+        ref = _reference_triplets(layout)
+        res = search_pose(
+            trips, ref, shape, um_per_px=opts.um_per_px, listed=np.isin(ref.group, groups),
+            orientation=None if opts.orientation == "auto" else opts.orientation,
+            mirror=None if opts.mirror == "auto" else opts.mirror == "yes", anchors=opts.anchors,
+            turned_seeds=turned_seeds,
+        )  # fmt: skip
+        score = res.pose.score if res.pose is not None else -np.inf
+        tried.append((score, res.status == 0, layout, ref, res))
+    return tried
 
 
 def _with_pixel_size(det: Detection, groups, given: bool, size) -> Detection:

@@ -46,6 +46,12 @@ MIN_FOUND_FRACTION_ANCHORED = 0.25
 #: and was refused without a given scale; 8 matches are 16 equations for the 12
 #: coefficients, and the correction is trusted only near the matches.
 QUADRATIC_MATCHES = 8
+#: Turns (deg) added to every seed when the seeds' own angles find no pose in any layout
+#: (``search_pose(turned_seeds=True)``, :func:`_turned_seeds`): under a strongly distorted
+#: field a triplet's bars are turned against the whole target's pose by up to 8-12 degrees
+#: (measured through the aligned relay with the target turned 45 degrees: every seed 7-11
+#: degrees off, so no seed's prediction reached the other triplets and the pose was refused).
+SEED_TURNS_DEG = (-7.0, 7.0)
 #: A different pose scoring more than this fraction of the best makes the answer ambiguous.
 AMBIGUITY_RATIO = 0.9
 #: ... or within this many triplets of it.
@@ -341,7 +347,7 @@ class PoseResult:
     param: tuple[str, ...] = ()  # the parameters the message suggests changing
 
 
-# (10 parameters: the search's keywords, which core passes by name)
+# (11 parameters: the search's keywords, which core passes by name)
 def search_pose(
     img: Triplets,
     ref: RefTriplets,
@@ -354,6 +360,7 @@ def search_pose(
     orientation: str | None = None,
     mirror: bool | None = None,
     anchors=(),
+    turned_seeds: bool = False,
 ) -> PoseResult:
     """Find the pose (module docstring).  ``listed`` marks the reference triplets of the
     groups the user named (weighted 1; others 0.25).  ``orientation`` (a key of
@@ -361,6 +368,8 @@ def search_pose(
     ``mirror`` True/False only mirrored / unmirrored poses.  ``anchors``
     (:class:`~oapcal.imaging.detect.anchor.Anchor`, elements the user named) seed poses only
     from the named triplets and keep only poses that honour them (:mod:`.anchor`).
+    ``turned_seeds``: every seed also turned by :data:`SEED_TURNS_DEG` (three times the
+    hypotheses; the detection asks for it only when no layout's search found a pose).
 
     The steps: every pairing of an image triplet with a reference triplet proposes poses
     (:func:`_hypotheses`); each is scored (:func:`_score_hypotheses`); the best are
@@ -383,6 +392,8 @@ def search_pose(
             return PoseResult(None, None, 1, "no pose fits the options given", {}, n_img, kind="not_found")
         msg = _no_scale_message(img, um_per_px)
         return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("um_per_px",))
+    if turned_seeds:
+        hyps = _turned_seeds(hyps)
     scene = _Scene(ref, img, cKDTree(img.centre), shape, listed)
     scores = _score_hypotheses(hyps, scene)
     refined = _refined_poses(hyps, scores, scene, top)
@@ -424,6 +435,20 @@ def search_pose(
     res = _judge(best, refined, slips_judged, um_per_px, scene, anchors)
     res.slip_scores = {k: v.score for k, v in slips.items()}
     return res
+
+
+def _turned_seeds(hyps: _Hypotheses) -> _Hypotheses:
+    """``hyps`` and every one of them also turned by each of :data:`SEED_TURNS_DEG` about
+    its seed's image triplet (which stays where it is)."""
+    turned = [hyps]
+    for deg in SEED_TURNS_DEG:
+        r = _rot(np.deg2rad(deg))
+        lin = np.einsum("ij,hjk->hik", r, hyps.lin)
+        t = hyps.anchor + (hyps.t - hyps.anchor) @ r.T
+        turned.append(_Hypotheses(hyps.s, lin, t, hyps.anchor))
+    return _Hypotheses(
+        *(np.concatenate([getattr(h, f) for h in turned]) for f in ("s", "lin", "t", "anchor"))
+    )
 
 
 @dataclass(frozen=True)

@@ -80,7 +80,8 @@ class PoseInfo(Record):
 class ConsistencySummary(Record):
     """The global consistency check (:class:`~oapcal.imaging.detect.checks.Consistency`)
     as reported: the model fitted (None: not checked), the rms and largest residual (px),
-    the number of inconsistent pairs, and its status and message."""
+    the number of inconsistent pairs, its status and message, and the pairs off the model
+    that a cubic map kept (``rescued``)."""
 
     model: str | None
     rms_px: float
@@ -88,6 +89,7 @@ class ConsistencySummary(Record):
     inconsistent: int
     status: int
     message: str
+    rescued: int = 0
 
 
 @dataclass(frozen=True, eq=False, repr=False)
