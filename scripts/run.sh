@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up a virtual environment in .venv (first run only) and run one task in it.
 #   bash scripts/run.sh demo [oapcal demo options]   the whole pipeline on built-in data
-#   bash scripts/run.sh test [pytest options]        the default test suite (+ ruff), in parallel
+#   bash scripts/run.sh test [pytest options]        the default test suite (+ ruff)
 #   bash scripts/run.sh test-slow                    the slow tests only (fuzzing, big stacks)
 #   bash scripts/run.sh bench                        the benchmarks in benchmarks/
 #   bash scripts/run.sh package                      build the wheel and sdist, install and smoke-test them
@@ -39,10 +39,7 @@ case "$task" in
         bash scripts/ensure-chromium.sh   # the report's browser test (skips with a reason if absent)
         bash scripts/ensure-qt-libs.sh    # Xvfb and Qt's libraries for the napari plugin's tests (skip if absent)
         .venv/bin/ruff check src tests benchmarks
-        # in parallel over the cores (pytest-xdist, at most 4 workers; OAPCAL_TEST_WORKERS=0
-        # runs in one process); the napari tests stay together on one worker (--dist loadgroup)
-        exec .venv/bin/python -m pytest -q -n "${OAPCAL_TEST_WORKERS:-auto}" --maxprocesses 4 \
-            --dist loadgroup "$@"
+        exec .venv/bin/python -m pytest -q "$@"
         ;;
     test-slow)
         rc=0
