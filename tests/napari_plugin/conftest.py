@@ -105,3 +105,19 @@ def demo():
         "xy_d": np.asarray(truth["xy_d"])[visible],
         "um_per_px": truth["um_per_px"],
     }
+
+
+@pytest.fixture
+def truth_layers(demo):
+    """Add the demo's true corners as ``distorted`` / ``reference`` points layers to a viewer,
+    the distorted ones with Gaussian noise of ``noise`` px (seeded); returns them."""
+    from oapcal.napari_plugin._layers import points_layers
+
+    def add(viewer, noise=0.0, seed=0):
+        rng = np.random.default_rng(seed)
+        xy_d = demo["xy_d"] + rng.normal(0, noise, demo["xy_d"].shape) if noise else demo["xy_d"]
+        for data, kwargs, kind in points_layers(demo["xy_u"], xy_d, demo["ids"], um_per_px=demo["um_per_px"]):
+            getattr(viewer, f"add_{kind}")(data, **kwargs)
+        return xy_d
+
+    return add

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 import oapcal
-from oapcal.napari_plugin._layers import points_layers
 
 
 def test_every_family_is_offered_and_the_recommended_one_chosen(viewer):
@@ -27,15 +26,12 @@ def test_every_family_is_offered_and_the_recommended_one_chosen(viewer):
 
 
 @pytest.mark.slow  # a relay fit (about 8 s); the choices are tested above
-def test_relay_fit_in_the_widget_is_calibrates(viewer, demo, wait):
+def test_relay_fit_in_the_widget_is_calibrates(viewer, demo, wait, truth_layers):
     from oapcal.napari_plugin._widgets import FitWidget
     from oapcal.optics.relay_model import RelayDesign, parse_priors
 
     viewer.add_image(demo["image"], name="camera")
-    rng = np.random.default_rng(7)
-    xy_d = demo["xy_d"] + rng.normal(0, 0.2, demo["xy_d"].shape)
-    for data, kwargs, kind in points_layers(demo["xy_u"], xy_d, demo["ids"], um_per_px=demo["um_per_px"]):
-        getattr(viewer, f"add_{kind}")(data, **kwargs)
+    xy_d = truth_layers(viewer, noise=0.2, seed=7)
     w = FitWidget(viewer)
     viewer.window.add_dock_widget(w, name="Fit & inspect")
     w.model.value = "relay"

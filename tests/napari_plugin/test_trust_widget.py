@@ -5,18 +5,14 @@ of the image is trusted."""
 import numpy as np
 
 import oapcal
-from oapcal.napari_plugin._layers import points_layers
 
 
-def test_correct_widget_trust_region_and_predicted_error(viewer, demo, wait):
+def test_correct_widget_trust_region_and_predicted_error(viewer, demo, wait, truth_layers):
     from oapcal.napari_plugin._widgets import CorrectWidget, FitWidget
 
     image = demo["image"]
     viewer.add_image(image, name="camera")
-    rng = np.random.default_rng(3)
-    xy_d = demo["xy_d"] + rng.normal(0, 0.2, demo["xy_d"].shape)
-    for data, kwargs, kind in points_layers(demo["xy_u"], xy_d, demo["ids"], um_per_px=demo["um_per_px"]):
-        getattr(viewer, f"add_{kind}")(data, **kwargs)
+    truth_layers(viewer, noise=0.2, seed=3)
     fit = FitWidget(viewer)
     viewer.window.add_dock_widget(fit, name="Fit & inspect")
     fit.run()
