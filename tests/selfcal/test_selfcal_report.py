@@ -73,6 +73,19 @@ def test_report_command_on_a_selfcal_file(run_cli, radial, tmp_path):
     code, stdout, err = run_cli("report", path, "--out", out)
     assert code == 0, err
     assert '<section id="selfcal">' in out.read_text()
+    code, stdout, err = run_cli("report", path, "--out", tmp_path / "again.html", "--json")
+    assert code == 0, err
+    numbers = json.loads(stdout)
+    assert numbers["selfcal"] == json.loads(json.dumps(radial.calibration.selfcal))
+    assert numbers["selfcal"]["frames"] == 9 and numbers["selfcal"]["pair_table"]
+
+
+def test_report_json_has_no_selfcal_for_a_landmark_fit(run_cli, radial, tmp_path):
+    path = tmp_path / "fit.json"
+    save_calibration(dataclasses.replace(radial.calibration, selfcal=None), path)
+    code, stdout, err = run_cli("report", path, "--out", tmp_path / "r.html", "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["selfcal"] is None
 
 
 @pytest.mark.slow  # renders 9 frames through a misaligned relay (~20 s)

@@ -93,7 +93,8 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
     if as_json:
         esf = None if data.esf is None else {k: v for k, v in data.esf.items() if k != "edges"}
         print_json({"out": out, "residuals": data.residuals, "uncertainty": data.uncertainty,
-                    "checks": data.checks, "esf": esf, "model": data.model})  # fmt: skip
+                    "checks": data.checks, "esf": esf, "model": data.model,
+                    "selfcal": getattr(cal, "selfcal", None)})  # fmt: skip
         return 0
     r = data.residuals
     click.echo(

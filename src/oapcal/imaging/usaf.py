@@ -626,6 +626,44 @@ class RenderedTarget:
     um_per_px: float
 
 
+#: Height (px) of the box in which a text's glyphs are drawn before they are area-sampled
+#: down to their box: the ink's share of the box is then the same at every resolution.
+_GLYPH_REF_PX = 96
+
+
+def _text_ink(text: str, box_h: float, box_w: float) -> np.ndarray:
+    """The ink ``[0, 1]`` of ``text`` in OpenCV's Hershey simplex font, cropped to its own
+    bounding box and scaled to fill ``box_h x box_w`` (px) with its aspect kept, stroke about
+    0.14 of the height. Drawn at a reference size and area-sampled down (``cv2.INTER_AREA``),
+    and measured on the drawn ink, not from ``cv2.getTextSize``, whose box differs between
+    OpenCV 4 and 5 (OpenCV 5 draws the glyphs smaller within it)."""
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    ref_h = float(_GLYPH_REF_PX)
+    ref_w = ref_h * box_w / box_h
+    thick = max(1, int(round(0.14 * ref_h)))
+
+    def draw(scale: float) -> np.ndarray:
+        (tw, th), base = cv2.getTextSize(text, font, scale, thick)
+        pad = 2 * thick + 4
+        canvas = np.zeros((th + base + 2 * pad, tw + 2 * pad), np.uint8)
+        cv2.putText(canvas, text, (pad, pad + th), font, scale, 255, thick, cv2.LINE_AA)
+        ys, xs = np.nonzero(canvas)
+        if len(ys) == 0:
+            return np.zeros((1, 1), np.float32)
+        return canvas[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1].astype(np.float32) / 255.0
+
+    scale = 1.0
+    for _ in range(3):  # the ink's size is nearly proportional to the scale: a few passes
+        ink = draw(scale)
+        scale *= min(ref_h / ink.shape[0], ref_w / ink.shape[1])
+    ink = draw(scale * 0.999)
+    f = min(box_h / ink.shape[0], box_w / ink.shape[1])  # never outside its box
+    size = (max(1, int(round(ink.shape[1] * f))), max(1, int(round(ink.shape[0] * f))))
+    return cv2.resize(ink, size, interpolation=cv2.INTER_AREA).astype(float)
+
+
 def render_digits(
     boxes: np.ndarray,
     texts,
@@ -646,12 +684,9 @@ def render_digits(
     >>> bool(cov[2:12, 2:8].sum() > 10 and cov[:, :2].sum() == 0)
     True
     """
-    import cv2
-
     rows, cols = int(shape[0]), int(shape[1])
     out = np.zeros((rows, cols))
     ss = int(supersample)
-    font = cv2.FONT_HERSHEY_SIMPLEX
     for (x0, y0, x1, y1), text in zip(np.asarray(boxes, float).reshape(-1, 4), texts):
         c0, r0 = (x0 - start[0]) / step + 0.5, (y0 - start[1]) / step + 0.5  # cell-edge units
         c1, r1 = (x1 - start[0]) / step + 0.5, (y1 - start[1]) / step + 0.5
@@ -659,17 +694,16 @@ def render_digits(
         ic1, ir1 = min(cols, int(np.ceil(c1))), min(rows, int(np.ceil(r1)))
         if ic0 >= ic1 or ir0 >= ir1 or (r1 - r0) * ss < 6:
             continue
-        hi_h, hi_w = (ir1 - ir0) * ss, (ic1 - ic0) * ss
-        canvas = np.zeros((hi_h, hi_w), np.uint8)
         box_h, box_w = (r1 - r0) * ss, (c1 - c0) * ss
-        thick = max(1, int(round(0.14 * box_h)))
-        (tw, th), _ = cv2.getTextSize(text, font, 1.0, thick)
-        scale = min((box_h - thick) / th, (box_w - thick) / max(tw, 1))
-        (tw, th), _ = cv2.getTextSize(text, font, scale, thick)
-        ox = (c0 - ic0) * ss + (box_w - tw) / 2
-        oy = (r0 - ir0) * ss + (box_h + th) / 2
-        cv2.putText(canvas, text, (int(round(ox)), int(round(oy))), font, scale, 255, thick, cv2.LINE_AA)
-        block = canvas.reshape(ir1 - ir0, ss, ic1 - ic0, ss).mean(axis=(1, 3)) / 255.0
+        glyph = _text_ink(text, box_h, box_w)
+        gh, gw = glyph.shape
+        # full cells ic0..ic1 at ss sub-cells each; the glyph centred on the box
+        canvas = np.zeros((int(np.ceil(r1) - ir0) * ss + gh, int(np.ceil(c1) - ic0) * ss + gw))
+        oy = int(round((r0 - ir0) * ss + (box_h - gh) / 2))
+        ox = int(round((c0 - ic0) * ss + (box_w - gw) / 2))
+        canvas[max(oy, 0) : max(oy, 0) + gh, max(ox, 0) : max(ox, 0) + gw] = glyph
+        hi_h, hi_w = (ir1 - ir0) * ss, (ic1 - ic0) * ss
+        block = canvas[:hi_h, :hi_w].reshape(ir1 - ir0, ss, ic1 - ic0, ss).mean(axis=(1, 3))
         out[ir0:ir1, ic0:ic1] += block
     return np.clip(out, 0.0, 1.0, out=out)
 

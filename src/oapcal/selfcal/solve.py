@@ -200,6 +200,7 @@ class _Residual:
         self.k = int(prob.solved.sum())
         self._cache = None
         self.start_u = None
+        self.warm = True  # start each inverse from the previous evaluation's points
 
     def split(self, x):
         p = self.prob.params0.copy()
@@ -214,13 +215,29 @@ class _Residual:
         return p, t, theta
 
     def correct(self, p):
-        inv = undistort(self.d, p, xy_start=self.start_u, family=self.prob.family)
+        inv = undistort(self.d, p, xy_start=self.start_u if self.warm else None, family=self.prob.family)
         # the next evaluation's Newton inverse starts here: least_squares moves the parameters
         # little between evaluations, so it converges in a step or two rather than from the
         # family's start (9 frames of the relay: the inverse was half of the solve's time)
         finite = np.isfinite(inv.xy).all()
         self.start_u = inv.xy if finite else None
         return inv.xy
+
+    def agrees_cold(self, x, tol_px: float = 1e-6) -> bool:
+        """Whether the corrected points at ``x`` are those of an inverse from the family's own
+        start: a warm start can converge to another root where a step took the model far (a
+        centre that the data leave free running away with k1 ~ 0 folds the map), and the
+        solve then minimises residuals that a fresh evaluation does not reproduce."""
+        p, _, _, u = self._state(x)
+        cold = undistort(self.d, p, family=self.prob.family).xy
+        fin_w, fin_c = np.isfinite(u).all(axis=1), np.isfinite(cold).all(axis=1)
+        if not np.array_equal(fin_w, fin_c):
+            return False
+        return bool(np.abs(u[fin_w] - cold[fin_w]).max(initial=0.0) <= tol_px)
+
+    def cold(self) -> None:
+        """Evaluate from now on with every inverse started from the family's own start."""
+        self.warm, self.start_u, self._cache = False, None, None
 
     def _state(self, x):
         key = x.tobytes()
@@ -423,7 +440,6 @@ def self_calibrate(
     matches for the model, ``"moving"`` when the residuals are not those of one rigid
     scene (robust RMS above ``max_rms_px`` or fewer than ``min_inlier_fraction`` inliers).
     """
-    from scipy.optimize import least_squares
     from threadpoolctl import threadpool_limits
 
     from oapcal.progress import Stages
@@ -447,16 +463,7 @@ def self_calibrate(
         sigma, inlier = _first_inliers(res, fit, use, len(matches))
         stages.advance(description="self-calibration: inliers")
         res = _Residual(prob, matches, inlier)
-        fit = least_squares(
-            res,
-            fit.x,
-            jac=res.jac,
-            loss="soft_l1",
-            f_scale=max(3 * sigma, 0.02),
-            x_scale="jac",
-            method="trf",
-            max_nfev=100,
-        )
+        fit = _solve(res, fit.x, loss="soft_l1", f_scale=max(3 * sigma, 0.02))
         stages.advance(description="self-calibration: statistics")
         e_all, ok_all, dist, inlier = _rigid_inliers(
             prob, matches, fit, sigma, max_rms_px, min_inlier_fraction
@@ -630,11 +637,25 @@ def _rigid_inliers(prob: _Problem, matches: Matches, fit, sigma: float, max_rms_
 
 def _robust_start(res: _Residual, x0: np.ndarray):
     """The first solve: a Cauchy loss (0.5 px), which gross mismatches barely pull."""
+    return _solve(res, x0, loss="cauchy", f_scale=0.5)
+
+
+def _solve(res: _Residual, x0: np.ndarray, *, loss: str, f_scale: float):
+    """``least_squares`` on ``res`` from ``x0`` with warm-started inverses; solved again with
+    every inverse from the family's start when the solution's warm inverse is not the cold
+    one (:meth:`_Residual.agrees_cold`), so that the result is what a fresh evaluation sees."""
     from scipy.optimize import least_squares
 
-    return least_squares(
-        res, x0, jac=res.jac, loss="cauchy", f_scale=0.5, x_scale="jac", method="trf", max_nfev=100
-    )
+    def run():
+        return least_squares(
+            res, x0, jac=res.jac, loss=loss, f_scale=f_scale, x_scale="jac", method="trf", max_nfev=100
+        )
+
+    fit = run()
+    if res.warm and not res.agrees_cold(fit.x):
+        res.cold()
+        fit = run()
+    return fit
 
 
 def _similarity(steps: np.ndarray, moves: np.ndarray) -> tuple[float, float]:
