@@ -36,7 +36,8 @@ REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "real" / "usaf"
 
 #: runs: (file, groups in view, pixel size measured in SOURCES.md (um/px), extra CLI options).
 #: The single-element view cannot name its element or tell a mirror from the bars alone: it
-#: is run as a user would first (refused), then with a scale and --mirror no.  Its scale is
+#: is run as a user would first (refused), then with a scale and --mirror no, then named with
+#: --anchor G7E1 alone (its printed numbers decide the mirror: imaging/detect/digits.py).  Its scale is
 #: not SOURCES.md's rough 0.083 um/px (read off bars that look 47 px wide; overexposed bright
 #: bars look wider than they are) but 0.115 um/px from the bar period (68 px = 2 w).
 RUNS = [
@@ -45,6 +46,7 @@ RUNS = [
     ("whole_target.png", "-2-1", 130.0, []),
     ("highmag_g7e1.jpg", "7", 0.083, []),
     ("highmag_g7e1.jpg", "7", 0.083, ["--um-per-px", "0.11", "--mirror", "no"]),
+    ("highmag_g7e1.jpg", "7", 0.083, ["--anchor", "G7E1"]),
 ]
 
 #: file -> [(id of a triplet's middle bar, x, y)]: a point on that bar, read off the image;
@@ -153,7 +155,7 @@ POSE_ANCHORS = {
     "fpm_brightfield.png": ("G4E2", {}),
     "labumk_negative.tif": ("G4E3", {}),
     "whole_target.png": ("G-2E2", {}),
-    "highmag_g7e1.jpg": ("G7E1", {"mirror_of_base": "no"}),
+    "highmag_g7e1.jpg": ("G7E1", {"mirror_of_base": "no"}),  # the base run with a scale and the mirror
 }
 #: --poses: the transforms (cv2): turned counter-clockwise on screen by 30, 90 and 135 degrees
 #: onto a canvas that holds the whole image (the rest filled with the image's median),
@@ -267,9 +269,6 @@ def run_poses(only: str | None) -> None:
                 kw = {}
                 if a is not None:
                     kw["anchors"] = a
-                    if opts.get("mirror_of_base"):  # one element: its mirror is the user's to say
-                        mirrored = kind in ("mirror", "rot30m")
-                        kw["mirror"] = "yes" if mirrored else "no"
                 t0 = time.perf_counter()
                 det = detect_usaf(im2, g, **kw)
                 dt = time.perf_counter() - t0

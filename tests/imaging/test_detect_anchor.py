@@ -231,3 +231,73 @@ def test_cli_a_bad_anchor_is_one_line_naming_the_flag(run_cli, tmp_path):
     code, out, err = run_cli("detect", img, "--anchor", "G4E9", "--out", tmp_path / "p.csv")
     assert code == 2 and "'G4E9' is not an element name" in err and "(set by --anchor)" in err
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "p.csv").exists()
+
+
+#: Points on the middle of each bar of the single element of highmag_g7e1.jpg, read off the
+#: image by eye (the element and group numbers printed beside it), as benchmarks/real_usaf.py
+#: has them: (triplet bar id, x, y).
+HIGHMAG_BARS = (("G7E1H0", 342, 567), ("G7E1H1", 257, 567), ("G7E1H2", 172, 567))
+
+
+@pytest.mark.slow  # a 1024 x 1280 image (~10 s each)
+@needs_real
+@pytest.mark.parametrize("flipped", [False, True])
+def test_the_single_element_is_named_by_its_anchor_alone(run_cli, tmp_path, flipped):
+    """One element in view, named G7E1 by the user: its two triplets are mirror symmetric,
+    the printed numbers decide the mirror (also of the image flipped left-right); --groups
+    left out searches the anchor's group."""
+    import csv
+
+    import cv2
+
+    path = REAL / "highmag_g7e1.jpg"
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if flipped:
+        path = tmp_path / "flipped.png"
+        cv2.imwrite(str(path), cv2.flip(img, 1))
+    out = tmp_path / "p.csv"
+    code, stdout, err = run_cli("detect", path, "--anchor", "G7E1", "--out", out, "--json")
+    assert code == 0, err
+    assert "searching the --anchor's group 7" in err
+    evidence = json.loads(stdout)["pose"]["mirror_from_digits"]
+    assert evidence["mirrored"] is flipped
+    with out.open() as f:
+        rows = {r["id"]: (float(r["x_d"]), float(r["y_d"])) for r in csv.DictReader(f)}
+    assert len(rows) >= 12 and all(i.startswith("G7E1") for i in rows)
+    w = img.shape[1]
+    for bar, x, y in HIGHMAG_BARS:  # each bar's four corners surround the point read on it
+        x = w - 1 - x if flipped else x
+        xy = np.array([rows[f"{bar}C{c}"] for c in range(4)])
+        assert xy[:, 0].min() < x < xy[:, 0].max() and xy[:, 1].min() < y < xy[:, 1].max()
+    # the corners go round each bar the same way as in the unflipped image: C0 -> C1 turns
+    # one way, C1 -> C2 the other way round in the mirror image
+    c = np.array([rows[f"G7E1H1C{k}"] for k in range(3)])
+    (ax, ay), (bx, by) = c[1] - c[0], c[2] - c[1]
+    turn = ax * by - ay * bx
+    assert (turn < 0) == flipped  # (in the image as taken: C0 -> C1 -> C2 turns clockwise on screen)
+
+
+def test_an_anchor_outside_the_groups_searched_is_refused_naming_groups():
+    with pytest.raises(
+        DataError, match=r"anchor G7E1 names group 7, which is not among the groups searched \(4, 5\)"
+    ) as e:
+        detect_usaf(np.zeros((40, 50)), (4, 5), anchors="G7E1")
+    assert e.value.param == "groups"
+
+
+def test_cli_anchor_without_groups_searches_the_anchors_group(run_cli, tmp_path):
+    import cv2
+
+    img = tmp_path / "img.png"
+    cv2.imwrite(str(img), np.zeros((40, 50), np.uint8))
+    code, _, err = run_cli("detect", img, "--anchor", "G7E1", "--out", tmp_path / "p.csv")
+    assert code == 3 and "searching the --anchor's group 7" in err  # (a uniform image: not found)
+    code, _, err = run_cli("detect", img, "--groups", "4-5", "--anchor", "G7E1", "--out", tmp_path / "p.csv")
+    assert code == 2 and "(set by --groups)" in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_dense_warp_is_affine_when_the_pose_matched_one_element():
+    from oapcal.imaging.detect.core import LEVELS, dense_degree_limit
+
+    assert dense_degree_limit(1) == 1
+    assert dense_degree_limit(2) == dense_degree_limit(9) == LEVELS[-1][1] > 1

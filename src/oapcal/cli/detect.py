@@ -135,6 +135,7 @@ def detect_command(
     check_output(plot, image, truth, out)
     group_list = parse_groups(groups)
     anchor_list = parse_anchors(anchors)
+    group_list = _anchored_groups(group_list, anchor_list)
     check_image_size(image)
     img = read_image_grey(image)
     score = read_truth(truth) if truth else None
@@ -190,6 +191,24 @@ def detect_command(
     elif out != "-":
         _print_summary(summary)
     return 0
+
+
+def _anchored_groups(group_list: tuple, anchor_list) -> tuple:
+    """The groups to search: with --anchor and --groups left at its default, the anchors'
+    own groups (a user who reads G7E1 on screen has group 7 in view, not the default 4-5)."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context(silent=True)
+    if not anchor_list or ctx is None or ctx.get_parameter_source("groups") is not ParameterSource.DEFAULT:
+        return group_list
+    named = tuple(sorted({a.group for a in anchor_list}))
+    if set(named) - set(group_list):
+        plural = "s" if len(named) > 1 else ""
+        listed = ", ".join(map(str, named))
+        click.echo(f"note: --groups not given: searching the --anchor's group{plural} {listed} "
+                   "(give --groups to search others too)", err=True)  # fmt: skip
+        return named
+    return group_list
 
 
 def _cli_words(message: str) -> str:

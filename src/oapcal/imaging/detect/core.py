@@ -268,6 +268,13 @@ def detect_usaf(
     from oapcal.imaging.detect.anchor import parse_anchors
 
     anchors = parse_anchors(anchors)
+    outside = [a for a in anchors if a.group not in groups]
+    if outside:
+        raise DataError(
+            f"anchor {outside[0].text()} names group {outside[0].group}, which is not among the groups "
+            f"searched ({', '.join(map(str, groups))}): list it in groups",
+            param="groups",
+        )
     img = to_float_image(image)
     if img is None:
         return Detection((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, {}, 1,
@@ -327,6 +334,7 @@ class _PoseFound:
     ref: object
     result: object
     trips: object
+    mirror_from_digits: dict | None = None
 
 
 def _detect(img, groups, opts: _Options, progress) -> Detection:
@@ -340,7 +348,9 @@ def _detect(img, groups, opts: _Options, progress) -> Detection:
         found = _search_pose(img, groups, opts, bar)
         pres, trips = found.result, found.trips
         debug = DetectionDebug(trips, found.ref, pres.pose, pres.runner_up)
-        pose_info = _pose_summary(pres, found.layout)
+        pose_info = with_changes(
+            _pose_summary(pres, found.layout), mirror_from_digits=found.mirror_from_digits
+        )
         seen = {"debug": debug, "triplets_found": len(trips), "work": work}
         empty = _replace(empty, pose=pose_info, debug=debug, triplets_found=len(trips))
         if pres.status != 0 and (um_per_px is None or opts.anchors):
@@ -408,8 +418,36 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
     if tried[0] is not default and tried[0][0] - default[0] < 2.0 and default[1]:
         tried.insert(0, default)
     _, _, layout, ref, pres = tried[0]
+    digits = None
+    if pres.kind == "ambiguous" and pres.param == ("mirror",) and opts.mirror == "auto":
+        pres, digits = _mirror_from_digits(img, trips, layout, ref, pres, groups, opts)
     bar.advance()
-    return _PoseFound(layout, usaf_target(groups, layout_name=layout), ref, pres, trips)
+    return _PoseFound(layout, usaf_target(groups, layout_name=layout), ref, pres, trips, digits)
+
+
+def _mirror_from_digits(img, trips, layout, ref, pres, groups, opts: _Options):
+    """The pose search again with the mirror that the printed numbers show, when the bars
+    left only the mirror open (:mod:`.digits`): ``(result, evidence)``; the refusal as it
+    was, and no evidence, when the numbers do not decide it."""
+    from oapcal.imaging.detect.digits import mirror_from_digits
+    from oapcal.imaging.detect.pose import search_pose
+
+    pose = pres.pose
+    centres = ref.centre[[j for _, j in pose.matches]]
+    polarity = 1.0 if _pose_polarity(img, trips, pose) > 0 else -1.0
+    ev = mirror_from_digits(img, _full_target(layout), pose.s, pose.lin, pose.t, centres, polarity)
+    if ev.mirrored is None:
+        return pres, None
+    res = search_pose(
+        trips, ref, img.shape, um_per_px=opts.um_per_px, listed=np.isin(ref.group, groups),
+        orientation=None if opts.orientation == "auto" else opts.orientation, mirror=ev.mirrored,
+        anchors=opts.anchors,
+    )  # fmt: skip
+    if res.status != 0:
+        return pres, None
+    evidence = {"mirrored": ev.mirrored, "ncc_unmirrored": round(ev.ncc_unmirrored, 4),
+                "ncc_mirrored": round(ev.ncc_mirrored, 4), "numbers": ev.n_numbers}  # fmt: skip
+    return res, evidence
 
 
 def _try_layouts(trips, shape, groups, opts: _Options, turned_seeds: bool = False) -> list:
@@ -552,6 +590,7 @@ class _DenseStart:
     polarity: float
     anchors: list | None = None
     score_table: dict = field(default_factory=dict)
+    max_degree: int = LEVELS[-1][1]
 
 
 @dataclass(frozen=True)
@@ -609,7 +648,9 @@ def _detect_from_pose(img, found: _PoseFound, opts: _Options, empty, bar):
         consistency=ConsistencySummary(**check.summary()),
         predicted={target.corner_ids[i]: pred[i] for i in np.flatnonzero(inside)},
     )
-    start = _DenseStart(orient, warp, rects, masks, polarity, _pose_anchors(target, found.ref, pose, trips))
+    elements = {(int(found.ref.group[j]), int(found.ref.element[j])) for _, j in pose.matches}
+    start = _DenseStart(orient, warp, rects, masks, polarity, _pose_anchors(target, found.ref, pose, trips),
+                        max_degree=dense_degree_limit(len(elements)))  # fmt: skip
     return _finish(empty, target, corners_u, kept, check, common), start
 
 
@@ -784,6 +825,15 @@ def _pose_polarity(img, trips, pose) -> float:
     return 1.0 if float(np.median(img)) < 0.5 else -1.0
 
 
+def dense_degree_limit(n_elements: int) -> int:
+    """The highest degree of the dense registration's warp when the pose matched the
+    triplets of ``n_elements`` elements: affine for one element (its two triplets span a
+    few bar lengths, where no distortion is resolved; a degree-4 warp there follows the bars'
+    exposure instead: on ``highmag_g7e1.jpg`` it spread the outer corners by 10 px, a third
+    of a bar width, and the registrations disagreed), else the finest level's."""
+    return 1 if n_elements <= 1 else LEVELS[-1][1]
+
+
 def _pose_anchors(target, ref, pose, trips) -> list:
     """The pose's matched triplets that belong to ``target``: (their corner indices in
     ``target``, the image triplet's centre, its bar width in px) each."""
@@ -877,7 +927,7 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
     ref.hi = np.minimum(ref.hi, own[:, 2:].max(axis=0) + 20)
     sigma = float(np.hypot(opts.sigma_hint_px, np.sqrt(1 / 12)))
     a, b = (0.05, 0.9) if start.polarity > 0 else (0.95, -0.9)
-    reg = _register_levels(img, ref, FitStart(start.warp.coef, a, b, sigma), start.warp)
+    reg = _register_levels(img, ref, FitStart(start.warp.coef, a, b, sigma), start.warp, start.max_degree)
     if isinstance(reg, dict):
         return _replace(empty, **reg)
     warp, res, sigma = reg
@@ -905,16 +955,16 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
     return _finish(empty, target, corners_u, kept, check, common)
 
 
-def _register_levels(img, ref: Reference, fit: FitStart, warp: PolyWarp):
-    """The registration's levels (:data:`LEVELS`, coarse to fine) from ``warp`` and the
-    contrast and blur of ``fit``: ``(warp, last fit, fitted blur)``, or the fields of the
-    failed :class:`Detection` (a dict)."""
+def _register_levels(img, ref: Reference, fit: FitStart, warp: PolyWarp, max_degree: int = LEVELS[-1][1]):
+    """The registration's levels (:data:`LEVELS`, coarse to fine, each warp's degree at most
+    ``max_degree``) from ``warp`` and the contrast and blur of ``fit``: ``(warp, last fit,
+    fitted blur)``, or the fields of the failed :class:`Detection` (a dict)."""
     import cv2
 
     h, w = img.shape
     a, b, sigma = fit.a, fit.b, fit.sigma
     for blur, degree in LEVELS:
-        warp = warp.with_degree(degree)
+        warp = warp.with_degree(min(degree, max_degree))
         values_img = img if blur is None else cv2.GaussianBlur(img, (0, 0), blur)
         xs = region_pixels(
             warp, ref, (w, h), max_pixels=MAX_FIT_PIXELS if blur is None else MAX_FIT_PIXELS // 4

@@ -62,9 +62,11 @@ class PoseInfo(Record):
     """The pose search's outcome: ``method`` (``triplets``, ``dense``, ``correlation``: what
     placed the target kept), its ``status`` and ``message``, the ``best`` and ``runner_up``
     poses' summaries (when found), the scores of the slipped poses, the number of bar
-    triplets in the image and the target's ``layout``."""
+    triplets in the image and the target's ``layout``; ``mirror_from_digits`` (only when the
+    printed numbers decided a mirror the bars left open, :mod:`.digits`): the mirror read and
+    the correlation of each hypothesis' numbers with the image."""
 
-    _OPTIONAL = ("best", "runner_up")
+    _OPTIONAL = ("best", "runner_up", "mirror_from_digits")
 
     method: str
     status: int
@@ -74,6 +76,7 @@ class PoseInfo(Record):
     slip_scores: dict | None = None
     image_triplets: int = 0
     layout: str | None = None
+    mirror_from_digits: dict | None = None
 
 
 @dataclass(frozen=True, eq=False, repr=False)
