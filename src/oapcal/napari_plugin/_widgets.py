@@ -207,6 +207,8 @@ class DetectWidget(_OapcalWidget):
     of an image layer; adds the ``distorted`` and ``reference`` points layers with ids."""
 
     step_name = "Detect"
+    #: The points layer where the user clicks the element named in the anchor field.
+    ANCHOR_LAYER = "anchor"
 
     def __init__(self, napari_viewer):
         self.image = ComboBox(label="image", choices=lambda _w: _layers_of(napari_viewer, "image"))
@@ -220,11 +222,39 @@ class DetectWidget(_OapcalWidget):
         # the command's --anchor: elements the user reads on the target, e.g. "G4E2@512,300"
         # (where it is, in the image's px: x then y); several separated by spaces
         self.anchor = LineEdit(label="anchor (e.g. G4E2@x,y)", value="")
+        # or the element's name alone and a click on it: the click gives the @x,y
+        self.pick = PushButton(text="Click the element named")
+        self.pick.changed.connect(self.pick_anchor)
         self.button = PushButton(text="Detect")
         self.button.changed.connect(self.run)
         fields = [self.image, self.groups, self.um_per_px, self.orient, self.mirror, self.max_stderr_px]
-        super().__init__(napari_viewer, [*fields, self.anchor, self.button])
+        super().__init__(napari_viewer, [*fields, self.anchor, self.pick, self.button])
         self.detection = None
+
+    def pick_anchor(self, _=None):
+        """The ``anchor`` points layer in add mode: a click on the element whose numbers the
+        user reads gives its place; the anchor field then needs only its name (``G7E1``)."""
+        if self.ANCHOR_LAYER not in self.viewer.layers:
+            self.viewer.add_points(np.zeros((0, 2)), name=self.ANCHOR_LAYER, face_color="yellow", size=12)
+        layer = self.viewer.layers[self.ANCHOR_LAYER]
+        layer.mode = "add"
+        self.viewer.layers.selection.active = layer
+        self._set_status(
+            "click the element whose numbers you read, type its name (e.g. G4E2) in anchor, Detect"
+        )
+        return layer
+
+    def anchor_text(self) -> str:
+        """The anchor field, with the last click on the ``anchor`` layer as the place of an
+        element named without one (``G7E1`` and a click at column 300, row 560: ``G7E1@300,560``)."""
+        words = self.anchor.value.replace(";", " ").split()
+        if len(words) != 1 or "@" in words[0] or self.ANCHOR_LAYER not in self.viewer.layers:
+            return " ".join(words)
+        clicks = self.viewer.layers[self.ANCHOR_LAYER].data
+        if not len(clicks):
+            return words[0]
+        x, y = L.rc_to_xy(clicks[-1:])[0]
+        return f"{words[0]}@{x:.0f},{y:.0f}"
 
     def run(self, _=None) -> None:
         import oapcal
@@ -237,7 +267,7 @@ class DetectWidget(_OapcalWidget):
 
         try:
             groups = parse_groups(self.groups.value)
-            anchors = parse_anchors(self.anchor.value.replace(";", " ").split())
+            anchors = parse_anchors(self.anchor_text().split())
         except Exception as exc:
             self._fail(_message(exc))
             return
