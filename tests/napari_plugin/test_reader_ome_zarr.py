@@ -45,3 +45,16 @@ def test_viewer_opens_it_without_naming_the_plugin(ome_zarr, viewer):
     layers = viewer.open(str(path))
     assert len(layers) == 1
     np.testing.assert_array_equal(np.asarray(layers[0].data), expected)
+
+
+def test_napari_ome_zarr_opens_it_too(ome_zarr, viewer):
+    """The ecosystem's own reader (the napari-ome-zarr plugin, in the test extra) reads the
+    same frames and the physical pixel size from the NGFF metadata."""
+    pytest.importorskip("napari_ome_zarr", reason="napari-ome-zarr comes with the 'test' extra")
+    path, expected, cal = ome_zarr
+    layers = viewer.open(str(path), plugin="napari-ome-zarr")
+    assert len(layers) == 1
+    layer = layers[0]
+    data = layer.data[0] if layer.multiscale else layer.data
+    np.testing.assert_array_equal(np.asarray(data), expected)
+    assert tuple(layer.scale[-2:]) == pytest.approx((cal.um_per_px, cal.um_per_px))
