@@ -96,3 +96,30 @@ def test_engine_choice_and_notes():
     assert dask_note("tcp://127.0.0.1:8786", 4) == ""
     with pytest.raises(InputFileError, match="engine 'fast'"):
         streams_locally(None, None, "fast")
+
+
+def test_zarr_outputs_are_blosc_lz4_with_bit_shuffle(tmp_path):
+    """Every zarr oapcal writes (the streamed one, the Dask one, OME-Zarr) uses the fast
+    Blosc LZ4 compression (io.ome.zarr_compressors), not zarr's slower default (Zstd)."""
+    import json
+
+    import numcodecs
+
+    cal = known_calibration(params=SMALL, image_size=(256, 256))
+    stack = _stack(tmp_path, 6)
+    ways = {
+        "streamed": DaskSettings(chunk_frames=3),
+        "threads": DaskSettings(chunk_frames=3, scheduler="threads"),
+        "ome": DaskSettings(chunk_frames=3, output_format="ome-zarr"),
+    }
+    for out, settings in ways.items():
+        correct_stack_dask(cal, tmp_path / "s.tif", tmp_path / out, settings=settings)
+    for out in ("streamed", "threads"):
+        z = zarr.open_array(str(tmp_path / out / "s.zarr"), mode="r")
+        (codec,) = z.compressors
+        assert isinstance(codec, zarr.codecs.BloscCodec)
+        assert codec.cname.value == "lz4" and codec.shuffle.value == "bitshuffle"
+        _check(tmp_path / out, stack)
+    meta = json.loads((tmp_path / "ome" / "s.ome.zarr" / "0" / ".zarray").read_text())
+    assert meta["compressor"]["id"] == "blosc" and meta["compressor"]["cname"] == "lz4"
+    assert meta["compressor"]["shuffle"] == numcodecs.Blosc.BITSHUFFLE

@@ -777,7 +777,10 @@ class _ZarrSlabs:
         import zarr
 
         chunks = (chunk, *shape[1:])
-        self.z = zarr.create_array(str(path), shape=shape, chunks=chunks, dtype=dtype, overwrite=True)
+        from oapcal.io.ome import zarr_compressors
+
+        self.z = zarr.create_array(str(path), shape=shape, chunks=chunks, dtype=dtype, overwrite=True,
+                                   compressors=zarr_compressors())  # fmt: skip
         self.z.attrs.update({"oapcal_calibration": name, "um_per_px": um_per_px,
                              "axes": "TYX" + "C" * (len(shape) == 4)})  # fmt: skip
         self.chunk, self.shape, self.dtype = chunk, shape, dtype
@@ -840,9 +843,11 @@ def _write_zarr(corrected, out_path: Path, geometry, name, sched, window: int, b
                                 Path(ngff["source"] or out_path.name).name)  # fmt: skip
                 target = str(tmp / "0")
             else:
+                from oapcal.io.ome import zarr_compressors
+
                 z = zarr.create_array(
                     str(tmp), shape=out_shape, chunks=(corrected.chunks[0][0], *out_shape[1:]),
-                    dtype=corrected.dtype, overwrite=True,
+                    dtype=corrected.dtype, overwrite=True, compressors=zarr_compressors(),
                 )  # fmt: skip
                 z.attrs.update(
                     {
