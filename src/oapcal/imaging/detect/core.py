@@ -31,6 +31,7 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.detect.checks import check_consistency
+from oapcal.imaging.detect.pose import HALF_ELEMENT
 from oapcal.imaging.detect.records import (
     ConsistencySummary,
     DetectionDebug,
@@ -81,8 +82,6 @@ DENSE_MAX_PIXELS = 1_000_000
 #: A kept corner must be this much farther inside than the 3 px of an expected one (its
 #: detected position is uncertain by up to ``max_stderr_px``).
 KEEP_MARGIN_EXTRA_PX = 0.5
-#: Half an element step of the target, ``2 ** (1 / 12)`` (6 %).
-HALF_ELEMENT = 2.0 ** (1.0 / 12.0)
 #: Groups of the whole target (the pose search matches image triplets against all of them).
 ALL_GROUPS = tuple(range(-2, 10))
 #: Largest image detection accepts (pixels).
