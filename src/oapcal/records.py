@@ -29,6 +29,12 @@ def finite_or_none(value) -> float | None:
     return float(value) if value is not None and math.isfinite(value) else None
 
 
+def nan_if_none(value) -> float:
+    """``float(value)``, or NaN when it is None (a JSON ``null`` read back as a number:
+    what :func:`finite_or_none` wrote for a non-finite one)."""
+    return math.nan if value is None else float(value)
+
+
 def json_safe(value):
     """A JSON-ready copy: NumPy scalars and arrays to Python, non-finite floats to None."""
     if isinstance(value, dict):
