@@ -68,3 +68,21 @@ class ImageSize(NamedTuple):
         """The size of an array (or of a shape ``(rows, cols, ...)``): ``(shape[1], shape[0])``."""
         shape = getattr(array_or_shape, "shape", array_or_shape)
         return cls(int(shape[1]), int(shape[0]))
+
+    def contains(self, xy, margin: float = 0.0) -> np.ndarray:
+        """Which points ``xy`` ``(N, 2)`` (px, pixel centres at whole numbers) are finite and
+        at least ``margin`` px inside the image: ``margin <= x <= width - 1 - margin``, and
+        likewise ``y`` with the height.
+
+        >>> ImageSize(640, 480).contains(np.array([[3.0, 3.0], [637.0, 2.0], [np.nan, 9.0]]), 3).tolist()
+        [True, False, False]
+        """
+        xy = np.asarray(xy)
+        with np.errstate(invalid="ignore"):
+            return (
+                np.isfinite(xy).all(axis=1)
+                & (xy[:, 0] >= margin)
+                & (xy[:, 0] <= self.width - 1 - margin)
+                & (xy[:, 1] >= margin)
+                & (xy[:, 1] <= self.height - 1 - margin)
+            )

@@ -62,6 +62,7 @@ from oapcal.imaging.usaf import (
     usaf_target,
 )
 from oapcal.progress import Stages
+from oapcal.records import ImageSize
 
 #: (Gaussian blur of both images in px, polynomial degree) of the registration levels;
 #: the last level (blur None) uses the image as it is and fits the blur.
@@ -586,7 +587,7 @@ def _detect_from_pose(img, found: _PoseFound, opts: _Options, empty, bar):
     pred = warp.inverse(corners_u)
     m = 3.0
     # only corners of bars that are resolved count as expected
-    inside = _inside(pred, w, h, m) & (target.corner_width_um * pose.s >= RESOLVED_BAR_PX)
+    inside = ImageSize(w, h).contains(pred, m) & (target.corner_width_um * pose.s >= RESOLVED_BAR_PX)
     scale_ref = pose.s * u_ref  # reference px per camera px
     sigma = float(np.hypot(opts.sigma_hint_px, np.sqrt(1 / 12))) * scale_ref
     swap_axes = orientation_matrix(orient)[0, 0] == 0
@@ -694,7 +695,7 @@ def _refine_triplets(target, inside, w, h, m, refine, bar) -> _Kept:
             dropped[reason] += n_in
             continue
         infos.append(info)
-        ok = _inside(xy, w, h, m + KEEP_MARGIN_EXTRA_PX)
+        ok = ImageSize(w, h).contains(xy, m + KEEP_MARGIN_EXTRA_PX)
         dropped["outside"] += int((inside[idx] & ~ok).sum())
         for k, i in enumerate(idx):
             if ok[k] and inside[i]:
@@ -709,11 +710,6 @@ def _refine_triplets(target, inside, w, h, m, refine, bar) -> _Kept:
         dropped,
         infos,
     )
-
-
-def _inside(xy, w, h, m):
-    """Rows of ``xy`` finite and ``m`` px inside a ``w`` x ``h`` image."""
-    return (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
 
 
 def _replace(det: Detection, **changes) -> Detection:
@@ -887,7 +883,7 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
         return _replace(empty, message=slip, ncc=global_ncc)
     pred = warp.inverse(corners_u)
     m = 3.0
-    inside = _inside(pred, w, h, m)
+    inside = ImageSize(w, h).contains(pred, m)
     ctx = TripletContext(img, warp, start.rects, start.masks, target, corners_u, pred, res.a, res.b, sigma,
                          um_per_px, opts.max_stderr_px, opts.ambiguity_ratio,
                          orientation_matrix(best)[0, 0] == 0)  # fmt: skip
