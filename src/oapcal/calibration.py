@@ -415,7 +415,7 @@ def calibrate(
         residuals=correction_residuals(result.model, norm.xy_u, norm.xy_d, scale),
         um_per_px=scale,
         image_size=image_size,
-        **_region(norm.xy_u),
+        **calibrated_region(norm.xy_u),
         name=name,
         source=source,
         relay_design=relay_design,
@@ -483,14 +483,15 @@ def _aicc_corrected(result, norm) -> float:
     return float(information_criteria(rss, 2 * len(norm.xy_u), k).aicc)
 
 
-def _region(xy_u) -> dict:
-    """The calibrated region of the reference points: ``bounds`` and the convex ``hull``
-    (None when the points are collinear)."""
+def calibrated_region(xy_u) -> dict:
+    """The calibrated region of the reference points ``xy_u`` ``(N, 2)``, as the keyword
+    arguments of :class:`Calibration`: ``bounds`` and the convex ``hull`` (None when the
+    points are collinear or too few); of :func:`calibrate` and of a self-calibration."""
     from scipy.spatial import ConvexHull, QhullError
 
     try:
         hull = xy_u[ConvexHull(xy_u).vertices]
-    except QhullError:
+    except (QhullError, ValueError):
         hull = None
     lo = xy_u.min(axis=0)
     hi = xy_u.max(axis=0)

@@ -418,14 +418,24 @@ def fit_batch(
     masks = kernel_array(np.atleast_2d(np.asarray(masks, dtype=bool)), bool)
     family = family_of(masks, family)
     _check_batch(xy_u, xy_d, masks, family)
-    n_models, n_params = masks.shape
-    idx, counts = _point_subsets(points, xy_u.shape[-2], n_models)
+    idx, counts = _point_subsets(points, xy_u.shape[-2], masks.shape[0])
     p0 = np.broadcast_to(np.asarray(p0, dtype=float), masks.shape)
     if prior is not None:
-        masks, p0, prior_mean, prior_sigma = _priors(prior, masks, p0, family)
-
-    exps = family.scale_exponents
+        masks, p0, mean, sigma = _priors(prior, masks, p0, family)
+        prior = (mean, sigma)  # checked, and broadcast to the masks
+    want_jtj = bool(covariance) or prior is not None  # priors: J^T J for k_eff as well
+    solver = {"max_iter": max_iter, "ftol": ftol, "xtol": xtol, "gtol": gtol, "want_jtj": want_jtj}
     f = _solver_scale(family, xy_u, xy_d, scale)
+    return _solve_scaled(family, f, (xy_u, xy_d, idx, counts), masks, p0, solver, covariance, prior)
+
+
+def _solve_scaled(family, f, points, masks, p0, solver: dict, covariance: bool, prior) -> BatchFit:
+    """:func:`fit_batch`'s solve: in the solver's coordinates (the points ``(xy_u, xy_d,
+    idx, counts)`` divided by ``f``, parameters ``p' = p f**e``), then back in the data's
+    units; ``prior`` the checked ``(mean, sigma)`` or None."""
+    xy_u, xy_d, idx, counts = points
+    n_models, n_params = masks.shape
+    exps = family.scale_exponents
     u = kernel_array((xy_u / f).reshape((-1,) + xy_u.shape[-2:]))
     d = kernel_array((xy_d / f).reshape((-1,) + xy_d.shape[-2:]))
     p = p0
@@ -433,8 +443,6 @@ def fit_batch(
         p = p * f**exps
     fixed = 0.0 if family.zero_when_fixed else p
     p = kernel_array(np.where(masks, p, fixed))
-    want_jtj = bool(covariance) or prior is not None  # priors: J^T J for k_eff as well
-    solver = {"max_iter": max_iter, "ftol": ftol, "xtol": xtol, "gtol": gtol, "want_jtj": want_jtj}
     n_res = 2 * np.broadcast_to(counts, (n_models,)).astype(np.int64)
     cov = None
     k_eff = None
@@ -444,7 +452,7 @@ def fit_batch(
         if covariance:
             cov = _covariance(jtj, masks, rss_scaled, n_res)
     else:
-        mean_s, w_s = _prior_rows(prior_mean, prior_sigma, exps, f, n_params)
+        mean_s, w_s = _prior_rows(*prior, exps, f, n_params)
         status, n_iter, cost, jtj = _run_lm(family, u, d, idx, counts, masks, p, solver, (mean_s, w_s, True))
         w2 = np.broadcast_to(np.where(masks, w_s**2, 0.0), masks.shape)
         penalty = (w2 * (p - mean_s) ** 2).sum(axis=1)

@@ -29,6 +29,12 @@ def finite_or_none(value) -> float | None:
     return float(value) if value is not None and math.isfinite(value) else None
 
 
+def nan_if_none(value) -> float:
+    """``float(value)``, or NaN when it is None (a JSON ``null`` read back as a number:
+    what :func:`finite_or_none` wrote for a non-finite one)."""
+    return math.nan if value is None else float(value)
+
+
 def json_safe(value):
     """A JSON-ready copy: NumPy scalars and arrays to Python, non-finite floats to None."""
     if isinstance(value, dict):
@@ -62,3 +68,21 @@ class ImageSize(NamedTuple):
         """The size of an array (or of a shape ``(rows, cols, ...)``): ``(shape[1], shape[0])``."""
         shape = getattr(array_or_shape, "shape", array_or_shape)
         return cls(int(shape[1]), int(shape[0]))
+
+    def contains(self, xy, margin: float = 0.0) -> np.ndarray:
+        """Which points ``xy`` ``(N, 2)`` (px, pixel centres at whole numbers) are finite and
+        at least ``margin`` px inside the image: ``margin <= x <= width - 1 - margin``, and
+        likewise ``y`` with the height.
+
+        >>> ImageSize(640, 480).contains(np.array([[3.0, 3.0], [637.0, 2.0], [np.nan, 9.0]]), 3).tolist()
+        [True, False, False]
+        """
+        xy = np.asarray(xy)
+        with np.errstate(invalid="ignore"):
+            return (
+                np.isfinite(xy).all(axis=1)
+                & (xy[:, 0] >= margin)
+                & (xy[:, 0] <= self.width - 1 - margin)
+                & (xy[:, 1] >= margin)
+                & (xy[:, 1] <= self.height - 1 - margin)
+            )

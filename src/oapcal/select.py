@@ -53,7 +53,7 @@ from oapcal.model import (
     undistort,
 )
 from oapcal.normalize import normalize
-from oapcal.records import finite_or_none
+from oapcal.records import finite_or_none, nan_if_none
 from oapcal.stats import information_criteria
 from oapcal.subsampling import REASONS, ModelRobustness, Robustness, hull_grid, robustness  # noqa: F401 (re-exported)
 
@@ -132,26 +132,22 @@ class ModelScore:
         """A model of a selection from its JSON entry (:meth:`to_dict`; ``null`` -> NaN;
         entries written before ``fit_status``, ``cv_*`` or ``aicc_forward`` existed load
         with their defaults)."""
-
-        def number(value) -> float:
-            return float("nan") if value is None else float(value)
-
         return cls(
             bits=int(m["bits"]),
             free=tuple(m["free"]),
             k=int(m["k"]),
-            aicc=number(m["aicc"]),
-            delta_aicc=number(m["delta_aicc"]),
-            weight=number(m["weight"]),
-            rss=number(m["rss"]),
-            mean_error=number(m["mean_error"]),
+            aicc=nan_if_none(m["aicc"]),
+            delta_aicc=nan_if_none(m["delta_aicc"]),
+            weight=nan_if_none(m["weight"]),
+            rss=nan_if_none(m["rss"]),
+            mean_error=nan_if_none(m["mean_error"]),
             valid=bool(m["valid"]),
             reason=m["reason"],
             fit_status=int(m.get("fit_status", 1 if m["valid"] else 0)),
-            cv_mean_error=None if "cv_mean_error" not in m else number(m["cv_mean_error"]),
+            cv_mean_error=None if "cv_mean_error" not in m else nan_if_none(m["cv_mean_error"]),
             cv_failed=int(m.get("cv_failed", 0)),
             reason_code=m["reason_code"],
-            aicc_forward=number(m.get("aicc_forward")),
+            aicc_forward=nan_if_none(m.get("aicc_forward")),
         )
 
 

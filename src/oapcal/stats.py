@@ -62,6 +62,16 @@ def information_criteria(rss, n, k_free):
     return InformationCriteria(aic, aicc, bic)
 
 
+def _in_um(px_field: str) -> property:
+    """A property of :class:`ResidualStats`: the distance ``px_field`` times ``um_per_px``."""
+
+    def get(self) -> float | None:
+        value = getattr(self, px_field)
+        return None if self.um_per_px is None else value * self.um_per_px
+
+    return property(get, doc=f"``{px_field}`` in um (None without a scale).")
+
+
 @dataclass(frozen=True)
 class ResidualStats:
     """The paper's Table-1 statistics of corrected points against reference points.
@@ -79,24 +89,10 @@ class ResidualStats:
     n_failed: int = 0
     um_per_px: float | None = None
 
-    def _um(self, value: float) -> float | None:
-        return None if self.um_per_px is None else value * self.um_per_px
-
-    @property
-    def max_um(self) -> float | None:
-        return self._um(self.max_px)
-
-    @property
-    def mean_um(self) -> float | None:
-        return self._um(self.mean_px)
-
-    @property
-    def rms_um(self) -> float | None:
-        return self._um(self.rms_px)
-
-    @property
-    def total_um(self) -> float | None:
-        return self._um(self.total_px)
+    max_um = _in_um("max_px")
+    mean_um = _in_um("mean_px")
+    rms_um = _in_um("rms_px")
+    total_um = _in_um("total_px")
 
     def to_dict(self) -> dict:
         """Plain dict with ``max_px mean_px rms_px total_px`` and, with a scale, ``*_um``."""

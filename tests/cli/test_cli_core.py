@@ -6,6 +6,7 @@ import sys
 import numpy as np
 import pytest
 
+from fresh_python import run_fresh
 from oapcal.io.points import write_point_pairs
 
 
@@ -74,13 +75,8 @@ def test_user_errors_are_one_line_exit_2_and_write_nothing(run_cli, points_csv, 
 
 
 def test_version_and_fast_help():
-    code = (
-        "import sys; from oapcal.cli import main; main(['--help']); main(['fit', '--help']);"
-        "heavy = [m for m in ('numpy', 'scipy', 'cv2', 'matplotlib', 'rich', 'dask') if m in sys.modules];"
-        "print('HEAVY', heavy)"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert "HEAVY []" in out.stdout
+    _, loaded = run_fresh("from oapcal.cli import main; main(['--help']); main(['fit', '--help'])")
+    assert sorted(loaded & {"numpy", "scipy", "cv2", "matplotlib", "rich", "dask"}) == []
     out = subprocess.run([sys.executable, "-m", "oapcal", "--version"], capture_output=True, text=True)
     assert out.returncode == 0 and "0.1.0" in out.stdout
 

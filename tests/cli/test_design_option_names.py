@@ -2,12 +2,10 @@
 design table and the commands' spellings; every command's hint is the one the hand-written
 list of earlier releases gave."""
 
-import subprocess
-import sys
-
 import click
 import pytest
 
+from fresh_python import run_fresh
 from oapcal.cli import _common, cli
 from oapcal.cli._design_flags import DESIGN_OPTIONS, OPTION_STYLES
 
@@ -52,9 +50,5 @@ def test_orientation_is_never_hinted():
 
 
 def test_the_table_module_imports_no_cli_module():
-    code = (
-        "import sys, oapcal.cli._design_flags; "
-        "print(sorted(m for m in sys.modules if m.startswith('oapcal.cli.')))"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "['oapcal.cli._design_flags']"
+    _, loaded = run_fresh("import oapcal.cli._design_flags")
+    assert sorted(m for m in loaded if m.startswith("oapcal.cli.")) == ["oapcal.cli._design_flags"]

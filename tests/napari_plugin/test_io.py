@@ -1,12 +1,10 @@
 """The plugin's reader and writer, its manifest, and that ``import oapcal`` stays free of napari."""
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
 import oapcal
+from fresh_python import run_fresh
 from oapcal.errors import DataError
 from oapcal.synthetic import synthetic_pairs
 
@@ -147,6 +145,5 @@ def test_the_manifest_is_found_by_napari():
 
 def test_import_oapcal_loads_neither_napari_nor_qt():
     gui = ("napari", "magicgui", "qtpy", "PyQt6", "PyQt5", "vispy")
-    code = f"import sys, oapcal; oapcal.calibrate; print(','.join(m for m in {gui!r} if m in sys.modules))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == ""
+    _, loaded = run_fresh("import oapcal; oapcal.calibrate")
+    assert sorted(loaded & set(gui)) == []

@@ -5,21 +5,12 @@ import numpy as np
 import pytest
 
 import oapcal
-from oapcal.napari_plugin._layers import points_layers
 from paths import REAL
 
 
 def _add(viewer, widget, name):
     viewer.window.add_dock_widget(widget, name=name)
     return widget
-
-
-def _truth_layers(viewer, demo, noise=0.0, seed=0):
-    rng = np.random.default_rng(seed)
-    xy_d = demo["xy_d"] + rng.normal(0, noise, demo["xy_d"].shape) if noise else demo["xy_d"]
-    for data, kwargs, kind in points_layers(demo["xy_u"], xy_d, demo["ids"], um_per_px=demo["um_per_px"]):
-        getattr(viewer, f"add_{kind}")(data, **kwargs)
-    return xy_d
 
 
 def test_detect_adds_the_corners_with_ids(viewer, demo, wait):
@@ -128,11 +119,11 @@ def test_label_by_hand_without_refinement_keeps_clicks_and_proposes(viewer, demo
     assert "at least 3 corners" in w.last_error
 
 
-def test_fit_shows_the_residuals_of_oapcals_own_fit(viewer, demo, wait):
+def test_fit_shows_the_residuals_of_oapcals_own_fit(viewer, demo, wait, truth_layers):
     from oapcal.napari_plugin._widgets import FitWidget
 
     viewer.add_image(demo["image"], **demo["kwargs"])
-    xy_d = _truth_layers(viewer, demo, noise=0.3, seed=1)
+    xy_d = truth_layers(viewer, noise=0.3, seed=1)
     w = _add(viewer, FitWidget(viewer), "Fit & inspect")
     assert w.distorted.value.name == "distorted" and w.reference.value.name == "reference"
     w.model.value = "paper"
@@ -155,10 +146,10 @@ def test_fit_shows_the_residuals_of_oapcals_own_fit(viewer, demo, wait):
     assert [row[0] for row in w.params.data] == list(direct.free)
 
 
-def test_fit_pairs_by_id_after_a_landmark_is_deleted(viewer, demo, wait):
+def test_fit_pairs_by_id_after_a_landmark_is_deleted(viewer, demo, wait, truth_layers):
     from oapcal.napari_plugin._widgets import FitWidget
 
-    xy_d = _truth_layers(viewer, demo, noise=0.3, seed=2)
+    xy_d = truth_layers(viewer, noise=0.3, seed=2)
     dist = viewer.layers["distorted"]
     dist.selected_data = {0, 7}
     dist.remove_selected()
@@ -173,14 +164,14 @@ def test_fit_pairs_by_id_after_a_landmark_is_deleted(viewer, demo, wait):
     np.testing.assert_allclose(w.calibration.params, direct.params, rtol=1e-9, atol=1e-9)
 
 
-def test_correct_image_and_lazy_stack_uncertainty_hull_and_save(viewer, demo, wait, tmp_path):
+def test_correct_image_and_lazy_stack_uncertainty_hull_and_save(viewer, demo, wait, tmp_path, truth_layers):
     import dask.array as da
 
     from oapcal.napari_plugin._widgets import CorrectWidget, FitWidget
 
     image = demo["image"]
     viewer.add_image(image, name="camera")
-    _truth_layers(viewer, demo, noise=0.2, seed=3)
+    truth_layers(viewer, noise=0.2, seed=3)
     fit = _add(viewer, FitWidget(viewer), "Fit & inspect")
     fit.run()
     wait(fit)
@@ -282,10 +273,10 @@ def test_detect_and_fit_on_a_real_image(viewer, wait):
 
 
 @pytest.mark.slow
-def test_fit_selects_the_model_by_aicc(viewer, demo, wait):
+def test_fit_selects_the_model_by_aicc(viewer, demo, wait, truth_layers):
     from oapcal.napari_plugin._widgets import FRAME_TERMS, SELECT, FitWidget
 
-    xy_d = _truth_layers(viewer, demo, noise=0.3, seed=4)
+    xy_d = truth_layers(viewer, noise=0.3, seed=4)
     w = _add(viewer, FitWidget(viewer), "Fit & inspect")
     w.model.value = SELECT
     w.run()

@@ -108,6 +108,12 @@ def count_option(*decls: str, help: str, least: int, default: int):
     return click.option(*decls, type=click.IntRange(min=least), default=default, show_default=True, help=help)
 
 
+def range_option(*decls: str, type, default, help: str):
+    """A number within the bounds of ``type`` (``click.IntRange``, ``click.FloatRange``),
+    its default shown."""
+    return click.option(*decls, type=type, default=default, show_default=True, help=help)
+
+
 def choice_option(*decls: str, choices, default, help: str):
     """One of ``choices`` (``click.Choice``), its default shown."""
     return click.option(*decls, type=click.Choice(choices), default=default, show_default=True, help=help)

@@ -125,14 +125,43 @@ def detect_command(
     from oapcal.cli.detect_grid import check_usaf_options
 
     check_usaf_options()
+    check_output(out, image, truth)
+    check_output(plot, image, truth, out)
+    img, group_list, anchor_list, score = _read_inputs(image, groups, anchors, truth)
+    det = _detect(image, img, group_list, anchor_list, um_per_px, as_json, orientation=orientation,
+                  mirror=mirror, max_stderr_px=max_stderr_px)  # fmt: skip
+    summary = det.summary()
+    if score is not None:
+        from oapcal.imaging.detect import evaluate_detection
+
+        summary["truth"] = evaluate_detection(det, *score)
+
+    def draw(path):
+        from oapcal.report.detect_plots import plot_detection
+
+        plot_detection(img, det, path, groups=groups)
+
+    if det.status != 0:
+        return _failed(image, det, summary, plot, draw, as_json, scored=score is not None)
+    # All outputs or none: the picture is drawn to a temporary file first, then the points
+    # are written, then the picture is moved into place.
+    write_detected_points(out, det, plot, draw)
+    if as_json:
+        print_json(summary)
+    elif out != "-":
+        _print_summary(summary)
+    return 0
+
+
+def _read_inputs(image, groups, anchors, truth):
+    """``detect_command``'s inputs read and checked before detection starts: the grey
+    image, the groups and anchors parsed, and the truth to score against (None without
+    --truth), which must have every corner of the groups."""
     from oapcal.cli.detect_inputs import check_image_size, read_truth
-    from oapcal.imaging.detect import detect_usaf, evaluate_detection
     from oapcal.imaging.detect.anchor import parse_anchors
     from oapcal.imaging.usaf import parse_groups
     from oapcal.io.imagefile import read_image_grey
 
-    check_output(out, image, truth)
-    check_output(plot, image, truth, out)
     group_list = parse_groups(groups)
     anchor_list = parse_anchors(anchors)
     group_list = _anchored_groups(group_list, anchor_list)
@@ -149,48 +178,38 @@ def detect_command(
             raise DataError(
                 f"{truth}: has no row with id {missing[0]!r}; is it the truth of this image and these groups?"
             )
+    return img, group_list, anchor_list, score
+
+
+def _detect(image, img, group_list, anchor_list, um_per_px, as_json: bool, **options):
+    """:func:`~oapcal.imaging.detect.detect_usaf` on ``img`` (``options``: orientation,
+    mirror, max_stderr_px) behind a progress bar (none with --json), with the digest of the
+    ``image`` file."""
+    from dataclasses import replace
+
     from oapcal.cli._common import progress_bar
+    from oapcal.imaging.detect import detect_usaf
+    from oapcal.io.digest import file_sha256
 
     bar, update = progress_bar("detecting corners", enabled=not as_json)
     with bar:
-        det = detect_usaf(
-            img, group_list, um_per_px, orientation=orientation, mirror=mirror, max_stderr_px=max_stderr_px,
-            progress=update, anchors=anchor_list,
-        )  # fmt: skip
-    from dataclasses import replace
+        det = detect_usaf(img, group_list, um_per_px, **options, progress=update, anchors=anchor_list)
+    return replace(det, image_sha256=file_sha256(image))
 
-    from oapcal.io.digest import file_sha256
 
-    det = replace(det, image_sha256=file_sha256(image))
-    summary = det.summary()
-    if score is not None:
-        summary["truth"] = evaluate_detection(det, *score)
-    if det.status != 0:
-        if plot:
-            from oapcal.report.detect_plots import plot_detection
-
-            plot_detection(img, det, plot, groups=groups)
-        click.echo(with_flag_hint(f"oapcal: detection failed: {image}: {_cli_words(det.message)}", det.param),
-                   err=True)  # fmt: skip
-        if score is not None and not as_json:
-            _print_summary(summary)
-        if as_json:
-            print_json(summary)
-        return 3
-
-    # All outputs or none: the picture is drawn to a temporary file first, then the points
-    # are written, then the picture is moved into place.
-    def draw(path):
-        from oapcal.report.detect_plots import plot_detection
-
-        plot_detection(img, det, path, groups=groups)
-
-    write_detected_points(out, det, plot, draw)
+def _failed(image, det, summary: dict, plot, draw, as_json: bool, scored: bool) -> int:
+    """Exit 3 for a target not found or not certain: with --plot the picture of what was
+    found (``draw(plot)``), the reason on stderr, then the summary with --json, or as a
+    table when scored against --truth."""
+    if plot:
+        draw(plot)
+    click.echo(with_flag_hint(f"oapcal: detection failed: {image}: {_cli_words(det.message)}", det.param),
+               err=True)  # fmt: skip
+    if scored and not as_json:
+        _print_summary(summary)
     if as_json:
         print_json(summary)
-    elif out != "-":
-        _print_summary(summary)
-    return 0
+    return 3
 
 
 def _anchored_groups(group_list: tuple, anchor_list) -> tuple:

@@ -13,6 +13,7 @@ from oapcal.cli._common import (
     load_pairs,
     points_options,
     progress_bar,
+    range_option,
 )
 from oapcal.cli._priors import load_priors, priors_option
 from oapcal.cli._relay import refuse_normalize, relay_design_options
@@ -341,21 +342,19 @@ _INVALID_TEXT = {
     "parameter lists such as k1+s3+c_x+c_y.",
 )
 @click.option("--trials", type=click.IntRange(1, MAX_TRIALS), default=10000, show_default=True)
-@click.option(
+@range_option(
     "--fraction",
     type=click.FloatRange(0, 1, min_open=True, max_open=True),
     default=0.9,
-    show_default=True,
     help="Fraction of the points kept in each trial (the rest are held out).",
 )
 @click.option("--seed", type=int, default=0, show_default=True)
 @init_option
 @normalize_option
-@click.option(
+@range_option(
     "--wrong-minimum-ratio",
     type=click.FloatRange(min=1, min_open=True),
     default=1.5,
-    show_default=True,
     help="A converged fit whose RMS on the kept points exceeds this times the model's "
     "all-points RMS counts as a wrong local minimum.",
 )

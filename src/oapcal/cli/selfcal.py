@@ -13,6 +13,7 @@ from oapcal.cli._common import (
     positive_option,
     print_json,
     progress_bar,
+    range_option,
 )
 from oapcal.cli._relay import (
     check_relay_spec,
@@ -53,18 +54,16 @@ from oapcal.cli._relay import (
     "plot_out",
     help="Write a picture of the matches here (PNG); the residual field goes beside it (NAME-residuals.png).",
 )
-@click.option(
+@range_option(
     "--max-matches-per-pair",
     type=click.IntRange(20, 5000),
     default=150,
-    show_default=True,
     help="At most this many matches per overlapping pair of frames.",
 )
-@click.option(
+@range_option(
     "--min-overlap",
     type=click.FloatRange(0.05, 0.95),
     default=0.2,
-    show_default=True,
     help="Frames overlap when they share at least this fraction of the frame.",
 )
 @positive_option(
@@ -73,11 +72,10 @@ from oapcal.cli._relay import (
     show_default=True,
     help="Refuse (a moving sample) when the inlier matches' RMS is above this, px.",
 )
-@click.option(
+@range_option(
     "--min-inliers",
     type=click.FloatRange(0, 1),
     default=0.9,
-    show_default=True,
     help="Refuse (a moving sample) when fewer of the matches than this fraction agree with "
     "one model and set of moves.",
 )

@@ -15,6 +15,7 @@ from oapcal.cli._common import (
     out_option,
     parse_size,
     progress_bar,
+    range_option,
     sanitize,
 )
 from oapcal.cli._relay import design_option, design_options
@@ -90,16 +91,10 @@ BYTES_PER_SUBPIXEL = 100
     default=None,
     help="Scale of x_u,y_u in the truth file (default: the paraxial scale).",
 )
-@click.option(
-    "--oversample",
-    type=click.IntRange(min=1, max=16),
-    default=4,
-    show_default=True,
-    help="Sub-pixels per pixel side.",
+@range_option(
+    "--oversample", type=click.IntRange(min=1, max=16), default=4, help="Sub-pixels per pixel side."
 )
-@click.option(
-    "--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True, help="Seed of the noise."
-)
+@range_option("--seed", type=click.IntRange(0, 2**63 - 1), default=0, help="Seed of the noise.")
 @choice_option(
     "--layout",
     choices=["compact", "spaced", "whole-target"],

@@ -16,6 +16,7 @@ from oapcal.cli._common import (
     parse_size,
     print_json,
     progress_bar,
+    range_option,
 )
 from oapcal.cli._relay import check_microscope, design_option, design_options, field_option
 
@@ -75,8 +76,7 @@ def misalignment_options(func):
 
 @click.command("relay")
 @design_options("simulate", "setup", "d1_mm", "orientation", "stop_distance_mm", "focal_length_mm")
-@click.option("--grid", "n", type=click.IntRange(max=MAX_GRID), default=17, show_default=True,
-              help="Grid points per side.")  # fmt: skip
+@range_option("--grid", "n", type=click.IntRange(max=MAX_GRID), default=17, help="Grid points per side.")
 @field_option("Full width of the square object field, mm.")
 @choice_option(
     "--units", choices=["mm", "px"], default="mm", help="Units of x_u,y_u,x_d,y_d in the CSV (image plane)."
@@ -99,8 +99,9 @@ def misalignment_options(func):
     metavar="X,Y",
     help="Object point (mm) of a spot diagram; repeat for more (default: centre, edges, corner).",
 )
-@click.option("--rings", type=click.IntRange(max=MAX_RINGS), default=8, show_default=True,
-              help="Hexapolar rings of rays per spot diagram.")  # fmt: skip
+@range_option(
+    "--rings", type=click.IntRange(max=MAX_RINGS), default=8, help="Hexapolar rings of rays per spot diagram."
+)
 @file_option("--out", help="Write the grid CSV (x_obj,y_obj,x_u,y_u,x_d,y_d,clear).", dash=True)
 @file_option("--plot", help="Grid distortion figure (PNG).")
 @file_option("--spots", help="Spot diagrams of both orientations (PNG).")

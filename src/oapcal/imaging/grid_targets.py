@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
+from oapcal.records import ImageSize
 
 #: A landmark is *in view* when it lies at least this far inside the image (px) and, for a
 #: dot, when the whole dot does (its radius + this margin).
@@ -204,20 +205,12 @@ def render_grid(
     r = render_scene(src, scene, seed=seed)
     lm_src = np.asarray(centre) + target.landmarks_um() / step  # source px (x right, y down)
     xy_d = scene.camera_from_source(lm_src)
-    w, h = camera.size
     margin = VIEW_MARGIN_PX
     if target.kind == "dots":
         margin += 0.5 * target.dot_um / scene.camera_um_per_px
     else:
         margin += 0.25 * target.pitch_um / scene.camera_um_per_px
-    with np.errstate(invalid="ignore"):
-        in_view = (
-            np.isfinite(xy_d).all(axis=1)
-            & (xy_d[:, 0] >= margin)
-            & (xy_d[:, 0] <= w - 1 - margin)
-            & (xy_d[:, 1] >= margin)
-            & (xy_d[:, 1] <= h - 1 - margin)
-        )
+    in_view = ImageSize(*camera.size).contains(xy_d, margin)
     return GridRendering(r.image, target.ids, target.rc, xy_d, in_view, scene, target, r.clean, r.object_um)
 
 

@@ -41,6 +41,7 @@ import numpy as np
 from oapcal.errors import DataError
 from oapcal.imaging.usaf import intensity, nearest_orientation, target_coverage, usaf_target
 from oapcal.progress import Stages
+from oapcal.records import ImageSize
 
 #: A corner is *fully visible* when it is at least this far (px) inside the image.
 VISIBLE_MARGIN_PX = 3.0
@@ -311,15 +312,7 @@ def _true_corners(target, field) -> tuple[np.ndarray, np.ndarray]:
     xy_d = np.asarray(
         field.forward(field.paraxial_from_object_um(target.corners_um - target.centre_um)), float
     )
-    m = VISIBLE_MARGIN_PX
-    visible = (
-        np.isfinite(xy_d).all(axis=1)
-        & (xy_d[:, 0] >= m)
-        & (xy_d[:, 0] <= w - 1 - m)
-        & (xy_d[:, 1] >= m)
-        & (xy_d[:, 1] <= h - 1 - m)
-    )
-    return xy_d, visible
+    return xy_d, ImageSize(w, h).contains(xy_d, VISIBLE_MARGIN_PX)
 
 
 def blur(sub, q, sigma_px, na, wavelength_um, pixel_size_um):

@@ -47,7 +47,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-import math
 from importlib import resources
 from pathlib import Path
 
@@ -59,6 +58,7 @@ from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
 from oapcal.io.userfile import read_json
 from oapcal.model import BROWN_CONRADY, FAMILIES, RELAY_FAMILIES
+from oapcal.records import nan_if_none
 from oapcal.uncertainty import ErrorModel
 
 __all__ = [
@@ -193,15 +193,11 @@ def _residual_stats(residuals: dict):
     ``*_um`` entries follow from ``um_per_px``; absent distances are NaN)."""
     from oapcal.stats import ResidualStats
 
-    def number(key):
-        value = residuals.get(key)
-        return math.nan if value is None else float(value)
-
     return ResidualStats(
-        max_px=number("max_px"),
-        mean_px=number("mean_px"),
-        rms_px=number("rms_px"),
-        total_px=number("total_px"),
+        max_px=nan_if_none(residuals.get("max_px")),
+        mean_px=nan_if_none(residuals.get("mean_px")),
+        rms_px=nan_if_none(residuals.get("rms_px")),
+        total_px=nan_if_none(residuals.get("total_px")),
         n_points=int(residuals.get("n_points") or 0),
         n_failed=int(residuals.get("n_failed") or 0),
         um_per_px=residuals.get("um_per_px"),
@@ -227,7 +223,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
     for name, value in data["stderr"].items():
         if name not in free:
             raise InputFileError(f"{source}: field 'stderr.{name}': {name} is not a free parameter")
-        stderr[names.index(name)] = np.nan if value is None else float(value)
+        stderr[names.index(name)] = nan_if_none(value)
     rows = data["covariance"]
     k = len(free)
     if len(rows) != k or any(len(row) != k for row in rows):
@@ -235,7 +231,7 @@ def calibration_from_dict(data: dict, source: str = "calibration") -> Calibratio
             f"{source}: field 'covariance' must be {k} x {k} (one row and column per free "
             "parameter, in 'free' order)"
         )
-    cov = np.array([[np.nan if v is None else float(v) for v in row] for row in rows], float)
+    cov = np.array([[nan_if_none(v) for v in row] for row in rows], float)
     cov = cov.reshape(k, k)
     traced = family in RELAY_FAMILIES and not _checks_passed(data)
     if traced:

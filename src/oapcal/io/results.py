@@ -19,7 +19,6 @@ True
 from __future__ import annotations
 
 import json
-import math
 from functools import cache
 from importlib import resources
 from pathlib import Path
@@ -27,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from oapcal.errors import InputFileError
+from oapcal.records import nan_if_none
 from oapcal.select import ModelRobustness, ModelScore, Robustness, Selection
 
 SELECTION_FORMAT = "oapcal-selection"
@@ -41,10 +41,6 @@ _BRANCH = {SELECTION_FORMAT: "selection_file", ROBUSTNESS_FORMAT: "robustness_fi
 @cache
 def _schema() -> dict:
     return json.loads(resources.files("oapcal.io").joinpath("results.schema.json").read_text())
-
-
-def _nan(value) -> float:
-    return math.nan if value is None else float(value)
 
 
 # ------------------------------------------------------------------------ to files
@@ -146,9 +142,9 @@ def robustness_from_dict(data: dict, source: str = "robustness") -> Robustness:
             not_converged=int(m["not_converged"]),
             by_reason={k: int(v) for k, v in m["by_reason"].items()},
             param_std={k: None if v is None else float(v) for k, v in m["param_std"].items()},
-            heldout_mean_error=_nan(m["heldout_mean_error_px"]),
+            heldout_mean_error=nan_if_none(m["heldout_mean_error_px"]),
             heldout_failed=int(m["heldout_failed_points"]),
-            reference_rms=_nan(m["reference_rms"]),
+            reference_rms=nan_if_none(m["reference_rms"]),
             trial_codes=np.zeros(0, dtype=np.int64),
         )
         for name, m in data["models"].items()
@@ -188,9 +184,9 @@ def family_selection_from_dict(data: dict, source: str = "family selection"):
             spec=c["spec"],
             free=tuple(c["free"]),
             k=int(c["k"]),
-            aicc=_nan(c["aicc"]),
-            delta_aicc=_nan(c["delta_aicc"]),
-            mean_error=_nan(c["mean_error"]),
+            aicc=nan_if_none(c["aicc"]),
+            delta_aicc=nan_if_none(c["delta_aicc"]),
+            mean_error=nan_if_none(c["mean_error"]),
             valid=bool(c["valid"]),
             reason=c["reason"],
             cv_mean_error=None if c["cv_mean_error"] is None else float(c["cv_mean_error"]),

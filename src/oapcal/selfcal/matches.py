@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.errors import DataError
+from oapcal.records import ImageSize
 
 #: Phase correlation runs on frames reduced (``cv2.INTER_AREA``) to at most this side.
 PHASE_MAX_SIDE = 512
@@ -504,10 +505,8 @@ def _match_pair(a8, b8, shift, dis, max_points: int, max_fb: float, inside_a):
     )
     pb = pb.reshape(-1, 2).astype(float)
     fb = np.linalg.norm(back.reshape(-1, 2) - pa, axis=1)
-    inside = (pb[:, 0] >= margin) & (pb[:, 0] <= w - 1 - margin) & (pb[:, 1] >= margin)
-    inside &= pb[:, 1] <= h - 1 - margin
+    inside = ImageSize(w, h).contains(pb, margin)  # and finite
     good = ok.ravel().astype(bool) & ok2.ravel().astype(bool) & (fb <= max_fb) & inside
-    good &= np.isfinite(pb).all(axis=1)
     ib = np.clip(pb.round().astype(int), 0, [w - 1, h - 1])
     good &= inside_a[ib[:, 1], ib[:, 0]]
     return pa[good].astype(float), pb[good], err.ravel()[good].astype(float)

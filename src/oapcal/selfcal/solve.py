@@ -786,20 +786,13 @@ def _part_words(left: float, relay: bool) -> str:
 # unpacked again)
 def _record(prob, p, cov, fit, dist, n_failed, matches, inlier, gauge, name, source):
     """The :class:`~oapcal.calibration.Calibration` of a self-calibration."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    from oapcal.calibration import Calibration, FitSummary
+    from oapcal.calibration import Calibration, FitSummary, calibrated_region
     from oapcal.stats import ResidualStats
 
     free, solved, stderr, full_cov = _uncertainty(prob, cov)
     w, h = matches.image_size
     ref = undistort(np.concatenate([matches.xy_a[inlier], matches.xy_b[inlier]]), p, family=prob.family).xy
     ref = ref[np.isfinite(ref).all(axis=1)]
-    try:
-        hull = ref[ConvexHull(ref).vertices]
-    except (QhullError, ValueError):
-        hull = None
-    lo, hi = ref.min(axis=0), ref.max(axis=0)
     n = len(dist)
     stats = ResidualStats(
         max_px=float(dist.max()),
@@ -832,8 +825,7 @@ def _record(prob, p, cov, fit, dist, n_failed, matches, inlier, gauge, name, sou
         residuals=stats,
         um_per_px=None if prob.um_per_px is None else float(prob.um_per_px),
         image_size=(int(w), int(h)),
-        bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])),
-        hull=hull,
+        **calibrated_region(ref),
         name=name,
         source=source,
         relay_design=None if prob.design is None else prob.design.to_dict(),

@@ -31,6 +31,7 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.detect.checks import check_consistency
+from oapcal.imaging.detect.pose import HALF_ELEMENT
 from oapcal.imaging.detect.records import (
     ConsistencySummary,
     DetectionDebug,
@@ -61,6 +62,7 @@ from oapcal.imaging.usaf import (
     usaf_target,
 )
 from oapcal.progress import Stages
+from oapcal.records import ImageSize
 
 #: (Gaussian blur of both images in px, polynomial degree) of the registration levels;
 #: the last level (blur None) uses the image as it is and fits the blur.
@@ -81,8 +83,6 @@ DENSE_MAX_PIXELS = 1_000_000
 #: A kept corner must be this much farther inside than the 3 px of an expected one (its
 #: detected position is uncertain by up to ``max_stderr_px``).
 KEEP_MARGIN_EXTRA_PX = 0.5
-#: Half an element step of the target, ``2 ** (1 / 12)`` (6 %).
-HALF_ELEMENT = 2.0 ** (1.0 / 12.0)
 #: Groups of the whole target (the pose search matches image triplets against all of them).
 ALL_GROUPS = tuple(range(-2, 10))
 #: Largest image detection accepts (pixels).
@@ -626,7 +626,7 @@ def _detect_from_pose(img, found: _PoseFound, opts: _Options, empty, bar):
     pred = warp.inverse(corners_u)
     m = 3.0
     # only corners of bars that are resolved count as expected
-    inside = _inside(pred, w, h, m) & (target.corner_width_um * pose.s >= RESOLVED_BAR_PX)
+    inside = ImageSize(w, h).contains(pred, m) & (target.corner_width_um * pose.s >= RESOLVED_BAR_PX)
     scale_ref = pose.s * u_ref  # reference px per camera px
     sigma = float(np.hypot(opts.sigma_hint_px, np.sqrt(1 / 12))) * scale_ref
     swap_axes = orientation_matrix(orient)[0, 0] == 0
@@ -736,7 +736,7 @@ def _refine_triplets(target, inside, w, h, m, refine, bar) -> _Kept:
             dropped[reason] += n_in
             continue
         infos.append(info)
-        ok = _inside(xy, w, h, m + KEEP_MARGIN_EXTRA_PX)
+        ok = ImageSize(w, h).contains(xy, m + KEEP_MARGIN_EXTRA_PX)
         dropped["outside"] += int((inside[idx] & ~ok).sum())
         for k, i in enumerate(idx):
             if ok[k] and inside[i]:
@@ -751,11 +751,6 @@ def _refine_triplets(target, inside, w, h, m, refine, bar) -> _Kept:
         dropped,
         infos,
     )
-
-
-def _inside(xy, w, h, m):
-    """Rows of ``xy`` finite and ``m`` px inside a ``w`` x ``h`` image."""
-    return (xy[:, 0] >= m) & (xy[:, 0] <= w - 1 - m) & (xy[:, 1] >= m) & (xy[:, 1] <= h - 1 - m)
 
 
 def _replace(det: Detection, **changes) -> Detection:
@@ -938,7 +933,7 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
         return _replace(empty, message=slip, ncc=global_ncc)
     pred = warp.inverse(corners_u)
     m = 3.0
-    inside = _inside(pred, w, h, m)
+    inside = ImageSize(w, h).contains(pred, m)
     ctx = TripletContext(img, warp, start.rects, start.masks, target, corners_u, pred, res.a, res.b, sigma,
                          um_per_px, opts.max_stderr_px, opts.ambiguity_ratio,
                          orientation_matrix(best)[0, 0] == 0)  # fmt: skip

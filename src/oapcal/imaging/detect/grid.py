@@ -31,6 +31,7 @@ import numpy as np
 from oapcal.errors import DataError
 from oapcal.imaging.detect.lattice import index_lattice, lattice_periods
 from oapcal.imaging.detect.warp import PolyWarp
+from oapcal.records import ImageSize
 
 #: Kinds of grid target.
 GRID_TARGETS = ("dots", "chessboard")
@@ -446,10 +447,7 @@ def _expected(forward, rc, size, margin, absolute) -> int:
     rr, cc = np.meshgrid(np.arange(r_max + 1), np.arange(c_max + 1), indexing="ij")
     q = np.stack([rr.ravel(), cc.ravel()], axis=1)
     p = forward(q)
-    w, h = size
-    inside = (
-        (p[:, 0] >= margin) & (p[:, 0] <= w - 1 - margin) & (p[:, 1] >= margin) & (p[:, 1] <= h - 1 - margin)
-    )
+    inside = ImageSize(*size).contains(p, margin)
     found = {tuple(n) for n in rc}
     return int(inside.sum() + sum(1 for n in found if not inside[n[0] * (c_max + 1) + n[1]]))
 

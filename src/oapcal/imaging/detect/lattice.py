@@ -438,11 +438,20 @@ def index_lattice(
         pitch_px = float(np.median(d[:, 1]))
     centre = np.median(xy, axis=0) if centre is None else np.asarray(centre, float)
     order = np.argsort(np.hypot(*(xy - centre).T))
-    seeds = _find_seeds(xy, tree, pitch_px, order, parity)
-    first = next(seeds, None)
+    first = next(_find_seeds(xy, tree, pitch_px, order, parity), None)
     if first is None:
         return _fail(empty, "no_seed", "no candidate has eight neighbours in a clean 3 x 3 block of the grid")
-    p1, basis1 = first
+    g1, loo, counts, failure = _first_growth(xy, tree, pitch_px, parity, *first)
+    failure = failure or _second_growth(xy, tree, pitch_px, parity, first[0], g1, counts)
+    if failure:
+        return _fail(empty, *failure, counts)
+    return _lattice(g1, loo, counts, pitch_px)
+
+
+def _first_growth(xy, tree, pitch_px, parity, p1, basis1):
+    """Steps 2 and 3 from the first seed ``p1``: the growth ``g1`` without the nodes that
+    fail the leave-one-out check, each node's distance from its prediction (``loo``), the
+    ``counts``, and the failure ``(reason, message)`` (None when the growth stands)."""
     g1 = _grow_from(xy, tree, pitch_px, p1, basis1, parity, len(xy))
     loo: dict = {}
     bad = _loo(g1, loo)
@@ -450,17 +459,22 @@ def index_lattice(
     counts["loo_dropped"] = len(bad)
     n1 = len(g1.point_of_node)
     if n1 >= MIN_NODES and len(bad) > MAX_LOO_FAIL_FRACTION * n1:
-        return _fail(
-            empty,
-            "inconsistent",
+        why = (
             f"{len(bad)} of {n1} grid nodes disagree with their neighbours (more than "
-            f"{100 * MAX_LOO_FAIL_FRACTION:.0f} %): the candidates are not one regular grid",
-            counts,
+            f"{100 * MAX_LOO_FAIL_FRACTION:.0f} %): the candidates are not one regular grid"
         )
+        return g1, loo, counts, ("inconsistent", why)
     for node in bad:
         g1.node_of_point.pop(g1.point_of_node.pop(node))
     if len(g1.point_of_node) < MIN_NODES:
-        return _fail(empty, "too_few", f"the grid grew to only {len(g1.point_of_node)} nodes", counts)
+        return g1, loo, counts, ("too_few", f"the grid grew to only {len(g1.point_of_node)} nodes")
+    return g1, loo, counts, None
+
+
+def _second_growth(xy, tree, pitch_px, parity, p1, g1, counts: dict):
+    """Step 4: the lattice grown again from a second seed, far from the first (``p1``),
+    must index the candidates it shares with ``g1`` alike; the failure ``(reason,
+    message)``, or None.  Sets ``counts["shared_with_second_seed"]``."""
     # the second seed: far from the first, among the indexed candidates
     # the farthest block that the first growth finds nearly square (where the field shears the
     # grid strongly, a block's own shape cannot tell an axis from a diagonal)
@@ -469,22 +483,24 @@ def index_lattice(
     second = next(
         _find_seeds(xy, tree, pitch_px, np.array(far, int), parity, skip={p1}, limit=len(far)), None
     )
-    if second is not None:
-        g2 = _grow_from(xy, tree, pitch_px, second[0], second[1], parity, len(xy))
-        for node in _loo(g2):
-            g2.node_of_point.pop(g2.point_of_node.pop(node))
-        ok, shared = _agree(g1, g2)
-        counts["shared_with_second_seed"] = shared
-        if not ok:
-            return _fail(
-                empty,
-                "seeds_disagree",
-                "two growths of the grid from different seeds index the dots differently",
-                counts,
-            )
-        # keep only what both growths agree to index (a node reached by one alone stays)
-    else:
+    if second is None:
         counts["shared_with_second_seed"] = 0
+        return None
+    g2 = _grow_from(xy, tree, pitch_px, second[0], second[1], parity, len(xy))
+    for node in _loo(g2):
+        g2.node_of_point.pop(g2.point_of_node.pop(node))
+    ok, shared = _agree(g1, g2)
+    counts["shared_with_second_seed"] = shared
+    if not ok:
+        return ("seeds_disagree", "two growths of the grid from different seeds index the dots differently")
+    # keep only what both growths agree to index (a node reached by one alone stays)
+    return None
+
+
+def _lattice(g1, loo: dict, counts: dict, pitch_px: float) -> Lattice:
+    """The :class:`Lattice` of the growth ``g1``: its nodes shifted to start at (0, 0),
+    their candidates, the median local pitch (``pitch_px`` when no node predicts one) and
+    each node's leave-one-out distance (``loo``)."""
     nodes = np.array(list(g1.point_of_node), int)
     points = np.array([g1.point_of_node[tuple(n)] for n in nodes], int)
     base = nodes.min(axis=0)

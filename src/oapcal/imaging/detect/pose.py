@@ -58,8 +58,9 @@ AMBIGUITY_RATIO = 0.9
 AMBIGUITY_MARGIN = 2.0
 #: With ``um_per_px`` given, hypotheses within this factor of its scale are searched.
 SCALE_PRIOR_RANGE = 1.3
-#: Half of one element step: ``um_per_px`` nearer than this to one hypothesis' scale than
-#: to any other identifies the element when the view alone cannot.
+#: Half of one element step of the target, ``2 ** (1 / 12)`` (6 %): ``um_per_px`` nearer
+#: than this to one hypothesis' scale than to any other identifies the element when the
+#: view alone cannot (and detection refuses a registration whose scale is farther off).
 HALF_ELEMENT = 2.0 ** (1.0 / 12.0)
 
 

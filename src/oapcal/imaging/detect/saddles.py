@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.imaging.detect.dots import image_noise
+from oapcal.records import ImageSize
 
 #: Ring samples of the X test.
 RING_SAMPLES = 32
@@ -149,7 +150,7 @@ def saddle_points(img: np.ndarray, xy: np.ndarray, sigma: float, iterations: int
         conv = saddle & (np.hypot(sx, sy) < 1e-4)
         if conv.all():
             break
-    inside = (pts[:, 0] >= k) & (pts[:, 1] >= k) & (pts[:, 0] <= w - 1 - k) & (pts[:, 1] <= h - 1 - k)
+    inside = ImageSize(w, h).contains(pts, k)
     small = np.hypot(*step.T) < 1e-3  # oscillating at the 1e-3 px level is converged enough
     return pts, (conv | small) & saddle & inside
 
