@@ -168,9 +168,27 @@ def _score(pose_s, pose_lin, pose_t, scene: _Scene, *, anchor=None, loose=1.0, p
     from it (a single triplet predicts its neighbours better than far triplets).
     Returns ``score`` (H,), ``n_missing`` (H,), the matched image index per
     (hypothesis, reference triplet) (-1: none) and the number of expected triplets (H,)."""
-    ref, img, tree, listed = scene.ref, scene.img, scene.tree, scene.listed
+    ref, listed = scene.ref, scene.listed
     h, w = scene.shape
     amat = pose_lin * pose_s[:, None, None]  # px per um, (H, 2, 2); may be non-orthogonal
+    pred, wpred, apred = _predicted(amat, pose_t, ref, pred)
+    half = 3.6 * wpred  # half the diagonal of a 5w x 5w triplet, and a little
+    inside = (pred[..., 0] > half) & (pred[..., 0] < w - 1 - half)
+    inside &= (pred[..., 1] > half) & (pred[..., 1] < h - 1 - half)
+    expected = inside & (wpred >= MIN_EXPECTED_BAR_PX)
+    ok, match = _matched(pred, wpred, apred, scene, anchor, loose, width_tol)
+    weight = np.ones(len(ref.width)) if listed is None else np.where(listed, 1.0, 0.25)
+    missing = _missing(ok, inside, expected, wpred, ref, listed)
+    score = _match_score(match, weight)
+    score -= MISSING_PENALTY * missing
+    n_expected = (expected if listed is None else expected & listed[None, :]).sum(axis=1)
+    return score, missing, match, n_expected
+
+
+def _predicted(amat, pose_t, ref: RefTriplets, pred):
+    """Where each hypothesis (linear part ``amat`` (H, 2, 2), shift ``pose_t``) puts every
+    reference triplet: centres (H, n, 2) (``pred`` when given), bar widths (H, n) and
+    bar directions mod pi (H, n), in px."""
     if pred is None:
         pred = np.einsum("hij,nj->hni", amat, ref.centre) + pose_t[:, None, :]
     along = np.stack([np.cos(ref.angle), np.sin(ref.angle)], -1)
@@ -182,11 +200,16 @@ def _score(pose_s, pose_lin, pose_t, scene: _Scene, *, anchor=None, loose=1.0, p
     cross = np.abs(dirs[..., 0] * nrm[..., 1] - dirs[..., 1] * nrm[..., 0])
     wpred = ref.width[None, :] * cross / np.maximum(np.hypot(dirs[..., 0], dirs[..., 1]), 1e-12)
     apred = np.arctan2(dirs[..., 1], dirs[..., 0]) % np.pi
-    half = 3.6 * wpred  # half the diagonal of a 5w x 5w triplet, and a little
-    inside = (pred[..., 0] > half) & (pred[..., 0] < w - 1 - half)
-    inside &= (pred[..., 1] > half) & (pred[..., 1] < h - 1 - half)
-    expected = inside & (wpred >= MIN_EXPECTED_BAR_PX)
-    dist, k = tree.query(pred.reshape(-1, 2), k=1, distance_upper_bound=float(max(h, w)))
+    return pred, wpred, apred
+
+
+def _matched(pred, wpred, apred, scene: _Scene, anchor, loose, width_tol):
+    """The nearest image triplet to every predicted one, kept when near enough (the
+    tolerance widened away from ``anchor``), as wide and as turned as predicted: the mask
+    (H, n) and the matched image index (-1: none)."""
+    img = scene.img
+    h, w = scene.shape
+    dist, k = scene.tree.query(pred.reshape(-1, 2), k=1, distance_upper_bound=float(max(h, w)))
     dist = dist.reshape(pred.shape[:2])
     k = k.reshape(pred.shape[:2])
     valid = k < len(img)
@@ -201,9 +224,11 @@ def _score(pose_s, pose_lin, pose_t, scene: _Scene, *, anchor=None, loose=1.0, p
         & (_angle_diff(img.angle[kk], apred) < np.deg2rad(12))
         & (wpred >= 0.7 * MIN_EXPECTED_BAR_PX)
     )
-    match = np.where(ok, kk, -1)
-    weight = np.ones(len(ref.width)) if listed is None else np.where(listed, 1.0, 0.25)
-    score = np.empty(len(pose_s))
+    return ok, np.where(ok, kk, -1)
+
+
+def _missing(ok, inside, expected, wpred, ref: RefTriplets, listed) -> np.ndarray:
+    """The number of resolvable triplets each hypothesis expects but does not find (H,)."""
     # only the named groups are penalised when missing: an image (or a simulation) may show
     # those alone
     pen = (expected & ~ok) & (wpred >= MIN_PENALISED_BAR_PX)
@@ -219,15 +244,19 @@ def _score(pose_s, pose_lin, pose_t, scene: _Scene, *, anchor=None, loose=1.0, p
             in_g = (ref.group == g)[None, :]
             none_matched = ~(ok & in_g).any(axis=1)
             missing = missing + none_matched * (out & in_g).sum(axis=1)
-    for hh in range(len(pose_s)):
+    return missing
+
+
+def _match_score(match, weight) -> np.ndarray:
+    """The summed weight of the reference triplets each hypothesis matched (H,)."""
+    score = np.empty(len(match))
+    for hh in range(len(match)):
         m = match[hh]
         sel = m >= 0
         # each image triplet counts once (two reference triplets cannot both be it)
         _, first = np.unique(m[sel], return_index=True)
         score[hh] = weight[np.flatnonzero(sel)[first]].sum()
-    score -= MISSING_PENALTY * missing
-    n_expected = (expected if listed is None else expected & listed[None, :]).sum(axis=1)
-    return score, missing, match, n_expected
+    return score
 
 
 def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np.ndarray | None:
@@ -386,49 +415,23 @@ def search_pose(
         return PoseResult(None, None, 1, msg, {}, 0, kind="not_found")
     hyps = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets, anchors)
     if hyps is None:
-        if anchors:
-            msg = _anchor_unmatched_message(img, anchors, um_per_px)
-            return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("anchors",))
-        if um_per_px is None:
-            return PoseResult(None, None, 1, "no pose fits the options given", {}, n_img, kind="not_found")
-        msg = _no_scale_message(img, um_per_px)
-        return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("um_per_px",))
+        return _no_hypothesis_result(img, anchors, um_per_px)
     if turned_seeds:
         hyps = _turned_seeds(hyps)
     scene = _Scene(ref, img, cKDTree(img.centre), shape, listed)
     scores = _score_hypotheses(hyps, scene)
     refined = _refined_poses(hyps, scores, scene, top)
     if anchors:
-        from oapcal.imaging.detect.anchor import honours
-
-        # the poses seeded from the named triplets, and the free search's poses (a named
-        # triplet's own bar width may be some 20 % off under distortion, so its seeds alone
-        # may miss the pose the other triplets find): those that honour every anchor
-        free = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets)
-        free_refined = []
-        if free is not None:
-            free_scores = _score_hypotheses(free, scene)
-            free_refined = _refined_poses(free, free_scores, scene, top)
-        pool = []
-        for p in sorted(refined + free_refined, key=lambda q: -q.score):
-            if honours(p, ref, anchors, img) and not any(_same_pose(p, q) for q in pool):
-                pool.append(p)
-        refined = pool
-        if not refined:
-            msg = _anchor_unmatched_message(img, anchors, um_per_px)
-            return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("anchors",))
-        # An anchor decides what the bars leave open; it never overrules what they say
-        # clearly: the best pose without the anchors must not beat the best one with them.
-        anchored = _at_given_scale(refined, um_per_px)
-        free_best = _at_given_scale(free_refined, um_per_px) if free_refined else anchored
-        margin = max(AMBIGUITY_MARGIN, (1.0 - AMBIGUITY_RATIO) * free_best.score)
-        if not honours(free_best, ref, anchors, img) and free_best.score - anchored.score >= margin:
-            msg = _anchor_contradicted_message(free_best, anchored, ref, img, anchors)
-            # (the best pose is what the bars say: the layouts are compared on it)
-            return PoseResult(free_best, anchored, 1, msg, {}, n_img, refined, "contradicted", ("anchors",))
+        refined = _anchored_poses(
+            refined, scene, um_per_px, orientation, mirror, max_image_triplets, top, anchors
+        )
+        if isinstance(refined, PoseResult):
+            return refined
     best = _at_given_scale(refined, um_per_px)
     slips = _slip_scores(best, scene)
     if anchors:
+        from oapcal.imaging.detect.anchor import honours
+
         # a slipped copy gives the named element another place: no rival when it breaks an anchor
         slips_judged = {k: p for k, p in slips.items() if honours(p, ref, anchors, img)}
     else:
@@ -436,6 +439,55 @@ def search_pose(
     res = _judge(best, refined, slips_judged, um_per_px, scene, anchors)
     res.slip_scores = {k: v.score for k, v in slips.items()}
     return res
+
+
+def _no_hypothesis_result(img: Triplets, anchors, um_per_px) -> PoseResult:
+    """The refusal when no pairing of triplets proposes a pose that fits the options."""
+    n_img = len(img)
+    if anchors:
+        msg = _anchor_unmatched_message(img, anchors, um_per_px)
+        return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("anchors",))
+    if um_per_px is None:
+        return PoseResult(None, None, 1, "no pose fits the options given", {}, n_img, kind="not_found")
+    msg = _no_scale_message(img, um_per_px)
+    return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("um_per_px",))
+
+
+def _anchored_poses(
+    refined: list[Pose], scene: _Scene, um_per_px, orientation, mirror, max_image_triplets, top, anchors
+) -> list[Pose] | PoseResult:
+    """The poses seeded from the named triplets (``refined``) and the free search's that
+    honour every anchor, best first; or the refusal when none does, or when the bars
+    clearly say otherwise."""
+    from oapcal.imaging.detect.anchor import honours
+
+    ref, img, n_img = scene.ref, scene.img, len(scene.img)
+    # the poses seeded from the named triplets, and the free search's poses (a named
+    # triplet's own bar width may be some 20 % off under distortion, so its seeds alone
+    # may miss the pose the other triplets find): those that honour every anchor
+    free = _hypotheses(img, ref, um_per_px, orientation, mirror, max_image_triplets)
+    free_refined = []
+    if free is not None:
+        free_scores = _score_hypotheses(free, scene)
+        free_refined = _refined_poses(free, free_scores, scene, top)
+    pool = []
+    for p in sorted(refined + free_refined, key=lambda q: -q.score):
+        if honours(p, ref, anchors, img) and not any(_same_pose(p, q) for q in pool):
+            pool.append(p)
+    refined = pool
+    if not refined:
+        msg = _anchor_unmatched_message(img, anchors, um_per_px)
+        return PoseResult(None, None, 1, msg, {}, n_img, kind="not_found", param=("anchors",))
+    # An anchor decides what the bars leave open; it never overrules what they say
+    # clearly: the best pose without the anchors must not beat the best one with them.
+    anchored = _at_given_scale(refined, um_per_px)
+    free_best = _at_given_scale(free_refined, um_per_px) if free_refined else anchored
+    margin = max(AMBIGUITY_MARGIN, (1.0 - AMBIGUITY_RATIO) * free_best.score)
+    if not honours(free_best, ref, anchors, img) and free_best.score - anchored.score >= margin:
+        msg = _anchor_contradicted_message(free_best, anchored, ref, img, anchors)
+        # (the best pose is what the bars say: the layouts are compared on it)
+        return PoseResult(free_best, anchored, 1, msg, {}, n_img, refined, "contradicted", ("anchors",))
+    return refined
 
 
 def _turned_seeds(hyps: _Hypotheses) -> _Hypotheses:
