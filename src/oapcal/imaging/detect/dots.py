@@ -106,13 +106,32 @@ def find_dots(
 
     ``pitch_px`` the lattice period (e.g. from :func:`~oapcal.imaging.detect.lattice.lattice_period`),
     ``dot_px`` the dot diameter if known; ``polarity`` ``dark``, ``bright`` or ``auto``."""
-    import cv2
-
     a = np.asarray(img, np.float32)
     if polarity == "auto":
         polarity = guess_polarity(a, pitch_px)
     sig, bg = dot_signal(a, pitch_px, dot_px, polarity, with_background=True)
     noise = image_noise(a)
+    found = _components(a, sig, pitch_px, noise)
+    if found is None:
+        return _empty(polarity, noise)
+    area, cents, keep, med = found
+    radius, xy0 = _windows(area, cents, keep, med, pitch_px, dot_px)
+    xy, se, conv, amp, ell = centroids(sig, xy0, radius, noise)
+    ok = np.isfinite(xy).all(axis=1)
+    shade = _shading(bg, xy, radius, amp)
+    return Dots(
+        xy=xy[ok], stderr_px=se[ok], area=area[keep][ok], ellipticity=ell[ok], amplitude=amp[ok],
+        converged=conv[ok], polarity=polarity, noise=noise, window_px=np.broadcast_to(radius, (len(xy),))[ok],
+        shading=shade[ok],
+    )  # fmt: skip
+
+
+def _components(a: np.ndarray, sig: np.ndarray, pitch_px: float, noise: float):
+    """The connected components of the thresholded dot signal: ``(area, centres, keep,
+    median area)``, ``keep`` the dot-sized ones clear of the image border; None when no
+    component has 2 px."""
+    import cv2
+
     kp = _disc(round(pitch_px))
     level = cv2.GaussianBlur(cv2.dilate(sig, kp), (0, 0), max(1.0, 0.5 * pitch_px))
     floor = max(8.0 * noise, 0.1 * float(np.percentile(level, 99.5)))
@@ -122,7 +141,7 @@ def find_dots(
     cents = cents[1:]
     keep = area >= 2
     if keep.sum() == 0:
-        return _empty(polarity, noise)
+        return None
     med = float(np.median(area[keep]))
     keep &= (area <= 4.0 * med) & (area >= 0.2 * med)
     # no component touching the image border (its centre would be biased)
@@ -130,6 +149,11 @@ def find_dots(
     ww, hh = stats[1:, cv2.CC_STAT_WIDTH], stats[1:, cv2.CC_STAT_HEIGHT]
     h, w = a.shape
     keep &= (x0 > 0) & (y0 > 0) & (x0 + ww < w) & (y0 + hh < h)
+    return area, cents, keep, med
+
+
+def _windows(area, cents, keep, med, pitch_px, dot_px):
+    """The centroid window's radius (one, or one per dot) and the kept components' centres."""
     # the window: the dot's radius + the blur's reach, at most 0.45 pitch
     r_dot = 0.5 * dot_px if dot_px else np.sqrt(med / np.pi) / np.sqrt(THRESHOLD_FRACTION + 0.35)
     radius = float(min(r_dot + 2.5, 0.45 * pitch_px))
@@ -144,10 +168,15 @@ def find_dots(
         d, i = cKDTree(xy0[big]).query(xy0, k=2)
         nn = np.where(d[:, 0] < 1e-9, d[:, 1], d[:, 0])  # the nearest other dot-sized candidate
         radius = np.clip(np.minimum(radius, nn - r_dot - 2.5), 1.5, None)
-    xy, se, conv, amp, ell = centroids(sig, xy0, radius, noise)
-    ok = np.isfinite(xy).all(axis=1)
-    # shading: the background's change across the window against the dot's amplitude (a
-    # steep vignette edge the background does not follow pulls the centre)
+    return radius, xy0
+
+
+def _shading(bg: np.ndarray, xy: np.ndarray, radius, amp: np.ndarray) -> np.ndarray:
+    """Shading: the background's change across the window against the dot's amplitude (a
+    steep vignette edge the background does not follow pulls the centre)."""
+    import cv2
+
+    h, w = bg.shape
     gx = cv2.Sobel(bg, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(bg, cv2.CV_32F, 0, 1, ksize=3) / 8.0
     shade = np.full(len(xy), np.inf)
@@ -156,11 +185,7 @@ def find_dots(
     rad = np.broadcast_to(radius, (len(xy),))
     with np.errstate(invalid="ignore", divide="ignore"):
         shade = np.hypot(gx[iy, ix], gy[iy, ix]) * rad / amp
-    return Dots(
-        xy=xy[ok], stderr_px=se[ok], area=area[keep][ok], ellipticity=ell[ok], amplitude=amp[ok],
-        converged=conv[ok], polarity=polarity, noise=noise, window_px=np.broadcast_to(radius, (len(xy),))[ok],
-        shading=shade[ok],
-    )  # fmt: skip
+    return shade
 
 
 def _empty(polarity, noise):
@@ -176,7 +201,6 @@ def centroids(sig: np.ndarray, xy0: np.ndarray, radius: float, noise: float):
     fixed point moves continuously with the data) and takes the first moments.  A dot whose
     window leaves the image is NaN."""
     sig = np.asarray(sig, np.float64)
-    h, w = sig.shape
     xy = np.asarray(xy0, float).copy()
     n = len(xy)
     radii = np.broadcast_to(np.asarray(radius, float), (n,)).copy()
@@ -188,33 +212,61 @@ def centroids(sig: np.ndarray, xy0: np.ndarray, radius: float, noise: float):
         idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
-        c = xy[idx]
-        ix0 = np.rint(c[:, 0]).astype(int)
-        iy0 = np.rint(c[:, 1]).astype(int)
-        inside = (ix0 - half >= 0) & (iy0 - half >= 0) & (ix0 + half < w) & (iy0 + half < h)
-        xy[idx[~inside]] = np.nan
-        active[idx[~inside]] = False
-        idx, c, ix0, iy0 = idx[inside], c[inside], ix0[inside], iy0[inside]
-        px = ix0[:, None] + off[None, :]  # (m, k)
-        py = iy0[:, None] + off[None, :]
-        patch = sig[py[:, :, None], px[:, None, :]]  # (m, k, k)
-        dx = px[:, None, :] - c[:, 0, None, None]
-        dy = py[:, :, None] - c[:, 1, None, None]
-        wgt = np.clip(radii[idx, None, None] + 0.5 - np.hypot(dx, dy), 0.0, 1.0)
-        m0 = (wgt * patch).sum(axis=(1, 2))
-        good = m0 > 0
-        sx = np.where(good, (wgt * patch * dx).sum(axis=(1, 2)) / np.where(good, m0, 1), 0)
-        sy = np.where(good, (wgt * patch * dy).sum(axis=(1, 2)) / np.where(good, m0, 1), 0)
-        step = np.hypot(sx, sy)
-        xy[idx, 0] += sx
-        xy[idx, 1] += sy
-        bad = ~good | (step > radii[idx])
-        xy[idx[bad]] = np.nan
-        active[idx[bad]] = False
-        done = (step < SHIFT_TOL) & ~bad
-        conv[idx[done]] = True
-        active[idx[done]] = False
-    # final moments at the fixed point: stderr, amplitude, shape
+        _centroid_step(sig, xy, radii, idx, active, conv, half, off)
+    se, amp, ell = _final_moments(sig, xy, radii, half, off, noise)
+    return xy, se, conv, amp, ell
+
+
+def _inside(c: np.ndarray, half: int, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixel nearest to every centre ``c`` and whether its ``half`` window is inside
+    an image of ``shape``."""
+    h, w = shape
+    ix0 = np.rint(c[:, 0]).astype(int)
+    iy0 = np.rint(c[:, 1]).astype(int)
+    inside = (ix0 - half >= 0) & (iy0 - half >= 0) & (ix0 + half < w) & (iy0 + half < h)
+    return ix0, iy0, inside
+
+
+def _weighted_patches(sig, c, ix0, iy0, off, radii):
+    """The patches of ``sig`` around the centres ``c`` (m, k, k), the offsets from the
+    centres ``dx``, ``dy`` and the soft-edged disc weights."""
+    px = ix0[:, None] + off[None, :]  # (m, k)
+    py = iy0[:, None] + off[None, :]
+    patch = sig[py[:, :, None], px[:, None, :]]  # (m, k, k)
+    dx = px[:, None, :] - c[:, 0, None, None]
+    dy = py[:, :, None] - c[:, 1, None, None]
+    wgt = np.clip(radii[:, None, None] + 0.5 - np.hypot(dx, dy), 0.0, 1.0)
+    return patch, dx, dy, wgt
+
+
+def _centroid_step(sig, xy, radii, idx, active, conv, half, off) -> None:
+    """One iteration for the active dots ``idx``: move each to its window's first moment;
+    updates ``xy``, ``active`` and ``conv`` in place."""
+    c = xy[idx]
+    ix0, iy0, inside = _inside(c, half, sig.shape)
+    xy[idx[~inside]] = np.nan
+    active[idx[~inside]] = False
+    idx, c, ix0, iy0 = idx[inside], c[inside], ix0[inside], iy0[inside]
+    patch, dx, dy, wgt = _weighted_patches(sig, c, ix0, iy0, off, radii[idx])
+    m0 = (wgt * patch).sum(axis=(1, 2))
+    good = m0 > 0
+    sx = np.where(good, (wgt * patch * dx).sum(axis=(1, 2)) / np.where(good, m0, 1), 0)
+    sy = np.where(good, (wgt * patch * dy).sum(axis=(1, 2)) / np.where(good, m0, 1), 0)
+    step = np.hypot(sx, sy)
+    xy[idx, 0] += sx
+    xy[idx, 1] += sy
+    bad = ~good | (step > radii[idx])
+    xy[idx[bad]] = np.nan
+    active[idx[bad]] = False
+    done = (step < SHIFT_TOL) & ~bad
+    conv[idx[done]] = True
+    active[idx[done]] = False
+
+
+def _final_moments(sig, xy, radii, half, off, noise):
+    """The final moments at the fixed point: ``(stderr (N, 2), amplitude, ellipticity)``,
+    NaN for the dots lost."""
+    n = len(xy)
     se = np.full((n, 2), np.nan)
     amp = np.full(n, np.nan)
     ell = np.full(n, np.nan)
@@ -222,16 +274,9 @@ def centroids(sig: np.ndarray, xy0: np.ndarray, radius: float, noise: float):
     idx = np.flatnonzero(ok)
     if len(idx):
         c = xy[idx]
-        ix0 = np.rint(c[:, 0]).astype(int)
-        iy0 = np.rint(c[:, 1]).astype(int)
-        inside = (ix0 - half >= 0) & (iy0 - half >= 0) & (ix0 + half < w) & (iy0 + half < h)
+        ix0, iy0, inside = _inside(c, half, sig.shape)
         idx, c, ix0, iy0 = idx[inside], c[inside], ix0[inside], iy0[inside]
-        px = ix0[:, None] + off[None, :]
-        py = iy0[:, None] + off[None, :]
-        patch = sig[py[:, :, None], px[:, None, :]]
-        dx = px[:, None, :] - c[:, 0, None, None]
-        dy = py[:, :, None] - c[:, 1, None, None]
-        wgt = np.clip(radii[idx, None, None] + 0.5 - np.hypot(dx, dy), 0.0, 1.0)
+        patch, dx, dy, wgt = _weighted_patches(sig, c, ix0, iy0, off, radii[idx])
         m0 = (wgt * patch).sum(axis=(1, 2))
         # d(centre) = sum w (p - c) noise / m0: its variance
         se[idx, 0] = noise * np.sqrt((wgt**2 * dx**2).sum(axis=(1, 2))) / m0
@@ -246,7 +291,7 @@ def centroids(sig: np.ndarray, xy0: np.ndarray, radius: float, noise: float):
         disc = np.sqrt(np.clip(tr**2 / 4 - det, 0, None))
         l1, l2 = tr / 2 + disc, np.clip(tr / 2 - disc, 1e-12, None)
         ell[idx] = 1.0 - np.sqrt(l2 / l1)
-    return xy, se, conv, amp, ell
+    return se, amp, ell
 
 
 __all__ = ["Dots", "centroids", "dot_signal", "find_dots", "guess_polarity", "image_noise"]
