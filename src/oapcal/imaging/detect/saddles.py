@@ -49,13 +49,28 @@ def _empty(noise):
 
 def find_saddles(img: np.ndarray, square_px: float) -> Saddles:
     """Chessboard-corner candidates in ``img`` for squares of about ``square_px`` (module docstring)."""
-    import cv2
-    from scipy.ndimage import map_coordinates
-
     a = np.asarray(img, np.float32)
     noise = image_noise(a)
     s = float(square_px)
     sigma = float(np.clip(s / 5.0, 1.0, 8.0))
+    gxx, gyy, gxy, norm, contrast = _saddle_response(a, s, sigma)
+    found = _candidates(norm, contrast, noise, s)
+    if found is None:
+        return _empty(noise)
+    xs, ys, vals, rho = found
+    xs, ys, vals, amp = _x_test(a, xs, ys, vals, rho, s, noise)
+    if len(xs) == 0:
+        return _empty(noise)
+    parity = _corner_parity(gxx, gyy, gxy, xs, ys)
+    ref, keep = _subpixel(a, xs, ys, s)
+    return Saddles(ref[keep], parity[keep].astype(int), vals[keep], amp[keep], noise)
+
+
+def _saddle_response(a: np.ndarray, s: float, sigma: float):
+    """The second derivatives of ``a`` smoothed by ``sigma`` (``gxx``, ``gyy``, ``gxy``),
+    the saddle response over the local contrast squared, and the local contrast."""
+    import cv2
+
     g = cv2.GaussianBlur(a, (0, 0), sigma)
     gxx = cv2.Sobel(g, cv2.CV_32F, 2, 0, ksize=3)
     gyy = cv2.Sobel(g, cv2.CV_32F, 0, 2, ksize=3)
@@ -65,24 +80,40 @@ def find_saddles(img: np.ndarray, square_px: float) -> Saddles:
     kern = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
     contrast = cv2.GaussianBlur(cv2.dilate(a, kern) - cv2.erode(a, kern), (0, 0), max(1.0, s / 2))
     norm = resp / np.maximum(contrast, 1e-6) ** 2
+    return gxx, gyy, gxy, norm, contrast
+
+
+def _candidates(norm: np.ndarray, contrast: np.ndarray, noise: float, s: float):
+    """The strong local maxima of the response ``norm`` whose ring fits in the image:
+    ``(xs, ys, values, ring radius)``; None when there is none."""
+    import cv2
+
     km = max(3, int(round(0.5 * s)) | 1)
     peak = norm == cv2.dilate(norm, cv2.getStructuringElement(cv2.MORPH_RECT, (km, km)))
     strong = contrast > 10.0 * max(noise, 1e-6)
     cand = peak & strong & (norm > 0)
     ys, xs = np.nonzero(cand)
     if len(xs) == 0:
-        return _empty(noise)
+        return None
     vals = norm[ys, xs]
     thr = 0.2 * float(np.percentile(vals, 95))
     sel = vals > thr
     xs, ys, vals = xs[sel], ys[sel], vals[sel]
-    h, w = a.shape
+    h, w = norm.shape
     rho = max(2.0, 0.3 * s)
     inside = (xs > rho + 1) & (ys > rho + 1) & (xs < w - rho - 2) & (ys < h - rho - 2)
     xs, ys, vals = xs[inside], ys[inside], vals[inside]
     if len(xs) == 0:
-        return _empty(noise)
-    # X test on a ring (step 2), on a lightly smoothed image
+        return None
+    return xs, ys, vals, rho
+
+
+def _x_test(a: np.ndarray, xs, ys, vals, rho: float, s: float, noise: float):
+    """Step 2: the candidates whose ring of radius ``rho`` (on a lightly smoothed image)
+    changes sign 4 times, point-symmetrically and above the noise: ``(xs, ys, vals, amplitude)``."""
+    import cv2
+    from scipy.ndimage import map_coordinates
+
     ring_img = cv2.GaussianBlur(a, (0, 0), max(0.7, 0.1 * s))
     t = np.arange(RING_SAMPLES) * 2 * np.pi / RING_SAMPLES
     rx = xs[:, None] + rho * np.cos(t)[None, :]
@@ -95,15 +126,23 @@ def find_saddles(img: np.ndarray, square_px: float) -> Saddles:
     opposite = (ring * np.roll(ring, half, axis=1)).mean(axis=1) / np.maximum((ring**2).mean(axis=1), 1e-12)
     amp = np.sqrt((ring**2).mean(axis=1))
     ok = (changes == 4) & (opposite > 0.5) & (amp > 5.0 * max(noise, 1e-6))
-    xs, ys, vals, amp = xs[ok], ys[ok], vals[ok], amp[ok]
-    if len(xs) == 0:
-        return _empty(noise)
-    # corner kind (step 3): the direction of upward curvature, doubled, against the mean axis
+    return xs[ok], ys[ok], vals[ok], amp[ok]
+
+
+def _corner_parity(gxx, gyy, gxy, xs, ys) -> np.ndarray:
+    """Step 3, the corner kind (+1/-1): the direction of upward curvature, doubled, against
+    the mean axis."""
     hxx, hyy, hxy = gxx[ys, xs], gyy[ys, xs], gxy[ys, xs]
     phi = 0.5 * np.arctan2(2 * hxy, hxx - hyy)  # eigen-direction of the larger eigenvalue
     axis = np.angle(np.mean(np.exp(4j * phi))) / 2.0
-    parity = np.where(np.cos(2 * phi - axis) >= 0, 1, -1)
-    # sub-pixel (step 4)
+    return np.where(np.cos(2 * phi - axis) >= 0, 1, -1)
+
+
+def _subpixel(a: np.ndarray, xs, ys, s: float):
+    """Step 4: the corners refined to sub-pixel (``cornerSubPix``, then
+    :func:`saddle_points`) and which to keep (converged, moved less than 0.35 square)."""
+    import cv2
+
     win = int(np.clip(round(0.4 * s), 2, 15))
     pts = np.stack([xs, ys], axis=1).astype(np.float32).reshape(-1, 1, 2)
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
@@ -111,7 +150,7 @@ def find_saddles(img: np.ndarray, square_px: float) -> Saddles:
     ref, conv = saddle_points(a, ref, sigma=float(np.clip(s / 7.0, 1.0, 6.0)))
     moved = np.hypot(*(ref - np.stack([xs, ys], axis=1)).T)
     keep = conv & (moved < 0.35 * s)
-    return Saddles(ref[keep], parity[keep].astype(int), vals[keep], amp[keep], noise)
+    return ref, keep
 
 
 def saddle_points(img: np.ndarray, xy: np.ndarray, sigma: float, iterations: int = 12):
