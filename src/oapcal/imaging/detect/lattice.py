@@ -530,6 +530,19 @@ def lattice_periods(img: np.ndarray, count: int = 3) -> list:
     a dot grid and at the square of a chessboard (edges every square along both axes), and a
     target's outline, which dominates the spectrum of the intensity (it once gave a
     chessboard's period as 57 px instead of 10), is a single edge in it."""
+    power, fx, fy = _gradient_power(img)
+    h, w = power.shape
+    f = np.hypot(fx, fy)
+    band = (f >= 4.0 / min(h, w)) & (f <= 1.0 / 2.5)
+    if not band.any() or not power[band].max() > 0:
+        return []
+    power = _whitened(power, band, fx, fy)
+    return _peak_periods(power, f, count)
+
+
+def _gradient_power(img: np.ndarray):
+    """The power spectrum of ``img``'s gradient magnitude (Hann window) and its
+    frequencies ``fx`` (1, w), ``fy`` (h, 1), in cycles per px."""
     import cv2
 
     a = np.asarray(img, np.float32)
@@ -544,10 +557,13 @@ def lattice_periods(img: np.ndarray, count: int = 3) -> list:
     power = spec[..., 0] ** 2 + spec[..., 1] ** 2
     fy = np.fft.fftfreq(h)[:, None]
     fx = np.fft.fftfreq(w)[None, :]
-    f = np.hypot(fx, fy)
-    band = (f >= 4.0 / min(h, w)) & (f <= 1.0 / 2.5)
-    if not band.any() or not power[band].max() > 0:
-        return []
+    return power, fx, fy
+
+
+def _whitened(power: np.ndarray, band: np.ndarray, fx, fy) -> np.ndarray:
+    """The power at the sharp peaks (over 20 times their ring's median, in ``band``), zero
+    elsewhere; the whitened power itself when there is no such peak."""
+    h, w = power.shape
     # whitened: each frequency over the median power of its ring, so that the lattice's few
     # sharp peaks per ring stand out and the broad low-frequency content of the target's
     # outline, the illumination or the scene does not (it once took a chessboard's outline
@@ -564,7 +580,13 @@ def lattice_periods(img: np.ndarray, count: int = 3) -> list:
             med[i] = np.median(seg)
     white = np.where(band, power / (med[ring] + 1e-12 * power.max()), 0.0)
     sharp = white > 20.0  # a peak well above its ring
-    power = np.where(sharp, power, 0.0) if sharp.any() else white
+    return np.where(sharp, power, 0.0) if sharp.any() else white
+
+
+def _peak_periods(power: np.ndarray, f: np.ndarray, count: int) -> list:
+    """The periods (px) of up to ``count`` highest peaks of ``power``, each refined along
+    both axes and more than 30 % from those before it."""
+    h, w = power.shape
 
     # parabolic refinement of a peak along each axis
     def refine(vals, i):
