@@ -199,65 +199,81 @@ def check_target(
         order = np.sort(np.argsort(-np.asarray(comp.areas), kind="stable")[:MAX_COMPONENTS])
     for index in order:
         bx0, by0, bx1, by1 = comp.boxes[index]
-        k = index + 1
         if valid is not None:
             window = valid[max(by0 - 2, 0) : by1 + 3, max(bx0 - 2, 0) : bx1 + 3]
             if not window.all():
                 continue
-        extents = {}
-        for side_index, side in enumerate(SIDES):
-            if comp.touches[index, side_index]:
-                continue
-            vertical = side in ("left", "right")
-            a0, a1 = (by0, by1) if vertical else (bx0, bx1)
-            trim = max(2, (a1 - a0 + 1) // 5)
-            b0, b1 = (bx0, bx1) if vertical else (by0, by1)
-            lines, pos = _crossings(
-                image, comp.labels, k, comp.background, comp.bright, side, a0 + trim, a1 - trim, b0, b1
-            )
-            if len(lines) >= 3:  # enough for a median width
-                extents[side] = (lines, pos)
-            if len(lines) < min_points:  # too few for a line fit
-                continue
-            dev, angle, ends = _line_fit(lines, pos)
-            # Points and line ends back to (x, y).
-            xy = np.stack([pos, lines], -1) if vertical else np.stack([lines, pos], -1)
-            ends_xy = tuple(ends) if vertical else tuple((t, p) for p, t in ends)
-            edges.append(
-                EdgeLine(
-                    component=k,
-                    side=side,
-                    points=xy,
-                    rms_px=float(np.sqrt(np.mean(dev * dev))),
-                    max_px=float(np.max(np.abs(dev))),
-                    angle_deg=angle,
-                    ends=ends_xy,
-                )
-            )
+        extents = _component_edges(image, comp, index, min_points, edges)
         if comp.touches[index].any() or len(extents) < 4:
             continue
-        width = _extent(extents["left"], extents["right"])
-        height = _extent(extents["top"], extents["bottom"])
-        if not (width > 0 and height > 0):
+        shape = _shape_check(index + 1, comp.boxes[index], extents, expected_ratios)
+        if shape is not None:
+            shapes.append(shape)
+    return TargetCheck(tuple(edges), tuple(shapes), comp.level)
+
+
+def _component_edges(image: np.ndarray, comp: Components, index: int, min_points: int, edges: list) -> dict:
+    """The straightness of each side of component ``index`` not on the image border,
+    appended to ``edges`` (:class:`EdgeLine`); returns the sides located on at least 3
+    lines, ``{side: (lines, positions)}``, for the aspect ratio."""
+    bx0, by0, bx1, by1 = comp.boxes[index]
+    k = index + 1
+    extents = {}
+    for side_index, side in enumerate(SIDES):
+        if comp.touches[index, side_index]:
             continue
-        aspect = max(width, height) / min(width, height)
-        expected = None
-        error = None
-        if len(expected_ratios):
-            expected = float(min(expected_ratios, key=lambda r: abs(math.log(aspect / r))))
-            error = 100.0 * (aspect / expected - 1.0)
-        shapes.append(
-            ShapeCheck(
-                k,
-                (int(bx0), int(by0), int(bx1), int(by1)),
-                float(width),
-                float(height),
-                aspect,
-                expected,
-                error,
+        vertical = side in ("left", "right")
+        a0, a1 = (by0, by1) if vertical else (bx0, bx1)
+        trim = max(2, (a1 - a0 + 1) // 5)
+        b0, b1 = (bx0, bx1) if vertical else (by0, by1)
+        lines, pos = _crossings(
+            image, comp.labels, k, comp.background, comp.bright, side, a0 + trim, a1 - trim, b0, b1
+        )
+        if len(lines) >= 3:  # enough for a median width
+            extents[side] = (lines, pos)
+        if len(lines) < min_points:  # too few for a line fit
+            continue
+        dev, angle, ends = _line_fit(lines, pos)
+        # Points and line ends back to (x, y).
+        xy = np.stack([pos, lines], -1) if vertical else np.stack([lines, pos], -1)
+        ends_xy = tuple(ends) if vertical else tuple((t, p) for p, t in ends)
+        edges.append(
+            EdgeLine(
+                component=k,
+                side=side,
+                points=xy,
+                rms_px=float(np.sqrt(np.mean(dev * dev))),
+                max_px=float(np.max(np.abs(dev))),
+                angle_deg=angle,
+                ends=ends_xy,
             )
         )
-    return TargetCheck(tuple(edges), tuple(shapes), comp.level)
+    return extents
+
+
+def _shape_check(k: int, box, extents: dict, expected_ratios) -> ShapeCheck | None:
+    """The aspect ratio of component ``k`` from its four sides' ``extents``, against the
+    nearest of ``expected_ratios``; None when its width or height is not positive."""
+    bx0, by0, bx1, by1 = box
+    width = _extent(extents["left"], extents["right"])
+    height = _extent(extents["top"], extents["bottom"])
+    if not (width > 0 and height > 0):
+        return None
+    aspect = max(width, height) / min(width, height)
+    expected = None
+    error = None
+    if len(expected_ratios):
+        expected = float(min(expected_ratios, key=lambda r: abs(math.log(aspect / r))))
+        error = 100.0 * (aspect / expected - 1.0)
+    return ShapeCheck(
+        k,
+        (int(bx0), int(by0), int(bx1), int(by1)),
+        float(width),
+        float(height),
+        aspect,
+        expected,
+        error,
+    )
 
 
 def _extent(first, second) -> float:
