@@ -440,16 +440,41 @@ def self_calibrate(
     matches for the model, ``"moving"`` when the residuals are not those of one rigid
     scene (robust RMS above ``max_rms_px`` or fewer than ``min_inlier_fraction`` inliers).
     """
-    from threadpoolctl import threadpool_limits
-
-    from oapcal.progress import Stages
-
     steps_um = _checked_steps(steps_um, matches)
     prob = _problem(model, matches.image_size, design, steps_um, um_per_px, stage_rotation)
     t0 = initial_translations(matches, prob.params0, family=prob.family)
     _check_frames(prob, matches, t0)
     use = _plausible(prob, matches, t0)
     prob, x0 = _start(prob, matches, use, t0, (model, design, um_per_px))
+    solved = _solve_in_stages(prob, matches, use, x0, max_rms_px, min_inlier_fraction, progress)
+    return _result(prob, matches, solved, name, source)
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """What :func:`_solve_in_stages` found: the final fit, every match's residual, which
+    were mapped, the inliers' distances and mask, the model's parameters (centred gauge),
+    the frames' translations, the stage's turn, the covariance and the gauge report."""
+
+    fit: object
+    e_all: np.ndarray
+    ok_all: np.ndarray
+    dist: np.ndarray
+    inlier: np.ndarray
+    p: np.ndarray
+    t: np.ndarray
+    theta: object
+    cov: object
+    gauge: tuple
+    left: dict
+
+
+def _solve_in_stages(prob, matches, use, x0, max_rms_px, min_inlier_fraction, progress) -> _Solved:
+    """The robust first solve, the solve on its inliers, the rigid-scene test and the
+    statistics, as three progress stages."""
+    from threadpoolctl import threadpool_limits
+
+    from oapcal.progress import Stages
 
     # one BLAS thread: least_squares takes an SVD of the (2M, n) Jacobian every iteration,
     # 25 ms for 5,000 x 24 on one thread and 0.7 s on two contended ones (OpenBLAS)
@@ -474,17 +499,26 @@ def self_calibrate(
         cov = _covariance(res, fit.x, prob)
         stages.advance()
         gauge, left = gauge_report(prob, p, matches, inlier)
-    n_failed = int((~ok_all).sum())
-    cal = _record(prob, p, cov, fit, dist[inlier], n_failed, matches, inlier, gauge, name, source)
+    return _Solved(fit, e_all, ok_all, dist, inlier, p, t, theta, cov, gauge, left)
+
+
+def _result(prob, matches: Matches, solved: _Solved, name, source) -> SelfCalibration:
+    """The self-calibration: its calibration record (with its ``selfcal`` object) and the
+    frames' moves, residuals and gauge."""
+    fit, inlier, p = solved.fit, solved.inlier, solved.p
+    n_failed = int((~solved.ok_all).sum())
+    cal = _record(
+        prob, p, solved.cov, fit, solved.dist[inlier], n_failed, matches, inlier, solved.gauge, name, source
+    )
     result = SelfCalibration(
         calibration=cal,
-        translations=t,
-        stage_rotation_deg=float(theta) if prob.steps is not None else None,
-        residuals=e_all,
+        translations=solved.t,
+        stage_rotation_deg=float(solved.theta) if prob.steps is not None else None,
+        residuals=solved.e_all,
         inlier=inlier,
         matches=matches,
-        gauge=gauge,
-        gauge_left=left,
+        gauge=solved.gauge,
+        gauge_left=solved.left,
         um_per_px_centre=_centre_scale(p, prob),
         n_iter=int(fit.nfev),
     )
