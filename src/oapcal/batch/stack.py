@@ -202,58 +202,65 @@ def expand_inputs(
             seen.add(key)
             files.append(path)
 
-    def usable(path: Path) -> bool:
-        return path.is_file() and path.suffix.lower() in suffixes and not path.name.startswith(".")
-
     for text in inputs:
-        path = Path(text)
-        if path.is_dir() and path.suffix.lower() not in suffixes:
-            dirs.append(path)
-            found = sorted(p for p in path.iterdir() if usable(p))
-            if not found:
-                why = (
-                    "is a zarr array, which is corrected with Dask "
-                    "(oapcal.batch.distributed.correct_stack_dask)"
-                    if is_zarr_array(path)
-                    else ("the directory holds no images")
-                )
-                reason = "unsupported" if is_zarr_array(path) else "not_found"
-                failures.append(FileResult(text, None, "failed", message=f"{text}: {why}", reason=reason))
-            for p in found:
-                add(p)
-        elif path.exists():
-            if path.suffix.lower() not in suffixes:
-                failures.append(
-                    FileResult(
-                        text,
-                        None,
-                        "failed",
-                        message=f"{text}: unsupported file type {path.suffix or '(no suffix)'!r}; "
-                        f"oapcal reads {', '.join(suffixes)}",
-                        reason="unsupported",
-                    )
-                )
-            else:
-                add(path)
-        elif _GLOB_CHARS & set(text):
-            found = sorted(Path(p) for p in glob.glob(text, recursive=True))
-            found = [p for p in found if usable(p) or (p.is_dir() and p.suffix.lower() in suffixes)]
-            if not found:
-                failures.append(
-                    FileResult(
-                        text,
-                        None,
-                        "failed",
-                        message=f"{text}: the pattern matches no images",
-                        reason="not_found",
-                    )  # fmt: skip
-                )
-            for p in found:
-                add(p)
-        else:
-            missing = f"{text}: no such file or directory"
-            failures.append(FileResult(text, None, "failed", message=missing, reason="not_found"))
+        found, failure, directory = _expand_one(text, suffixes)
+        if directory is not None:
+            dirs.append(directory)
+        if failure is not None:
+            failures.append(failure)
+        for p in found:
+            add(p)
     return files, failures, dirs
+
+
+def _usable(path: Path, suffixes: Sequence[str]) -> bool:
+    """An image file of a type oapcal reads, not hidden."""
+    return path.is_file() and path.suffix.lower() in suffixes and not path.name.startswith(".")
+
+
+def _expand_one(text: str, suffixes: Sequence[str]) -> tuple[list[Path], FileResult | None, Path | None]:
+    """One input of :func:`expand_inputs`: the image files it names, in order, the failure
+    when it names nothing usable (None: it does) and the directory when it is one."""
+    path = Path(text)
+    if path.is_dir() and path.suffix.lower() not in suffixes:
+        found = sorted(p for p in path.iterdir() if _usable(p, suffixes))
+        failure = None
+        if not found:
+            why = (
+                "is a zarr array, which is corrected with Dask (oapcal.batch.distributed.correct_stack_dask)"
+                if is_zarr_array(path)
+                else ("the directory holds no images")
+            )
+            reason = "unsupported" if is_zarr_array(path) else "not_found"
+            failure = FileResult(text, None, "failed", message=f"{text}: {why}", reason=reason)
+        return found, failure, path
+    if path.exists():
+        if path.suffix.lower() not in suffixes:
+            failure = FileResult(
+                text,
+                None,
+                "failed",
+                message=f"{text}: unsupported file type {path.suffix or '(no suffix)'!r}; "
+                f"oapcal reads {', '.join(suffixes)}",
+                reason="unsupported",
+            )
+            return [], failure, None
+        return [path], None, None
+    if _GLOB_CHARS & set(text):
+        found = sorted(Path(p) for p in glob.glob(text, recursive=True))
+        found = [p for p in found if _usable(p, suffixes) or (p.is_dir() and p.suffix.lower() in suffixes)]
+        failure = None
+        if not found:
+            failure = FileResult(
+                text,
+                None,
+                "failed",
+                message=f"{text}: the pattern matches no images",
+                reason="not_found",
+            )  # fmt: skip
+        return found, failure, None
+    missing = f"{text}: no such file or directory"
+    return [], FileResult(text, None, "failed", message=missing, reason="not_found"), None
 
 
 def plan_outputs(
