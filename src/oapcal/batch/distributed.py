@@ -99,47 +99,55 @@ def lazy_stack(path: str | Path, chunk_frames: int = 16, max_pixels: int = MAX_P
             f"{path}: chunk_frames must be at least 1, got {chunk_frames}", param="chunk_frames"
         )
     if path.suffix.lower() == ZARR_SUFFIX:
-        import zarr
-
-        from oapcal.io.ome import ome_zarr_array_path
-
-        ngff = ome_zarr_array_path(path) if path.is_dir() else None
-        try:
-            z = zarr.open_array(str(ngff or path), mode="r")
-        except Exception as exc:  # zarr raises several types for a missing or bad store
-            raise InputFileError(
-                f"{path}: cannot be opened as a zarr array ({type(exc).__name__}: {exc})"
-            ) from None
-        if z.ndim not in (2, 3, 4):
-            raise InputFileError(
-                f"{path}: a zarr stack must be (frames, rows, cols[, ch]), got shape {z.shape}"
-            )
-        shape = (1, *z.shape) if z.ndim == 2 else tuple(z.shape)
-        if min(shape) < 1:
-            raise InputFileError(f"{path}: the zarr array is empty (shape {z.shape})")
-        if shape[1] * shape[2] > max_pixels:
-            raise InputFileError(
-                f"{path}: frames of {shape[2]}x{shape[1]} px exceed max_pixels {max_pixels}",
-                param="max_pixels",
-            )
-        _check_chunks(path, shape[0], chunk_frames)
-        if z.nchunks_initialized == 0:
-            raise InputFileError(
-                f"{path}: the zarr header claims {shape[0]} frames of {shape[2]}x{shape[1]} px but "
-                "the store holds no data; the array is empty or its header is corrupt"
-            )
-        arr = da.from_zarr(z)
-        if ngff is not None and z.ndim == 4:  # NGFF stores colour as (t, c, y, x)
-            arr = arr.transpose(0, 2, 3, 1)
-            shape = tuple(arr.shape)
-        if z.ndim == 2:
-            arr = arr[None]
-        check_frame(path, np.empty((1, 1) + arr.shape[3:], arr.dtype))
-        return arr.rechunk({0: min(chunk_frames, shape[0]), 1: -1, 2: -1})
+        return _lazy_zarr(path, chunk_frames, max_pixels, da)
     if path.suffix.lower() not in TIFF_SUFFIXES:
         raise InputFileError(
             f"{path}: the Dask correction reads TIFF stacks and zarr arrays ({ZARR_SUFFIX} directories)"
         )
+    return _lazy_tiff(path, chunk_frames, max_pixels, dask, da)
+
+
+def _lazy_zarr(path: Path, chunk_frames: int, max_pixels: int, da):
+    """:func:`lazy_stack` of a zarr array (or OME-Zarr image): checked, frames first."""
+    import zarr
+
+    from oapcal.io.ome import ome_zarr_array_path
+
+    ngff = ome_zarr_array_path(path) if path.is_dir() else None
+    try:
+        z = zarr.open_array(str(ngff or path), mode="r")
+    except Exception as exc:  # zarr raises several types for a missing or bad store
+        raise InputFileError(
+            f"{path}: cannot be opened as a zarr array ({type(exc).__name__}: {exc})"
+        ) from None
+    if z.ndim not in (2, 3, 4):
+        raise InputFileError(f"{path}: a zarr stack must be (frames, rows, cols[, ch]), got shape {z.shape}")
+    shape = (1, *z.shape) if z.ndim == 2 else tuple(z.shape)
+    if min(shape) < 1:
+        raise InputFileError(f"{path}: the zarr array is empty (shape {z.shape})")
+    if shape[1] * shape[2] > max_pixels:
+        raise InputFileError(
+            f"{path}: frames of {shape[2]}x{shape[1]} px exceed max_pixels {max_pixels}",
+            param="max_pixels",
+        )
+    _check_chunks(path, shape[0], chunk_frames)
+    if z.nchunks_initialized == 0:
+        raise InputFileError(
+            f"{path}: the zarr header claims {shape[0]} frames of {shape[2]}x{shape[1]} px but "
+            "the store holds no data; the array is empty or its header is corrupt"
+        )
+    arr = da.from_zarr(z)
+    if ngff is not None and z.ndim == 4:  # NGFF stores colour as (t, c, y, x)
+        arr = arr.transpose(0, 2, 3, 1)
+        shape = tuple(arr.shape)
+    if z.ndim == 2:
+        arr = arr[None]
+    check_frame(path, np.empty((1, 1) + arr.shape[3:], arr.dtype))
+    return arr.rechunk({0: min(chunk_frames, shape[0]), 1: -1, 2: -1})
+
+
+def _lazy_tiff(path: Path, chunk_frames: int, max_pixels: int, dask, da):
+    """:func:`lazy_stack` of a TIFF stack: one delayed read per chunk of frames."""
     info = probe(path, max_pixels)
     check_frame(path, np.empty((1, 1) + info.frame_shape[2:], info.dtype))
     _check_chunks(path, info.n_frames, chunk_frames)
