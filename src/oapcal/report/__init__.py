@@ -264,7 +264,7 @@ def render_report(
     from oapcal.report import plots
 
     step = _Steps(progress, _render_steps(content.vectors is not None, content.image is not None))
-    cal, shape, um = content.calibration, content.shape, content.calibration.um_per_px
+    cal = content.calibration
     from_points = content.vectors is not None
     sections = [
         H.section("Summary", _summary_html(cal, content.residuals, from_points)),
@@ -272,7 +272,20 @@ def render_report(
     ]
     if getattr(cal, "selfcal", None):
         sections.append(H.section("Self-calibration", _selfcal_html(cal, plots), "selfcal"))
-    if from_points:
+    sections += _figure_sections(content, step, image_name, plots)
+    sections += _results_sections(content)
+    name = cal.name or (Path(cal.source).name if cal.source else "calibration")
+    page_title = title or f"oapcal calibration report: {name}"
+    return H.document(page_title, sections, _page_meta(cal))
+
+
+def _figure_sections(content: ReportContent, step, image_name: str | None, plots) -> list:
+    """The sections drawn as figures: residual vectors (from points), distortion field,
+    uncertainty, and with an image the image before and after correction and its edge
+    spread functions; each announced to ``step``."""
+    cal, shape, um = content.calibration, content.shape, content.calibration.um_per_px
+    sections = []
+    if content.vectors is not None:
         step("residual vectors")
         png = plots.figure_png(plots.residual_vectors_figure(content.vectors, um, shape))
         caption = ("Each arrow goes from a reference point to where its observed point lands after "
@@ -297,6 +310,13 @@ def render_report(
         sections.append(H.section("Image before and after correction", body, "image"))
         step("edge spread functions")
         sections.append(H.section("Edge spread functions", _esf_html(a.esf, plots), "esf"))
+    return sections
+
+
+def _results_sections(content: ReportContent) -> list:
+    """The model selection and robustness sections, for the results given."""
+    cal = content.calibration
+    sections = []
     if content.selection is not None:
         if hasattr(content.selection, "candidates"):  # a cross-family selection
             body = _family_selection_html(content.selection, cal, content.selection_source)
@@ -307,16 +327,19 @@ def render_report(
         sections.append(
             H.section("Robustness", _robustness_html(content.robustness, content.robustness_source))
         )
-    name = cal.name or (Path(cal.source).name if cal.source else "calibration")
-    page_title = title or f"oapcal calibration report: {name}"
+    return sections
+
+
+def _page_meta(cal) -> str:
+    """The page's footnote: where the calibration came from, when the report was made and
+    the coordinate convention."""
     now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
-    meta = (
+    return (
         f"Calibration created {cal.created_utc} with oapcal {cal.oapcal_version}"
         + (f" from {cal.source}" if cal.source else "")
         + f"; report made {now}. Coordinates: px, origin at the centre of the top-left pixel, "
         "x = column, y = row (down)."
     )
-    return H.document(page_title, sections, meta)
 
 
 # keyword options of the public report API (one per input the report can show)
