@@ -103,33 +103,75 @@ def selfcal_command(
 ):
     """Calibrate from FRAMES (images, directories of images, or stacks) of one static, textured
     sample, each taken after a stage move; unknown moves unless --steps gives them."""
-    from oapcal.batch.stack import expand_inputs
     from oapcal.io.calibration import save_calibration
 
     for path in (out, residuals_out, plot_out):
         check_output(path, *frames, *([steps_file] if steps_file else []))
+    design = _checked_model(model, relay_design)
+    images, names = _frames_from(frames)
+    steps = _read_steps(steps_file, len(images))
+    source = names[0] if len(names) == 1 else f"{names[0]} .. {names[-1]} ({len(images)} frames)"
+    result = _match_and_calibrate(
+        images, model, design, steps, source,
+        show_progress=progress and not as_json, max_matches_per_pair=max_matches_per_pair,
+        min_overlap=min_overlap, um_per_px=um_per_px, stage_rotation=stage_rotation, max_rms=max_rms,
+        min_inliers=min_inliers,
+    )  # fmt: skip
+    _check_usable(result.calibration, source)
+    save_calibration(result.calibration, out)
+    if residuals_out is not None:
+        _write_residuals(residuals_out, result)
+    if plot_out is not None:
+        _write_plots(plot_out, result, images)
+    if as_json:
+        print_json(summary(result))
+    else:
+        print_summary(result)
+    return 0
+
+
+def _checked_model(model: str, relay_design):
+    """The relay's design for a relay ``model`` (None for Eq. 1); a bad spec fails here,
+    before the frames are read."""
     if is_relay(model):
         check_relay_spec(model)
-        design = design_from_options(relay_design)
-    else:
-        from oapcal.model import parse_any_model
+        return design_from_options(relay_design)
+    from oapcal.model import parse_any_model
 
-        parse_any_model(model)  # a bad spec fails before the frames are read
-        design = None
+    parse_any_model(model)  # a bad spec fails before the frames are read
+    return None
+
+
+def _frames_from(frames):
+    """The frames named by the FRAMES arguments and their names (the first input that names
+    nothing usable is a usage error)."""
+    from oapcal.batch.stack import expand_inputs
+
     files, failures, _ = expand_inputs(frames)
     if failures:
         raise click.BadParameter(failures[0].message, param_hint="FRAMES")
-    images, names = _read_frames(files)
-    steps = None
-    if steps_file is not None:
-        from oapcal.io.userfile import read_text
-        from oapcal.selfcal import parse_steps
+    return _read_frames(files)
 
-        steps = parse_steps(read_text(steps_file, "steps file"), len(images), steps_file)
-    bar, update = progress_bar("self-calibration", enabled=progress and not as_json)
+
+def _read_steps(steps_file, n_frames: int):
+    """The known stage positions of ``--steps`` (None without)."""
+    if steps_file is None:
+        return None
+    from oapcal.io.userfile import read_text
+    from oapcal.selfcal import parse_steps
+
+    return parse_steps(read_text(steps_file, "steps file"), n_frames, steps_file)
+
+
+def _match_and_calibrate(
+    images, model, design, steps, source, *, show_progress, max_matches_per_pair, min_overlap, um_per_px,
+    stage_rotation, max_rms, min_inliers,
+):  # fmt: skip
+    """Match the frames and self-calibrate, under a progress bar; a refusal for a moving
+    sample fails like a fit (nothing written)."""
+    bar, update = progress_bar("self-calibration", enabled=show_progress)
     from oapcal.selfcal import SelfcalRefused, find_matches, self_calibrate
 
-    source = names[0] if len(names) == 1 else f"{names[0]} .. {names[-1]} ({len(images)} frames)"
     try:
         with bar:
             prior = _prior(design, images[0].shape[:2])
@@ -140,7 +182,7 @@ def selfcal_command(
                 prior=prior,
                 progress=update,
             )
-            result = self_calibrate(
+            return self_calibrate(
                 matches,
                 model,
                 design=design,
@@ -158,17 +200,6 @@ def selfcal_command(
         from oapcal.cli.fit import FitFailed
 
         raise FitFailed(f"{source}: {exc}; nothing written") from None
-    _check_usable(result.calibration, source)
-    save_calibration(result.calibration, out)
-    if residuals_out is not None:
-        _write_residuals(residuals_out, result)
-    if plot_out is not None:
-        _write_plots(plot_out, result, images)
-    if as_json:
-        print_json(summary(result))
-    else:
-        print_summary(result)
-    return 0
 
 
 def _read_frames(files):
