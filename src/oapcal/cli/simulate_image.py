@@ -111,12 +111,30 @@ def simulate_image_command(
     out, truth,
 ):  # fmt: skip
     """Simulate a camera image of the USAF-1951 target through a distortion field."""
-    from oapcal.errors import DataError
-    from oapcal.imaging.field import identity_field, setup1_like_field
     from oapcal.imaging.simulate import simulate_image
     from oapcal.imaging.usaf import parse_groups
-    from oapcal.io.images import write_image
-    from oapcal.io.points import write_truth
+
+    _check_options(out, truth, calibration, na, wavelength_um, relay_setup, d1_mm)
+    size = parse_size(image_size, max_side=MAX_SIDE)
+    _check_cost(size, oversample, sigma_px, na, wavelength_um, pixel_size_um)
+    group_list = parse_groups(groups)
+    field = _field(relay_setup, d1_mm, calibration, field_name, pixel_size_um, size)
+    bar, update = progress_bar("simulating")
+    with bar:
+        sim = simulate_image(
+            group_list, field, sigma_px=sigma_px, na=na, wavelength_um=wavelength_um,
+            snr=None if no_noise else snr, read_noise_e=read_noise_e, bits=int(bits), polarity=polarity,
+            oversample=oversample, um_per_px=um_per_px, seed=seed,
+            squares=not bars_only, digits=not bars_only, layout_name=layout, progress=update,
+        )  # fmt: skip
+    _write(out, truth, sim, size, bits, groups)
+    return 0
+
+
+def _check_options(out, truth, calibration, na, wavelength_um, relay_setup, d1_mm) -> None:
+    """Refuse, before any work, outputs that clash or overwrite an input, an incomplete
+    Airy PSF, more than one source of distortion and an image type that is not lossless."""
+    from oapcal.errors import DataError
 
     check_output(out, calibration)
     check_output(truth, calibration, out)
@@ -138,28 +156,30 @@ def simulate_image_command(
         raise OutputError(
             f"{out}: unknown image type {Path(out).suffix or '(none)'}; use .png, .tif or .tiff"
         )
-    size = parse_size(image_size, max_side=MAX_SIDE)
-    _check_cost(size, oversample, sigma_px, na, wavelength_um, pixel_size_um)
-    group_list = parse_groups(groups)
+
+
+def _field(relay_setup, d1_mm, calibration, field_name, pixel_size_um, size):
+    """The distortion field the image is simulated through: the traced relay, a
+    calibration's model, none, or the setup-1-like model."""
+    from oapcal.imaging.field import identity_field, setup1_like_field
+
     if relay_setup or d1_mm:
-        field = _relay_field(relay_setup, d1_mm, pixel_size_um, size)
-    elif calibration:
+        return _relay_field(relay_setup, d1_mm, pixel_size_um, size)
+    if calibration:
         from oapcal.imaging.field import ModelDistortionField
         from oapcal.io.calibration import load_calibration
 
-        field = ModelDistortionField.from_calibration(load_calibration(calibration, size), size)
-    elif field_name == "none":
-        field = identity_field(pixel_size_um, size)
-    else:
-        field = setup1_like_field(pixel_size_um, size)
-    bar, update = progress_bar("simulating")
-    with bar:
-        sim = simulate_image(
-            group_list, field, sigma_px=sigma_px, na=na, wavelength_um=wavelength_um,
-            snr=None if no_noise else snr, read_noise_e=read_noise_e, bits=int(bits), polarity=polarity,
-            oversample=oversample, um_per_px=um_per_px, seed=seed,
-            squares=not bars_only, digits=not bars_only, layout_name=layout, progress=update,
-        )  # fmt: skip
+        return ModelDistortionField.from_calibration(load_calibration(calibration, size), size)
+    if field_name == "none":
+        return identity_field(pixel_size_um, size)
+    return setup1_like_field(pixel_size_um, size)
+
+
+def _write(out, truth, sim, size, bits, groups) -> None:
+    """Write the image (and the truth file: both or neither) and say what was written."""
+    from oapcal.io.images import write_image
+    from oapcal.io.points import write_truth
+
     with OutputSet() as outputs:  # both or neither
         write_image(outputs.stage(out), sim.image)
         if truth is not None:
@@ -177,7 +197,6 @@ def simulate_image_command(
                 f"target orientation {sim.orientation}"
             )
         )
-    return 0
 
 
 def _check_cost(size, oversample, sigma_px, na, wavelength_um, pixel_size_um) -> None:
