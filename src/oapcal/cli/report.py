@@ -41,45 +41,14 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
     check_output(out, calib, points, image, selection, robustness)
     if not out.lower().endswith((".html", ".htm")):
         raise click.BadParameter(f"{out!r} must end in .html", param_hint="--out")
-    try:
-        ratios = tuple(float(v) for v in expected_ratios.split(",") if v.strip())
-        if any(not r >= 1 for r in ratios):
-            raise ValueError
-    except ValueError:
-        raise click.BadParameter(
-            f"{expected_ratios!r} is not a comma list of ratios >= 1 such as 5,1",
-            param_hint="--expected-ratios",
-        ) from None
+    ratios = _parse_ratios(expected_ratios)
     from oapcal.io.calibration import load_calibration
     from oapcal.io.results import load_any_selection, load_robustness
     from oapcal.report import build_report, write_report
 
     cal = load_calibration(calib)
     pairs = load_pairs(points) if points else None
-    img = None
-    if image:
-        from oapcal.errors import InputFileError
-        from oapcal.io.imagefile import read_image_grey
-
-        try:
-            img = read_image_grey(image)
-        except InputFileError as exc:  # the reader's limit is correct's --max-pixels; report has none
-            if exc.param != "max_pixels":
-                raise
-            raise InputFileError(
-                str(exc).split("; raise max_pixels")[0] + "; the report takes images up to that size: "
-                "crop the image to the target or bin it"
-            ) from None
-        from oapcal.io.calibration import check_model_region
-        from oapcal.records import ImageSize
-
-        size = ImageSize.of(img)
-        if cal.image_size and tuple(cal.image_size) != size:  # as correct does
-            raise InputFileError(
-                f"{image}: is {size.width}x{size.height} px but the calibration is for "
-                f"{cal.image_size[0]}x{cal.image_size[1]} px images; give an image of that camera"
-            )
-        check_model_region(cal, size, source=calib)
+    img = _read_image(image, cal, calib) if image else None
     sel = load_any_selection(selection) if selection else None
     rob = load_robustness(robustness) if robustness else None
     bar, update = progress_bar("report")
@@ -96,6 +65,54 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
                     "checks": data.checks, "esf": esf, "model": data.model,
                     "selfcal": getattr(cal, "selfcal", None)})  # fmt: skip
         return 0
+    _echo_summary(out, data)
+    return 0
+
+
+def _parse_ratios(expected_ratios: str) -> tuple:
+    """The ``--expected-ratios`` comma list, each ratio at least 1."""
+    try:
+        ratios = tuple(float(v) for v in expected_ratios.split(",") if v.strip())
+        if any(not r >= 1 for r in ratios):
+            raise ValueError
+    except ValueError:
+        raise click.BadParameter(
+            f"{expected_ratios!r} is not a comma list of ratios >= 1 such as 5,1",
+            param_hint="--expected-ratios",
+        ) from None
+    return ratios
+
+
+def _read_image(image, cal, calib):
+    """The grey target image of ``--image``, checked against the calibration's image size
+    and model region (as correct does)."""
+    from oapcal.errors import InputFileError
+    from oapcal.io.imagefile import read_image_grey
+
+    try:
+        img = read_image_grey(image)
+    except InputFileError as exc:  # the reader's limit is correct's --max-pixels; report has none
+        if exc.param != "max_pixels":
+            raise
+        raise InputFileError(
+            str(exc).split("; raise max_pixels")[0] + "; the report takes images up to that size: "
+            "crop the image to the target or bin it"
+        ) from None
+    from oapcal.io.calibration import check_model_region
+    from oapcal.records import ImageSize
+
+    size = ImageSize.of(img)
+    if cal.image_size and tuple(cal.image_size) != size:  # as correct does
+        raise InputFileError(
+            f"{image}: is {size.width}x{size.height} px but the calibration is for "
+            f"{cal.image_size[0]}x{cal.image_size[1]} px images; give an image of that camera"
+        )
+    check_model_region(cal, size, source=calib)
+    return img
+
+
+def _echo_summary(out, data) -> None:
+    """The one line written without ``--json``: the residuals and, with an image, the ESF."""
     r = data.residuals
     click.echo(
         f"wrote {sanitize(out)}: residual mean {r['mean_px']:.4g} px, max {r['max_px']:.4g} px", nl=False
@@ -106,4 +123,3 @@ def report_command(calib, points, image, selection, robustness, expected_ratios,
             nl=False,
         )
     click.echo("")
-    return 0
