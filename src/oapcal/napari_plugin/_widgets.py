@@ -620,6 +620,15 @@ def _trust_words(cal) -> str:
     return f"; predicted error <= {DEFAULT_MAX_ERROR_PX:g} px over {100 * share:.0f} % of the image{how}"
 
 
+def _trust_status(unc, limit: float, trust_only: bool) -> str:
+    """The status line's trust region part (empty without an uncertainty map)."""
+    if unc is None:
+        return ""
+    share = float(unc.trusted(limit).mean())
+    written = "only it written" if trust_only else "the whole frame written"
+    return f"; trust region (predicted error <= {limit:g} px): {100 * share:.0f} % of the frame, {written}"
+
+
 class CorrectWidget(_OapcalWidget):
     """Correct an image or a stack (lazily, frame by frame, for stacks) with a calibration
     (from *Fit & inspect*, a layer opened from a calibration file, or a file); show the
@@ -680,23 +689,12 @@ class CorrectWidget(_OapcalWidget):
         layer = self._chosen_image()
         if layer is None:
             return
-        try:
-            cal = self.calibration()
-        except Exception as exc:
-            self._fail(_message(exc))
-            return
-        if not cal.fit.converged and not self.allow_unconverged.value:
-            self._fail(f"the calibration's fit did not converge ({cal.fit.message}): refit it, or tick "
-                       "'allow an unconverged fit' to use it anyway")  # fmt: skip
+        cal = self._usable_calibration(layer)
+        if cal is None:
             return
         data = layer.data
         spatial = 3 if layer.rgb else 2
         shape = data.shape[data.ndim - spatial : data.ndim - spatial + 2]
-        if cal.image_size and tuple(cal.image_size) != ImageSize.of(shape):  # as 'oapcal correct'
-            self._fail(f"{layer.name} is {shape[1]}x{shape[0]} px but the calibration is for "
-                       f"{cal.image_size[0]}x{cal.image_size[1]} px images: choose an image of that "
-                       "camera, or refit the calibration for this one")  # fmt: skip
-            return
         interp = self.interp.value
         want_unc, want_hull = self.show_uncertainty.value, self.show_hull.value
         limit = float(self.max_error.value)
@@ -722,44 +720,62 @@ class CorrectWidget(_OapcalWidget):
                                                      "contrast_limits": layer.contrast_limits,
                                                      "metadata": {L.CALIBRATION: cal}}, "image"))  # fmt: skip
             if unc is not None:
-                sigma = unc.sigma_px if unc.um_per_px is None else unc.sigma_um
-                unit = "px" if unc.um_per_px is None else "um"
-                kwargs = {"name": f"uncertainty ({unit})", "colormap": "magma", "opacity": 0.6,
-                          "blending": "additive", "scale": (UNCERTAINTY_STEP, UNCERTAINTY_STEP),
-                          "metadata": {L.CALIBRATION: cal, "summary": unc.summary()}}  # fmt: skip
-                _replace_layer(self.viewer, (sigma.astype(np.float32), kwargs, "image"))
-                pred = unc.predicted_px if unc.um_per_px is None else unc.predicted_px * unc.um_per_px
-                kwargs = {
-                    **kwargs,
-                    "name": f"predicted error ({unit})",
-                    "colormap": "viridis",
-                    "visible": False,
-                }
-                _replace_layer(self.viewer, (pred.astype(np.float32), kwargs, "image"))
-                trusted = unc.trusted(limit).astype(np.uint8)
-                region = {
-                    "name": f"trust region (<= {limit:g} px)",
-                    "opacity": 0.25,
-                    "scale": (UNCERTAINTY_STEP, UNCERTAINTY_STEP),
-                    "metadata": {L.CALIBRATION: cal},
-                }
-                _replace_layer(self.viewer, (trusted, region, "labels"))
+                self._show_uncertainty(unc, cal, limit)
             if want_hull:
                 hull = L.hull_layer(cal)
                 if hull is not None:
                     _replace_layer(self.viewer, hull)
             lazy = " (lazy: frames are corrected when shown)" if data.ndim > spatial else ""
-            trust = ""
-            if unc is not None:
-                share = float(unc.trusted(limit).mean())
-                written = "only it written" if trust_only else "the whole frame written"
-                trust = (
-                    f"; trust region (predicted error <= {limit:g} px): {100 * share:.0f} % of the frame, "
-                    f"{written}"
-                )
-            self._set_status(f"corrected {layer.name}{lazy}{trust}")
+            self._set_status(f"corrected {layer.name}{lazy}{_trust_status(unc, limit, trust_only)}")
 
         self._run("correct", work, done)
+
+    def _usable_calibration(self, layer):
+        """The chosen calibration when it can correct ``layer`` (converged, or allowed
+        unconverged; for its image size); else None, having said why."""
+        try:
+            cal = self.calibration()
+        except Exception as exc:
+            self._fail(_message(exc))
+            return None
+        if not cal.fit.converged and not self.allow_unconverged.value:
+            self._fail(f"the calibration's fit did not converge ({cal.fit.message}): refit it, or tick "
+                       "'allow an unconverged fit' to use it anyway")  # fmt: skip
+            return None
+        data = layer.data
+        spatial = 3 if layer.rgb else 2
+        shape = data.shape[data.ndim - spatial : data.ndim - spatial + 2]
+        if cal.image_size and tuple(cal.image_size) != ImageSize.of(shape):  # as 'oapcal correct'
+            self._fail(f"{layer.name} is {shape[1]}x{shape[0]} px but the calibration is for "
+                       f"{cal.image_size[0]}x{cal.image_size[1]} px images: choose an image of that "
+                       "camera, or refit the calibration for this one")  # fmt: skip
+            return None
+        return cal
+
+    def _show_uncertainty(self, unc, cal, limit: float) -> None:
+        """The uncertainty, predicted error and trust region layers of ``unc``."""
+        sigma = unc.sigma_px if unc.um_per_px is None else unc.sigma_um
+        unit = "px" if unc.um_per_px is None else "um"
+        kwargs = {"name": f"uncertainty ({unit})", "colormap": "magma", "opacity": 0.6,
+                  "blending": "additive", "scale": (UNCERTAINTY_STEP, UNCERTAINTY_STEP),
+                  "metadata": {L.CALIBRATION: cal, "summary": unc.summary()}}  # fmt: skip
+        _replace_layer(self.viewer, (sigma.astype(np.float32), kwargs, "image"))
+        pred = unc.predicted_px if unc.um_per_px is None else unc.predicted_px * unc.um_per_px
+        kwargs = {
+            **kwargs,
+            "name": f"predicted error ({unit})",
+            "colormap": "viridis",
+            "visible": False,
+        }
+        _replace_layer(self.viewer, (pred.astype(np.float32), kwargs, "image"))
+        trusted = unc.trusted(limit).astype(np.uint8)
+        region = {
+            "name": f"trust region (<= {limit:g} px)",
+            "opacity": 0.25,
+            "scale": (UNCERTAINTY_STEP, UNCERTAINTY_STEP),
+            "metadata": {L.CALIBRATION: cal},
+        }
+        _replace_layer(self.viewer, (trusted, region, "labels"))
 
     def save(self, _=None) -> None:
         """Save the chosen calibration to ``save as`` (atomically): only to a ``.json`` name,
