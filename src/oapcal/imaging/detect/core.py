@@ -430,7 +430,6 @@ def _mirror_from_digits(img, trips, layout, ref, pres, groups, opts: _Options):
     left only the mirror open (:mod:`.digits`): ``(result, evidence)``; the refusal as it
     was, and no evidence, when the numbers do not decide it."""
     from oapcal.imaging.detect.digits import mirror_from_digits
-    from oapcal.imaging.detect.pose import search_pose
 
     pose = pres.pose
     centres = ref.centre[[j for _, j in pose.matches]]
@@ -438,11 +437,7 @@ def _mirror_from_digits(img, trips, layout, ref, pres, groups, opts: _Options):
     ev = mirror_from_digits(img, _full_target(layout), pose.s, pose.lin, pose.t, centres, polarity)
     if ev.mirrored is None:
         return pres, None
-    res = search_pose(
-        trips, ref, img.shape, um_per_px=opts.um_per_px, listed=np.isin(ref.group, groups),
-        orientation=None if opts.orientation == "auto" else opts.orientation, mirror=ev.mirrored,
-        anchors=opts.anchors,
-    )  # fmt: skip
+    res = _pose_search(trips, ref, img.shape, groups, opts, ev.mirrored)
     if res.status != 0:
         return pres, None
     evidence = {"mirrored": ev.mirrored, "ncc_unmirrored": round(ev.ncc_unmirrored, 4),
@@ -450,20 +445,26 @@ def _mirror_from_digits(img, trips, layout, ref, pres, groups, opts: _Options):
     return res, evidence
 
 
+def _pose_search(trips, ref, shape, groups, opts: _Options, mirror: bool | None, turned_seeds: bool = False):
+    """:func:`~.pose.search_pose` of ``trips`` against ``ref`` with the options' scale,
+    orientation and anchors, and ``mirror`` (None: either)."""
+    from oapcal.imaging.detect.pose import search_pose
+
+    return search_pose(
+        trips, ref, shape, um_per_px=opts.um_per_px, listed=np.isin(ref.group, groups),
+        orientation=None if opts.orientation == "auto" else opts.orientation, mirror=mirror,
+        anchors=opts.anchors, turned_seeds=turned_seeds,
+    )  # fmt: skip
+
+
 def _try_layouts(trips, shape, groups, opts: _Options, turned_seeds: bool = False) -> list:
     """The pose search in every layout: rows ``(score, found, layout, reference triplets,
     result)``."""
-    from oapcal.imaging.detect.pose import search_pose
-
     tried = []
+    mirror = None if opts.mirror == "auto" else opts.mirror == "yes"
     for layout in _layouts():
         ref = _reference_triplets(layout)
-        res = search_pose(
-            trips, ref, shape, um_per_px=opts.um_per_px, listed=np.isin(ref.group, groups),
-            orientation=None if opts.orientation == "auto" else opts.orientation,
-            mirror=None if opts.mirror == "auto" else opts.mirror == "yes", anchors=opts.anchors,
-            turned_seeds=turned_seeds,
-        )  # fmt: skip
+        res = _pose_search(trips, ref, shape, groups, opts, mirror, turned_seeds)
         score = res.pose.score if res.pose is not None else -np.inf
         tried.append((score, res.status == 0, layout, ref, res))
     return tried

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oapcal.records import ImageSize
+
 #: The digits of the better hypothesis must correlate with the image at least this well ...
 MIN_NCC = 0.2
 #: ... and by at least this much more than those of the other.
@@ -82,7 +84,8 @@ def mirror_from_digits(image: np.ndarray, target, s: float, lin: np.ndarray, t: 
     h, w = image.shape
     # a number in view in either hypothesis counts: where one predicts print and the other
     # does not, the image's dark or bright there decides
-    picked = [k for k in picked if any(_inside(_box_px(boxes[k], *hyps[m]), w, h) for m in hyps)]
+    size = ImageSize(w, h)
+    picked = [k for k in picked if any(size.contains(_box_px(boxes[k], *hyps[m])).all() for m in hyps)]
     if not picked:
         return none
     preds = {m: _render(target, picked, *hyps[m], (h, w)) for m in hyps}
@@ -96,10 +99,6 @@ def mirror_from_digits(image: np.ndarray, target, s: float, lin: np.ndarray, t: 
 def _box_px(box: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     corners = np.array([[box[0], box[1]], [box[2], box[1]], [box[0], box[3]], [box[2], box[3]]])
     return corners @ a.T + b
-
-
-def _inside(pts: np.ndarray, w: int, h: int) -> bool:
-    return bool(np.all((pts >= 0) & (pts <= [w - 1, h - 1])))
 
 
 def _render(target, picked, a, b, shape) -> tuple[np.ndarray, np.ndarray]:
