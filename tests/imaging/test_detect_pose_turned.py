@@ -94,7 +94,9 @@ class _Res:
         ({"compact": (0, "ok", 9.0)}, False),  # a layout found the pose: no second search
         ({"compact": (1, "not_found", 5.0), "spaced": (0, "ok", 4.0)}, False),
         ({"compact": (1, "not_found", 5.0), "spaced": (1, "ambiguous", 4.0)}, True),  # the best: too little
-        ({"compact": (1, "ambiguous", 5.0), "spaced": (1, "not_found", 4.0)}, False),  # the best: ambiguous
+        # the best ambiguous: retried too (a scale given can narrow the search to two poses
+        # that the turned seeds tell apart), the first answer kept when they find no pose
+        ({"compact": (1, "ambiguous", 5.0), "spaced": (1, "not_found", 4.0)}, True),
     ],
 )
 def test_detection_turns_the_seeds_only_when_no_layout_found_a_pose(monkeypatch, results, retried):
@@ -122,5 +124,8 @@ def test_detection_turns_the_seeds_only_when_no_layout_found_a_pose(monkeypatch,
         def advance(self, *_):
             pass
 
-    core._search_pose(np.zeros(SHAPE), (4, 5), opts, _Bar())
+    found = core._search_pose(np.zeros(SHAPE), (4, 5), opts, _Bar())
     assert calls == [False] * len(layouts) + ([True] * len(layouts) if retried else [])
+    best = max(results, key=lambda k: results[k][2])
+    if results[best][1] == "ambiguous":
+        assert found.result.kind == "ambiguous" and found.layout == best

@@ -25,7 +25,7 @@ with its bounding-box centre at the image centre (``oapcal.imaging.usaf``).
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -322,6 +322,7 @@ class _Options:
     orientation_ratio: float
     consistency_model: str | None
     anchors: tuple = ()
+    layout: str | None = None  # None: every layout (_layouts); a name: only that one
 
 
 @dataclass(frozen=True)
@@ -338,6 +339,29 @@ class _PoseFound:
 
 
 def _detect(img, groups, opts: _Options, progress) -> Detection:
+    """The detection in the layout the pose search chose, and again in the other layouts
+    when its corners follow another one clearly better, or when it kept too few corners or
+    failed after the pose was found (:mod:`.layouts`)."""
+    from oapcal.imaging.detect.layouts import layouts_to_retry, prefer
+    from oapcal.imaging.usaf import layout
+
+    det = _detect_in_layouts(img, groups, opts, progress)
+    if opts.layout is not None:
+        return det
+    first = best = layout(det.pose.get("layout") if det.pose else None).name
+    retry, rms = layouts_to_retry(det, groups, first, _layouts())
+    kept = det
+    for name in retry:
+        again = _detect_in_layouts(img, groups, replace(opts, layout=name), progress)
+        if prefer(again, name, kept, best, groups):
+            kept, best = again, name
+    if kept is det:
+        return det
+    note = {"pose_layout": first, "rms_px": {k: round(v, 4) for k, v in rms.items()}}
+    return _replace(kept, pose=with_changes(kept.pose, layout_from_corners=note))
+
+
+def _detect_in_layouts(img, groups, opts: _Options, progress) -> Detection:
     h, w = img.shape
     um_per_px = opts.um_per_px
     work = work_estimate((h, w))
@@ -408,11 +432,18 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
     bar.stage("pose search")
     tried = _try_layouts(trips, img.shape, groups, opts)
     top = max(tried, key=lambda r: r[0])[4]
-    if not opts.anchors and not any(r[1] for r in tried) and top.kind == "not_found" and top.pose is not None:
+    if not opts.anchors and not any(r[1] for r in tried) and top.pose is not None:
         # the seeds' own angles found no pose in any layout, the best one too little: every
         # seed also turned by a few degrees (pose.SEED_TURNS_DEG; a strongly distorted field
-        # turns a triplet's bars against the target's pose)
-        tried = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
+        # turns a triplet's bars against the target's pose).  Also when the best was
+        # ambiguous (kept only if the turned seeds find a pose): with a scale given, the
+        # search narrowed to it can leave two poses of 10 triplets each where the turned
+        # seeds find 16 (a real micrograph through the relay, turned 135 degrees, mirrored)
+        if top.kind == "not_found":
+            tried = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
+        elif top.kind == "ambiguous":
+            turned = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
+            tried = turned if any(r[1] for r in turned) else tried
     default = tried[0]
     tried.sort(key=lambda r: (-r[0], not r[1]))
     if tried[0] is not default and tried[0][0] - default[0] < 2.0 and default[1]:
@@ -462,7 +493,7 @@ def _try_layouts(trips, shape, groups, opts: _Options, turned_seeds: bool = Fals
     result)``."""
     tried = []
     mirror = None if opts.mirror == "auto" else opts.mirror == "yes"
-    for layout in _layouts():
+    for layout in [opts.layout] if opts.layout is not None else _layouts():
         ref = _reference_triplets(layout)
         res = _pose_search(trips, ref, shape, groups, opts, mirror, turned_seeds)
         score = res.pose.score if res.pose is not None else -np.inf

@@ -64,9 +64,11 @@ class PoseInfo(Record):
     poses' summaries (when found), the scores of the slipped poses, the number of bar
     triplets in the image and the target's ``layout``; ``mirror_from_digits`` (only when the
     printed numbers decided a mirror the bars left open, :mod:`.digits`): the mirror read and
-    the correlation of each hypothesis' numbers with the image."""
+    the correlation of each hypothesis' numbers with the image; ``layout_from_corners``
+    (only when the corners found decided another layout than the pose search's,
+    :mod:`.layouts`): the pose's layout and the rms (px) of each layout's cubic map."""
 
-    _OPTIONAL = ("best", "runner_up", "mirror_from_digits")
+    _OPTIONAL = ("best", "runner_up", "mirror_from_digits", "layout_from_corners")
 
     method: str
     status: int
@@ -77,6 +79,7 @@ class PoseInfo(Record):
     image_triplets: int = 0
     layout: str | None = None
     mirror_from_digits: dict | None = None
+    layout_from_corners: dict | None = None
 
 
 @dataclass(frozen=True, eq=False, repr=False)

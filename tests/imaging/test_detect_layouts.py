@@ -1,0 +1,102 @@
+"""Which layout the detected corners follow (:mod:`oapcal.imaging.detect.layouts`): the
+cubic map's residuals decide between layouts, a detection in a wrong layout is run again,
+and a real micrograph turned and mirrored through the relay is detected in its own layout."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from oapcal.imaging.detect.layouts import (
+    MIN_CORNERS,
+    SUSPECT_RMS_PX,
+    better_layout,
+    layout_residuals,
+    layouts_to_retry,
+    prefer,
+)
+from oapcal.imaging.usaf import LAYOUTS, usaf_target
+
+GROUPS = (4, 5)
+
+
+def _corners(layout, noise_px=0.03, seed=0, turn_deg=135.0, mirror=True):
+    """The corners of groups 4-5 in ``layout`` at 4.8 um/px, turned, mirrored and bent by a
+    smooth radial field of ~25 px at the edge of the target, with noise."""
+    t = usaf_target(GROUPS, layout_name=layout)
+    um = t.corners_um - t.corners_um.mean(axis=0)
+    th = np.radians(turn_deg)
+    rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    flip = np.diag([-1.0, 1.0]) if mirror else np.eye(2)
+    px = um @ (rot @ flip).T / 4.8
+    r2 = (px**2).sum(axis=1, keepdims=True) / 150.0**2
+    px = px * (1 + 0.15 * r2) + [320.0, 240.0]
+    rng = np.random.default_rng(seed)
+    return list(t.corner_ids), px + rng.normal(0, noise_px, px.shape)
+
+
+def test_the_right_layout_fits_its_corners_to_their_noise_and_the_others_do_not():
+    ids, xy = _corners("compact")
+    rms = layout_residuals(ids, xy, GROUPS, list(LAYOUTS))
+    assert set(rms) == set(LAYOUTS)
+    assert rms["compact"] < 0.06  # the noise (0.03 px per axis) and the field's non-cubic rest
+    assert all(rms[k] > 5 * rms["compact"] for k in LAYOUTS if k != "compact")
+
+
+@pytest.mark.parametrize("truth", list(LAYOUTS))
+def test_a_detection_in_another_layout_names_the_right_one(truth):
+    ids, xy = _corners(truth, seed=1)
+    for current in LAYOUTS:
+        choice, rms = better_layout(ids, xy, GROUPS, current, list(LAYOUTS))
+        if current == truth:
+            assert choice is None
+        else:
+            assert rms[current] > SUSPECT_RMS_PX and choice == truth
+
+
+def test_few_corners_or_one_element_cannot_tell_layouts_apart():
+    ids, xy = _corners("compact")
+    assert layout_residuals(ids[: MIN_CORNERS - 1], xy[: MIN_CORNERS - 1], GROUPS, list(LAYOUTS)) == {}
+    one = [k for k, c in enumerate(ids) if c.startswith("G4E2")]
+    assert len(one) == 24
+    assert layout_residuals([ids[k] for k in one], xy[one], GROUPS, list(LAYOUTS)) == {}
+    assert better_layout([ids[k] for k in one], xy[one], GROUPS, "spaced", list(LAYOUTS)) == (None, {})
+
+
+def _det(ids, xy, ok=True, coverage=1.0, pose_status=0):
+    return SimpleNamespace(ok=ok, ids=tuple(ids), xy_d=np.asarray(xy), coverage=coverage,
+                           pose={"status": pose_status})  # fmt: skip
+
+
+def test_what_is_run_again():
+    ids, xy = _corners("compact", seed=2)
+    lays = list(LAYOUTS)
+    # right layout, full coverage: nothing
+    assert layouts_to_retry(_det(ids, xy), GROUPS, "compact", lays)[0] == []
+    # right layout by its corners but few kept: every other layout
+    assert layouts_to_retry(_det(ids, xy, coverage=0.5), GROUPS, "compact", lays)[0] == [
+        "spaced",
+        "whole-target",
+    ]
+    # a wrong layout that the corners show: that one
+    assert layouts_to_retry(_det(ids, xy), GROUPS, "whole-target", lays)[0] == ["compact"]
+    # a refusal after a pose was found: the others; before any pose: none (every layout was searched)
+    failed = _det((), np.zeros((0, 2)), ok=False, coverage=0.0)
+    assert layouts_to_retry(failed, GROUPS, "spaced", lays)[0] == ["compact", "whole-target"]
+    failed.pose = {"status": 1}
+    assert layouts_to_retry(failed, GROUPS, "spaced", lays)[0] == []
+
+
+def test_which_detection_is_kept():
+    ids, xy = _corners("compact", seed=3)
+    right = _det(ids, xy)
+    fewer = _det(ids[:150], xy[:150])
+    failed = _det((), np.zeros((0, 2)), ok=False)
+    assert prefer(right, "compact", failed, "spaced", GROUPS)
+    assert not prefer(failed, "spaced", right, "compact", GROUPS)
+    # the same corners read in a wrong layout fit it worse: never kept over the right one
+    assert not prefer(right, "whole-target", right, "compact", GROUPS)
+    assert prefer(right, "compact", right, "whole-target", GROUPS)
+    # more corners in the same (right) layout: kept; about as many: not
+    assert prefer(right, "compact", fewer, "compact", GROUPS)
+    assert not prefer(fewer, "compact", right, "compact", GROUPS)
