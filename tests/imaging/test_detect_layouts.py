@@ -9,11 +9,13 @@ import pytest
 
 from oapcal.imaging.detect.layouts import (
     MIN_CORNERS,
+    RESOLVED_BAR_PX,
     SUSPECT_RMS_PX,
     better_layout,
     layout_residuals,
     layouts_to_retry,
     prefer,
+    resolved_coverage,
 )
 from oapcal.imaging.usaf import LAYOUTS, usaf_target
 
@@ -63,25 +65,43 @@ def test_few_corners_or_one_element_cannot_tell_layouts_apart():
     assert better_layout([ids[k] for k in one], xy[one], GROUPS, "spaced", list(LAYOUTS)) == (None, {})
 
 
-def _det(ids, xy, ok=True, coverage=1.0, pose_status=0):
-    return SimpleNamespace(ok=ok, ids=tuple(ids), xy_d=np.asarray(xy), coverage=coverage,
-                           pose={"status": pose_status})  # fmt: skip
+def _det(ids, xy, ok=True, pose_status=0, expected=None):
+    """A detection's fields that the layout decisions read: ``expected`` the ids predicted in
+    view (default: ``ids``), at 4.8 um/px."""
+    expected = ids if expected is None else expected
+    predicted = dict.fromkeys(expected, (0.0, 0.0))
+    return SimpleNamespace(ok=ok, ids=tuple(ids), xy_d=np.asarray(xy), um_per_px=4.8,
+                           predicted=predicted, pose={"status": pose_status})  # fmt: skip
+
+
+def test_resolved_coverage_counts_only_corners_of_bars_wide_enough():
+    t = usaf_target(GROUPS)
+    ids = list(t.corner_ids)
+    width_px = dict(zip(ids, t.corner_width_um / 4.8))
+    wide = [c for c in ids if width_px[c] >= RESOLVED_BAR_PX]
+    narrow = [c for c in ids if width_px[c] < RESOLVED_BAR_PX]
+    assert wide and narrow  # groups 4-5 at 4.8 um/px: G5E4-E6 are narrower than 2.5 px
+    xy = np.zeros((len(ids), 2))
+    # every wide corner kept, no narrow one: fully covered
+    assert resolved_coverage(_det(wide, xy[: len(wide)], expected=ids), GROUPS) == 1.0
+    # half the wide ones kept
+    half = wide[::2]
+    got = resolved_coverage(_det(half + narrow, xy[: len(half) + len(narrow)], expected=ids), GROUPS)
+    assert got == pytest.approx(len(half) / len(wide))
 
 
 def test_what_is_run_again():
     ids, xy = _corners("compact", seed=2)
     lays = list(LAYOUTS)
-    # right layout, full coverage: nothing
+    # right layout, every corner kept: nothing
     assert layouts_to_retry(_det(ids, xy), GROUPS, "compact", lays)[0] == []
     # right layout by its corners but few kept: every other layout
-    assert layouts_to_retry(_det(ids, xy, coverage=0.5), GROUPS, "compact", lays)[0] == [
-        "spaced",
-        "whole-target",
-    ]
+    few = _det(ids[:100], xy[:100], expected=ids)
+    assert layouts_to_retry(few, GROUPS, "compact", lays)[0] == ["spaced", "whole-target"]
     # a wrong layout that the corners show: that one
     assert layouts_to_retry(_det(ids, xy), GROUPS, "whole-target", lays)[0] == ["compact"]
     # a refusal after a pose was found: the others; before any pose: none (every layout was searched)
-    failed = _det((), np.zeros((0, 2)), ok=False, coverage=0.0)
+    failed = _det((), np.zeros((0, 2)), ok=False)
     assert layouts_to_retry(failed, GROUPS, "spaced", lays)[0] == ["compact", "whole-target"]
     failed.pose = {"status": 1}
     assert layouts_to_retry(failed, GROUPS, "spaced", lays)[0] == []

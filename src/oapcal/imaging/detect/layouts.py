@@ -83,10 +83,32 @@ def better_layout(ids, xy_d, groups, current, layouts) -> tuple:
     return best, rms
 
 
-#: A detection that keeps less than this fraction of the corners it expects in view is run
-#: again in the other layouts (``layouts_to_retry``); right layouts keep 90-100 % on the
-#: renders of real micrographs through aligned and misaligned relays.
+#: A detection that keeps less than this fraction of the resolved corners it expects in view
+#: (:func:`resolved_coverage`) is run again in the other layouts (``layouts_to_retry``);
+#: right layouts keep 90-100 % on the renders of real micrographs through aligned and
+#: misaligned relays.
 RETRY_COVERAGE = 0.8
+#: Corners of bars at least this wide (px) count as resolved there: narrower ones are often
+#: lost to blur in a right layout too (the real LAB-UMK micrograph's group 6, 2.2 px and
+#: less, 235 of 547 corners in view dropped by a right registration).
+RESOLVED_BAR_PX = 2.5
+
+
+def resolved_coverage(det, groups) -> float:
+    """The fraction of the corners ``det`` expected in view (``det.predicted``) whose bars are
+    at least :data:`RESOLVED_BAR_PX` wide that it kept (1.0 when it expected none)."""
+    from oapcal.imaging.usaf import usaf_target
+
+    target = usaf_target(groups)
+    width = dict(zip(target.corner_ids, target.corner_width_um))
+    scale = float(det.um_per_px)
+    wide = [c for c in det.predicted if c in width and width[c] / scale >= RESOLVED_BAR_PX]
+    if not wide or not np.isfinite(scale):
+        return 1.0
+    kept = set(det.ids)
+    return sum(c in kept for c in wide) / len(wide)
+
+
 #: ... and another layout's detection is preferred when it keeps this many times the corners.
 MORE_CORNERS = 1.2
 
@@ -95,14 +117,15 @@ def layouts_to_retry(det, groups, current, layouts) -> tuple[list, dict]:
     """``(layouts, residuals)``: the layouts to run the detection ``det`` (found in layout
     ``current``) again in, and the residuals of its corners (:func:`layout_residuals`):
     the one that fits its corners clearly better (:func:`better_layout`); else, when it kept
-    too few corners (:data:`RETRY_COVERAGE`) or its registration failed after a pose was
+    too few of the resolved corners (:func:`resolved_coverage`, :data:`RETRY_COVERAGE`) or
+    its registration failed after a pose was
     found, every other layout; else none."""
     others = [name for name in layouts if name != current]
     if det.ok:
         choice, rms = better_layout(det.ids, det.xy_d, groups, current, layouts)
         if choice is not None:
             return [choice], rms
-        return (others if det.coverage < RETRY_COVERAGE else []), rms
+        return (others if resolved_coverage(det, groups) < RETRY_COVERAGE else []), rms
     found_pose = det.pose.get("status") == 0 if det.pose else False
     return (others if found_pose else []), {}
 
