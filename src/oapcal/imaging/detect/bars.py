@@ -161,16 +161,17 @@ def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
             d = bars[j, :2] - (cx, cy)
             dn, da = float(d @ nrm), float(d @ along)
             dth = abs((bars[j, 4] - th + np.pi / 2) % np.pi - np.pi / 2)
-            # the spacing against the pair's mean thresholded width: a blurred middle bar
-            # between two others thresholds narrower than they do (measured: 4.8 px between
-            # two of 6.0 px at a 12.9 px spacing, where its own width allowed 12.8 px)
-            wm = 0.5 * (w + bars[j, 2])
+            # the spacing may reach the wider bar's limit: a blurred middle bar between two
+            # others thresholds narrower than they do (measured: 4.8 px between two of
+            # 6.0 px at a 12.9 px spacing, where its own width allowed 12.8 px); the lower
+            # limit stays the narrower bar's (the limits only widen)
+            w_lo, w_hi = min(w, bars[j, 2]), max(w, bars[j, 2])
             if (
                 dth < np.deg2rad(10)
                 and abs(da) < 0.2 * length + 1
                 and 0.7 < bars[j, 2] / w < 1.45
                 and 0.75 < bars[j, 3] / length < 1.33
-                and 1.55 * wm - 0.5 < abs(dn) < 2.5 * wm + 0.8
+                and 1.55 * w_lo - 0.5 < abs(dn) < 2.5 * w_hi + 0.8
             ):
                 side[int(np.sign(dn))].append((abs(dn), j))
         for dl, jl in side[-1]:
