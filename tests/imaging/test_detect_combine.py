@@ -84,7 +84,7 @@ def test_a_registration_with_other_reference_points_adds_nothing():
 def test_a_thin_middle_bar_still_makes_a_triplet():
     """A blurred middle bar thresholds narrower than its neighbours (measured through the
     relay, target turned by 90 degrees: 4.8 px between two of 6.0 px, 12.9 px apart);
-    the spacing is judged against the pair's mean width."""
+    the spacing's upper limit comes from the wider bar."""
     bars = np.array(
         [
             [369.0, 187.5, 6.0, 27.0, np.pi / 2],
