@@ -199,8 +199,11 @@ def check_turned(base, det, groups, affine, shape) -> dict:
     ``strict`` counts those farther than min(3 px, half the distance to the nearest other
     expected corner), as ``e2e_real.py`` counts wrong ids (a corner of a bar under 2 px is
     0.9 px from its neighbour).  Corners whose place lies outside the source image (the turned
-    canvas shows the bars cut by the source's edge) are counted apart (``off_source``)."""
-    from scipy.spatial import cKDTree
+    canvas shows the bars cut by the source's edge) are counted apart (``off_source``), and so
+    are corners the base did not keep that lie outside the convex hull of the base's corners
+    in um (``unreferenced``: their expected place would be the cubic map extrapolated, e.g. a
+    binned single element whose base kept only the H triplet)."""
+    from scipy.spatial import Delaunay, cKDTree
 
     from oapcal.imaging.usaf import usaf_target
 
@@ -222,12 +225,17 @@ def check_turned(base, det, groups, affine, shape) -> dict:
     tree = cKDTree(mapped)
     nn = tree.query(mapped, k=2)[0][:, 1]
     h, w = shape
-    out = {"found": len(det.ids), "in_base": 0, "off_source": 0, "wrong": 0, "strict": 0, "errors": []}
+    out = {"found": len(det.ids), "in_base": 0, "off_source": 0, "unreferenced": 0, "wrong": 0, "strict": 0,
+           "errors": []}  # fmt: skip
+    hull = Delaunay(um) if len(um) >= 3 else None
     for cid, xy in zip(det.ids, det.xy_d):
         k = index[cid]
         e = expected[k]
         if not (3 <= e[0] <= w - 4 and 3 <= e[1] <= h - 4):
             out["off_source"] += 1
+            continue
+        if cid not in bidx and (hull is None or hull.find_simplex(t.corners_um[k]) < 0):
+            out["unreferenced"] += 1
             continue
         d = float(np.hypot(*(xy - mapped[k])))
         nearest = int(tree.query(xy)[1])
@@ -249,8 +257,8 @@ def run_poses(only: str | None) -> None:
     from oapcal.imaging.usaf import parse_groups
 
     print("| image | transform | anchor | exit | corners | wrong ids | strict | beyond the source | "
-          "median (px) | um/px +/- sigma | time (s) | reason |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "not in the reference | median (px) | um/px +/- sigma | time (s) | reason |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, groups, _, _ in RUNS[:4]:
         if only and only not in name:
             continue
@@ -277,10 +285,12 @@ def run_poses(only: str | None) -> None:
                     r = check_turned(base, det, g, affine, img.shape)
                     sig = f" +/- {det.um_per_px_sigma:.2g}" if det.um_per_px_sigma is not None else ""
                     print(f"| {name} | {kind} | {label} | 0 | {r['found']} | {r['wrong']} | {r['strict']} | "
-                          f"{r['off_source']} | {r['median_px']:.3f} | {det.um_per_px:.4g}{sig} | "
-                          f"{dt:.1f} | |", flush=True)  # fmt: skip
+                          f"{r['off_source']} | {r['unreferenced']} | {r['median_px']:.3f} | "
+                          f"{det.um_per_px:.4g}{sig} | {dt:.1f} | |", flush=True)  # fmt: skip
                     break
-                print(f"| {name} | {kind} | {label} | 3 | | | | | | | {dt:.1f} | {det.message} |", flush=True)
+                print(
+                    f"| {name} | {kind} | {label} | 3 | | | | | | | | {dt:.1f} | {det.message} |", flush=True
+                )
 
 
 def main() -> None:
