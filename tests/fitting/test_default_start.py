@@ -153,3 +153,38 @@ def test_target_turned_by_180_degrees_keeps_m_positive_and_fits_the_turn():
     assert "m = -1.01 < 0" in cal.notes[0]
     # the same correction either way
     assert cal.residuals.mean_px == pytest.approx(plain.residuals.mean_px, rel=0.01)
+
+
+def test_when_neither_eq1_nor_the_rotation_converges_the_perspective_is_fitted(monkeypatch):
+    """The last resort of ``rotation="auto"`` (``calibration._with_tilt``): a target seen at
+    an angle that Eq. (1) (and with the rotation) can only mimic with a runaway centre.  Here
+    the runaway is imposed (the first two fits are reported unconverged) on pairs made with a
+    keystone, so the policy alone is tested; the real case is ``whole_target.png``
+    (tests/fitting/test_real_fits.py, slow)."""
+    import dataclasses
+
+    import oapcal.fitting as fitting
+    from oapcal.model import BROWN_CONRADY_TILT, distort
+
+    g = np.stack(np.meshgrid(np.linspace(60, 580, 22), np.linspace(40, 440, 18)), -1).reshape(-1, 2)
+    truth = np.concatenate([WEAK, [0.3, 2e-4, -1.5e-4]])
+    d = distort(g, truth, family=BROWN_CONRADY_TILT) + np.random.default_rng(3).normal(0, 0.2, g.shape)
+    real_fit = fitting.fit
+
+    def capped(xy_u, xy_d, model="paper", **kw):
+        r = real_fit(xy_u, xy_d, model, **kw)
+        if r.family is not BROWN_CONRADY_TILT:
+            r = dataclasses.replace(r, converged=False, message="not converged: iteration cap reached")
+        return r
+
+    monkeypatch.setattr(fitting, "fit", capped)
+    cal = calibrate(g, d, "paper", check=False, error_model=False)
+    assert cal.family is BROWN_CONRADY_TILT and cal.fit.converged
+    assert (
+        len(cal.notes) == 1 and "seen at an angle" in cal.notes[0] and "paper+rotation+tilt" in cal.notes[0]
+    )
+    # (the tilts trade off a little against the decentring terms; their signs are the truth's)
+    assert (np.sign(cal.params[-2:]) == np.sign(truth[-2:])).all()
+    assert cal.residuals.mean_px < 0.5
+    # "none" keeps Eq. (1) as given, unconverged
+    assert not calibrate(g, d, "paper", rotation="none", check=False, error_model=False).fit.converged

@@ -100,9 +100,9 @@ def test_what_is_run_again():
     assert layouts_to_retry(few, GROUPS, "compact", lays)[0] == ["spaced", "whole-target"]
     # a wrong layout that the corners show: that one
     assert layouts_to_retry(_det(ids, xy), GROUPS, "whole-target", lays)[0] == ["compact"]
-    # a refusal after a pose was found: the others; before any pose: none (every layout was searched)
+    # a refusal is not run again, whether a pose was found or not
     failed = _det((), np.zeros((0, 2)), ok=False)
-    assert layouts_to_retry(failed, GROUPS, "spaced", lays)[0] == ["compact", "whole-target"]
+    assert layouts_to_retry(failed, GROUPS, "spaced", lays)[0] == []
     failed.pose = {"status": 1}
     assert layouts_to_retry(failed, GROUPS, "spaced", lays)[0] == []
 

@@ -344,8 +344,8 @@ class _PoseFound:
 
 def _detect(img, groups, opts: _Options, progress) -> Detection:
     """The detection in the layout the pose search chose, and again in the other layouts
-    when its corners follow another one clearly better, or when it kept too few corners or
-    failed after the pose was found (:mod:`.layouts`)."""
+    when its corners follow another one clearly better, or when it kept too few of the
+    resolved corners (:mod:`.layouts`)."""
     from oapcal.imaging.detect.layouts import layouts_to_retry, prefer
     from oapcal.imaging.usaf import layout
 
@@ -679,8 +679,9 @@ def _with_corners_of(best: Detection, dets: list, consistency_model) -> Detectio
     for d in dets:
         if d.ok:
             predicted.update({k: v for k, v in d.predicted.items() if k not in predicted})
+    resolved = {k for k in predicted if width_um[k] / best.um_per_px >= RESOLVED_BAR_PX}
     return _replace(best, ids=ids, xy_u=xy_u, xy_d=xy_d, stderr_px=stderr, predicted=predicted,
-                    n_expected=max(best.n_expected, len(predicted)),
+                    n_expected=max(best.n_expected, len(resolved | set(ids))),
                     consistency=ConsistencySummary(**check.summary()))  # fmt: skip
 
 
@@ -1048,8 +1049,12 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
     kept = _refine_triplets(target, inside, w, h, m, functools.partial(refine_triplet, ctx), bar)
     width_px = target.corner_width_um[kept.idx] / um_per_px
     check = check_consistency(corners_u[kept.idx], kept.xy, width_px, opts.consistency_model)
+    # expected: the corners of resolved bars (as the triplet path counts them) and any
+    # narrower ones kept, so that the coverage of both paths means the same
+    expected = inside & (target.corner_width_um / um_per_px >= RESOLVED_BAR_PX)
+    expected[kept.idx] = True
     common = dict(
-        n_expected=int(inside.sum()),
+        n_expected=int(expected.sum()),
         sigma_px=camera_sigma(warp, sigma),
         ncc=global_ncc,
         consistency=ConsistencySummary(**check.summary()),
