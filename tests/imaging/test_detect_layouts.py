@@ -120,3 +120,33 @@ def test_which_detection_is_kept():
     # more corners in the same (right) layout: kept; about as many: not
     assert prefer(right, "compact", fewer, "compact", GROUPS)
     assert not prefer(fewer, "compact", right, "compact", GROUPS)
+
+
+@pytest.mark.parametrize(("pose_layout", "runs"), [("whole-target", [None, "compact"]), ("compact", [None])])
+def test_detection_runs_again_in_the_layout_its_corners_follow(monkeypatch, pose_layout, runs):
+    """``core._detect``: when the pose search's layout is ``whole-target`` and the corners
+    follow ``compact``, the detection in ``compact`` is kept, with ``pose.layout_from_corners``;
+    when the corners follow the pose's layout, nothing runs again."""
+    from oapcal.imaging.detect import core
+
+    ids, xy = _corners("compact", seed=4)
+    calls = []
+
+    def detect_in(img, groups, opts, progress):
+        calls.append(opts.layout)
+        layout = opts.layout or pose_layout
+        return core.Detection(tuple(ids), xy, xy.copy(), np.zeros(len(ids)), len(ids), um_per_px=4.8,
+                              pose={"status": 0, "layout": layout}, predicted=dict.fromkeys(ids))  # fmt: skip
+
+    monkeypatch.setattr(core, "_detect_in_layouts", detect_in)
+    monkeypatch.setattr(core, "_layouts", lambda: list(LAYOUTS))
+    opts = core._Options(None, "auto", "auto", 1.0, 0.3, 1.5, core.ORIENTATION_RATIO, "auto", ())
+    det = core._detect(np.zeros((480, 640)), GROUPS, opts, None)
+    assert calls == runs
+    assert det.pose["layout"] == "compact"
+    if len(runs) > 1:
+        note = det.pose["layout_from_corners"]
+        assert note["pose_layout"] == "whole-target"
+        assert note["rms_px"]["whole-target"] > 5 * note["rms_px"]["compact"]
+    else:
+        assert "layout_from_corners" not in det.pose
