@@ -1,6 +1,7 @@
 """Which layout the detected corners follow (:mod:`oapcal.imaging.detect.layouts`): the
-cubic map's residuals decide between layouts, a detection in a wrong layout is run again,
-and a real micrograph turned and mirrored through the relay is detected in its own layout."""
+cubic map's residuals decide between layouts, and a detection in a wrong layout, or one that
+kept too few resolved corners, is run again (the real micrographs rendered through the
+relay are in tests/imaging/test_e2e_real.py)."""
 
 from types import SimpleNamespace
 
@@ -9,8 +10,8 @@ import pytest
 
 from oapcal.imaging.detect.layouts import (
     MIN_CORNERS,
-    RESOLVED_BAR_PX,
     SUSPECT_RMS_PX,
+    WIDE_BAR_PX,
     better_layout,
     layout_residuals,
     layouts_to_retry,
@@ -78,8 +79,8 @@ def test_resolved_coverage_counts_only_corners_of_bars_wide_enough():
     t = usaf_target(GROUPS)
     ids = list(t.corner_ids)
     width_px = dict(zip(ids, t.corner_width_um / 4.8))
-    wide = [c for c in ids if width_px[c] >= RESOLVED_BAR_PX]
-    narrow = [c for c in ids if width_px[c] < RESOLVED_BAR_PX]
+    wide = [c for c in ids if width_px[c] >= WIDE_BAR_PX]
+    narrow = [c for c in ids if width_px[c] < WIDE_BAR_PX]
     assert wide and narrow  # groups 4-5 at 4.8 um/px: G5E4-E6 are narrower than 2.5 px
     xy = np.zeros((len(ids), 2))
     # every wide corner kept, no narrow one: fully covered

@@ -352,7 +352,7 @@ def _detect(img, groups, opts: _Options, progress) -> Detection:
     det = _detect_in_layouts(img, groups, opts, progress)
     if opts.layout is not None:
         return det
-    first = best = layout(det.pose.get("layout") if det.pose else None).name
+    first = best = layout(det.pose.get("layout")).name
     retry, rms = layouts_to_retry(det, groups, first, _layouts())
     kept = det
     for name in retry:
@@ -447,11 +447,10 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
         # ambiguous (kept only if the turned seeds find a pose): with a scale given, the
         # search narrowed to it can leave two poses of 10 triplets each where the turned
         # seeds find 16 (a real micrograph through the relay, turned 135 degrees, mirrored)
-        if top.kind == "not_found":
-            tried = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
-        elif top.kind == "ambiguous":
+        if top.kind in ("not_found", "ambiguous"):
             turned = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
-            tried = turned if any(r[1] for r in turned) else tried
+            if top.kind == "not_found" or any(r[1] for r in turned):
+                tried = turned
     default = tried[0]
     tried.sort(key=lambda r: (-r[0], not r[1]))
     if tried[0] is not default and tried[0][0] - default[0] < 2.0 and default[1]:
@@ -581,8 +580,7 @@ def _combine(dets: list, consistency_model="auto") -> Detection:
     if not ok:
         reason = "; ".join(dict.fromkeys(d.message for d in dets))
         return _replace(dets[0], message=reason, param=tuple(dict.fromkeys(p for d in dets for p in d.param)))
-    tw = _full_target()
-    width = {i: tw.bar_width[k // 4] for k, i in enumerate(tw.corner_ids)}
+    width = _corner_width_um()
     disputed: set = set()
     for n, d1 in enumerate(ok):
         for d2 in ok[n + 1 :]:
@@ -668,8 +666,7 @@ def _with_corners_of(best: Detection, dets: list, consistency_model) -> Detectio
     xy_u = np.vstack([best.xy_u, [d.xy_u[n] for _, d, n in extra]])
     xy_d = np.vstack([best.xy_d, [d.xy_d[n] for _, d, n in extra]])
     stderr = np.concatenate([best.stderr_px, [d.stderr_px[n] for _, d, n in extra]])
-    tw = _full_target()
-    width_um = dict(zip(tw.corner_ids, tw.corner_width_um))
+    width_um = _corner_width_um()
     check = check_consistency(
         xy_u, xy_d, np.array([width_um[k] for k in ids]) / best.um_per_px, consistency_model
     )
@@ -901,6 +898,13 @@ def _warp_from_points(x_img, u_img, pose, target, u_ref, orient, size) -> PolyWa
 @functools.lru_cache(maxsize=4)
 def _full_target(layout: str | None = None):
     return usaf_target(ALL_GROUPS, layout_name=layout)
+
+
+@functools.lru_cache(maxsize=1)
+def _corner_width_um() -> dict:
+    """Corner id -> its bar's width (um), over the whole target (every layout's is the same)."""
+    tw = _full_target()
+    return dict(zip(tw.corner_ids, tw.corner_width_um))
 
 
 @functools.lru_cache(maxsize=4)

@@ -89,21 +89,22 @@ def better_layout(ids, xy_d, groups, current, layouts) -> tuple:
 #: right layouts keep 90-100 % on the renders of real micrographs through aligned and
 #: misaligned relays.
 RETRY_COVERAGE = 0.8
-#: Corners of bars at least this wide (px) count as resolved there: narrower ones are often
+#: Corners of bars at least this wide (px) count for the retry (wider than the 2 px from
+#: which detection expects a corner, ``core.RESOLVED_BAR_PX``): narrower ones are often
 #: lost to blur in a right layout too (the real LAB-UMK micrograph's group 6, 2.2 px and
 #: less, 235 of 547 corners in view dropped by a right registration).
-RESOLVED_BAR_PX = 2.5
+WIDE_BAR_PX = 2.5
 
 
 def resolved_coverage(det, groups) -> float:
     """The fraction of the corners ``det`` expected in view (``det.predicted``) whose bars are
-    at least :data:`RESOLVED_BAR_PX` wide that it kept (1.0 when it expected none)."""
+    at least :data:`WIDE_BAR_PX` wide that it kept (1.0 when it expected none)."""
     from oapcal.imaging.usaf import usaf_target
 
     target = usaf_target(groups)
     width = dict(zip(target.corner_ids, target.corner_width_um))
     scale = float(det.um_per_px)
-    wide = [c for c in det.predicted if c in width and width[c] / scale >= RESOLVED_BAR_PX]
+    wide = [c for c in det.predicted if c in width and width[c] / scale >= WIDE_BAR_PX]
     if not wide or not np.isfinite(scale):
         return 1.0
     kept = set(det.ids)
