@@ -21,9 +21,15 @@ error of the correction (``|undistort(traced point) - reference point|``) is com
   calibration's measured floor and extrapolation (:mod:`oapcal.error_model`);
 
 reporting the share of field points within 1 and 2 sigma inside and outside the
-landmarks' hull (the goal is 85-99 % within 2 sigma).  The error is a length and sigma
-``sqrt(sigma_x^2 + sigma_y^2)``: for an isotropic 2-D Gaussian error the shares are 63 % and
-98 % (``1 - exp(-1)``, ``1 - exp(-4)``), not the 68 / 95 % of one coordinate.
+landmarks' hull (the goal is 85-99 % within 2 sigma), two ways:
+
+* **per coordinate** (the goal's reading): each coordinate's error ``|e_x|``, ``|e_y|``
+  against its own predicted sigma (:func:`oapcal.uncertainty.predicted_error_xy`), both
+  coordinates of every field point pooled: a Gaussian gives 68 / 95 %, the reference the
+  issue states;
+* **as a length**: ``|e|`` against ``sqrt(sigma_x^2 + sigma_y^2)`` (the report's predicted
+  error): for an isotropic 2-D Gaussian error the shares are 63 % and 98 % (``1 - exp(-1)``,
+  ``1 - exp(-4)``), so the band's 99 % ceiling sits 1 point above a perfect prediction.
 
     .venv/bin/python benchmarks/uncertainty.py [--seeds 10] [--noise 0.3] [--quick]
 """
@@ -41,7 +47,7 @@ from models import DESIGN, GRID_N, draw_truth, landmark_positions, reference_gri
 from oapcal.calibration import UnusableFitError, calibrate, check_fit_usable
 from oapcal.model import undistort
 from oapcal.optics.relay_model import calibrate_relay
-from oapcal.uncertainty import inside_hull, position_covariance, predicted_error
+from oapcal.uncertainty import inside_hull, position_covariance, predicted_error, predicted_error_xy
 
 MODELS = ("paper", "bc+rotation", "relay", "relay+priors")
 #: Layouts: the two of benchmarks/models.py, and the issue's few central landmarks.
@@ -93,10 +99,12 @@ def run_case(seed: int, scenario: str, model: str, noise: float, n: int, grid_fu
     cal = calibrate_model(model, lm_u, lm_d)
     seconds = time.perf_counter() - t
     field_d = trace(mis, turn, field)
-    err = np.hypot(*(undistort(field_d, cal.params).xy - field).T)
+    err_xy = undistort(field_d, cal.params).xy - field
+    err = np.hypot(*err_xy.T)
     cov = position_covariance(field, cal.params, cal.covariance, cal.free)
     sigma_cov = np.sqrt(cov[:, 0, 0] + cov[:, 1, 1])
     sigma_pred = predicted_error(field, cal)
+    sigma_pred_xy = predicted_error_xy(field, cal)
     inside = inside_hull(field, cal.hull)
     row = {"seed": seed, "scenario": scenario, "model": model, "converged": cal.fit.converged,
            "seconds": seconds, "error_model": cal.error_model, "usable": usable(cal, model)}  # fmt: skip
@@ -106,6 +114,12 @@ def run_case(seed: int, scenario: str, model: str, noise: float, n: int, grid_fu
             ok = sel & np.isfinite(z)
             row[f"{kind}_{region}_1"] = float((z[ok] <= 1).mean()) if ok.any() else np.nan
             row[f"{kind}_{region}_2"] = float((z[ok] <= 2).mean()) if ok.any() else np.nan
+    z_xy = np.abs(err_xy) / sigma_pred_xy  # per coordinate, (N, 2)
+    for region, sel in (("in", inside), ("out", ~inside)):
+        z = z_xy[sel].ravel()
+        z = z[np.isfinite(z)]
+        row[f"xy_{region}_1"] = float((z <= 1).mean()) if len(z) else np.nan
+        row[f"xy_{region}_2"] = float((z <= 2).mean()) if len(z) else np.nan
     row["err_out_median"] = float(np.median(err[~inside])) if (~inside).any() else np.nan
     row["pred_out_median"] = float(np.median(sigma_pred[~inside])) if (~inside).any() else np.nan
     # the trust region at 1 px: the share of the field it keeps, and of those kept points
@@ -121,9 +135,10 @@ def table(rows, noise: float) -> str:
         f"\n**{noise} px noise** ({len({r['seed'] for r in rows})} seeds; mean share over seeds, "
         "lowest seed in brackets; within 1 sigma / within 2 sigma)\n",
         "| landmarks | model | covariance only, inside hull | covariance only, outside "
-        "| predicted, inside hull | predicted, outside | goal (85-99 % in 2 sigma) "
+        "| predicted, inside hull | predicted, outside | predicted per coordinate, inside hull "
+        "| per coordinate, outside | goal (85-99 % in 2 sigma) per coordinate | as a length "
         "| trusted at 1 px: share of field, of it > 1 px |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for scenario in SCENARIOS:
         for model in MODELS:
@@ -138,22 +153,28 @@ def table(rows, noise: float) -> str:
                     return "-"
                 return f"{np.nanmean(one):.0%} / {np.nanmean(two):.0%} ({np.nanmin(two):.0%})"
 
-            twos = [np.nanmean([x[f"predicted_{reg}_2"] for x in r]) for reg in ("in", "out")]
-            twos = [v for v in twos if np.isfinite(v)]
-            if any(v < GOAL_2SIGMA[0] for v in twos):
-                verdict = "**not met** (optimistic)"
-            elif any(v > GOAL_2SIGMA[1] for v in twos):
-                verdict = "not met: conservative"
-            else:
-                verdict = "met"
+            verdicts = [verdict(r, kind) for kind in ("xy", "predicted")]
             trusted = np.mean([x["trusted"] for x in r])
             bad = np.nanmean([x["trusted_bad"] for x in r])
             lines.append(
                 f"| {scenario} | {model} | {cell('covariance', 'in')} | {cell('covariance', 'out')} "
-                f"| {cell('predicted', 'in')} | {cell('predicted', 'out')} | {verdict} "
+                f"| {cell('predicted', 'in')} | {cell('predicted', 'out')} "
+                f"| {cell('xy', 'in')} | {cell('xy', 'out')} | {verdicts[0]} | {verdicts[1]} "
                 f"| {trusted:.0%}, {bad:.1%} |"
             )
     return "\n".join(lines)
+
+
+def verdict(rows, kind: str) -> str:
+    """The goal (85-99 % within 2 sigma inside and outside the hull, mean over seeds) for the
+    predicted error per coordinate (``kind`` ``"xy"``) or as a length (``"predicted"``)."""
+    twos = [np.nanmean([x[f"{kind}_{reg}_2"] for x in rows]) for reg in ("in", "out")]
+    twos = [v for v in twos if np.isfinite(v)]
+    if any(v < GOAL_2SIGMA[0] for v in twos):
+        return "**not met** (optimistic)"
+    if any(v > GOAL_2SIGMA[1] for v in twos):
+        return "not met: conservative"
+    return "met"
 
 
 def demo_check() -> str:

@@ -118,7 +118,9 @@ class ErrorModel:
     held-out sides of the landmarks; ``ramp_px`` the distance ``d0`` outside the hull over
     which the factor grows from 1 to ``kappa`` (the landmarks' median spacing); ``sides``
     refits tried, ``sides_used`` those that converged, each leaving out ``holdout_fraction``
-    of the landmarks.
+    of the landmarks; ``method`` how the sides' factors were combined: ``"leave-side-out"``
+    the worst side (a series model: Eq. 1 and its variants), ``"leave-side-out-mean"`` their
+    mean (a physical model: the relay families; :mod:`oapcal.error_model`).
     """
 
     floor_px: float
@@ -183,24 +185,37 @@ def predicted_error(xy_u, calibration) -> np.ndarray:
     """The predicted 1-sigma error ``(...,)`` of the correction at output points ``(..., 2)``
     (module docstring): the propagated uncertainty, inflated by the calibration's
     :class:`ErrorModel` beyond the hull and with its model floor added; the propagated
-    uncertainty alone for a calibration without an error model.  NaN where the map folds."""
+    uncertainty alone for a calibration without an error model.  NaN where the map folds.
+    It is a length: the root sum of squares of :func:`predicted_error_xy`'s two coordinates.
+    """
+    return np.hypot(*np.moveaxis(predicted_error_xy(xy_u, calibration), -1, 0))
+
+
+def predicted_error_xy(xy_u, calibration) -> np.ndarray:
+    """The predicted 1-sigma error of each coordinate ``(..., 2)`` (x, y) of the correction at
+    output points ``(..., 2)``: the propagated variance of that coordinate times the
+    extrapolation factor squared, plus half the model floor's squared length (the floor
+    ``F`` is an RMS length, shared evenly by the two coordinates).  A coordinate's error
+    within 1 / 2 sigma is what a Gaussian puts at 68 / 95 %; the length of
+    :func:`predicted_error` at 63 / 98 %."""
     xy_u = np.asarray(xy_u, float)
     cov = position_covariance(xy_u, as_model(calibration), calibration.covariance)
-    sp2 = cov[..., 0, 0] + cov[..., 1, 1]
-    return _combine(sp2, xy_u, calibration)
+    return _combine(cov[..., 0, 0], cov[..., 1, 1], xy_u, calibration)
 
 
-def _combine(sp2, xy_u, calibration) -> np.ndarray:
+def _combine(sxx, syy, xy_u, calibration) -> np.ndarray:
+    """Per-coordinate predicted sigmas ``(..., 2)`` from the propagated variances."""
     em = getattr(calibration, "error_model", None)
+    var = np.stack([sxx, syy], -1)
     if em is None:
-        return np.sqrt(sp2)
+        return np.sqrt(var)
     hull = getattr(calibration, "hull", None)
     if hull is None or len(hull) < 3:
-        dist = np.full(sp2.shape, np.inf)
+        dist = np.full(np.shape(sxx), np.inf)
     else:
         dist = hull_distance(xy_u, hull)
     k = extrapolation_factor(dist, em, hull_radius(hull))
-    return np.sqrt(k * k * sp2 + float(em.floor_px) ** 2)
+    return np.sqrt((k * k)[..., None] * var + 0.5 * float(em.floor_px) ** 2)
 
 
 def hull_radius(hull) -> float:
@@ -367,7 +382,8 @@ def uncertainty_map(calibration, shape: tuple[int, int] | None = None, *, step: 
             out["sx"][r0 : r0 + block] = np.sqrt(sxx)
             out["sy"][r0 : r0 + block] = np.sqrt(syy)
             out["smaj"][r0 : r0 + block] = np.sqrt(lam)
-            out["pred"][r0 : r0 + block] = _combine(sxx + syy, np.stack([gx, gy], -1), calibration)
+            pred = _combine(sxx, syy, np.stack([gx, gy], -1), calibration)
+            out["pred"][r0 : r0 + block] = np.hypot(pred[..., 0], pred[..., 1])
     hull = getattr(calibration, "hull", None)
     if hull is not None and len(hull) >= 3:
         gx, gy = np.meshgrid(x, y)

@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from oapcal import error_model as error_model_module
 from oapcal.calibration import calibrate
-from oapcal.error_model import estimate_error_model
+from oapcal.error_model import GROWTH_EXPONENT, PHYSICAL_GROWTH_EXPONENT, estimate_error_model
 from oapcal.io.calibration import calibration_to_dict, load_calibration, save_calibration
-from oapcal.model import PARAM_NAMES, distort, undistort
+from oapcal.model import PARAM_NAMES, RELAY, Model, distort, undistort
+from oapcal.optics.relay_model import RelayDesign, relay_mask, relay_params
 from oapcal.synthetic import EXAMPLE_TRUTH
 from oapcal.uncertainty import (
     ErrorModel,
@@ -20,6 +22,7 @@ from oapcal.uncertainty import (
     inside_hull,
     position_covariance,
     predicted_error,
+    predicted_error_xy,
     uncertainty_map,
 )
 
@@ -155,6 +158,59 @@ def test_predicted_error_formula_and_hull_distance():
     assert (inside == inside_hull(FIELD, hull)).all()
 
 
+def test_per_coordinate_predicted_error_shares_the_floor_and_makes_up_the_length():
+    """Each coordinate's predicted sigma is its own propagated variance (times k^2) plus half
+    the floor's squared length; the length of the two is predicted_error."""
+    xy_u, xy_d = _landmarks(3, "central")
+    cal = calibrate(xy_u, xy_d, "paper", image_size=(640, 480), rotation="none")
+    em = cal.error_model
+    assert em.floor_px > 0.05  # the truth has terms the paper model lacks
+    cov = position_covariance(FIELD, cal.params, cal.covariance, cal.free)
+    xy = predicted_error_xy(FIELD, cal)
+    assert xy.shape == FIELD.shape
+    inside = hull_distance(FIELD, cal.hull) == 0
+    half_floor2 = 0.5 * em.floor_px**2
+    np.testing.assert_allclose(xy[inside, 0], np.sqrt(cov[inside, 0, 0] + half_floor2))
+    np.testing.assert_allclose(xy[inside, 1], np.sqrt(cov[inside, 1, 1] + half_floor2))
+    np.testing.assert_allclose(np.hypot(xy[:, 0], xy[:, 1]), predicted_error(FIELD, cal))
+    # anisotropic: the paper model constrains x and y differently over the frame
+    assert not np.allclose(xy[:, 0], xy[:, 1], rtol=0.05)
+
+
+@pytest.fixture
+def fixed_side_ratios(monkeypatch):
+    """The sides' factors kappa^2 of every refit set to 1, 4 and 16 (what the refits measured
+    is not under test here, only how they are combined)."""
+    def sides(*args, **kwargs):
+        return [1.0, 4.0, 16.0], [np.array([0.2, 0.4])]
+
+    monkeypatch.setattr(error_model_module, "_side_ratios", sides)
+
+
+def test_a_series_model_keeps_its_worst_side(fixed_side_ratios):
+    xy_u, xy_d = _landmarks(3, "central")
+    cal = calibrate(xy_u, xy_d, "paper", image_size=(640, 480), rotation="none")
+    em = estimate_error_model(xy_u, xy_d, cal.model)
+    assert em.extrapolation == pytest.approx(4.0)  # sqrt(16)
+    assert em.growth_exponent == GROWTH_EXPONENT == 2.0
+    assert em.method == "leave-side-out"
+
+
+def test_a_physical_model_keeps_the_mean_of_its_sides(fixed_side_ratios):
+    """The relay lacks no terms of a series: its sides estimate one factor (their mean), which
+    grows beyond the probed distance as the field (g = 1), not two orders faster."""
+    design = RelayDesign(setup=1, pixel_size_um=4.8, centre=(319.5, 239.5))
+    truth = relay_params(design, {"m2_tilt_x": 0.03}, {"rotation": 0.2})
+    model = Model.from_mask(RELAY, truth, relay_mask("default"))
+    rng = np.random.default_rng(5)
+    xy_u = rng.uniform((200, 150), (440, 330), (60, 2))
+    xy_d = distort(xy_u, truth, family=RELAY) + rng.normal(0, 0.1, xy_u.shape)
+    em = estimate_error_model(xy_u, xy_d, model)
+    assert em.extrapolation == pytest.approx(np.sqrt(7.0))  # sqrt((1 + 4 + 16) / 3)
+    assert em.growth_exponent == PHYSICAL_GROWTH_EXPONENT == 1.0
+    assert em.method == "leave-side-out-mean"
+
+
 def test_few_landmarks_give_no_error_model():
     xy_u, xy_d = _landmarks(0, "central", n=11)
     cal = calibrate(xy_u, xy_d, "paper", rotation="none")
@@ -171,10 +227,12 @@ def test_error_model_round_trips_as_a_dict():
 
 @pytest.mark.slow
 def test_coverage_on_traced_relays_for_every_family():
-    """benchmarks/uncertainty.py on 3 seeds at 0.3 px noise: the predicted error covers the
-    actual error within 2 sigma at >= 85 % of the field points on average, inside and
-    outside the hull, for paper, bc+rotation and relay, with landmarks over the field,
-    central and few central (docs/benchmarks.md has the 10-seed table)."""
+    """benchmarks/uncertainty.py on its 10 seeds at 0.3 px noise: the predicted error of each
+    coordinate covers its actual error within 2 sigma at >= 85 % of the field points on
+    average, inside and outside the hull, for every model and landmark layout; and at no
+    more than 99 % (not conservative) for the issue's cases: paper, bc+rotation and relay
+    (with and without the priors), landmarks over the field and central
+    (docs/benchmarks.md has the 10-seed table)."""
     spec = importlib.util.spec_from_file_location("uncertainty_bench", REPO / "benchmarks" / "uncertainty.py")
     import sys
 
@@ -185,9 +243,11 @@ def test_coverage_on_traced_relays_for_every_family():
         grid, field = bench.reference_grid(), bench.field_points()
         for scenario in bench.SCENARIOS:
             for model in bench.MODELS:
-                rows = [bench.run_case(s, scenario, model, 0.3, 250, grid, field) for s in range(3)]
+                rows = [bench.run_case(s, scenario, model, 0.3, 250, grid, field) for s in range(10)]
                 for region in ("in", "out"):
-                    share = np.nanmean([r[f"predicted_{region}_2"] for r in rows])
+                    share = np.nanmean([r[f"xy_{region}_2"] for r in rows])
                     assert share >= 0.85, (scenario, model, region, share)
+                    if scenario != "few central":
+                        assert share <= 0.99, (scenario, model, region, share)
     finally:
         sys.path.remove(str(REPO / "benchmarks"))
