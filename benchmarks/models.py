@@ -752,7 +752,8 @@ def few_central(seeds, grid_u):
         grid_d = trace(mis, turn, grid_u) + figure(grid_u)
         rng = np.random.default_rng([seed, 40])
         lm_u = rng.uniform(mid - half, mid + half, (FEW_N, 2))
-        lm_d = trace(mis, turn, lm_u) + figure(lm_u) + rng.normal(0, FEW_NOISE, lm_u.shape)
+        lm_clean = trace(mis, turn, lm_u) + figure(lm_u)
+        lm_d = lm_clean + rng.normal(0, FEW_NOISE, lm_u.shape)
         row = {"seed": seed}
 
         def score(params, row=row, key=None, grid_d=grid_d):
@@ -769,10 +770,15 @@ def few_central(seeds, grid_u):
         score(calibrate_relay(lm_u, lm_d, DESIGN, "default", priors="default").params,
               key="relay default + priors")  # fmt: skip
         score(calibrate_relay(lm_u, lm_d, DESIGN, "all", priors="default").params, key="relay all + priors")
-        for factor in (0.5, 2.0):  # the priors misstated: half and twice the truth's ranges
+        # the priors misstated: half and twice the truth's ranges; and matched to the truth's
+        # spread (uniform in +/- the tolerance: a standard deviation of 1/sqrt(3) of it)
+        for factor in (0.5, 2.0, MATCHED_PRIORS):
             widths = {k: v * factor for k, v in DEFAULT_PRIORS.items()}
             score(calibrate_relay(lm_u, lm_d, DESIGN, "all", priors=widths).params,
-                  key=f"relay all + priors x{factor:g}")  # fmt: skip
+                  key=f"relay all + priors x{factor:.3g}")  # fmt: skip
+        # the same landmarks without their noise: what the noise costs (the rest is the model)
+        score(calibrate_relay(lm_u, lm_clean, DESIGN, "all", priors="default").params,
+              key="relay all + priors, noise-free landmarks")  # fmt: skip
         families = ("bc", "bc+rotation", "relay")
         before = select_families(lm_u, lm_d, DESIGN, families, cv=5, cv_top=3, region=field)
         r = before.heldout_best
@@ -797,8 +803,12 @@ def few_central(seeds, grid_u):
     return rows
 
 
+#: Prior widths matched to the truth's spread (draw_truth: uniform in +/- the tolerance, whose
+#: standard deviation is tolerance / sqrt(3)), as a factor on the default widths.
+MATCHED_PRIORS = 1 / np.sqrt(3)
 FEW_PATHS = ("relay default", "relay default + priors", "relay all + priors", "relay all + priors x0.5",
-             "relay all + priors x2", "select, held-out (before)",
+             "relay all + priors x2", f"relay all + priors x{MATCHED_PRIORS:.3g}",
+             "relay all + priors, noise-free landmarks", "select, held-out (before)",
              "select --priors default, predicted (after)")  # fmt: skip
 FEW_PEERS = ("poly3 (skimage)", "poly5 (skimage)", "TPS (scipy)")
 
