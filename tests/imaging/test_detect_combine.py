@@ -1,12 +1,13 @@
 """How detection combines its registrations (``core._combine``): corners a quarter to half a
-bar width apart are dropped, farther apart the image is refused, corners only one
-registration kept are added; the bar grouping of a thin middle bar; the dense registration
-on small images without a scale."""
+bar width apart are dropped, farther apart the image is refused unless one registration put
+them on another element's bars (it is outvoted), corners only one registration kept are
+added; the bar grouping of a thin middle bar; the dense registration on small images
+without a scale."""
 
 import numpy as np
 import pytest
 
-from oapcal.imaging.detect import core
+from oapcal.imaging.detect import checks, core
 from oapcal.imaging.detect.bars import group_triplets
 from oapcal.imaging.usaf import usaf_target
 
@@ -110,3 +111,56 @@ def test_a_small_image_without_a_scale_is_registered_densely_too():
     assert det.ok and det.pose["method"] != "triplets"
     k = [sim.ids.index(i) for i in det.ids]
     assert np.hypot(*(det.xy_d - sim.xy_d[k]).T).max() < 0.2
+
+
+def _slipped(det, element, onto, reference):
+    """``det`` with the corners of ``element`` (e.g. ``"G4E3V"``) put where ``reference`` has
+    the same corners of ``onto`` (``"G4E4V"``): a triplet matched one element off."""
+    xy = det.xy_d.copy()
+    for n, cid in enumerate(det.ids):
+        if cid.startswith(element):
+            xy[n] = reference.xy_d[reference.ids.index(onto + cid[len(element) :])]
+    return core._replace(det, xy_d=xy)
+
+
+def test_a_registration_that_put_a_triplet_on_another_elements_bars_is_outvoted():
+    dense = _registration(["G4E1", "G4E2", "G4E3", "G4E4"])
+    triplets = _slipped(_registration(["G4E1", "G4E2", "G4E3"]), "G4E3V", "G4E4V", dense)
+    det = core._combine([triplets, dense])
+    assert det.ok
+    assert det.ids == dense.ids
+    np.testing.assert_array_equal(det.xy_d, dense.xy_d)
+    assert len(det.pose["outvoted"]) == 1 and det.pose["outvoted"][0].startswith("triplets: ")
+    # the same the other way round: the dense registration slipped, the triplets are right
+    right = _registration(["G4E1", "G4E2", "G4E3", "G4E4"])
+    wrong = _slipped(_registration(["G4E1", "G4E2", "G4E3"]), "G4E3V", "G4E4V", right)
+    det = core._combine([right, core._replace(wrong, pose={"method": "dense"})])
+    assert det.ok and det.ids == right.ids and det.pose["outvoted"][0].startswith("dense: ")
+
+
+def test_two_registrations_that_each_look_slipped_are_refused():
+    """Each put G4E3V where the other has G4E4V (and the reverse): the corners cannot tell."""
+    a = _registration(["G4E1", "G4E2", "G4E3", "G4E4"])
+    b = _slipped(_slipped(a, "G4E3V", "G4E4V", a), "G4E4V", "G4E3V", a)
+    det = core._combine([a, b])
+    assert not det.ok and det.reason == "registrations_disagree"
+    disputed = [c for c in a.ids if c.startswith(("G4E3V", "G4E4V"))]
+    assert checks.outvoted(disputed, a.ids, a.xy_d, b.ids, b.xy_d) == 0
+
+
+def test_disputed_corners_on_two_other_elements_or_nowhere_decide_nothing():
+    a = _registration(["G4E1", "G4E2", "G4E3", "G4E4", "G4E5"])
+    part = _registration(["G4E1", "G4E2", "G4E3", "G4E4"])
+    # G4E3V's first bar put on G4E4V's, the other two on G4E5V's: not one slip
+    two = core._replace(part, xy_d=part.xy_d.copy())
+    for n, cid in enumerate(two.ids):
+        if cid.startswith("G4E3V"):
+            onto = "G4E4V" if cid.startswith("G4E3V0") else "G4E5V"
+            two.xy_d[n] = a.xy_d[a.ids.index(onto + cid[5:])]
+    disputed = [c for c in part.ids if c.startswith("G4E3V")]
+    assert checks.outvoted(disputed, two.ids, two.xy_d, a.ids, a.xy_d) == 0
+    # moved by a bar width and a half, onto no corner of the other registration
+    shift = {c: (1.5 * _width_px(c), 1.5 * _width_px(c)) for c in disputed}
+    moved = _registration(["G4E1", "G4E2", "G4E3", "G4E4"], shift)
+    assert checks.outvoted(disputed, moved.ids, moved.xy_d, a.ids, a.xy_d) == 0
+    assert not core._combine([moved, a]).ok

@@ -201,6 +201,48 @@ def _rescue(xy_u, xy_d, width_px, keep, floor_px, n_sigma):
     return ~keep & ok
 
 
+def outvoted(disputed, ids_a, xy_a, ids_b, xy_b) -> int:
+    """Which of two registrations slipped on the corners they dispute: ``1`` when ``a``,
+    ``2`` when ``b``, ``0`` when the corners cannot tell.
+
+    ``disputed`` the corner ids the two place apart; ``ids_*`` and ``xy_*`` ``(N, 2)`` each
+    registration's corners (camera px).  A registration slipped when it put the disputed
+    corners on another element's bars: each of its disputed corners lies nearer to the
+    other registration's corner of the same bar and corner index in one other element or
+    triplet (``G5E4V1C2`` on the other's ``G5E5V1C2``) than half-way to where the other
+    puts the id itself, for every disputed corner and with one such element for all.
+    Exactly one of the two may have slipped.  Measured: the triplet path matched the
+    vertical triplet of G5E4 of a real micrograph rendered through a misaligned relay,
+    turned 45 degrees and mirrored, on the bars that the dense registration names G5E5V
+    (0.3-2.4 px from them, 16-19 px from its own G5E4V, which is within 0.12 px of the
+    truth like all of its 288 corners)."""
+
+    def slipped(ids_x, xy_x, ids_y, xy_y) -> bool:
+        from scipy.spatial import cKDTree
+
+        ix = {k: n for n, k in enumerate(ids_x)}
+        iy = {k: n for n, k in enumerate(ids_y)}
+        tree = cKDTree(xy_y)
+        onto = set()
+        for k in disputed:
+            p = xy_x[ix[k]]
+            dist, j = tree.query(p)
+            other = ids_y[j]
+            own = float(np.hypot(*(p - xy_y[iy[k]])))
+            # the same bar and corner (the id's last 4 characters, "V1C2") of another triplet
+            if other == k or other[-4:] != k[-4:] or dist >= 0.5 * own:
+                return False
+            onto.add(other[:-4])
+        return len(onto) == 1
+
+    disputed = sorted(disputed)
+    if not disputed:
+        return 0
+    a = slipped(ids_a, np.asarray(xy_a, float), ids_b, np.asarray(xy_b, float))
+    b = slipped(ids_b, np.asarray(xy_b, float), ids_a, np.asarray(xy_a, float))
+    return 1 if a and not b else 2 if b and not a else 0
+
+
 # --------------------------------------------------------------------------- evaluation
 
 

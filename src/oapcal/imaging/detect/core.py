@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from oapcal.errors import DataError
-from oapcal.imaging.detect.checks import check_consistency
+from oapcal.imaging.detect.checks import check_consistency, outvoted
 from oapcal.imaging.detect.pose import HALF_ELEMENT
 from oapcal.imaging.detect.records import (
     ConsistencySummary,
@@ -574,13 +574,56 @@ def _combine(dets: list, consistency_model="auto") -> Detection:
     """The detection with the most corners (the lowest consistency rms among equals), when
     all successful ones agree: a corner id
     found by two must be at the same place (within a quarter of its bar width) in both,
-    else the detection is refused (one of them would give wrong ids).  The corners that only
-    the others kept are added to it (:func:`_with_corners_of`)."""
+    else the detection is refused (one of them would give wrong ids), unless the corners
+    they agree on show which one misplaced the others (:func:`~.checks.outvoted`): that one
+    is left out (``pose.outvoted``) and the rest compared again.  The corners that only the
+    others kept are added to it (:func:`_with_corners_of`)."""
     ok = [d for d in dets if d.status == 0]
     if not ok:
         reason = "; ".join(dict.fromkeys(d.message for d in dets))
         return _replace(dets[0], message=reason, param=tuple(dict.fromkeys(p for d in dets for p in d.param)))
     width = _corner_width_um()
+    losers = []
+    while True:
+        verdict = _agreement(ok, width)
+        if not isinstance(verdict, tuple):
+            disputed = verdict
+            break
+        d1, d2, msg, vote = verdict
+        if not vote:
+            empty = np.zeros((0, 2))
+            return _replace(d1, status=1, message=msg, reason="registrations_disagree", ids=(),
+                            xy_u=empty, xy_d=empty.copy(), stderr_px=np.zeros(0))  # fmt: skip
+        # the corners decided which one slipped: it is left out, the others compared again
+        loser = d2 if vote == 2 else d1
+        kind = "correlation" if loser.pose.get("method") == "correlation" else "dense"
+        kind = "triplets" if loser is dets[0] else kind
+        losers.append(f"{kind}: {msg.split(';')[0]}")
+        ok = [d for d in ok if d is not loser]
+    first = [d is dets[0] for d in ok]
+    ok = [_without(d, disputed) for d in ok] if disputed else ok
+
+    # the most corners; among equals the smoothest (lowest consistency rms)
+    def rank(k):
+        rms = ok[k].consistency.get("rms_px")
+        return (len(ok[k].ids), -(rms if rms is not None and np.isfinite(rms) else np.inf))
+
+    pick = max(range(len(ok)), key=rank)
+    best = _with_corners_of(ok[pick], ok, consistency_model)
+    if losers:
+        best = _replace(best, pose=with_changes(best.pose, outvoted=losers))
+    if first[pick]:
+        return _replace(best, pose=with_changes(best.pose, method="triplets"))
+    if best.pose.get("method") != "correlation":
+        return _replace(best, pose=with_changes(best.pose, method="dense"))
+    return best
+
+
+def _agreement(ok: list, width: dict):
+    """The corner ids the successful registrations ``ok`` dispute (a set, possibly empty:
+    :func:`_combine`), or ``(d1, d2, message, vote)`` for the first pair that disagrees
+    beyond that, ``vote`` the :func:`~.checks.outvoted` verdict (2: ``d2`` misplaced the
+    disputed corners, 1: ``d1``, 0: the corners cannot tell)."""
     disputed: set = set()
     for n, d1 in enumerate(ok):
         for d2 in ok[n + 1 :]:
@@ -605,25 +648,10 @@ def _combine(dets: list, consistency_model="auto") -> Detection:
                     f"two registrations disagree on {int(bad.sum())} of {len(common)} corners "
                     f"(e.g. {example}); nothing was kept"
                 )
-                empty = np.zeros((0, 2))
-                return _replace(d1, status=1, message=msg, reason="registrations_disagree", ids=(),
-                                xy_u=empty, xy_d=empty.copy(), stderr_px=np.zeros(0))  # fmt: skip
+                vote = outvoted([k for k, f in zip(common, bad) if f], d1.ids, d1.xy_d, d2.ids, d2.xy_d)
+                return d1, d2, msg, vote
             disputed.update(k for k, flag in zip(common, bad) if flag)
-    first = [d is dets[0] for d in ok]
-    ok = [_without(d, disputed) for d in ok] if disputed else ok
-
-    # the most corners; among equals the smoothest (lowest consistency rms)
-    def rank(k):
-        rms = ok[k].consistency.get("rms_px")
-        return (len(ok[k].ids), -(rms if rms is not None and np.isfinite(rms) else np.inf))
-
-    pick = max(range(len(ok)), key=rank)
-    best = _with_corners_of(ok[pick], ok, consistency_model)
-    if first[pick]:
-        return _replace(best, pose=with_changes(best.pose, method="triplets"))
-    if best.pose.get("method") != "correlation":
-        return _replace(best, pose=with_changes(best.pose, method="dense"))
-    return best
+    return disputed
 
 
 def _without(det: Detection, ids: set) -> Detection:

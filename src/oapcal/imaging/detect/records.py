@@ -66,9 +66,12 @@ class PoseInfo(Record):
     printed numbers decided a mirror the bars left open, :mod:`.digits`): the mirror read and
     the correlation of each hypothesis' numbers with the image; ``layout_from_corners``
     (only when the corners found decided another layout than the pose search's,
-    :mod:`.layouts`): the pose's layout and the rms (px) of each layout's cubic map."""
+    :mod:`.layouts`): the pose's layout and the rms (px) of each layout's cubic map;
+    ``outvoted`` (only when two registrations disagreed and the corners they agree on
+    decided which one slipped, :func:`~oapcal.imaging.detect.checks.outvoted`): the
+    registrations left out, each with the disagreement."""
 
-    _OPTIONAL = ("best", "runner_up", "mirror_from_digits", "layout_from_corners")
+    _OPTIONAL = ("best", "runner_up", "mirror_from_digits", "layout_from_corners", "outvoted")
 
     method: str
     status: int
@@ -80,6 +83,7 @@ class PoseInfo(Record):
     layout: str | None = None
     mirror_from_digits: dict | None = None
     layout_from_corners: dict | None = None
+    outvoted: list | None = None
 
 
 @dataclass(frozen=True, eq=False, repr=False)
