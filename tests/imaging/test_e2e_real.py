@@ -197,3 +197,20 @@ def test_a_target_turned_a_quarter_turn_is_detected_without_the_scale(tmp_path):
     for d in result["detections"]:
         assert d["code"] == 0, d["message"]
         assert d["wrong_ids"] == 0 and d["coverage"] >= 0.95
+
+
+@pytest.mark.slow
+def test_a_slipped_triplet_of_a_misaligned_relay_is_outvoted(tmp_path):
+    """The full run's misaligned relay with the target turned by 45 degrees and mirrored was
+    refused with and without the scale ("two registrations disagree on 12 of 84 corners"):
+    the triplet path had put G5E4V on the bars of G5E5V.  The dense registration outvotes
+    it (``checks.outvoted``): every corner kept, none wrong, and the relay model to the goal."""
+    src = bench.source_truth("fpm_brightfield.png")
+    case = next(c for c in bench.cases(False, 1) if c.name == "misaligned s0, turned 45, mirrored")
+    result = bench.run_case(case, src, tmp_path, models=("relay",), images=False)
+    for d in result["detections"]:
+        assert d["code"] == 0, d["message"]
+        assert d["wrong_ids"] == 0 and d["coverage"] >= 0.95
+        assert d["reference_rms_px"] < 0.2
+        (fit,) = d["fits"]
+        assert fit["mean_px"] <= 0.08 and fit["max_px"] <= 0.3, fit
