@@ -574,9 +574,10 @@ def _combine(dets: list, consistency_model="auto") -> Detection:
     """The detection with the most corners (the lowest consistency rms among equals), when
     all successful ones agree: a corner id
     found by two must be at the same place (within a quarter of its bar width) in both,
-    else the detection is refused (one of them would give wrong ids), unless the corners
-    they agree on show which one misplaced the others (:func:`~.checks.outvoted`): that one
-    is left out (``pose.outvoted``) and the rest compared again.  The corners that only the
+    else the detection is refused (one of them would give wrong ids), unless the triplet
+    path (``dets[0]``, as :func:`_detect` passes it) put the disputed corners on another
+    element's bars (:func:`~.checks.outvoted`): it is left out (``pose.outvoted``) and the
+    rest compared again.  The corners that only the
     others kept are added to it (:func:`_with_corners_of`)."""
     ok = [d for d in dets if d.status == 0]
     if not ok:
@@ -590,15 +591,17 @@ def _combine(dets: list, consistency_model="auto") -> Detection:
             disputed = verdict
             break
         d1, d2, msg, vote = verdict
-        if not vote:
+        loser = d2 if vote == 2 else d1 if vote == 1 else None
+        # Only the triplet path (dets[0]) is outvoted: it names each triplet from the pose,
+        # so it can slip one triplet; a dense registration names every corner through one
+        # smooth warp of the whole target, whose global consistency check a local slip
+        # fails.  (A dense registration that slipped a whole group, against a triplet path
+        # that kept one element of it, would look the same to the corners: it is refused.)
+        if loser is None or loser is not dets[0]:
             empty = np.zeros((0, 2))
             return _replace(d1, status=1, message=msg, reason="registrations_disagree", ids=(),
                             xy_u=empty, xy_d=empty.copy(), stderr_px=np.zeros(0))  # fmt: skip
-        # the corners decided which one slipped: it is left out, the others compared again
-        loser = d2 if vote == 2 else d1
-        kind = "correlation" if loser.pose.get("method") == "correlation" else "dense"
-        kind = "triplets" if loser is dets[0] else kind
-        losers.append(f"{kind}: {msg.split(';')[0]}")
+        losers.append(f"triplets: {msg.split(';')[0]}")
         ok = [d for d in ok if d is not loser]
     first = [d is dets[0] for d in ok]
     ok = [_without(d, disputed) for d in ok] if disputed else ok

@@ -67,9 +67,9 @@ class PoseInfo(Record):
     the correlation of each hypothesis' numbers with the image; ``layout_from_corners``
     (only when the corners found decided another layout than the pose search's,
     :mod:`.layouts`): the pose's layout and the rms (px) of each layout's cubic map;
-    ``outvoted`` (only when two registrations disagreed and the corners they agree on
-    decided which one slipped, :func:`~oapcal.imaging.detect.checks.outvoted`): the
-    registrations left out, each with the disagreement."""
+    ``outvoted`` (only when the triplet path disagreed with a dense registration and had put
+    the disputed corners on another element's bars, :func:`~oapcal.imaging.detect.checks.outvoted`):
+    the registration left out (``triplets``) with the disagreement."""
 
     _OPTIONAL = ("best", "runner_up", "mirror_from_digits", "layout_from_corners", "outvoted")
 
