@@ -133,11 +133,14 @@ def test_a_recommendation_never_folds_over_the_output_region():
     free = select_families(xy_u, xy_d, RelayDesign(), ("bc",), cv=3, cv_top=3)
     assert "k2" in free.recommended.free
     assert _frame_min_det(calibrate(xy_u, xy_d, free.recommended.spec).params) < 0
-    # with the image it is disqualified with fit's reason, and the recommendation fits and corrects there
+    # with the image it is not recommended (it folds beyond the points: fit writes it with a note,
+    # correct writes only its trust region), and the recommendation fits and corrects the whole image
     sel = select_families(xy_u, xy_d, RelayDesign(), ("bc",), cv=3, cv_top=3, image_size=(640, 480))
-    refused = [c for c in sel.candidates if c.reason.startswith("fit would refuse it")]
+    refused = [c for c in sel.candidates if c.reason.startswith("not recommended")]
     assert refused and all("folds over" in c.reason and "640x480 px image" in c.reason for c in refused)
     assert free.recommended.spec in {c.spec for c in refused}
+    kept = calibrate(xy_u, xy_d, free.recommended.spec, image_size=(640, 480))
+    assert any("folds over beyond the reference points' bounds" in n for n in kept.notes)
     assert sel.recommended is not None and sel.recommended.valid
     cal = calibrate(xy_u, xy_d, sel.recommended.spec, image_size=(640, 480))
     assert cal.fit.converged and _frame_min_det(cal.params) > 0
@@ -168,7 +171,7 @@ def test_the_rotation_family_is_checked_over_the_image_too():
 
     _, xy_u, xy_d = _folding_case()
     sel = select_families(xy_u, xy_d, RelayDesign(), ("bc+rotation",), cv=3, cv_top=2, image_size=(640, 480))
-    assert any(c.reason.startswith("fit would refuse it") for c in sel.candidates)
+    assert any(c.reason.startswith("not recommended") for c in sel.candidates)
     assert sel.recommended is not None and sel.recommended.spec.endswith("+rotation")
     cal = calibrate(xy_u, xy_d, sel.recommended.spec, image_size=(640, 480))
     assert cal.fit.converged and _frame_min_det(cal.params) > 0

@@ -237,6 +237,7 @@ def check_model_region(
     source: str = "calibration",
     boxes=(),
     error=InputFileError,
+    folds_beyond_bounds: bool | None = None,
 ):
     """Refuse a model that is not finite or folds over (Jacobian determinant <= 0) where it is
     applied: over the reference points' ``bounds``, the calibration's ``image_size`` frame,
@@ -248,6 +249,14 @@ def check_model_region(
     Raises ``error`` naming the first bad point: :class:`InputFileError` (the default) for
     a calibration read from a file, :class:`DataError` for a model given as a value.
 
+    ``folds_beyond_bounds``: whether the model may fold over (finite, determinant <= 0) in a
+    frame or box beyond the reference points' bounds.  None (the default): when the
+    calibration has ``bounds`` and an ``error_model``, whose predicted error is unbounded
+    where the map folds (:func:`oapcal.uncertainty.predicted_error`), so that a correction's
+    trust region ends before any fold; a model without them must not fold anywhere it is
+    applied.  Within the bounds, where the landmarks are, a fold is always refused
+    (:func:`folds_beyond_bounds` says where a kept fold is).
+
     >>> from oapcal.model import params_from_dict
     >>> check_model_region(params_from_dict({"k1": 1e-7}), (640, 480))
     >>> try:
@@ -256,6 +265,56 @@ def check_model_region(
     ...     print(str(e)[:60])
     c.json: the model folds over at (x, y) = (189.703, 0) inside
     """
+    bounds = getattr(calibration, "bounds", None)
+    if folds_beyond_bounds is None:
+        folds_beyond_bounds = _has_trust_region(calibration)
+    for xy, finite, det, what, is_bounds in _region_grids(calibration, size, boxes):
+        bad = ~(finite & np.isfinite(det) & (det > 0))
+        if folds_beyond_bounds and not is_bounds:
+            bad &= ~(finite & np.isfinite(det) & ~_inside(xy, bounds))  # a fold beyond the bounds
+        if bad.any():
+            i = int(np.argmax(bad))
+            x, y = xy[i]
+            how = "folds over" if np.isfinite(det[i]) else "is not finite"
+            fix = "refit with more points or a smaller model"
+            if np.isfinite(det[i]) and not is_bounds and _has_trust_region(calibration):
+                fix = (f"it lies beyond the reference points' bounds: a correction written only within its "
+                       f"trust region leaves it out, or {fix}")  # fmt: skip
+            raise error(f"{source}: the model {how} at (x, y) = ({x:.6g}, {y:.6g}) inside the {what}; "
+                        f"it cannot correct there ({fix})")  # fmt: skip
+
+
+def folds_beyond_bounds(calibration, size: tuple[int, int] | None = None) -> dict | None:
+    """Where a model that :func:`check_model_region` keeps folds over beyond its reference
+    points' bounds: ``{"point": (x, y), "fraction": f, "region": description}`` of the first
+    frame with a fold (``f`` its share of the check's grid there), or None where it folds
+    nowhere in its ``image_size`` frame and the frame of ``size``."""
+    for xy, finite, det, what, is_bounds in _region_grids(calibration, size, ()):
+        folded = finite & np.isfinite(det) & (det <= 0)
+        if not is_bounds and folded.any():
+            x, y = xy[np.argmax(folded)]
+            return {"point": (float(x), float(y)), "fraction": float(folded.mean()), "region": what}
+    return None
+
+
+def _has_trust_region(calibration) -> bool:
+    """Whether a correction by ``calibration`` has a trust region that ends before a fold
+    (:func:`check_model_region`): it has reference bounds and an error model."""
+    bounds, error_model = getattr(calibration, "bounds", None), getattr(calibration, "error_model", None)
+    return bounds is not None and error_model is not None
+
+
+def _inside(xy: np.ndarray, bounds) -> np.ndarray:
+    """Whether each point ``(N, 2)`` lies within ``bounds = (x0, y0, x1, y1)`` (None: none)."""
+    if bounds is None:
+        return np.zeros(len(xy), bool)
+    x0, y0, x1, y1 = (float(b) for b in bounds)
+    return (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
+
+
+def _region_grids(calibration, size, boxes):
+    """The regions :func:`check_model_region` checks, each as ``(xy, finite, det,
+    description, is_bounds)`` on its :data:`CHECK_GRID` x :data:`CHECK_GRID` grid."""
     params = np.asarray(getattr(calibration, "params", calibration), float)
     carried = getattr(calibration, "family", None)  # a Model's or a record's; None: by length
     family = family_of(params, None if carried is None else family_named(carried))
@@ -264,28 +323,24 @@ def check_model_region(
     regions = []
     bounds = getattr(calibration, "bounds", None)
     if bounds is not None:
-        regions.append((tuple(float(b) for b in bounds), "reference points' bounds"))
+        regions.append((tuple(float(b) for b in bounds), "reference points' bounds", True))
     for frame in (getattr(calibration, "image_size", None), size):
         if frame is not None:
             w, h = int(frame[0]), int(frame[1])
-            regions.append(((0.0, 0.0, float(max(w - 1, 1)), float(max(h - 1, 1))), f"{w}x{h} px image"))
-    regions.extend(boxes)
+            box = (0.0, 0.0, float(max(w - 1, 1)), float(max(h - 1, 1)))
+            regions.append((box, f"{w}x{h} px image", False))
+    regions.extend((box, what, False) for box, what in boxes)
     with np.errstate(all="ignore"):
-        for (x0, y0, x1, y1), what in regions:
+        for (x0, y0, x1, y1), what, is_bounds in regions:
             gx, gy = np.meshgrid(np.linspace(x0, x1, CHECK_GRID), np.linspace(y0, y1, CHECK_GRID))
             xy = np.stack([gx.ravel(), gy.ravel()], -1)
             finite, det = evaluate(xy, params)
-            bad = ~(finite & np.isfinite(det) & (det > 0))
-            if bad.any():
-                x, y = xy[np.argmax(bad)]
-                how = "folds over" if np.isfinite(det[np.argmax(bad)]) else "is not finite"
-                raise error(
-                    f"{source}: the model {how} at (x, y) = ({x:.6g}, {y:.6g}) inside the {what}; "
-                    "it cannot correct there (refit with more points or a smaller model)"
-                )
+            yield xy, finite, det, what, is_bounds
 
 
-def check_fit_usable(calibration, source: str | None = None, *, sign: bool = True) -> None:
+def check_fit_usable(
+    calibration, source: str | None = None, *, sign: bool = True, folds_beyond_bounds: bool | None = None
+) -> None:
     """Refuse a fit that gives no usable model, raising :class:`UnusableFitError`: its
     parameters are not all finite; it needs ``m <= 0`` (with ``sign``; Eq. (1) of a target
     turned by 180 deg, which a calibration expresses as a rotation and a calibration file
@@ -313,7 +368,7 @@ def check_fit_usable(calibration, source: str | None = None, *, sign: bool = Tru
             param="rotation",
         )
     try:
-        check_model_region(calibration, source=source)
+        check_model_region(calibration, source=source, folds_beyond_bounds=folds_beyond_bounds)
     except InputFileError as exc:
         raise UnusableFitError(str(exc), code="region") from None
 
@@ -425,14 +480,31 @@ def calibrate(
         priors=priors,
         family=result.family,
     )
+    measured = error_model and result.converged  # an error model, whose trust region ends before a fold
     if check:
-        check_fit_usable(cal, source, sign=rotation != "none" or relay_design is not None)
-    if error_model and result.converged:
+        check_fit_usable(
+            cal, source, sign=rotation != "none" or relay_design is not None, folds_beyond_bounds=measured
+        )
+    if measured:
         from oapcal.error_model import estimate_error_model
 
         errors = estimate_error_model(norm.xy_u, norm.xy_d, result.model, **fit_options)
         cal = dataclasses.replace(cal, error_model=errors)
+        fold = folds_beyond_bounds(cal)
+        if fold is not None:
+            cal = dataclasses.replace(cal, notes=(*cal.notes, fold_note(fold)))
     return cal
+
+
+def fold_note(fold: dict) -> str:
+    """The note of a calibration that folds over beyond its landmarks (:func:`folds_beyond_bounds`)."""
+    x, y = fold["point"]
+    return (
+        f"the model folds over beyond the reference points' bounds, at (x, y) = ({x:.6g}, {y:.6g}) "
+        f"and over {100 * fold['fraction']:.1f} % of the {fold['region']}: it is extrapolated there "
+        "(its predicted error is unbounded), so a correction's trust region ends before it; "
+        "a smaller model may correct the whole frame"
+    )
 
 
 def _check_arguments(normalization, relay_design, um_per_px, image_size, rotation):

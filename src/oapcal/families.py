@@ -93,6 +93,10 @@ Progress = Callable[[int, int], None]
 FULL_RELAY_SPEC = "relay:all"
 #: The start of the reason of a model that ``oapcal fit`` would refuse to write.
 REFUSED_PREFIX = "fit would refuse it"
+#: The start of the reason of a model that folds over in the image beyond the points: ``oapcal
+#: fit`` writes it (with a note) and ``oapcal correct`` writes only its trust region, but it
+#: cannot correct the whole image, so the selection does not recommend it.
+FOLDS_PREFIX = "not recommended"
 
 
 @dataclass(frozen=True)
@@ -210,18 +214,21 @@ class _Region:
         self.image_size = image_size
 
 
-def region_problem(params, xy_u, image_size=None, *, family=None) -> str:
-    """Why ``oapcal fit`` would refuse to write the model ``params`` (a
-    :class:`~oapcal.model.Model`, or a vector of ``family``) fitted to the reference
-    points ``xy_u`` (its check :func:`~oapcal.calibration.check_model_region` over the
-    points' bounds and the ``image_size`` frame), or ``""`` when it would write it."""
+def region_problem(params, xy_u, image_size=None, *, family=None, folds_beyond_bounds=False) -> str:
+    """Why the model ``params`` (a :class:`~oapcal.model.Model`, or a vector of
+    ``family``) fitted to the reference points ``xy_u`` cannot correct the whole
+    ``image_size`` frame (:func:`~oapcal.calibration.check_model_region` over the points'
+    bounds and the frame), or ``""`` when it can.  With ``folds_beyond_bounds`` a fold
+    beyond the points' bounds is let pass, as ``oapcal fit`` writes such a model (with its
+    error model, whose trust region ends before the fold): then ``""`` says fit writes it."""
     xy_u = np.asarray(xy_u, float)
     bounds = (*xy_u.min(axis=0).tolist(), *xy_u.max(axis=0).tolist())
     model = as_model(params, family)
     if not np.isfinite(model.params).all():
         return "the fit gave non-finite parameters"
     try:
-        check_model_region(_Region(model, bounds, image_size), source="the fitted model")
+        region = _Region(model, bounds, image_size)
+        check_model_region(region, source="the fitted model", folds_beyond_bounds=folds_beyond_bounds)
     except InputFileError as exc:
         return str(exc).removeprefix("the fitted model: ").split(";")[0]
     return ""
@@ -348,7 +355,9 @@ def _admit_top(rows: list, fitted: dict, xy_u, image_size, cv_top: int, always_f
     def admit(i, row):
         problem = region_problem(fitted[row[0]], xy_u, image_size)
         if problem:
-            rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{REFUSED_PREFIX}: {problem}")
+            written = not region_problem(fitted[row[0]], xy_u, image_size, folds_beyond_bounds=True)
+            prefix = FOLDS_PREFIX if written else REFUSED_PREFIX
+            rows[i] = (row[0], row[1], np.nan, np.nan, False, f"{prefix}: {problem}")
         else:
             top.append(row)
 

@@ -79,9 +79,19 @@ def test_fit_whose_model_folds_inside_the_image_is_not_written(run_cli, tmp_path
     code, _, err = run_cli("fit", tmp_path / "p.csv", "--out", out / "c.json", "--image-size", "640x480")
     assert code == 0, err
     (out / "c.json").unlink()
+    # the fold lies beyond the points' bounds, where the model extrapolates: kept, with a note
+    # (a correction's trust region ends before it; the whole frame is refused)
     code, _, err = run_cli("fit", tmp_path / "p.csv", "--out", out / "c.json", "--image-size", "4000x4000")
+    assert code == 0, err
+    assert "folds over beyond the reference points' bounds" in err and "4000x4000 px image" in err, err
+    assert (out / "c.json").is_file()
+    (out / "c.json").unlink()
+    # within the points' bounds it is refused: exit 3, nothing written
+    strong = params_from_dict({"k1": -4e-6, "x_off": -320, "y_off": -240, "c_x": 320, "c_y": 240, "m": 1})
+    write_point_pairs(tmp_path / "q.csv", xy_u, distort(xy_u, strong))
+    code, _, err = run_cli("fit", tmp_path / "q.csv", "--out", out / "c.json", "--image-size", "640x480")
     one_error(code, err, 3)
-    assert "folds over" in err and "4000x4000 px image" in err and "nothing written" in err
+    assert "folds over" in err and "inside the reference points' bounds" in err and "nothing written" in err
     nothing_in(out)
 
 
@@ -546,11 +556,23 @@ def test_correct_and_export_refuse_a_model_folding_inside_their_image(run_cli, f
         "correct", tmp_path / "c.json", tmp_path / "small.png", "--out-dir", tmp_path / "o1"
     )
     assert code == 0, err
+    # the whole frame written: refused
+    large = tmp_path / "large.png"
     code, _, err = run_cli(
-        "correct", tmp_path / "c.json", tmp_path / "large.png", "--out-dir", tmp_path / "o2"
+        "correct", tmp_path / "c.json", large, "--out-dir", tmp_path / "o2", "--extent", "input"
     )
     assert code in (2, 4) and "folds over" in err and "inside the 1600x1200 px image" in err, err
+    assert "beyond the reference points' bounds" in err, err
     assert not any(p.is_file() for p in (tmp_path / "o2").rglob("*") if not p.name.startswith("."))
+    # the trust region (the default) ends before the fold, beyond the landmarks: written, and
+    # nothing at or beyond the fold (~580 px from the centre) is corrected
+    code, _, err = run_cli(
+        "correct", tmp_path / "c.json", tmp_path / "large.png", "--out-dir", tmp_path / "o3", "--border", "7"
+    )
+    assert code == 0, err
+    out = cv2.imread(str(tmp_path / "o3" / "large.png"), cv2.IMREAD_UNCHANGED)
+    yy, xx = np.mgrid[0:1200, 0:1600]
+    assert (out[np.hypot(xx - 320, yy - 240) > 560] == 7).all()
     code, _, err = run_cli(
         "export-opencv", tmp_path / "c.json", "--image-size", "1600x1200", "--out", tmp_path / "cv.yml"
     )

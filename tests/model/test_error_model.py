@@ -181,6 +181,7 @@ def test_per_coordinate_predicted_error_shares_the_floor_and_makes_up_the_length
 def fixed_side_ratios(monkeypatch):
     """The sides' factors kappa^2 of every refit set to 1, 4 and 16 (what the refits measured
     is not under test here, only how they are combined)."""
+
     def sides(*args, **kwargs):
         return [1.0, 4.0, 16.0], [np.array([0.2, 0.4])]
 

@@ -43,6 +43,7 @@ from oapcal.imaging.remap import (
     correct_image,
     correction_map,
     mask_untrusted,
+    output_geometry,
 )
 from oapcal.io.atomic import (
     atomic_dir,
@@ -435,10 +436,11 @@ class MapCache:
         if seed is None or limit is None or not hasattr(self.calibration, "covariance"):
             return correction_map(self.calibration, shape, allow_size_mismatch=True, **self.options)
         options = {k: v for k, v in self.options.items() if k != "max_error_px"}
-        cmap = correction_map(self.calibration, shape, allow_size_mismatch=True, **options)
         geometry, predicted = seed
-        if cmap.geometry != geometry:  # computed for another output: not this map's
+        # the output is written only where trusted (a fold beyond the landmarks is allowed)
+        if output_geometry(self.calibration, shape, **options, trust_region=True) != geometry:
             return correction_map(self.calibration, shape, allow_size_mismatch=True, **self.options)
+        cmap = correction_map(self.calibration, shape, allow_size_mismatch=True, geometry=geometry)
         return mask_untrusted(cmap, predicted, limit)  # what correction_map(max_error_px=...) does
 
 

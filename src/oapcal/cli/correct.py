@@ -51,10 +51,12 @@ def trust_message(
     far = summary["max_distance_px"]
     worst = summary["max_predicted_px"]
     trusted = summary["trusted_fraction"]
+    # inf: the map folds over there (a fold beyond the landmarks' bounds, which the fit kept)
+    reach = "is unbounded (the map folds over)" if worst == float("inf") else f"reaches {worst:.3g} px"
     if outside > 0 and far is not None:
         where = (
             f"{100 * outside:.1f} % of the {w}x{h} px output lies beyond the landmarks' hull (up to "
-            f"{far:.0f} px from it), where the predicted error reaches {worst:.3g} px"
+            f"{far:.0f} px from it), where the predicted error {reach}"
         )
     elif outside > 0:  # a calibration without a hull (possible only by editing its file)
         where = (
@@ -233,7 +235,7 @@ def correct_command(
     files = list(plan.files) if plan else []
     cmap = _prepare_map(cal, files, map_file, save_map, geometry, o.max_pixels, prebuild, calib)
     if inputs:
-        _check_samples(cal, cmap, files, geometry, o.max_pixels)
+        _check_samples(cal, cmap, files, geometry, o.max_pixels, trust_region=limit is not None)
     if use_dask:  # a missing extra is one clear error, before anything else is said
         from oapcal.extras import EXTRAS, require
 
@@ -447,7 +449,7 @@ def _trust(
         if shape is None:
             return None
         try:
-            geo = output_geometry(cal, shape, **geometry)
+            geo = output_geometry(cal, shape, **geometry, trust_region=limit is not None)
         except DataError:
             return None
         predicted, masked = None, limit is not None
@@ -492,10 +494,11 @@ def _refuse_empty_trust(predicted, limit, calib_name) -> None:
     )
 
 
-def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
+def _check_samples(cal, cmap, files, geometry, max_pixels, trust_region=False) -> None:
     """Refuse, before any work, a calibration (or --map) whose map samples no pixel of the
     images (:class:`~oapcal.imaging.remap.EmptyMapError`), for the calibration's image size
-    or else the first input's; every other size is checked as its map is built."""
+    or else the first input's; every other size is checked as its map is built.
+    ``trust_region``: the output is written only where trusted (:func:`output_geometry`)."""
     from oapcal.imaging.remap import check_map_samples, check_model_samples, output_geometry
 
     shape = _shape(cal.image_size) if cal.image_size else None
@@ -517,7 +520,7 @@ def _check_samples(cal, cmap, files, geometry, max_pixels) -> None:
     from oapcal.errors import DataError
 
     try:
-        geometry = output_geometry(cal, shape, **geometry)
+        geometry = output_geometry(cal, shape, **geometry, trust_region=trust_region)
     except DataError:  # a geometry refused for this size is reported with each file
         return
     check_model_samples(cal, shape, geometry)

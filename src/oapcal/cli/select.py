@@ -222,7 +222,7 @@ def print_family_selection(sel, top: int, source: str = "") -> None:
     """The best ``top`` models of each family by AICc, and the recommendation."""
     from rich.table import Table
 
-    from oapcal.families import REFUSED_PREFIX
+    from oapcal.families import FOLDS_PREFIX, REFUSED_PREFIX
 
     out = _wide_console()
     table = Table(
@@ -246,12 +246,18 @@ def print_family_selection(sel, top: int, source: str = "") -> None:
     out.print(table)
     n_bad = sum(not c.valid for c in sel.candidates)
     n_region = sum(c.reason.startswith(REFUSED_PREFIX) for c in sel.candidates)
+    n_folds = sum(c.reason.startswith(FOLDS_PREFIX) for c in sel.candidates)
     if n_bad:
         out.print(f"{n_bad} models could not be scored (not identifiable, or the fit or its inverse failed).")
     if n_region:
         out.print(
             f"{n_region} of them fold over or are not finite on the points' bounds or the image "
             "(fit would refuse to write them)."
+        )
+    if n_folds:
+        out.print(
+            f"{n_folds} of them fold over in the image beyond the points: not recommended (fit writes them "
+            "with a note, and correct writes only their trust region, not the whole image)."
         )
     h = getattr(sel, "heldout_best", None) or sel.recommended
     if h is not None:

@@ -133,6 +133,18 @@ def _model_of(calibration_or_params) -> Model:
 
 
 @dataclass(frozen=True)
+class _Checked:
+    """What :func:`~oapcal.calibration.check_model_region` reads of an output region's model:
+    its parameters and family, and the calibration's bounds and error model (None for a
+    model given as a value)."""
+
+    params: np.ndarray
+    family: object
+    bounds: tuple | None
+    error_model: object
+
+
+@dataclass(frozen=True)
 class OutputGeometry:
     """Which undistorted point each output pixel shows.
 
@@ -166,6 +178,7 @@ def output_geometry(
     extent: str = "input",
     um_per_px: float | None = None,
     out_size: tuple[int, int] | None = None,
+    trust_region: bool = False,
 ) -> OutputGeometry:
     """The output geometry for an input image of ``input_shape = (rows, cols)``.
 
@@ -180,6 +193,12 @@ def output_geometry(
     The scale is one undistorted unit per output pixel unless ``um_per_px`` (output pixel
     size in um; needs a calibration with ``um_per_px``) or ``out_size = (width, height)``
     (fit the region into that size, aspect ratio kept, centred) is given.
+
+    The model must be finite and must not fold over in the region shown
+    (:func:`oapcal.calibration.check_model_region`); with ``trust_region`` (the output is
+    written only where its predicted error is small: :func:`correction_map`'s
+    ``max_error_px``) a calibration with an error model may fold beyond its reference
+    points' bounds, where its trust region has ended.
 
     >>> from oapcal.model import params_from_dict
     >>> g = output_geometry(params_from_dict({}), (480, 640), extent="input")
@@ -200,7 +219,12 @@ def output_geometry(
     # (read from a file) is an input file's mistake, a Model or vector given in memory a value's
     what = f"{cols}x{rows} px image" if extent == "input" else f"output region of a {cols}x{rows} px image"
     error = InputFileError if isinstance(calibration_or_params, Calibration) else DataError
-    check_model_region(model, boxes=[((x0, y0, x1, y1), what)], source="the calibration", error=error)
+    # written only where trusted, a calibration with an error model may fold beyond its
+    # landmarks' bounds: its trust region ends before the fold (check_model_region)
+    region = _Checked(model.params, model.family, getattr(calibration_or_params, "bounds", None),
+                      getattr(calibration_or_params, "error_model", None))  # fmt: skip
+    check_model_region(region, boxes=[((x0, y0, x1, y1), what)], source="the calibration", error=error,
+                       folds_beyond_bounds=None if trust_region else False)  # fmt: skip
     shape, x0, y0, scale = _layout((x0, y0, x1, y1), _output_scale(um_per_px, cal_um), out_size, um_per_px)
     _check_output_shape(shape, (rows, cols), (x1 - x0, y1 - y0), um_per_px, cal_um)
     out_um = None if not cal_um else float(cal_um) * scale
@@ -506,8 +530,9 @@ def correction_map(
         _check_camera(getattr(calibration_or_params, "image_size", None), shape)
     if geometry is None:
         geometry = output_geometry(
-            calibration_or_params, shape, extent=extent, um_per_px=um_per_px, out_size=out_size
-        )
+            calibration_or_params, shape, extent=extent, um_per_px=um_per_px, out_size=out_size,
+            trust_region=max_error_px is not None,
+        )  # fmt: skip
     rows, cols = geometry.shape
     _check_map_memory(rows, cols)
     xs = geometry.x0 + geometry.scale * np.arange(cols, dtype=float)

@@ -44,6 +44,7 @@ and refused with the same message as before.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -384,18 +385,16 @@ def save_calibration(calibration: Calibration, path: str | Path) -> None:
 def load_calibration(path: str | Path, image_size: tuple[int, int] | None = None) -> Calibration:
     """Read and validate a calibration file; errors name the file and the bad field.
 
-    With ``image_size = (width, height)`` the model must also be finite and not fold over on
-    that image (:func:`check_model_region`)."""
+    With ``image_size = (width, height)`` the model must also be finite and not fold over
+    anywhere on that image (:func:`check_model_region`), as when it is applied to all of it;
+    a calibration's own ``image_size`` frame may hold a fold beyond its reference points'
+    bounds (where its trust region has ended)."""
     name = str(path)
     data = read_json(
         path, "calibration file", missing="no such calibration file; run 'oapcal fit' to make one"
     )
     cal = calibration_from_dict(data, source=name)
-    if image_size is not None and _frame(image_size) != _frame(cal.image_size):
-        check_model_region(cal, image_size, source=name)  # (its own frame was checked)
+    if image_size is not None:  # the bounds and own frame were checked: that image alone, strictly
+        check_model_region(dataclasses.replace(cal, bounds=None, image_size=None), image_size, source=name,
+                           folds_beyond_bounds=False)  # fmt: skip
     return cal
-
-
-def _frame(size):
-    """``(width, height)`` as :func:`check_model_region` reads a frame (None: none)."""
-    return None if size is None else (int(size[0]), int(size[1]))
