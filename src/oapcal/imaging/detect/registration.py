@@ -77,29 +77,54 @@ class Reference:
         s = max(sigma, SIGMA_MIN) / self.step
         return cv2.GaussianBlur(self.cover, (0, 0), sigmaX=s, borderType=cv2.BORDER_CONSTANT)
 
-    def rasters(self, sigma: float):
+    def rasters(self, sigma: float, gradients: bool = True):
+        """The raster blurred by ``sigma`` and, with ``gradients``, its two derivatives
+        (computed once a caller needs them: a rejected step of a fit needs the raster alone)."""
         key = round(float(sigma), 4)
         if key not in self._cache:
-            r = self._blurred(sigma)
-            gv, gu = np.gradient(r, self.step)
             if len(self._cache) >= RASTER_CACHE:
                 self._cache.pop(next(iter(self._cache)))
-            self._cache[key] = (r, gu.astype(np.float32), gv.astype(np.float32))
-        return self._cache[key]
+            self._cache[key] = [self._blurred(sigma)]
+        entry = self._cache[key]
+        if gradients and len(entry) == 1:
+            gv, gu = np.gradient(entry[0], self.step)
+            entry += [gu.astype(np.float32), gv.astype(np.float32)]
+        return tuple(entry) if gradients else (entry[0],)
 
-    def sample(self, u: np.ndarray, sigma: float, with_sigma: bool = False):
-        """R, dR/du, dR/dv (and dR/dsigma) at reference points ``u`` ``(N, 2)``."""
-        from scipy.ndimage import map_coordinates
-
-        coords = [(u[:, 1] - self.start[1]) / self.step, (u[:, 0] - self.start[0]) / self.step]
-        out = [map_coordinates(a, coords, order=1, cval=0.0) for a in self.rasters(sigma)]
-        if with_sigma:
-            h = 0.05 * max(sigma, 0.2)
-            lo_s = max(sigma - h, SIGMA_MIN)
-            hi = map_coordinates(self._blurred(sigma + h), coords, order=1, cval=0.0)
-            lo = map_coordinates(self._blurred(lo_s), coords, order=1, cval=0.0)
-            out.append((hi - lo) / (sigma + h - lo_s))
+    def sample(self, u: np.ndarray, sigma: float, with_sigma: bool = False, derivatives: bool = True):
+        """R, dR/du, dR/dv (and dR/dsigma) at reference points ``u`` ``(N, 2)``; R alone
+        without ``derivatives``."""
+        coords = self._coords(u)
+        out = [_bilinear(a, coords) for a in self.rasters(sigma, gradients=derivatives)]
+        if with_sigma and derivatives:
+            out.append(self.sigma_derivative(coords, sigma))
         return out
+
+    def derivatives(self, u: np.ndarray, sigma: float, with_sigma: bool = False):
+        """dR/du, dR/dv (and dR/dsigma) at ``u``: :meth:`sample`'s entries after R."""
+        coords = self._coords(u)
+        out = [_bilinear(a, coords) for a in self.rasters(sigma)[1:]]
+        if with_sigma:
+            out.append(self.sigma_derivative(coords, sigma))
+        return out
+
+    def sigma_derivative(self, coords, sigma: float) -> np.ndarray:
+        """dR/dsigma at raster coordinates ``coords`` (central difference of two blurs)."""
+        h = 0.05 * max(sigma, 0.2)
+        lo_s = max(sigma - h, SIGMA_MIN)
+        hi = _bilinear(self._blurred(sigma + h), coords)
+        lo = _bilinear(self._blurred(lo_s), coords)
+        return (hi - lo) / (sigma + h - lo_s)
+
+    def _coords(self, u: np.ndarray):
+        return [(u[:, 1] - self.start[1]) / self.step, (u[:, 0] - self.start[0]) / self.step]
+
+
+def _bilinear(raster: np.ndarray, coords) -> np.ndarray:
+    """``raster`` interpolated bilinearly at ``coords`` (rows, columns), 0 outside."""
+    from scipy.ndimage import map_coordinates
+
+    return map_coordinates(raster, coords, order=1, cval=0.0)
 
 
 @dataclass(frozen=True)
@@ -167,7 +192,7 @@ class _PixelProblem:
         return c, t[2 * nb], t[2 * nb + 1], s
 
     def evaluate(self, t):
-        """``(residuals, raster samples, b)`` at ``t``, or None outside the bounds."""
+        """``(residuals, raster samples (R alone), b, (u, sigma))`` at ``t``, or None outside the bounds."""
         d, o = self.data, self.options
         c, a_, b_, s = self.unpack(t)
         if not SIGMA_MIN < s <= o.sigma_max:
@@ -175,21 +200,22 @@ class _PixelProblem:
         u = d.base_u + d.basis @ c
         if np.isfinite(o.max_shift) and np.abs(u - self.start_u).max() > o.max_shift:
             return None
-        smp = d.ref.sample(u, s, with_sigma=o.fit_sigma)
+        smp = d.ref.sample(u, s, derivatives=False)  # a step may be rejected: the raster's derivatives later
         model = a_ + b_ * smp[0]
-        return d.values - model, smp, b_
+        return d.values - model, smp, b_, (u, s)
 
     def jacobian(self, cur) -> np.ndarray:
-        res, smp, b_ = cur
+        res, smp, b_, (u, s) = cur
+        deriv = self.data.ref.derivatives(u, s, with_sigma=self.options.fit_sigma)
         basis = self.data.basis
         cols = [
-            b_ * smp[1][:, None] * basis,
-            b_ * smp[2][:, None] * basis,
+            b_ * deriv[0][:, None] * basis,
+            b_ * deriv[1][:, None] * basis,
             np.ones((len(res), 1)),
             smp[0][:, None],
         ]
         if self.options.fit_sigma:
-            cols.append(b_ * smp[3][:, None])
+            cols.append(b_ * deriv[2][:, None])
         return np.concatenate(cols, axis=1)
 
 

@@ -125,7 +125,7 @@ def _local_pixels(ctx: TripletContext, bars, idx) -> _Local | None:
 def _linear_contrast(data: PixelData, sigma: float, b_sign: float):
     """``(a, b)`` of a linear fit of the pixels to the model at the start, or ``(None,
     None)`` when its contrast has not the sign of ``b_sign``."""
-    r0 = data.ref.sample(data.base_u, sigma)[0]
+    r0 = data.ref.sample(data.base_u, sigma, derivatives=False)[0]
     design = np.column_stack([np.ones_like(r0), r0])
     (a, b0), *_ = np.linalg.lstsq(design, data.values, rcond=None)
     if not (np.isfinite(b0) and np.sign(b0) == np.sign(b_sign) and abs(b0) > 1e-6):
@@ -157,7 +157,7 @@ def _ambiguous(ctx: TripletContext, local: _Local, res, bars) -> bool:
         shift = np.zeros(2)
         shift[axis] = sgn * 2 * local.w_ref
         u = data.base_u + data.basis @ res.coef + shift
-        r = data.ref.sample(u, res.sigma)[0]
+        r = data.ref.sample(u, res.sigma, derivatives=False)[0]
         design = np.column_stack([np.ones_like(r), r])
         coef, *_ = np.linalg.lstsq(design, data.values, rcond=None)
         resid = data.values - design @ coef
