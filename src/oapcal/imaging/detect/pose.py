@@ -185,18 +185,28 @@ def _score(pose_s, pose_lin, pose_t, scene: _Scene, *, anchor=None, loose=1.0, p
     return score, missing, match, n_expected
 
 
+def apply_maps(amat: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Every 2 x 2 map of ``amat`` (H, 2, 2) applied to every point of ``xy`` (n, 2): (H, n, 2),
+    ``np.einsum("hij,nj->hni", amat, xy)`` bit for bit (the same two products and one sum
+    per entry) at a fifth of its time: the pose search applies thousands of hypotheses to
+    the reference triplets (tests/imaging/test_detect_pose.py compares the two)."""
+    x = amat[:, None, 0, 0] * xy[None, :, 0] + amat[:, None, 0, 1] * xy[None, :, 1]
+    y = amat[:, None, 1, 0] * xy[None, :, 0] + amat[:, None, 1, 1] * xy[None, :, 1]
+    return np.stack([x, y], -1)
+
+
 def _predicted(amat, pose_t, ref: RefTriplets, pred):
     """Where each hypothesis (linear part ``amat`` (H, 2, 2), shift ``pose_t``) puts every
     reference triplet: centres (H, n, 2) (``pred`` when given), bar widths (H, n) and
     bar directions mod pi (H, n), in px."""
     if pred is None:
-        pred = np.einsum("hij,nj->hni", amat, ref.centre) + pose_t[:, None, :]
+        pred = apply_maps(amat, ref.centre) + pose_t[:, None, :]
     along = np.stack([np.cos(ref.angle), np.sin(ref.angle)], -1)
     normal = np.stack([-np.sin(ref.angle), np.cos(ref.angle)], -1)
-    dirs = np.einsum("hij,nj->hni", amat, along)
+    dirs = apply_maps(amat, along)
     # bar width in px: the period across the bars, i.e. the map's scale along the normal
     # (an anisotropic image has other widths for H and V triplets)
-    nrm = np.einsum("hij,nj->hni", amat, normal)
+    nrm = apply_maps(amat, normal)
     cross = np.abs(dirs[..., 0] * nrm[..., 1] - dirs[..., 1] * nrm[..., 0])
     wpred = ref.width[None, :] * cross / np.maximum(np.hypot(dirs[..., 0], dirs[..., 1]), 1e-12)
     apred = np.arctan2(dirs[..., 1], dirs[..., 0]) % np.pi
@@ -248,15 +258,17 @@ def _missing(ok, inside, expected, wpred, ref: RefTriplets, listed) -> np.ndarra
 
 
 def _match_score(match, weight) -> np.ndarray:
-    """The summed weight of the reference triplets each hypothesis matched (H,)."""
-    score = np.empty(len(match))
-    for hh in range(len(match)):
-        m = match[hh]
-        sel = m >= 0
-        # each image triplet counts once (two reference triplets cannot both be it)
-        _, first = np.unique(m[sel], return_index=True)
-        score[hh] = weight[np.flatnonzero(sel)[first]].sum()
-    return score
+    """The summed weight of the reference triplets each hypothesis matched (H,): each image
+    triplet counts once per hypothesis (two reference triplets cannot both be it), with the
+    weight of the first reference triplet that matched it."""
+    hh, jj = np.nonzero(match >= 0)
+    if len(hh) == 0:
+        return np.zeros(len(match))
+    # (hypothesis, image triplet) pairs in row-major order: the first of each is the first
+    # reference triplet of that row that matched it
+    key = hh * (int(match.max()) + 1) + match[hh, jj]
+    _, first = np.unique(key, return_index=True)
+    return np.bincount(hh[first], weights=weight[jj[first]], minlength=len(match)).astype(float)
 
 
 def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np.ndarray | None:
