@@ -214,3 +214,21 @@ def test_a_slipped_triplet_of_a_misaligned_relay_is_outvoted(tmp_path):
         assert d["reference_rms_px"] < 0.2
         (fit,) = d["fits"]
         assert fit["mean_px"] <= 0.08 and fit["max_px"] <= 0.3, fit
+
+
+@pytest.mark.slow
+def test_full_on_a_turned_target_is_written_though_it_folds_at_the_frame_corner(tmp_path):
+    """The full run's aligned relay with the target turned by 30 degrees: ``full`` folds over
+    at the frame's corner (landmarks over 8 % of it), beyond the landmarks' bounds; it was
+    refused (nothing written), now it is written with a note and corrects the 1 mm field;
+    the image comparison covers every pixel but the fold's."""
+    src = bench.source_truth("fpm_brightfield.png")
+    case = next(c for c in bench.cases(False, 1) if c.name == "aligned, turned 30")
+    res = bench.run_case(case, src, tmp_path, models=("full",))
+    for d in res["detections"]:
+        assert d["code"] == 0 and d["wrong_ids"] == 0
+        (f,) = d["fits"]
+        assert f["code"] == 0 and f["converged"] and f["written"], f["message"]
+        assert f["mean_px"] < 0.3 and f["max_px"] < 3.0  # measured 0.22 / 1.48-1.50 px
+        assert f["image_region"] == "all but the fold"  # correct --extent input refuses the fold
+        assert f["image_error_pct"] < 3 * res["image_noise_pct"]

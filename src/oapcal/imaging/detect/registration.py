@@ -88,7 +88,7 @@ class Reference:
         entry = self._cache[key]
         if gradients and len(entry) == 1:
             gv, gu = np.gradient(entry[0], self.step)
-            entry += [gu.astype(np.float32), gv.astype(np.float32)]
+            entry += [gu.astype(np.float32, copy=False), gv.astype(np.float32, copy=False)]
         return tuple(entry) if gradients else (entry[0],)
 
     def sample(self, u: np.ndarray, sigma: float, with_sigma: bool = False, derivatives: bool = True):
