@@ -208,3 +208,10 @@ def test_the_region_based_recommendation_is_named_so():
         "Recommended by the predicted error over the region to be corrected: relay (relay, 0.0805 px: "
         "the held-out error 0.0631 px with the uncertainty propagated over the region, 0.05 px)."
     ) in page
+
+
+def test_relay_report_says_its_error_model_averages_the_sides(relay_report):
+    """The relay's extrapolation factor is the mean over its sides' refits (Eq. 1: the worst)."""
+    text, _ = relay_report
+    assert relay_calibration().error_model.method == "leave-side-out-mean"
+    assert "(the mean over the 8 refits that each left one side" in html.unescape(text)

@@ -301,7 +301,9 @@ def _figure_sections(content: ReportContent, step, image_name: str | None, plots
     step("uncertainty map")
     umap = content.uncertainty
     sections.append(
-        H.section("Uncertainty of the correction", _uncertainty_html(umap, umap.summary(), plots))
+        H.section(
+            "Uncertainty of the correction", _uncertainty_html(umap, umap.summary(), plots, _fold_of(cal))
+        )
     )
     if content.image is not None:
         a = content.image
@@ -578,7 +580,16 @@ def _selfcal_html(cal, plots) -> str:
     return out
 
 
-def _uncertainty_html(umap, s: dict, plots) -> str:
+def _fold_of(cal) -> str:
+    """The sentence of a calibration whose model folds over beyond its landmarks' bounds in its
+    frame (:func:`oapcal.calibration.folds_beyond_bounds`), or ``""``."""
+    from oapcal.calibration import fold_note, folds_beyond_bounds
+
+    fold = folds_beyond_bounds(cal) if cal.bounds is not None else None
+    return "" if fold is None else f"Note: {fold_note(fold)}."
+
+
+def _uncertainty_html(umap, s: dict, plots, fold: str = "") -> str:
     png = plots.figure_png(plots.uncertainty_figure(umap))
     um = umap.um_per_px
     headers = ["region", "share of the frame", "median [px]", "max [px]"] + (
@@ -601,7 +612,13 @@ def _uncertainty_html(umap, s: dict, plots) -> str:
         + H.table(headers, rows, "1-sigma positional uncertainty")
         + H.paragraph(text)
         + _trust_html(umap, s, plots)
+        + (H.paragraph(fold) if fold else "")
     )
+
+
+def _sides_kept(em) -> str:
+    """How the error model combined its sides' refits: the worst (Eq. 1) or their mean (the relay)."""
+    return "the mean over the" if em.method == "leave-side-out-mean" else "the worst of"
 
 
 def _trust_html(umap, s: dict, plots) -> str:
@@ -630,8 +647,8 @@ def _trust_html(umap, s: dict, plots) -> str:
             "Predicted error = the covariance above, inflated where the model extrapolates, with the "
             f"model floor added, both measured on the landmarks: floor {em.floor_px:.3g} px (the part "
             f"of the residuals neighbouring landmarks share; uncorrelated noise {em.noise_px:.3g} px), "
-            f"extrapolation factor {em.extrapolation:.3g} (the worst of {em.sides_used} refits that each "
-            "left one side of the landmarks out and predicted it), growing as "
+            f"extrapolation factor {em.extrapolation:.3g} ({_sides_kept(em)} {em.sides_used} refits that "
+            "each left one side of the landmarks out and predicted it), growing as "
             f"(1 + d/R)^{em.growth_exponent:g} beyond {em.probed_distance:.2f} hull radii. "
             "'oapcal correct' writes only the trust region, where the predicted error is at most "
             f"{DEFAULT_MAX_ERROR_PX:g} px by default (outlined in red; docs/correct.md)."
