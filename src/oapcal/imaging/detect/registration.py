@@ -26,6 +26,13 @@ MAX_RASTER_CELLS = 12_000_000
 RASTER_CACHE = 3
 #: Largest number of pixels one fit uses (a regular subsample beyond).
 MAX_FIT_PIXELS = 250_000
+#: Raster cells per blur sigma that a triplet's refinement needs at least: the cells are
+#: area-sampled, so a coarser cell of size h only adds variance (its box and the bilinear
+#: sampling: about h^2 / 4, here sigma^2 / 64, a blur 0.8 % wider, which the fitted blur
+#: absorbs); what is left is 0.1-0.3 % of the contrast and no edge moves
+#: (tests/imaging/test_detect_raster_cells.py).  A soft high-magnification image (sigma of
+#: 8 reference px) was blurred cell by cell at half a reference px, its largest cost.
+CELLS_PER_SIGMA = 4.0
 #: Smallest blur sigma a fit may reach (reference px).
 SIGMA_MIN = 0.05
 
@@ -38,12 +45,15 @@ class Reference:
 
     ``window`` ``(lo, hi)`` (reference px) limits the raster to a region (e.g. the part of
     the target that the image shows, or one triplet); the cell size grows beyond
-    ``1 / RASTER_OVERSAMPLE`` px when the raster would exceed ``max_cells``.
+    ``1 / RASTER_OVERSAMPLE`` px when the raster would exceed ``max_cells``, and to
+    ``min_step`` when given (a raster blurred by many cells needs no finer cells than a
+    fraction of its blur: :data:`CELLS_PER_SIGMA`).
     """
 
     def __init__(
-        self, rects, margin: float = 40.0, window=None, max_cells: int = MAX_RASTER_CELLS, masks=None
-    ):
+        self, rects, margin: float = 40.0, window=None, max_cells: int = MAX_RASTER_CELLS, masks=None,
+        min_step: float = 0.0,
+    ):  # fmt: skip
         rects = np.asarray(rects, float).reshape(-1, 4)
         lo = rects[:, :2].min(axis=0) - margin
         hi = rects[:, 2:].max(axis=0) + margin
@@ -52,7 +62,7 @@ class Reference:
             hi = np.minimum(hi, np.asarray(window[1], float))
             hi = np.maximum(hi, lo + 1.0)
         area = float(np.prod(hi - lo))
-        self.step = max(1.0 / RASTER_OVERSAMPLE, float(np.sqrt(area / max_cells)))
+        self.step = max(1.0 / RASTER_OVERSAMPLE, float(np.sqrt(area / max_cells)), float(min_step))
         self.start = np.floor(lo)
         n = np.ceil((hi - self.start) / self.step).astype(int) + 1
         self.lo, self.hi = lo + margin / 2, hi - margin / 2

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from oapcal.imaging.detect.registration import (
+    CELLS_PER_SIGMA,
     FitOptions,
     FitStart,
     PixelData,
@@ -110,7 +111,8 @@ def _local_pixels(ctx: TripletContext, bars, idx) -> _Local | None:
     lo = u_tri.min(axis=0) - margin
     hi = u_tri.max(axis=0) + margin
     pad = 3.0 * max(sigma, 1.0) + 2.0 * w_ref + 4.0
-    ref = Reference(ctx.rects, margin=pad, window=(lo - pad, hi + pad), masks=ctx.masks)
+    ref = Reference(ctx.rects, margin=pad, window=(lo - pad, hi + pad), masks=ctx.masks,
+                    min_step=sigma / CELLS_PER_SIGMA)  # fmt: skip
     xs = region_pixels(ctx.warp, ref, (w, h), lo, hi, max_pixels=MAX_TRIPLET_PIXELS)
     if len(xs) < 20:
         return None
