@@ -230,6 +230,20 @@ class Calibration:
         return self.model.params_dict
 
 
+@dataclasses.dataclass(frozen=True)
+class ModelRegion:
+    """What :func:`check_model_region` reads of a calibration, for a model checked apart
+    from its record: the parameters and family, the reference points' ``bounds`` (where a
+    fold is never allowed), the ``image_size`` frame and the ``error_model`` (whose trust
+    region lets a fold beyond the bounds pass); None where there is none."""
+
+    params: np.ndarray
+    family: ModelFamily | str | None = None
+    bounds: tuple | None = None
+    image_size: tuple | None = None
+    error_model: object = None
+
+
 def check_model_region(
     calibration,
     size: tuple[int, int] | None = None,
@@ -238,6 +252,7 @@ def check_model_region(
     boxes=(),
     error=InputFileError,
     folds_beyond_bounds: bool | None = None,
+    check_bounds: bool = True,
 ):
     """Refuse a model that is not finite or folds over (Jacobian determinant <= 0) where it is
     applied: over the reference points' ``bounds``, the calibration's ``image_size`` frame,
@@ -255,7 +270,9 @@ def check_model_region(
     where the map folds (:func:`oapcal.uncertainty.predicted_error`), so that a correction's
     trust region ends before any fold; a model without them must not fold anywhere it is
     applied.  Within the bounds, where the landmarks are, a fold is always refused
-    (:func:`folds_beyond_bounds` says where a kept fold is).
+    (:func:`folds_beyond_bounds` says where a kept fold is); ``check_bounds=False`` leaves
+    the bounds themselves unchecked (checked already when the calibration was fitted or read)
+    and uses them only to place a fold.
 
     >>> from oapcal.model import params_from_dict
     >>> check_model_region(params_from_dict({"k1": 1e-7}), (640, 480))
@@ -268,7 +285,7 @@ def check_model_region(
     bounds = getattr(calibration, "bounds", None)
     if folds_beyond_bounds is None:
         folds_beyond_bounds = _has_trust_region(calibration)
-    for xy, finite, det, what, is_bounds in _region_grids(calibration, size, boxes):
+    for xy, finite, det, what, is_bounds in _region_grids(calibration, size, boxes, check_bounds):
         bad = ~(finite & np.isfinite(det) & (det > 0))
         if folds_beyond_bounds and not is_bounds:
             bad &= ~(finite & np.isfinite(det) & ~_inside(xy, bounds))  # a fold beyond the bounds
@@ -312,9 +329,10 @@ def _inside(xy: np.ndarray, bounds) -> np.ndarray:
     return (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
 
 
-def _region_grids(calibration, size, boxes):
+def _region_grids(calibration, size, boxes, check_bounds: bool = True):
     """The regions :func:`check_model_region` checks, each as ``(xy, finite, det,
-    description, is_bounds)`` on its :data:`CHECK_GRID` x :data:`CHECK_GRID` grid."""
+    description, is_bounds)`` on its :data:`CHECK_GRID` x :data:`CHECK_GRID` grid (the
+    reference points' bounds first, unless not ``check_bounds``)."""
     params = np.asarray(getattr(calibration, "params", calibration), float)
     carried = getattr(calibration, "family", None)  # a Model's or a record's; None: by length
     family = family_of(params, None if carried is None else family_named(carried))
@@ -322,7 +340,7 @@ def _region_grids(calibration, size, boxes):
     evaluate = _eq1_region_check if closed_form else functools.partial(_kernel_region_check, family=family)
     regions = []
     bounds = getattr(calibration, "bounds", None)
-    if bounds is not None:
+    if bounds is not None and check_bounds:
         regions.append((tuple(float(b) for b in bounds), "reference points' bounds", True))
     for frame in (getattr(calibration, "image_size", None), size):
         if frame is not None:

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from oapcal.calibration import check_model_region
+from oapcal.calibration import ModelRegion, check_model_region
 from oapcal.errors import DataError, InputFileError
 from oapcal.fitting import DEFAULT_INIT, initial_params_many
 from oapcal.model import (
@@ -201,19 +201,6 @@ def parse_families(text: str) -> tuple[str, ...]:
     return tuple(dict.fromkeys(keys))
 
 
-class _Region:
-    """What :func:`~oapcal.calibration.check_model_region` reads of a calibration: the
-    model, the reference points' bounds and the image frame."""
-
-    def __init__(self, model: Model, bounds, image_size):
-        self.model = model
-        self.family = model.family
-        self.params = np.asarray(model.params, float)
-        self.free = model.free
-        self.bounds = bounds
-        self.image_size = image_size
-
-
 def region_problem(params, xy_u, image_size=None, *, family=None, folds_beyond_bounds=False) -> str:
     """Why the model ``params`` (a :class:`~oapcal.model.Model`, or a vector of
     ``family``) fitted to the reference points ``xy_u`` cannot correct the whole
@@ -227,7 +214,7 @@ def region_problem(params, xy_u, image_size=None, *, family=None, folds_beyond_b
     if not np.isfinite(model.params).all():
         return "the fit gave non-finite parameters"
     try:
-        region = _Region(model, bounds, image_size)
+        region = ModelRegion(model.params, model.family, bounds=bounds, image_size=image_size)
         check_model_region(region, source="the fitted model", folds_beyond_bounds=folds_beyond_bounds)
     except InputFileError as exc:
         return str(exc).removeprefix("the fitted model: ").split(";")[0]

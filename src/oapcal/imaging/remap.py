@@ -133,18 +133,6 @@ def _model_of(calibration_or_params) -> Model:
 
 
 @dataclass(frozen=True)
-class _Checked:
-    """What :func:`~oapcal.calibration.check_model_region` reads of an output region's model:
-    its parameters and family, and the calibration's bounds and error model (None for a
-    model given as a value)."""
-
-    params: np.ndarray
-    family: object
-    bounds: tuple | None
-    error_model: object
-
-
-@dataclass(frozen=True)
 class OutputGeometry:
     """Which undistorted point each output pixel shows.
 
@@ -213,7 +201,7 @@ def output_geometry(
     if um_per_px is not None and out_size is not None:
         raise DataError("give either an output scale (um per px) or an output size, not both")
     x0, y0, x1, y1 = _region(calibration_or_params, model, extent, rows, cols)
-    from oapcal.calibration import Calibration, check_model_region
+    from oapcal.calibration import Calibration, ModelRegion, check_model_region
 
     # the model must be finite and not fold over where the output samples it; a calibration
     # (read from a file) is an input file's mistake, a Model or vector given in memory a value's
@@ -221,10 +209,10 @@ def output_geometry(
     error = InputFileError if isinstance(calibration_or_params, Calibration) else DataError
     # written only where trusted, a calibration with an error model may fold beyond its
     # landmarks' bounds: its trust region ends before the fold (check_model_region)
-    region = _Checked(model.params, model.family, getattr(calibration_or_params, "bounds", None),
-                      getattr(calibration_or_params, "error_model", None))  # fmt: skip
+    region = ModelRegion(model.params, model.family, bounds=getattr(calibration_or_params, "bounds", None),
+                         error_model=getattr(calibration_or_params, "error_model", None))  # fmt: skip
     check_model_region(region, boxes=[((x0, y0, x1, y1), what)], source="the calibration", error=error,
-                       folds_beyond_bounds=None if trust_region else False)  # fmt: skip
+                       folds_beyond_bounds=None if trust_region else False, check_bounds=False)  # fmt: skip
     shape, x0, y0, scale = _layout((x0, y0, x1, y1), _output_scale(um_per_px, cal_um), out_size, um_per_px)
     _check_output_shape(shape, (rows, cols), (x1 - x0, y1 - y0), um_per_px, cal_um)
     out_um = None if not cal_um else float(cal_um) * scale

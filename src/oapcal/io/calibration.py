@@ -44,7 +44,6 @@ and refused with the same message as before.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import hashlib
 import json
@@ -53,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from oapcal.calibration import CHECK_GRID, Calibration, FitSummary, check_model_region
+from oapcal.calibration import CHECK_GRID, Calibration, FitSummary, ModelRegion, check_model_region
 from oapcal.errors import InputFileError
 from oapcal.io.atomic import atomic_write
 from oapcal.io.jsonfile import json_safe
@@ -395,6 +394,6 @@ def load_calibration(path: str | Path, image_size: tuple[int, int] | None = None
     )
     cal = calibration_from_dict(data, source=name)
     if image_size is not None:  # the bounds and own frame were checked: that image alone, strictly
-        check_model_region(dataclasses.replace(cal, bounds=None, image_size=None), image_size, source=name,
-                           folds_beyond_bounds=False)  # fmt: skip
+        region = ModelRegion(cal.params, cal.family)
+        check_model_region(region, image_size, source=name, folds_beyond_bounds=False)
     return cal

@@ -104,11 +104,8 @@ class Reference:
     def sample(self, u: np.ndarray, sigma: float, with_sigma: bool = False, derivatives: bool = True):
         """R, dR/du, dR/dv (and dR/dsigma) at reference points ``u`` ``(N, 2)``; R alone
         without ``derivatives``."""
-        coords = self._coords(u)
-        out = [_bilinear(a, coords) for a in self.rasters(sigma, gradients=derivatives)]
-        if with_sigma and derivatives:
-            out.append(self.sigma_derivative(coords, sigma))
-        return out
+        r = [_bilinear(self.rasters(sigma, gradients=False)[0], self._coords(u))]
+        return r + self.derivatives(u, sigma, with_sigma) if derivatives else r
 
     def derivatives(self, u: np.ndarray, sigma: float, with_sigma: bool = False):
         """dR/du, dR/dv (and dR/dsigma) at ``u``: :meth:`sample`'s entries after R."""
