@@ -63,6 +63,26 @@ def test_a_swapped_id_is_wrong_and_a_right_one_is_right():
     assert s["median_error_px"] == pytest.approx(0.2, abs=1e-6)
 
 
+def test_the_landmarks_floor_puts_each_corner_at_its_source_position(tmp_path):
+    from oapcal.imaging.render import Camera, Placement, Scene
+    from oapcal.model import identity_params
+
+    # 2 um per source px, the source's (150, 100) on the axis: object um = 2 (source - centre)
+    corners = {"G4E1H0C0": np.array([160.0, 90.0]), "G4E1H0C1": np.array([140.5, 101.0])}
+    src = bench.SourceTruth(np.zeros((200, 300)), 2.0, corners, None)
+    scene = Scene(identity_params(), Placement(2.0, (150.0, 100.0)), Camera(size=(300, 200)))
+    rows = [
+        {"id": "G4E1H0C0", "x_d": "1.5", "y_d": "2.5", "x_u": "0", "y_u": "0", "width_um": "7"},
+        {"id": "G4E1H0C1", "x_d": "3.5", "y_d": "4.5", "x_u": "0", "y_u": "0", "width_um": "7"},
+        {"id": "G4E2H0C0", "x_d": "5.5", "y_d": "6.5", "x_u": "0", "y_u": "0", "width_um": "7"},
+    ]  # the last id is not in the source: left out
+    out = bench.read_csv_rows(bench.landmark_floor_points(rows, src, scene, tmp_path / "floor.csv"))
+    assert [r["id"] for r in out] == ["G4E1H0C0", "G4E1H0C1"]
+    got = np.array([[float(r[k]) for k in ("x_d", "y_d", "x_u", "y_u")] for r in out])
+    np.testing.assert_allclose(got, [[1.5, 2.5, 20.0, -20.0], [3.5, 4.5, -19.0, 2.0]], atol=1e-6)
+    assert [r["width_um"] for r in out] == ["7", "7"]
+
+
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     src = bench.source_truth("fpm_brightfield.png")
@@ -142,6 +162,40 @@ def test_every_default_fit_converges(results):
         for d in result["detections"]:
             for f in d["fits"]:
                 assert f["code"] == 0, (result["case"]["name"], f["model"], f["message"])
+
+
+@pytest.fixture(scope="module")
+def behind_the_microscope(tmp_path_factory):
+    src = bench.source_truth("fpm_brightfield.png")
+    case = next(c for c in bench.cases(False, 1) if c.name == "aligned, 5x microscope")
+    return bench.run_case(case, src, tmp_path_factory.mktemp("e2e_5x"), ("relay",), images=False)
+
+
+def _meets_relay_goal(f):
+    return f["mean_px"] <= bench.RELAY_GOAL_PX[0] and f["max_px"] <= bench.RELAY_GOAL_PX[1]
+
+
+@pytest.mark.slow
+def test_behind_the_microscope_the_relay_family_meets_the_goal_on_the_sources_corners(
+    behind_the_microscope,
+):
+    # the same detected points with each corner's object point taken from the source image:
+    # the relay+microscope family and the detection are not what limits the field error there
+    for d in behind_the_microscope["detections"]:
+        assert d["code"] == 0 and d["wrong_ids"] == 0
+        assert d["floor"]["code"] == 0 and _meets_relay_goal(d["floor"]), d["floor"]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured: 0.27 mean / 0.86 max px on the drawn layout's coordinates; the source's groups "
+    "6-7 deviate from it by 0.29 camera px rms (docs/benchmarks.md, the landmarks' floor)",
+)
+def test_behind_the_microscope_the_relay_family_meets_the_goal_on_the_layout(behind_the_microscope):
+    for d in behind_the_microscope["detections"]:
+        f = next(f for f in d["fits"] if f["model"] == "relay")
+        assert f["code"] == 0 and _meets_relay_goal(f), f
 
 
 def test_fully_visible_elements_are_whole_inside_and_resolved():
