@@ -504,14 +504,20 @@ def run_case(case: Case, src: SourceTruth, workdir: Path, models=MODELS, *, imag
 
 def landmark_floor_points(det_rows: list[dict], src: SourceTruth, scene, out: Path) -> Path:
     """The detected rows with their reference points (``x_u``, ``y_u``) replaced by the object
-    point of the same id's corner in the source image (through the truth); rows whose id the
-    source lacks are left out.  The drawn layout differs from a real image of a real target
-    (the target's own tolerances, the source microscope's distortion and its corners' blur
-    bias: 0.1-0.3 camera px, the detection table's reference rms), and a fit cannot tell that
-    from the relay's distortion: this separates the landmarks' share of an error from the
-    model's and the detection's."""
+    point of the same id's corner in the source image (through the truth), put in the detected
+    reference frame by the best similarity; rows whose id the source lacks are left out.  The
+    drawn layout differs from a real image of a real target (the target's own tolerances, the
+    source microscope's distortion and its corners' blur bias: 0.1-0.3 camera px, the
+    detection table's reference rms), and a fit cannot tell that from the relay's distortion:
+    this separates the landmarks' share of an error from the model's and the detection's."""
     rows = [r for r in det_rows if r["id"] in src.corners]
     obj = scene.object_from_source(np.array([src.corners[r["id"]] for r in rows]).reshape(-1, 2))
+    # the object points are um about the axis, the reference points ideal camera px in the
+    # detected frame: carried into that frame by the best similarity (a mirror allowed), so
+    # that only the shape of the landmarks changes, not their scale, turn or place
+    ref = np.array([[float(r["x_u"]), float(r["y_u"])] for r in rows]).reshape(-1, 2)
+    mat, t, _ = similarity(obj, ref)
+    obj = obj @ mat.T + t
     with open(out, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(det_rows[0].keys()))
         writer.writeheader()

