@@ -382,11 +382,10 @@ def score_detection(det_rows: list[dict], case: Case, src: SourceTruth, scene, t
     # the reference points against the truth: a right id with the wrong layout or scale of the
     # target gives landmarks no model can fit (rms after the best similarity, camera px)
     ref_rms = float("nan")
-    k = [j for j, cid in enumerate(ids) if cid in src.corners]
-    if len(k) >= 3 and all("x_u" in r for r in det_rows):
-        xy_u = np.array([[float(det_rows[j]["x_u"]), float(det_rows[j]["y_u"])] for j in k])
-        obj = scene.object_from_source(np.array([src.corners[ids[j]] for j in k]))
-        ref_rms = similarity(xy_u, obj)[2] / scene.camera_um_per_px
+    if all("x_u" in r for r in det_rows):
+        kept, xy_u, obj = reference_and_source(det_rows, src, scene)
+        if len(kept) >= 3:
+            ref_rms = similarity(xy_u, obj)[2] / scene.camera_um_per_px
     return {
         "reference_rms_px": ref_rms,
         "found": len(ids),
@@ -502,6 +501,15 @@ def run_case(case: Case, src: SourceTruth, workdir: Path, models=MODELS, *, imag
     return result
 
 
+def reference_and_source(det_rows: list[dict], src: SourceTruth, scene):
+    """The rows whose id the source has, their reference points ``x_u, y_u`` and the object
+    points of the same ids' corners in the source image (through the truth, um)."""
+    rows = [r for r in det_rows if r["id"] in src.corners]
+    ref = np.array([[float(r["x_u"]), float(r["y_u"])] for r in rows]).reshape(-1, 2)
+    obj = scene.object_from_source(np.array([src.corners[r["id"]] for r in rows]).reshape(-1, 2))
+    return rows, ref, obj
+
+
 def landmark_floor_points(det_rows: list[dict], src: SourceTruth, scene, out: Path) -> Path:
     """The detected rows with their reference points (``x_u``, ``y_u``) replaced by the object
     point of the same id's corner in the source image (through the truth), put in the detected
@@ -510,12 +518,10 @@ def landmark_floor_points(det_rows: list[dict], src: SourceTruth, scene, out: Pa
     source microscope's distortion and its corners' blur bias: 0.1-0.3 camera px, the
     detection table's reference rms), and a fit cannot tell that from the relay's distortion:
     this separates the landmarks' share of an error from the model's and the detection's."""
-    rows = [r for r in det_rows if r["id"] in src.corners]
-    obj = scene.object_from_source(np.array([src.corners[r["id"]] for r in rows]).reshape(-1, 2))
+    rows, ref, obj = reference_and_source(det_rows, src, scene)
     # the object points are um about the axis, the reference points ideal camera px in the
     # detected frame: carried into that frame by the best similarity (a mirror allowed), so
     # that only the shape of the landmarks changes, not their scale, turn or place
-    ref = np.array([[float(r["x_u"]), float(r["y_u"])] for r in rows]).reshape(-1, 2)
     mat, t, _ = similarity(obj, ref)
     obj = obj @ mat.T + t
     with open(out, "w", newline="") as fh:
