@@ -4,6 +4,7 @@ wrote something wrong; every failure must be one line on stderr, exit 2 (3 for a
 gives no usable model) and nothing written."""
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -85,6 +86,14 @@ def test_fit_whose_model_folds_inside_the_image_is_not_written(run_cli, tmp_path
     assert code == 0, err
     assert "folds over beyond the reference points' bounds" in err and "4000x4000 px image" in err, err
     assert (out / "c.json").is_file()
+    (out / "c.json").unlink()
+    # --json carries the same note (a script reading stdout sees what stderr says)
+    code, stdout, err = run_cli("fit", tmp_path / "p.csv", "--out", out / "c.json", "--image-size", "4000x4000",
+                                "--json")  # fmt: skip
+    assert code == 0, err
+    notes = json.loads(stdout)["notes"]
+    assert len(notes) == 1 and "folds over beyond the reference points' bounds" in notes[0], notes
+    assert notes[0] in err
     (out / "c.json").unlink()
     # within the points' bounds it is refused: exit 3, nothing written
     strong = params_from_dict({"k1": -4e-6, "x_off": -320, "y_off": -240, "c_x": 320, "c_y": 240, "m": 1})

@@ -202,6 +202,10 @@ def fit_summary(cal) -> dict:
     from oapcal.io.jsonfile import finite_or_none as _finite
 
     extra = {} if cal.priors is None else {"priors": cal.priors, "k_eff": _finite(cal.fit.k_eff)}
+    if cal.notes:
+        # what the fit decided for the user (the rotation fitted too, a fold beyond the
+        # landmarks), as stderr says: only when there is something to say
+        extra["notes"] = list(cal.notes)
     return {
         **extra,
         "free": list(cal.free),
