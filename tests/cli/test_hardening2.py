@@ -88,8 +88,9 @@ def test_fit_whose_model_folds_inside_the_image_is_not_written(run_cli, tmp_path
     assert (out / "c.json").is_file()
     (out / "c.json").unlink()
     # --json carries the same note (a script reading stdout sees what stderr says)
-    code, stdout, err = run_cli("fit", tmp_path / "p.csv", "--out", out / "c.json", "--image-size", "4000x4000",
-                                "--json")  # fmt: skip
+    code, stdout, err = run_cli(
+        "fit", tmp_path / "p.csv", "--out", out / "c.json", "--image-size", "4000x4000", "--json"
+    )
     assert code == 0, err
     notes = json.loads(stdout)["notes"]
     assert len(notes) == 1 and "folds over beyond the reference points' bounds" in notes[0], notes

@@ -91,15 +91,19 @@ class _Res:
 @pytest.mark.parametrize(
     ("results", "retried"),
     [
-        ({"compact": (0, "ok", 9.0)}, False),  # a layout found the pose: no second search
-        ({"compact": (1, "not_found", 5.0), "spaced": (0, "ok", 4.0)}, False),
+        ({"compact": (0, "ok", 9.0)}, False),  # the default layout found the pose: no second search
+        ({"compact": (0, "ok", 9.0), "spaced": (0, "ok", 4.0)}, False),
+        # only another layout found one: the default layout's seeds turned too before it is
+        # believed (the aligned relay turned by 225 degrees); the first answer kept when the
+        # turned seeds find no pose in the default layout
+        ({"compact": (1, "not_found", 5.0), "spaced": (0, "ok", 4.0)}, True),
         ({"compact": (1, "not_found", 5.0), "spaced": (1, "ambiguous", 4.0)}, True),  # the best: too little
         # the best ambiguous: retried too (a scale given can narrow the search to two poses
         # that the turned seeds tell apart), the first answer kept when they find no pose
         ({"compact": (1, "ambiguous", 5.0), "spaced": (1, "not_found", 4.0)}, True),
     ],
 )
-def test_detection_turns_the_seeds_only_when_no_layout_found_a_pose(monkeypatch, results, retried):
+def test_detection_turns_the_seeds_when_the_default_layout_found_no_pose(monkeypatch, results, retried):
     from oapcal.imaging.detect import core
 
     calls = []

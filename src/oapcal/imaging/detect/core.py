@@ -451,6 +451,14 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
             turned = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
             if top.kind == "not_found" or any(r[1] for r in turned):
                 tried = turned
+    elif not opts.anchors and opts.layout is None and not tried[0][1] and any(r[1] for r in tried):
+        # another layout found a pose but the default one did not: its seeds turned too
+        # before another maker's layout is believed (through the aligned relay turned by
+        # 225 degrees the default layout's seeds stall at 10 triplets, turned they match 18,
+        # where the whole-target layout's 17 then fail the registration)
+        turned = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
+        if turned[0][1]:
+            tried = turned
     default = tried[0]
     tried.sort(key=lambda r: (-r[0], not r[1]))
     if tried[0] is not default and tried[0][0] - default[0] < 2.0 and default[1]:

@@ -29,11 +29,26 @@ from oapcal.imaging.detect.warp import PolyWarp
 MISSING_PENALTY = 0.3
 #: Predicted triplets with bars narrower than this (px) are neither expected nor penalised.
 MIN_EXPECTED_BAR_PX = 2.2
+#: The image resolves no triplet much finer than its finest one found: a pose expects only
+#: triplets predicted at least this fraction of that width (one and a half element steps,
+#: ``2 ** (-1.5/6)``: the next finer element is still expected, the one after it not).
+#: Why: a strongly blurred image (the LAB-UMK micrograph rendered through the relay: group 5's
+#: bars modulated by about 20 % between bar and gap, which no local threshold separates)
+#: shows group 4 alone, and counting group 5 as expected refused every pose, even a named one,
+#: as "finds only 4 of the 20 triplets it expects".
+RESOLVED_FRACTION = 2.0 ** (-1.5 / 6.0)
 #: Missing triplets are penalised only from this predicted bar width (px).
 MIN_PENALISED_BAR_PX = 4.0
 #: Bar widths found / predicted within this factor match (local scale changes of a
 #: strongly distorted image reach 20-30 %).
 WIDTH_TOL = 1.4
+#: Bar directions found / predicted within this angle (deg) match.  Why 14, not 12: through
+#: the aligned relay with the target turned by 285 degrees and mirrored, the relay's image
+#: is anamorphic (local scales 1.3 apart) and turns by -67 to -82 degrees over groups 4-5,
+#: so the right pose's V triplets lay 12-13.5 degrees off its H triplets' direction and the
+#: pose stalled at 7 of 20 (refused, where the default layout with 14 degrees and the local
+#: directions of :func:`_smooth_prediction` matches 15 of 18).
+ANGLE_TOL_DEG = 14.0
 #: The best pose must find at least this fraction of the named groups' triplets that it
 #: expects in the image (resolvable, inside); below, its evidence is too thin to trust.
 MIN_FOUND_FRACTION = 0.5
@@ -159,23 +174,35 @@ class _Scene:
     shape: tuple[int, int]
     listed: np.ndarray | None = None
 
+    @property
+    def finest_expected_px(self) -> float:
+        """The narrowest predicted bar width (px) a pose expects to find: the fixed floor
+        (:data:`MIN_EXPECTED_BAR_PX`) or, when the image's finest triplet found is coarser,
+        a little more than one element step below it (:data:`RESOLVED_FRACTION`)."""
+        finest = float(np.min(self.img.width)) if len(self.img) else 0.0
+        return max(MIN_EXPECTED_BAR_PX, RESOLVED_FRACTION * finest)
 
-def _score(pose_s, pose_lin, pose_t, scene: _Scene, *, anchor=None, loose=1.0, pred=None, width_tol=1.25):
+
+def _score(
+    pose_s, pose_lin, pose_t, scene: _Scene, *, anchor=None, loose=1.0, pred=None, width_tol=1.25, local=None
+):
     """Score hypotheses given as arrays ``s`` (H,), ``lin`` (H, 2, 2), ``t`` (H, 2).
 
     ``pred`` (H, n, 2) replaces the similarity's predicted centres (a smoother map fitted
-    to the matches); ``anchor`` (H, 2) widens the position tolerance with the distance
-    from it (a single triplet predicts its neighbours better than far triplets).
+    to the matches) and ``local`` (H, n, 2, 2) its linear part at each reference triplet
+    (that map's derivative: the bars' predicted direction and width); ``anchor`` (H, 2)
+    widens the position tolerance with the distance from it (a single triplet predicts its
+    neighbours better than far triplets).
     Returns ``score`` (H,), ``n_missing`` (H,), the matched image index per
     (hypothesis, reference triplet) (-1: none) and the number of expected triplets (H,)."""
     ref, listed = scene.ref, scene.listed
     h, w = scene.shape
     amat = pose_lin * pose_s[:, None, None]  # px per um, (H, 2, 2); may be non-orthogonal
-    pred, wpred, apred = _predicted(amat, pose_t, ref, pred)
+    pred, wpred, apred = _predicted(amat, pose_t, ref, pred, local)
     half = 3.6 * wpred  # half the diagonal of a 5w x 5w triplet, and a little
     inside = (pred[..., 0] > half) & (pred[..., 0] < w - 1 - half)
     inside &= (pred[..., 1] > half) & (pred[..., 1] < h - 1 - half)
-    expected = inside & (wpred >= MIN_EXPECTED_BAR_PX)
+    expected = inside & (wpred >= scene.finest_expected_px)
     ok, match = _matched(pred, wpred, apred, scene, anchor, loose, width_tol)
     weight = np.ones(len(ref.width)) if listed is None else np.where(listed, 1.0, 0.25)
     missing = _missing(ok, inside, expected, wpred, ref, listed)
@@ -195,18 +222,25 @@ def apply_maps(amat: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return np.stack([x, y], -1)
 
 
-def _predicted(amat, pose_t, ref: RefTriplets, pred):
+def _predicted(amat, pose_t, ref: RefTriplets, pred, local=None):
     """Where each hypothesis (linear part ``amat`` (H, 2, 2), shift ``pose_t``) puts every
     reference triplet: centres (H, n, 2) (``pred`` when given), bar widths (H, n) and
-    bar directions mod pi (H, n), in px."""
+    bar directions mod pi (H, n), in px (through each triplet's own linear map ``local``
+    (H, n, 2, 2) when given)."""
     if pred is None:
         pred = apply_maps(amat, ref.centre) + pose_t[:, None, :]
     along = np.stack([np.cos(ref.angle), np.sin(ref.angle)], -1)
     normal = np.stack([-np.sin(ref.angle), np.cos(ref.angle)], -1)
-    dirs = apply_maps(amat, along)
-    # bar width in px: the period across the bars, i.e. the map's scale along the normal
-    # (an anisotropic image has other widths for H and V triplets)
-    nrm = apply_maps(amat, normal)
+    if local is None:
+        dirs = apply_maps(amat, along)
+        # bar width in px: the period across the bars, i.e. the map's scale along the normal
+        # (an anisotropic image has other widths for H and V triplets)
+        nrm = apply_maps(amat, normal)
+    else:
+        # each triplet's own linear map (H, n, 2, 2): the smooth correction's local turn and
+        # stretch
+        dirs = np.einsum("hnij,nj->hni", local, along)
+        nrm = np.einsum("hnij,nj->hni", local, normal)
     cross = np.abs(dirs[..., 0] * nrm[..., 1] - dirs[..., 1] * nrm[..., 0])
     wpred = ref.width[None, :] * cross / np.maximum(np.hypot(dirs[..., 0], dirs[..., 1]), 1e-12)
     apred = np.arctan2(dirs[..., 1], dirs[..., 0]) % np.pi
@@ -231,7 +265,7 @@ def _matched(pred, wpred, apred, scene: _Scene, anchor, loose, width_tol):
         valid
         & (dist < tol)
         & (np.abs(np.log(img.width[kk] / wpred)) < np.log(width_tol))
-        & (_angle_diff(img.angle[kk], apred) < np.deg2rad(12))
+        & (_angle_diff(img.angle[kk], apred) < np.deg2rad(ANGLE_TOL_DEG))
         & (wpred >= 0.7 * MIN_EXPECTED_BAR_PX)
     )
     return ok, np.where(ok, kk, -1)
@@ -271,11 +305,13 @@ def _match_score(match, weight) -> np.ndarray:
     return np.bincount(hh[first], weights=weight[jj[first]], minlength=len(match)).astype(float)
 
 
-def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np.ndarray | None:
+def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs):
     """Centres of all reference triplets predicted by the similarity plus a smooth
     correction fitted to the matched pairs (affine from 6 matches, quadratic from
-    :data:`QUADRATIC_MATCHES`), so that a distorted image (tens of px) is followed; None
-    when too few matches."""
+    :data:`QUADRATIC_MATCHES`), so that a distorted image (tens of px) is followed, and the
+    linear map at each (n, 2, 2): the pose's times the correction's derivative there, so
+    that the bars' direction and width follow the image's local turn and stretch too;
+    None when too few matches."""
     n = len(pairs)
     if n < 6:
         return None
@@ -289,7 +325,10 @@ def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> np
     corr = warp(base)
     far = np.hypot(*((base - warp.centre) / warp.scale).T) > 1.6
     corr[far] = 0.0
-    return base + corr
+    jac = warp.jacobian(base)
+    jac[far] = 0.0
+    local = (np.eye(2)[None] + jac) @ pose.matrix()[None]
+    return base + corr, local
 
 
 def _refine(pose: Pose, scene: _Scene, n_iter=5) -> Pose:
@@ -298,13 +337,14 @@ def _refine(pose: Pose, scene: _Scene, n_iter=5) -> Pose:
     (distortion), less at every round."""
     ref, img = scene.ref, scene.img
     pairs_prev = None
-    pred = None
+    pred = local = None
     anchor = img.centre.mean(axis=0)
     for it in range(n_iter + 1):
         loose = 0.8 * 0.6**it
         sc, miss, match, n_exp = _score(
             np.array([pose.s]), pose.lin[None], pose.t[None], scene,
             pred=None if pred is None else pred[None], anchor=anchor[None], loose=loose, width_tol=WIDTH_TOL,
+            local=None if local is None else local[None],
         )  # fmt: skip
         pairs = [(int(i), j) for j, i in enumerate(match[0]) if i >= 0]
         new = Pose(pose.s, pose.lin, pose.t, float(sc[0]), pairs, int(miss[0]), int(n_exp[0]))
@@ -320,7 +360,8 @@ def _refine(pose: Pose, scene: _Scene, n_iter=5) -> Pose:
         if len(pairs) >= 4:
             s, lin, t = _fit_affine(ref.centre[jj], img.centre[ii], s, lin, t, pose.mirrored)
         pose = Pose(s, lin, t, new.score, pairs, new.n_missing)
-        pred = _smooth_prediction(pose, ref, img, pairs)
+        smooth = _smooth_prediction(pose, ref, img, pairs)
+        pred, local = (None, None) if smooth is None else smooth
     del pairs_prev
     return new
 
