@@ -267,6 +267,22 @@ def test_fully_visible_elements_are_whole_inside_and_resolved():
     assert any(truth[c][0] > 636 for c in outside)
 
 
+def _detections(name, tmp_path, models=()):
+    """The two detections (without and with the scale) of the full run's case ``name``."""
+    src = bench.source_truth("fpm_brightfield.png")
+    case = next(c for c in bench.cases(False, 1) if c.name == name)
+    return bench.run_case(case, src, tmp_path, models=models, images=False)["detections"]
+
+
+def _assert_all_found(d, reference_px=None):
+    """Exit 0, no wrong id, 95 % of the fully visible corners (and the reference points
+    within ``reference_px`` of the truth)."""
+    assert d["code"] == 0, d["message"]
+    assert d["wrong_ids"] == 0 and d["coverage"] >= 0.95
+    if reference_px is not None:
+        assert d["reference_rms_px"] < reference_px
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["aligned, turned 135, mirrored", "aligned, turned 225"])
 def test_a_turned_target_is_detected_in_its_own_layout(tmp_path, name):
@@ -275,13 +291,8 @@ def test_a_turned_target_is_detected_in_its_own_layout(tmp_path, name):
     reference points 3.3 and 2.0 px rms off the truth, so every fit was 3-12 px off.  The
     corners found decide the layout (``oapcal.imaging.detect.layouts``) and the detection
     runs again in it."""
-    src = bench.source_truth("fpm_brightfield.png")
-    case = next(c for c in bench.cases(False, 1) if c.name == name)
-    result = bench.run_case(case, src, tmp_path, models=(), images=False)
-    for d in result["detections"]:
-        assert d["code"] == 0, d["message"]
-        assert d["wrong_ids"] == 0 and d["coverage"] >= 0.95
-        assert d["reference_rms_px"] < 0.2
+    for d in _detections(name, tmp_path):
+        _assert_all_found(d, reference_px=0.2)
 
 
 @pytest.mark.slow
@@ -290,12 +301,8 @@ def test_a_target_turned_a_quarter_turn_is_detected_without_the_scale(tmp_path):
     the pose stalled at 9 of 20 triplets and was refused, because a blurred middle bar
     thresholded narrower than its neighbours and lost G4E1's V triplet (the triplet spacing's
     upper limit now comes from the wider bar, ``detect/bars.py``)."""
-    src = bench.source_truth("fpm_brightfield.png")
-    case = next(c for c in bench.cases(False, 1) if c.name == "aligned, turned 90")
-    result = bench.run_case(case, src, tmp_path, models=(), images=False)
-    for d in result["detections"]:
-        assert d["code"] == 0, d["message"]
-        assert d["wrong_ids"] == 0 and d["coverage"] >= 0.95
+    for d in _detections("aligned, turned 90", tmp_path):
+        _assert_all_found(d)
 
 
 @pytest.mark.slow
@@ -305,13 +312,8 @@ def test_a_target_turned_285_degrees_and_mirrored_is_detected_without_the_scale(
     the V triplets' bars 12-13.5 degrees off and, without the scale, the pose stalled at 7 of
     20 triplets (refused).  The pose's correction now predicts each triplet's direction too
     (``detect/pose.py``, ``ANGLE_TOL_DEG``)."""
-    src = bench.source_truth("fpm_brightfield.png")
-    case = next(c for c in bench.cases(False, 1) if c.name == "aligned, turned 285, mirrored")
-    result = bench.run_case(case, src, tmp_path, models=(), images=False)
-    for d in result["detections"]:
-        assert d["code"] == 0, d["message"]
-        assert d["wrong_ids"] == 0 and d["coverage"] >= 0.95
-        assert d["reference_rms_px"] < 0.2
+    for d in _detections("aligned, turned 285, mirrored", tmp_path):
+        _assert_all_found(d, reference_px=0.2)
 
 
 @pytest.mark.slow
@@ -320,13 +322,8 @@ def test_a_slipped_triplet_of_a_misaligned_relay_is_outvoted(tmp_path):
     refused with and without the scale ("two registrations disagree on 12 of 84 corners"):
     the triplet path had put G5E4V on the bars of G5E5V.  The dense registration outvotes
     it (``checks.outvoted``): every corner kept, none wrong, and the relay model to the goal."""
-    src = bench.source_truth("fpm_brightfield.png")
-    case = next(c for c in bench.cases(False, 1) if c.name == "misaligned s0, turned 45, mirrored")
-    result = bench.run_case(case, src, tmp_path, models=("relay",), images=False)
-    for d in result["detections"]:
-        assert d["code"] == 0, d["message"]
-        assert d["wrong_ids"] == 0 and d["coverage"] >= 0.95
-        assert d["reference_rms_px"] < 0.2
+    for d in _detections("misaligned s0, turned 45, mirrored", tmp_path, models=("relay",)):
+        _assert_all_found(d, reference_px=0.2)
         (fit,) = d["fits"]
         assert fit["mean_px"] <= 0.08 and fit["max_px"] <= 0.3, fit
 
