@@ -18,6 +18,7 @@ the nested layer).  Otherwise the search refuses with the scores of both.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -174,7 +175,7 @@ class _Scene:
     shape: tuple[int, int]
     listed: np.ndarray | None = None
 
-    @property
+    @functools.cached_property  # once per search: every scoring of a chunk of hypotheses reads it
     def finest_expected_px(self) -> float:
         """The narrowest predicted bar width (px) a pose expects to find: the fixed floor
         (:data:`MIN_EXPECTED_BAR_PX`) or, when the image's finest triplet found is coarser,
