@@ -106,10 +106,9 @@ def test_smooth_prediction_local_maps_are_the_derivative_of_its_centres():
     assert local.shape == (len(ref.width), 2, 2)
 
     # the same correction, evaluated at reference points moved by +-h um
-    from oapcal.imaging.detect.warp import PolyWarp
-
     base = pose.apply(ref.centre)
-    warp = PolyWarp.fit(base[j], trips.centre - base[j], 2)
+    warp = P._correction(pose, ref, trips, pairs)
+    assert warp.degree == 2
     near = np.hypot(*((base - warp.centre) / warp.scale).T) <= 1.6
     h = 1e-3
 
@@ -162,3 +161,77 @@ def test_a_blurred_image_is_not_expected_to_show_the_triplets_it_cannot_resolve(
     # the true pose's expected triplets: group 4's 12 (all in view), not group 5's
     assert best.n_expected == 12
     assert "finds only" not in res.message
+
+
+def _quadratic_field():
+    """Groups 4-5 through an exactly quadratic map (4.8 um/px, turned 20 degrees, then a
+    bow of y with x and a stretch of y with y, about 10 px over the target): each triplet's
+    centre, bar direction and width from the map and its exact derivative."""
+    ref = _reference_triplets(None)
+    j = np.flatnonzero(np.isin(ref.group, [4, 5]))
+    phi = np.deg2rad(20.0)
+    rot = np.array([[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]])
+    c_um = ref.centre[j].mean(axis=0)
+    mid = (np.array(SHAPE[::-1], float) - 1) / 2
+    a, b = 1.5e-3, 1.2e-3  # px per px^2
+
+    def camera(um):
+        p = (um - c_um) @ rot.T / UM_PER_PX
+        return mid + np.stack([p[:, 0], p[:, 1] + a * p[:, 0] ** 2 + b * p[:, 1] ** 2], -1)
+
+    def jac(um):
+        p = (um - c_um) @ rot.T / UM_PER_PX
+        dq = np.zeros((len(um), 2, 2))
+        dq[:, 0, 0] = 1.0
+        dq[:, 1, 0] = 2 * a * p[:, 0]
+        dq[:, 1, 1] = 1.0 + 2 * b * p[:, 1]
+        return dq @ (rot / UM_PER_PX)[None]
+
+    xy, jm = camera(ref.centre[j]), jac(ref.centre[j])
+    along = np.stack([np.cos(ref.angle[j]), np.sin(ref.angle[j])], -1)
+    normal = np.stack([-np.sin(ref.angle[j]), np.cos(ref.angle[j])], -1)
+    d = np.einsum("nij,nj->ni", jm, along)
+    q = np.einsum("nij,nj->ni", jm, normal)
+    width = ref.width[j] * np.abs(d[:, 0] * q[:, 1] - d[:, 1] * q[:, 0]) / np.hypot(d[:, 0], d[:, 1])
+    angle = np.arctan2(d[:, 1], d[:, 0]) % np.pi
+    trips = Triplets(xy, angle, width, 5 * width, np.ones(len(j)), np.zeros((len(j), 3, 2)))
+    return trips, ref, j, camera, rot
+
+
+def test_five_matches_fix_a_quadratic_correction_through_their_bars():
+    """Five matched triplets give 10 centre equations, fewer than a quadratic correction's 12
+    coefficients; with their bars' directions and widths (the map's derivative there, 10
+    more) the correction is the field itself: every triplet near them predicted exactly."""
+    trips, ref, j, camera, _ = _quadratic_field()
+    k = np.argsort(np.hypot(*(trips.centre - trips.centre.mean(axis=0)).T))[:5]
+    s, lin, t = P._fit_similarity(ref.centre[j[k]], trips.centre[k], False)
+    pose = P.Pose(s, lin, t)
+    pairs = [(int(i), int(j[i])) for i in k]
+    warp = P._correction(pose, ref, trips, pairs)
+    assert warp is not None and warp.degree == 2
+    centres, _ = P._smooth_prediction(pose, ref, trips, pairs)
+    base = pose.apply(ref.centre)
+    near = np.hypot(*((base[j] - warp.centre) / warp.scale).T) <= 1.6
+    assert near.sum() > 5  # triplets beyond the five matched are predicted
+    np.testing.assert_allclose(centres[j[near]], camera(ref.centre[j[near]]), atol=1e-6)
+    # the centres alone cannot: the similarity leaves px-sized errors there
+    assert np.abs(base[j[near]] - camera(ref.centre[j[near]])).max() > 1.0
+
+
+def test_the_expected_triplets_leave_out_a_wholly_finer_group_none_matched():
+    """A blurred image loses its finest group first: a pose matching only group 4 is judged
+    against group 4's expected triplets; a coarser group missing still counts."""
+    ref = _reference_triplets(None)
+    in4, in5 = ref.group == 4, ref.group == 5
+    expected = in4 | in5
+    match = np.full(len(ref.width), -1)
+    match[np.flatnonzero(in4)[:7]] = np.arange(7)
+    assert P._n_expected(expected, match, ref) == in4.sum()
+    # one group-5 triplet matched: group 5 is in view, all of it expected
+    match5 = match.copy()
+    match5[np.flatnonzero(in5)[0]] = 7
+    assert P._n_expected(expected, match5, ref) == expected.sum()
+    # only group 5 matched: the coarser group 4 missing is not excused
+    only5 = np.full(len(ref.width), -1)
+    only5[np.flatnonzero(in5)[:5]] = np.arange(5)
+    assert P._n_expected(expected, only5, ref) == expected.sum()

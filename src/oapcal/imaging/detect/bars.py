@@ -20,6 +20,12 @@ import numpy as np
 ASPECT_RANGE = (2.8, 8.5)
 #: Fraction of the blob's minimum-area rectangle its pixels must fill.
 MIN_FILL = 0.72
+#: A triplet's thresholded bar length per bar width (half its period; the target's is 5).
+#: Why up to 8: blur lengthens a bright bar at a local threshold by a few px whatever its
+#: width, and a relay stretches the bars' direction against their period: the LAB-UMK
+#: micrograph through the relay gives group 4's horizontal triplets 6.6-7.1 (6.6 refused
+#: them, and the target with them).
+LENGTH_PER_WIDTH = (3.6, 8.0)
 #: Smallest bar width (px) looked for: narrower bars are not resolved reliably.
 MIN_BAR_PX = 1.6
 
@@ -181,7 +187,7 @@ def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
                 period = 0.5 * (dl + dr)
                 wb = period / 2
                 lengths = bars[[jl, i, jr], 3]
-                if not 3.6 < lengths.mean() / wb < 6.6:
+                if not LENGTH_PER_WIDTH[0] < lengths.mean() / wb < LENGTH_PER_WIDTH[1]:
                     continue
                 pts = bars[[jl, i, jr], :2]
                 # irregularity: unequal spacing, widths, lengths, offsets along the bars

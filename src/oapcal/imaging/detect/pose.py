@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.imaging.detect.bars import Triplets
-from oapcal.imaging.detect.warp import PolyWarp
+from oapcal.imaging.detect.warp import PolyWarp, normalisation, poly_exponents
 
 #: Penalty per resolvable reference triplet predicted inside the image but not found.
 MISSING_PENALTY = 0.3
@@ -61,7 +61,9 @@ MIN_FOUND_FRACTION_ANCHORED = 0.25
 #: neighbours, which an affine correction leaves, so the pose stalled at 8 of 20 triplets
 #: and was refused without a given scale; 8 matches are 16 equations for the 12
 #: coefficients, and the correction is trusted only near the matches.
-QUADRATIC_MATCHES = 8
+QUADRATIC_MATCHES = 5
+#: Matched triplets from which the pose's prediction follows a smooth correction (affine).
+MIN_SMOOTH_MATCHES = 3
 #: Turns (deg) added to every seed when the seeds' own angles find no pose in any layout
 #: (``search_pose(turned_seeds=True)``, :func:`_turned_seeds`): under a strongly distorted
 #: field a triplet's bars are turned against the whole target's pose by up to 8-12 degrees
@@ -195,7 +197,8 @@ def _score(
     widens the position tolerance with the distance from it (a single triplet predicts its
     neighbours better than far triplets).
     Returns ``score`` (H,), ``n_missing`` (H,), the matched image index per
-    (hypothesis, reference triplet) (-1: none) and the number of expected triplets (H,)."""
+    (hypothesis, reference triplet) (-1: none) and the mask of the named groups' triplets
+    it expects to find (H, n: resolvable, inside)."""
     ref, listed = scene.ref, scene.listed
     h, w = scene.shape
     amat = pose_lin * pose_s[:, None, None]  # px per um, (H, 2, 2); may be non-orthogonal
@@ -209,8 +212,27 @@ def _score(
     missing = _missing(ok, inside, expected, wpred, ref, listed)
     score = _match_score(match, weight)
     score -= MISSING_PENALTY * missing
-    n_expected = (expected if listed is None else expected & listed[None, :]).sum(axis=1)
-    return score, missing, match, n_expected
+    expected_named = expected if listed is None else expected & listed[None, :]
+    return score, missing, match, expected_named
+
+
+def _n_expected(expected: np.ndarray, match: np.ndarray, ref: RefTriplets) -> int:
+    """The number of triplets one pose expects (``expected`` (n,) from :func:`_score`) that
+    its evidence is judged against: without a group none of whose triplets it matched when
+    that group is wholly finer than every triplet it matched.  Why: a blurred image loses
+    its finest group first; through the relay the LAB-UMK micrograph shows group 4's bars
+    and group 5's only at about 20 % modulation (no triplet), so the right pose, matching
+    7 of group 4's 12, counted 6 of group 5 as expected and was refused at 7 of 18.  A
+    coarser group missing is not excused (the pose two groups off would be)."""
+    matched = match >= 0
+    keep = expected.copy()
+    if matched.any():
+        finest = float(ref.width[matched].min())
+        for g in np.unique(ref.group[expected]):
+            in_g = ref.group == g
+            if not (matched & in_g).any() and float(ref.width[in_g].max()) < finest:
+                keep &= ~in_g
+    return int(keep.sum())
 
 
 def apply_maps(amat: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -308,20 +330,23 @@ def _match_score(match, weight) -> np.ndarray:
 
 def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs):
     """Centres of all reference triplets predicted by the similarity plus a smooth
-    correction fitted to the matched pairs (affine from 6 matches, quadratic from
-    :data:`QUADRATIC_MATCHES`), so that a distorted image (tens of px) is followed, and the
-    linear map at each (n, 2, 2): the pose's times the correction's derivative there, so
-    that the bars' direction and width follow the image's local turn and stretch too;
-    None when too few matches."""
-    n = len(pairs)
-    if n < 6:
+    correction fitted to the matched pairs, so that a distorted image (tens of px) is
+    followed, and the linear map at each (n, 2, 2): the pose's times the correction's
+    derivative there, so that the bars' direction and width follow the image's local turn
+    and stretch too; None when too few matches.
+
+    Each matched triplet gives four equations: its centre (two), and its bars' direction
+    and bar width, which are the map's derivative there (:func:`_derivative_rows`); the
+    correction is affine from :data:`MIN_SMOOTH_MATCHES` matches and quadratic from
+    :data:`QUADRATIC_MATCHES`.  Why the derivatives: through a strongly distorted field
+    (the LAB-UMK micrograph through the relay: local scales 0.7-1.26 and the axes sheared by
+    up to 19 degrees across group 4) the few triplets first matched predicted their
+    neighbours 8-16 px off from their centres alone, while their own bars already show the
+    local turn and stretch."""
+    warp = _correction(pose, ref, img, pairs)
+    if warp is None:
         return None
-    ii = np.array([p[0] for p in pairs])
-    jj = np.array([p[1] for p in pairs])
     base = pose.apply(ref.centre)
-    x = base[jj]
-    resid = img.centre[ii] - x
-    warp = PolyWarp.fit(x, resid, 2 if n >= QUADRATIC_MATCHES else 1)
     # only near the matched triplets is the correction trusted (it is a polynomial)
     corr = warp(base)
     far = np.hypot(*((base - warp.centre) / warp.scale).T) > 1.6
@@ -330,6 +355,66 @@ def _smooth_prediction(pose: Pose, ref: RefTriplets, img: Triplets, pairs):
     jac[far] = 0.0
     local = (np.eye(2)[None] + jac) @ pose.matrix()[None]
     return base + corr, local
+
+
+def _correction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> PolyWarp | None:
+    """The smooth correction (camera px -> px added to the pose's prediction) fitted to the
+    matched pairs' centres, bar directions and bar widths (:func:`_smooth_prediction`);
+    None when too few matches or degenerate."""
+    n = len(pairs)
+    if n < MIN_SMOOTH_MATCHES:
+        return None
+    ii = np.array([p[0] for p in pairs])
+    jj = np.array([p[1] for p in pairs])
+    base = pose.apply(ref.centre)
+    x = base[jj]
+    resid = img.centre[ii] - x
+    degree = 2 if n >= QUADRATIC_MATCHES else 1
+    centre, scale = normalisation(x)
+    nb = len(poly_exponents(degree))
+    shell = PolyWarp(centre, scale, np.zeros((nb, 2)), degree)
+    b0 = shell.basis(x)
+    zero = np.zeros_like(b0)
+    rows, rhs = _derivative_rows(shell, x, pose.matrix(), ref, img, ii, jj)
+    design = np.vstack([np.hstack([b0, zero]), np.hstack([zero, b0]), rows])
+    target = np.concatenate([resid[:, 0], resid[:, 1], rhs])
+    coef, _, rank, _ = np.linalg.lstsq(design, target, rcond=None)
+    if rank < 2 * nb or not np.isfinite(coef).all():
+        return None
+    return shell.with_coef(np.column_stack([coef[:nb], coef[nb:]]))
+
+
+def _derivative_rows(shell: PolyWarp, x, mat, ref: RefTriplets, img: Triplets, ii, jj):
+    """Two linear equations per matched triplet (image ``ii``, reference ``jj``, predicted at
+    ``x`` by the pose's linear part ``mat``) on the correction's coefficients (x's, then
+    y's, in ``shell``'s basis): the mapped bar direction parallel to the one found, and the
+    mapped bar period across it equal to the one found.  The map there is ``(I + C) mat``
+    with ``C`` the correction's derivative, linear in the coefficients.  Each equation is
+    weighted to px at the triplet's outer bars: an angle error ``d`` (rad) moves a bar's
+    end by ``2.5 w d``, a relative width error ``e`` the outer bars by ``2 w e``."""
+    dbx, dby = shell.basis_jacobian(x)
+    m = np.column_stack([np.cos(img.angle[ii]), np.sin(img.angle[ii])])  # found direction
+    m_perp = np.column_stack([-m[:, 1], m[:, 0]])
+    along = np.column_stack([np.cos(ref.angle[jj]), np.sin(ref.angle[jj])])
+    normal = np.column_stack([-np.sin(ref.angle[jj]), np.cos(ref.angle[jj])])
+    w_found = img.width[ii]
+    rows, rhs = [], []
+    # direction: cross((I + C) v, m) = 0 with v = mat @ along; (C v)_k = (v_x dbx + v_y dby) . c_k
+    v = along @ mat.T
+    r = v[:, :1] * dbx + v[:, 1:] * dby
+    vlen = np.hypot(v[:, 0], v[:, 1])
+    wt = 2.5 * w_found / vlen
+    rows.append(wt[:, None] * np.hstack([m[:, 1:] * r, -m[:, :1] * r]))
+    rhs.append(wt * (v[:, 1] * m[:, 0] - v[:, 0] * m[:, 1]))
+    # period: m_perp . (I + C) u = +-w_found / w_ref with u = mat @ normal (the sign the pose gives)
+    u = normal @ mat.T
+    r = u[:, :1] * dbx + u[:, 1:] * dby
+    now = (m_perp * u).sum(axis=1)
+    want = np.sign(now) * w_found / ref.width[jj]
+    wt = 2.0 * ref.width[jj]
+    rows.append(wt[:, None] * np.hstack([m_perp[:, :1] * r, m_perp[:, 1:] * r]))
+    rhs.append(wt * (want - now))
+    return np.vstack(rows), np.concatenate(rhs)
 
 
 def _refine(pose: Pose, scene: _Scene, n_iter=5) -> Pose:
@@ -342,13 +427,14 @@ def _refine(pose: Pose, scene: _Scene, n_iter=5) -> Pose:
     anchor = img.centre.mean(axis=0)
     for it in range(n_iter + 1):
         loose = 0.8 * 0.6**it
-        sc, miss, match, n_exp = _score(
+        sc, miss, match, expected = _score(
             np.array([pose.s]), pose.lin[None], pose.t[None], scene,
             pred=None if pred is None else pred[None], anchor=anchor[None], loose=loose, width_tol=WIDTH_TOL,
             local=None if local is None else local[None],
         )  # fmt: skip
         pairs = [(int(i), j) for j, i in enumerate(match[0]) if i >= 0]
-        new = Pose(pose.s, pose.lin, pose.t, float(sc[0]), pairs, int(miss[0]), int(n_exp[0]))
+        n_exp = _n_expected(expected[0], match[0], ref)
+        new = Pose(pose.s, pose.lin, pose.t, float(sc[0]), pairs, int(miss[0]), n_exp)
         if len(pairs) < 2 or it == n_iter:
             return new
         pairs_prev = pairs
