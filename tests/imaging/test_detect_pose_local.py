@@ -235,3 +235,43 @@ def test_the_expected_triplets_leave_out_a_wholly_finer_group_none_matched():
     only5 = np.full(len(ref.width), -1)
     only5[np.flatnonzero(in5)[:5]] = np.arange(5)
     assert P._n_expected(expected, only5, ref) == expected.sum()
+
+
+def test_a_correction_that_must_stretch_or_fold_the_pose_to_fit_is_not_used():
+    """Four matches whose bars lie across the field's own (turned by 90 degrees): the
+    correction that would fit them stretches the pose 58-fold (checked), which no relay does;
+    it is refused (None: the pose predicts alone), where the field's true bars give one."""
+    trips, ref, j, _, _ = _quadratic_field()
+    k = np.argsort(np.hypot(*(trips.centre - trips.centre.mean(axis=0)).T))[:4]
+    s, lin, t = P._fit_similarity(ref.centre[j[k]], trips.centre[k], False)
+    pose = P.Pose(s, lin, t)
+    pairs = [(int(i), int(j[i])) for i in k]
+    assert P._correction(pose, ref, trips, pairs) is not None
+    across = Triplets(trips.centre, (trips.angle + np.pi / 2) % np.pi, trips.width, trips.length,
+                      trips.polarity, trips.bars)  # fmt: skip
+    assert P._correction(pose, ref, across, pairs) is None
+
+
+def test_the_plausible_stretch_rule_on_known_maps():
+    """``I + C`` of an exactly affine correction: a 1.5x stretch and a 20 degree turn pass; a
+    collapsed direction, a 2.5x stretch, a mirror and a 40 degree turn do not."""
+    from oapcal.imaging.detect.warp import PolyWarp
+
+    x = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
+
+    def warp(m):
+        c = np.asarray(m, float) - np.eye(2)  # the correction's derivative: I + C = m
+        coef = np.zeros((3, 2))
+        coef[1], coef[2] = c[:, 0], c[:, 1]
+        return PolyWarp(np.zeros(2), 1.0, coef, 1)
+
+    def rot(deg):
+        r = np.deg2rad(deg)
+        return [[np.cos(r), -np.sin(r)], [np.sin(r), np.cos(r)]]
+
+    assert P._plausible_stretch(warp([[1.5, 0], [0, 1]]), x)
+    assert P._plausible_stretch(warp(rot(20)), x)
+    assert not P._plausible_stretch(warp([[1, 0], [0, 0]]), x)
+    assert not P._plausible_stretch(warp([[2.5, 0], [0, 1]]), x)
+    assert not P._plausible_stretch(warp([[1, 0], [0, -1]]), x)
+    assert not P._plausible_stretch(warp(rot(40)), x)

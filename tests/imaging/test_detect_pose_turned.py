@@ -1,6 +1,9 @@
 """The pose search's second pass with turned seeds (issue 20, item 1): under a strongly
 distorted field a triplet's bars are turned against the target's pose by several degrees,
-so a seed's own angle predicts the other triplets too poorly to find the pose."""
+so a seed's own angle predicts the other triplets too poorly to find the pose.  The cases
+turn every triplet's bars by 12 degrees against the pose: since the pose's smooth correction
+is fitted to the matched bars' directions too, 9 degrees is found from the seeds' own angles
+(14 of 14 triplets, checked), while 11-12 degrees still needs the turned seeds."""
 
 import numpy as np
 import pytest
@@ -41,7 +44,7 @@ def _search(trips, ref, turned_seeds):
 @pytest.mark.slow  # 5-13 s: three times the seeds of one search
 @pytest.mark.parametrize("turn_deg", [45.0, 135.0])
 def test_turned_seeds_find_a_pose_whose_bars_are_turned_against_it(turn_deg):
-    trips, ref, j, (s, phi) = _image_triplets(turn_deg, bar_error_deg=9.0)
+    trips, ref, j, (s, phi) = _image_triplets(turn_deg, bar_error_deg=12.0)
     res = _search(trips, ref, turned_seeds=True)
     assert res.status == 0, res.message
     best = res.pose
@@ -56,7 +59,7 @@ def test_turned_seeds_find_a_pose_whose_bars_are_turned_against_it(turn_deg):
 @pytest.mark.slow  # 5-8 s: one whole search
 def test_without_turned_seeds_the_same_triplets_are_refused():
     """The case above needs the turned seeds: the seeds' own angles find no pose."""
-    trips, ref, _, _ = _image_triplets(45.0, bar_error_deg=9.0)
+    trips, ref, _, _ = _image_triplets(45.0, bar_error_deg=12.0)
     res = _search(trips, ref, turned_seeds=False)
     assert res.status != 0 and res.kind == "not_found"
 
@@ -64,7 +67,7 @@ def test_without_turned_seeds_the_same_triplets_are_refused():
 def test_turned_seeds_keep_their_triplet_in_place():
     """Every seed also turned by each of SEED_TURNS_DEG about its own image triplet: the
     seed's reference triplet still lands on that triplet."""
-    trips, ref, _, _ = _image_triplets(45.0, bar_error_deg=9.0)
+    trips, ref, _, _ = _image_triplets(45.0, bar_error_deg=12.0)
     hyps = P._hypotheses(trips, ref, None, None, None, 120)
     h, n = P._turned_seeds(hyps), len(hyps.s)
     assert len(h.s) == n * (1 + len(P.SEED_TURNS_DEG))

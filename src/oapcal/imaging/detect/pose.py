@@ -64,6 +64,13 @@ MIN_FOUND_FRACTION_ANCHORED = 0.25
 QUADRATIC_MATCHES = 5
 #: Matched triplets from which the pose's prediction follows a smooth correction (affine).
 MIN_SMOOTH_MATCHES = 3
+#: The largest local stretch (either way) the smooth correction may add to the pose at a
+#: matched triplet (:func:`_plausible_stretch`).  Through the relay the local scales against
+#: the best similarity span 0.7-1.26 (the LAB-UMK render, group 4); against the refitted
+#: affine pose less; a stretch of 2 is beyond any of the renders.
+CORRECTION_STRETCH = 2.0
+#: ... and the largest local turn (deg): twice the bars' direction tolerance (ANGLE_TOL_DEG).
+CORRECTION_TURN_DEG = 28.0
 #: Turns (deg) added to every seed when the seeds' own angles find no pose in any layout
 #: (``search_pose(turned_seeds=True)``, :func:`_turned_seeds`): under a strongly distorted
 #: field a triplet's bars are turned against the whole target's pose by up to 8-12 degrees
@@ -381,7 +388,24 @@ def _correction(pose: Pose, ref: RefTriplets, img: Triplets, pairs) -> PolyWarp 
     coef, _, rank, _ = np.linalg.lstsq(design, target, rcond=None)
     if rank < 2 * nb or not np.isfinite(coef).all():
         return None
-    return shell.with_coef(np.column_stack([coef[:nb], coef[nb:]]))
+    warp = shell.with_coef(np.column_stack([coef[:nb], coef[nb:]]))
+    return warp if _plausible_stretch(warp, x) else None
+
+
+def _plausible_stretch(warp: PolyWarp, x: np.ndarray) -> bool:
+    """Whether the correction's local map ``I + C`` at the matched points ``x`` keeps the
+    orientation, stretches by :data:`CORRECTION_STRETCH` at most, either way, and turns by
+    :data:`CORRECTION_TURN_DEG` at most.  Why: a bar's
+    direction equation is homogeneous (``(I + C) v`` parallel to the bar found is also met
+    by ``(I + C) v = 0``), so a wrong pose with 3-4 matches could collapse its bars' direction
+    to fit them: on the LAB-UMK micrograph turned by 30 degrees such a pose (mirrored, 4
+    triplets, a singular value of 0.0) scored within the ambiguity margin of the right one."""
+    jac = np.eye(2)[None] + warp.jacobian(x)
+    sv = np.linalg.svd(jac, compute_uv=False)
+    lo, hi = 1.0 / CORRECTION_STRETCH, CORRECTION_STRETCH
+    turn = np.degrees(np.abs(np.arctan2(jac[:, 1, 0] - jac[:, 0, 1], jac[:, 0, 0] + jac[:, 1, 1])))
+    ok = (np.linalg.det(jac) > 0) & (sv >= lo).all(axis=1) & (sv <= hi).all(axis=1)
+    return bool((ok & (turn <= CORRECTION_TURN_DEG)).all())
 
 
 def _derivative_rows(shell: PolyWarp, x, mat, ref: RefTriplets, img: Triplets, ii, jj):
