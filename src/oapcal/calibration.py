@@ -514,14 +514,30 @@ def calibrate(
     return cal
 
 
-def fold_note(fold: dict) -> str:
+class Note(str):
+    """A note of :func:`calibrate` (:attr:`Calibration.notes`): its text, and ``kind``, what
+    it is about (``"rotation"``: the rotation policy fitted the target's turn too;
+    ``"fold"``: the model folds over beyond its landmarks; the rotation policy's choice of a
+    tilt is a ``"rotation"`` note too), so that a caller acts on the
+    kind, not on the words.  A ``str``, so printing and JSON see the text alone."""
+
+    kind: str
+
+    def __new__(cls, text: str, kind: str):
+        note = super().__new__(cls, text)
+        note.kind = kind
+        return note
+
+
+def fold_note(fold: dict) -> Note:
     """The note of a calibration that folds over beyond its landmarks (:func:`folds_beyond_bounds`)."""
     x, y = fold["point"]
-    return (
+    return Note(
         f"the model folds over beyond the reference points' bounds, at (x, y) = ({x:.6g}, {y:.6g}) "
         f"and over {100 * fold['fraction']:.1f} % of the {fold['region']}: it is extrapolated there "
         "(its predicted error is unbounded), so a correction's trust region ends before it; "
-        "a smaller model may correct the whole frame"
+        "a smaller model may correct the whole frame",
+        "fold",
     )
 
 
@@ -604,7 +620,7 @@ def _with_rotation(plain, norm, model, init, rotation: str, fit_options):
     spec = base + ROTATION_SUFFIX + (TILT_SUFFIX if tilt else "")
     angle = f"{turned.params[N_PARAMS]:+.3g} deg"
     if rotation == "fit":
-        return turned, (f"fitted {spec} (the target's rotation, {angle})",)
+        return turned, (Note(f"fitted {spec} (the target's rotation, {angle})", "rotation"),)
     if not turned.converged:
         if plain.converged or tilt or rotation != "auto":
             return plain, ()
@@ -620,7 +636,7 @@ def _with_rotation(plain, norm, model, init, rotation: str, fit_options):
         why = f"it lowers AICc by {plain.aicc - turned.aicc:.1f}"
     else:
         return plain, ()
-    return turned, (f"the target is turned by {angle}: fitted {spec}, because {why}",)
+    return turned, (Note(f"the target is turned by {angle}: fitted {spec}, because {why}", "rotation"),)
 
 
 def _with_tilt(plain, norm, mask, base: str, init, fit_options):
@@ -640,4 +656,4 @@ def _with_tilt(plain, norm, mask, base: str, init, fit_options):
     spec = base + ROTATION_SUFFIX + TILT_SUFFIX
     cause = plain.message.removeprefix("not converged: ")
     why = f"Eq. (1) alone and with the rotation did not converge ({cause})"
-    return tilted, (f"the target is seen at an angle: fitted {spec}, because {why}",)
+    return tilted, (Note(f"the target is seen at an angle: fitted {spec}, because {why}", "rotation"),)

@@ -95,7 +95,7 @@ def test_fit_whose_model_folds_inside_the_image_is_not_written(run_cli, tmp_path
     notes = json.loads(stdout)["notes"]
     assert len(notes) == 1 and "folds over beyond the reference points' bounds" in notes[0], notes
     assert notes[0] in err
-    # the rotation policy's undo hint is not appended to the fold's note
+    # the rotation policy's undo hint is not appended to the fold's note (its kind is "fold")
     assert "--rotation none" not in err
     (out / "c.json").unlink()
     # within the points' bounds it is refused: exit 3, nothing written

@@ -107,6 +107,7 @@ def test_turned_target_runs_away_without_the_rotation_and_converges_with_it():
     assert cal.params[-1] == pytest.approx(-0.46, abs=0.1)
     assert cal.residuals.mean_px < 0.5
     assert len(cal.notes) == 1 and "turned by -0.3" in cal.notes[0] and "did not converge" in cal.notes[0]
+    assert cal.notes[0].kind == "rotation"  # what `fit` offers to undo (--rotation none)
     kept = calibrate(u, data.xy_d, "paper", rotation="none")
     assert len(kept.params) == 13 and not kept.fit.converged and kept.notes == ()
 
@@ -183,8 +184,22 @@ def test_when_neither_eq1_nor_the_rotation_converges_the_perspective_is_fitted(m
     assert (
         len(cal.notes) == 1 and "seen at an angle" in cal.notes[0] and "paper+rotation+tilt" in cal.notes[0]
     )
+    assert cal.notes[0].kind == "rotation"
     # (the tilts trade off a little against the decentring terms; their signs are the truth's)
     assert (np.sign(cal.params[-2:]) == np.sign(truth[-2:])).all()
     assert cal.residuals.mean_px < 0.5
     # "none" keeps Eq. (1) as given, unconverged
     assert not calibrate(g, d, "paper", rotation="none", check=False, error_model=False).fit.converged
+
+
+def test_a_note_is_its_text_and_carries_its_kind():
+    """``Note`` is a ``str`` (printed and written to JSON as its text) with a ``kind``."""
+    import json
+
+    from oapcal.calibration import Note, fold_note
+
+    n = Note("fitted paper+rotation", "rotation")
+    assert n == "fitted paper+rotation" and n.kind == "rotation"
+    assert json.dumps([n]) == '["fitted paper+rotation"]'
+    fold = fold_note({"point": (1.0, 2.0), "fraction": 0.1, "region": "640x480 px image"})
+    assert fold.kind == "fold" and "folds over" in fold

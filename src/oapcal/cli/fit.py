@@ -82,8 +82,8 @@ def fit_command(points, model, init, normalization, um_per_px, image_size, out, 
         raise _unusable(exc) from None
     _check_fit_usable(cal, pairs.source)
     for note in cal.notes:
-        fitted = "fitted " in note  # the rotation policy's choice (not the fold beyond the landmarks)
-        how = " (--rotation none fits the model as given)" if fitted else ""
+        # the rotation policy's choice can be undone (not the fold beyond the landmarks)
+        how = " (--rotation none fits the model as given)" if getattr(note, "kind", "") == "rotation" else ""
         click.echo(f"oapcal: note: {note}{how}", err=True)
     write = out is not None and (cal.fit.converged or keep_unconverged)
     if write:
