@@ -166,3 +166,39 @@ def test_disputed_corners_on_two_other_elements_or_nowhere_decide_nothing():
     moved = _registration(["G4E1", "G4E2", "G4E3", "G4E4"], shift)
     assert checks.outvoted(disputed, moved.ids, moved.xy_d, a.ids, a.xy_d) == 0
     assert not core._combine([moved, a]).ok
+
+
+def test_a_triplet_of_unevenly_thresholded_bars_is_grouped():
+    """G4E1's vertical triplet of the LAB-UMK micrograph through the misaligned relay (seed
+    2), as the bar finder measured it: outer bars 9.0 and 7.7 px, the middle one 5.1 px
+    (found on different pyramid levels), at a period of 13.6 px; the period gives the
+    triplet's width."""
+    bars = np.array(
+        [
+            [302.5, 126.5, 9.00, 23.0, np.pi / 2],
+            [315.7, 124.9, 5.12, 23.0, np.pi / 2],
+            [329.7, 124.9, 7.68, 23.0, np.pi / 2],
+        ]
+    )
+    t = group_triplets(bars, np.ones(3))
+    assert len(t) == 1
+    np.testing.assert_allclose(t.centre[0], [315.7, 124.9])
+    assert t.width[0] == pytest.approx(13.6 / 2, abs=0.1)
+
+
+def test_a_triplet_squeezed_along_its_bars_is_grouped():
+    """G4E2's vertical triplet through the same relay: bars 18-19 px long at a period of
+    12.1 px, 3.0 bar widths (the target's 5, squeezed to 0.75 by the relay, the ends rounded
+    off by blur); two bars as long as they are wide apart are still no triplet."""
+    bars = np.array(
+        [
+            [370.5, 262.0, 7.00, 18.0, np.pi / 2],
+            [382.6, 263.5, 6.32, 19.2, np.pi / 2],
+            [395.0, 266.0, 6.00, 18.0, np.pi / 2],
+        ]
+    )
+    t = group_triplets(bars, np.ones(3))
+    assert len(t) == 1 and t.width[0] == pytest.approx(12.1 / 2, abs=0.1)
+    stubby = bars.copy()
+    stubby[:, 3] = 15.0  # 2.5 bar widths
+    assert len(group_triplets(stubby, np.ones(3))) == 0

@@ -24,8 +24,17 @@ MIN_FILL = 0.72
 #: Why up to 8: blur lengthens a bright bar at a local threshold by a few px whatever its
 #: width, and a relay stretches the bars' direction against their period: the LAB-UMK
 #: micrograph through the relay gives group 4's horizontal triplets 6.6-7.1 (6.6 refused
-#: them, and the target with them).
-LENGTH_PER_WIDTH = (3.6, 8.0)
+#: them, and the target with them).  Why down to 2.8: the same relay, misaligned, squeezes
+#: the other direction's bars along their length (local scales down to 0.75) while blur and
+#: the threshold round off their ends: G4E2's vertical triplet through the misaligned relay
+#: (seed 2) measured 3.04, and with 6-7 of group 4's triplets left the target was refused.
+LENGTH_PER_WIDTH = (2.8, 8.0)
+#: A triplet's outer bar's thresholded width per its middle bar's (the triplet's width is its
+#: period, not these).  Why this wide: a blurred bar's thresholded width depends on the window
+#: and pyramid level that found it (the widths come in steps of 1.6 px on the coarser levels)
+#: and on its neighbours; G4E1's vertical triplet of the LAB-UMK micrograph through the
+#: misaligned relay (seed 2) measured 9.0, 5.1 and 7.7 px at a period of 13.6 px.
+NEIGHBOUR_WIDTH_RATIO = (1 / 1.8, 1.8)
 #: Smallest bar width (px) looked for: narrower bars are not resolved reliably.
 MIN_BAR_PX = 1.6
 
@@ -175,7 +184,7 @@ def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
             if (
                 dth < np.deg2rad(10)
                 and abs(da) < 0.2 * length + 1
-                and 0.7 < bars[j, 2] / w < 1.45
+                and NEIGHBOUR_WIDTH_RATIO[0] < bars[j, 2] / w < NEIGHBOUR_WIDTH_RATIO[1]
                 and 0.75 < bars[j, 3] / length < 1.33
                 and 1.55 * w_lo - 0.5 < abs(dn) < 2.5 * w_hi + 0.8
             ):

@@ -52,7 +52,7 @@ from oapcal.imaging.detect.registration import (
     initial_warp,
     region_pixels,
 )
-from oapcal.imaging.detect.triplet import TripletContext, refine_triplet
+from oapcal.imaging.detect.triplet import TripletContext, refine_element, refine_triplet
 from oapcal.imaging.detect.warp import PolyWarp
 from oapcal.imaging.usaf import (
     ORIENTATIONS,
@@ -748,6 +748,8 @@ class _Kept:
     se: np.ndarray
     dropped: dict
     infos: list
+    #: (bar indices, reason, corners expected inside) of every triplet dropped
+    failed: list = field(default_factory=list)
 
 
 def _detect_from_pose(img, found: _PoseFound, opts: _Options, empty, bar):
@@ -863,14 +865,14 @@ def _model_boxes(target, source, u_ref, size, orient, near_um=None):
     return rects, masks
 
 
-def _refine_triplets(target, inside, w, h, m, refine, bar) -> _Kept:
-    """Refine every triplet with a corner expected ``inside`` the image (margin ``m``):
-    ``refine(bars, idx)`` returns ``(reason, xy, se, info)`` for its corner indices ``idx``."""
-    keep_idx, keep_xy, keep_se, infos = [], [], [], []
+def _refine_triplets(target, inside, w, h, m, refine, bar, triplets=None) -> _Kept:
+    """Refine every triplet (of ``triplets``, default the target's) with a corner expected
+    ``inside`` the image (margin ``m``): ``refine(bars, idx)`` returns ``(reason, xy, se,
+    info)`` for its corner indices ``idx``."""
+    keep_idx, keep_xy, keep_se, infos, failed = [], [], [], [], []
     dropped = dict.fromkeys(DROP_REASONS, 0)
-    for bars in target.triplets():
-        idx = np.concatenate([4 * bars + c for c in range(4)])
-        idx.sort()
+    for bars in target.triplets() if triplets is None else triplets:
+        idx = _corner_indices(bars)
         n_in = int(inside[idx].sum())
         if n_in == 0:
             bar.advance()
@@ -879,6 +881,7 @@ def _refine_triplets(target, inside, w, h, m, refine, bar) -> _Kept:
         bar.advance()
         if reason is not None:
             dropped[reason] += n_in
+            failed.append((tuple(int(b) for b in bars), reason, n_in))
             continue
         infos.append(info)
         ok = ImageSize(w, h).contains(xy, m + KEEP_MARGIN_EXTRA_PX)
@@ -895,7 +898,74 @@ def _refine_triplets(target, inside, w, h, m, refine, bar) -> _Kept:
         np.asarray(keep_se, float)[order],
         dropped,
         infos,
+        failed,
     )
+
+
+def _refine_twice(ctx: TripletContext, target, inside, w, h, m, bar) -> tuple[_Kept, _Kept]:
+    """Every triplet refined (:func:`_refine_triplets`); then each element with a triplet
+    dropped as moved or for its contrast is registered as a whole (:func:`refine_element`:
+    both triplets' pixels, an affine correction that may move it by up to two bar widths) and
+    those triplets are refined again from that element's prediction.
+
+    Why: a triplet's refinement may move its corners by at most half a bar width from the
+    registration's prediction (a larger move may be a slip onto the next bar), and the
+    registration of a strongly blurred image through a strongly distorted field can be off
+    by more than that where the bars are finest: the LAB-UMK micrograph through a misaligned
+    relay (seed 2) had group 5's corners predicted 1.1-4.3 px off the truth (half its bar
+    widths: 0.9-1.6 px), and no smooth correction of the registration from the refined
+    group-4 corners predicts them better (a cubic through group 4's true corners leaves
+    2.5 px median there).  One element's two triplets, turned a quarter turn to each other,
+    pin its place where one triplet cannot (measured there: G5E2-E6 within 0.07-0.36 px
+    median of the truth, moved by 0.65-1.3 bar widths).  The second refinement holds every
+    check of the first against the element's prediction; the consistency check then judges
+    all kept corners together.  Returns the first pass and the union of both (the first
+    pass itself when nothing was refined again)."""
+    first = _refine_triplets(target, inside, w, h, m, functools.partial(refine_triplet, ctx), bar)
+    retry = [bars for bars, reason, _ in first.failed if reason in ("moved", "contrast")]
+    if not retry:
+        return first, first
+    members: dict = {}
+    for bars in target.triplets():
+        members.setdefault(_element_key(target, bars), []).extend(int(b) for b in bars)
+    contexts: dict = {}
+
+    def refine_again(bars, idx):
+        key = _element_key(target, bars)
+        if key not in contexts:
+            all_bars = np.array(members[key])
+            contexts[key] = refine_element(ctx, all_bars, _corner_indices(all_bars))
+        again = contexts[key]
+        return ("moved", None, None, None) if again is None else refine_triplet(again, bars, idx)
+
+    second = _refine_triplets(target, inside, w, h, m, refine_again, bar, [np.array(b) for b in retry])
+    dropped = dict(first.dropped)
+    for bars, reason, n in first.failed:
+        if bars in retry:
+            dropped[reason] -= n
+    for reason, n in second.dropped.items():
+        dropped[reason] += n
+    idx = np.concatenate([first.idx, second.idx])
+    order = np.argsort(idx)
+    both = _Kept(
+        idx[order],
+        np.concatenate([first.xy, second.xy])[order],
+        np.concatenate([first.se, second.se])[order],
+        dropped,
+        first.infos + second.infos,
+        [f for f in first.failed if f[0] not in retry] + second.failed,
+    )
+    return first, both
+
+
+def _corner_indices(bars) -> np.ndarray:
+    """The sorted indices of the four corners of each bar of ``bars``."""
+    return np.sort(np.concatenate([4 * np.asarray(bars) + c for c in range(4)]))
+
+
+def _element_key(target, bars) -> tuple[int, int]:
+    """(group, element) of a triplet's bars."""
+    return int(target.bar_group[bars[0]]), int(target.bar_element[bars[0]])
 
 
 def _replace(det: Detection, **changes) -> Detection:
@@ -1089,9 +1159,16 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
     ctx = TripletContext(img, warp, start.rects, start.masks, target, corners_u, pred, res.a, res.b, sigma,
                          um_per_px, opts.max_stderr_px, opts.ambiguity_ratio,
                          orientation_matrix(best)[0, 0] == 0)  # fmt: skip
-    kept = _refine_triplets(target, inside, w, h, m, functools.partial(refine_triplet, ctx), bar)
-    width_px = target.corner_width_um[kept.idx] / um_per_px
-    check = check_consistency(corners_u[kept.idx], kept.xy, width_px, opts.consistency_model)
+    first, kept = _refine_twice(ctx, target, inside, w, h, m, bar)
+    check = check_consistency(corners_u[kept.idx], kept.xy, target.corner_width_um[kept.idx] / um_per_px,
+                              opts.consistency_model)  # fmt: skip
+    if check.status != 0 and kept is not first:
+        # the elements registered one by one must not cost the registration its corners: the
+        # union is kept only when it passes the global check (its outliers then dropped),
+        # else the first pass alone is judged
+        kept = first
+        check = check_consistency(corners_u[kept.idx], kept.xy, target.corner_width_um[kept.idx] / um_per_px,
+                                  opts.consistency_model)  # fmt: skip
     # expected: the corners of resolved bars (as the triplet path counts them) and any
     # narrower ones kept, so that the coverage of both paths means the same
     expected = inside & (target.corner_width_um / um_per_px >= RESOLVED_BAR_PX)

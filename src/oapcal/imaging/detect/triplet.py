@@ -3,7 +3,7 @@ contrast and blur, fitted to the pixels around the triplet; corners by Newton.""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -18,6 +18,9 @@ from oapcal.imaging.detect.registration import (
 )
 from oapcal.imaging.detect.warp import PolyWarp, newton_invert
 
+#: How far (bar widths) an element's registration (:func:`refine_element`) may move it: its
+#: two triplets, a quarter turn to each other, leave no slip by one bar period.
+ELEMENT_MAX_SHIFT = 2.0
 #: Largest number of pixels one triplet's fit uses (a regular subsample beyond: a large
 #: triplet has far more pixels than its 8 parameters need).
 MAX_TRIPLET_PIXELS = 12_000
@@ -97,6 +100,48 @@ def refine_triplet(ctx: TripletContext, bars, idx):
     if se.max() > ctx.max_stderr_px:
         return "uncertain", None, None, None
     return None, xy, se, {"ncc": res.ncc, "sigma": res.sigma, "b": res.b}
+
+
+def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
+    """``ctx`` with its registration corrected for one element (the ``bars`` of both its
+    triplets, corner indices ``idx``): an affine correction fitted to the element's pixels,
+    which may move it by up to :data:`ELEMENT_MAX_SHIFT` bar widths, and the element's
+    corners predicted through it; None when the fit fails or its contrast is not the
+    registration's (``core._refine_twice`` says why)."""
+    local = _local_pixels(ctx, bars, idx)
+    if local is None:
+        return None
+    a, b = ctx.a, ctx.b
+    if a is None:
+        a, b = _linear_contrast(local.data, ctx.sigma, b)
+        if a is None:
+            return None
+    w_ref, sigma = local.w_ref, ctx.sigma
+    options = FitOptions(
+        fit_sigma=True, sigma_max=max(1.2 * w_ref, 1.5 * sigma, 1.0), max_shift=ELEMENT_MAX_SHIFT * w_ref
+    )
+    res = fit_pixels(local.data, FitStart(np.zeros((3, 2)), a, b, sigma), options)
+    if not (res.converged and np.isfinite(res.coef).all()) or np.sign(res.b) != np.sign(b):
+        return None
+    warp = _with_affine(ctx.warp, local, res.coef)
+    pred = ctx.pred.copy()
+    pred[idx] = warp.inverse(ctx.corners_u[idx], x0=ctx.pred[idx])
+    if not np.isfinite(pred[idx]).all():
+        return None
+    return replace(ctx, warp=warp, pred=pred)
+
+
+def _with_affine(warp: PolyWarp, local: _Local, coef: np.ndarray) -> PolyWarp:
+    """``warp`` plus the local affine correction ``coef`` (in the basis ``1, (x - x_t) / l_t``
+    of :func:`_local_warp`) as one :class:`PolyWarp`: the same map, in ``warp``'s basis
+    (``1, (x - centre) / scale, ...``)."""
+    k = warp.scale / local.l_t
+    shift = (warp.centre - local.x_t) / local.l_t
+    out = warp.coef.copy()
+    out[0] += coef[0] + shift[0] * coef[1] + shift[1] * coef[2]
+    out[1] += k * coef[1]
+    out[2] += k * coef[2]
+    return warp.with_coef(out)
 
 
 def _local_pixels(ctx: TripletContext, bars, idx) -> _Local | None:

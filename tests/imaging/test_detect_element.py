@@ -1,0 +1,110 @@
+"""An element registered as a whole (``triplet.refine_element``) and the dense path's second
+refinement of the triplets its first pass dropped (``core._refine_twice``, issue 20)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from oapcal.imaging.detect import core
+from oapcal.imaging.detect import triplet as T
+from oapcal.imaging.detect.warp import PolyWarp
+
+
+def test_the_element_correction_is_the_local_warp_as_one_polywarp():
+    """``_with_affine`` gives the map ``_local_warp`` evaluates, to rounding."""
+    rng = np.random.default_rng(3)
+    warp = PolyWarp(
+        np.array([300.0, 200.0]), 250.0, rng.normal(size=(10, 2)) * [[100], [200], [200], *[[5]] * 7], 3
+    )
+    local = T._Local(None, np.array([120.0, 340.0]), 17.0, 4.0)
+    coef = rng.normal(size=(3, 2)) * [[1.5], [0.3], [0.3]]
+    x = rng.uniform(0, 640, size=(50, 2))
+    func, jac = T._local_warp(warp, local, coef)
+    both = T._with_affine(warp, local, coef)
+    np.testing.assert_allclose(both(x), func(x), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(both.jacobian(x), jac(x), rtol=0, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def registration():
+    """The dense path's triplet context on a simulated image of groups 4-5 through the
+    setup-1 field, and its first refinement of every triplet."""
+    from oapcal.imaging.field import setup1_like_field
+    from oapcal.imaging.simulate import simulate_image
+
+    sim = simulate_image((4, 5), setup1_like_field(), sigma_px=0.8, snr=50, seed=7)
+    seen = {}
+    real = core._refine_twice
+
+    def spy(ctx, *args):
+        seen["ctx"] = ctx
+        return real(ctx, *args)
+
+    core._refine_twice = spy
+    try:
+        det = core.detect_usaf(sim.image, (4, 5))
+    finally:
+        core._refine_twice = real
+    assert det.ok
+    return seen["ctx"], sim
+
+
+def _element(ctx, g, e):
+    t = ctx.target
+    bars = np.array([b for b in range(len(t.bar_group)) if t.bar_group[b] == g and t.bar_element[b] == e])
+    return bars, core._corner_indices(bars)
+
+
+def _shifted(ctx, shift_ref):
+    """``ctx`` with its registration off by ``shift_ref`` reference px everywhere."""
+    coef = ctx.warp.coef.copy()
+    coef[0] += shift_ref
+    warp = ctx.warp.with_coef(coef)
+    return replace(ctx, warp=warp, pred=warp.inverse(ctx.corners_u, x0=ctx.pred))
+
+
+def test_an_element_off_by_more_than_half_a_bar_is_registered_again(registration):
+    """The registration off by 1.3 bar widths (diagonally) at G5E1: each triplet's own
+    refinement moves too far and is dropped; the element registered as a whole brings both
+    triplets' corners back to where the right registration puts them."""
+    ctx, _ = registration
+    bars, idx = _element(ctx, 5, 1)
+    h_bars, v_bars = bars[:3], bars[3:]
+    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
+    right = {}
+    for tb in (h_bars, v_bars):
+        ti = core._corner_indices(tb)
+        reason, xy, _, _ = T.refine_triplet(ctx, tb, ti)
+        assert reason is None
+        right[tuple(tb)] = xy
+    off = _shifted(ctx, 1.3 * w_ref / np.sqrt(2) * np.array([1.0, 1.0]))
+    for tb in (h_bars, v_bars):
+        reason, _, _, _ = T.refine_triplet(off, tb, core._corner_indices(tb))
+        assert reason == "moved"
+    again = T.refine_element(off, bars, idx)
+    assert again is not None
+    for tb in (h_bars, v_bars):
+        reason, xy, _, _ = T.refine_triplet(again, tb, core._corner_indices(tb))
+        assert reason is None
+        assert np.hypot(*(xy - right[tuple(tb)]).T).max() < 0.05
+
+
+def test_the_second_pass_keeps_what_the_first_kept_and_adds_the_element(registration):
+    """``_refine_twice`` on the shifted registration of one element's neighbourhood: the
+    first pass drops G5E1 (moved), the union has its 24 corners back."""
+    ctx, sim = registration
+    bars, idx = _element(ctx, 5, 1)
+    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
+    off = _shifted(ctx, 1.3 * w_ref / np.sqrt(2) * np.array([1.0, 1.0]))
+    h, w = sim.image.shape
+    inside = np.zeros(len(ctx.corners_u), bool)
+    inside[idx] = True
+    first, both = core._refine_twice(off, ctx.target, inside, w, h, 3.0, _Quiet())
+    assert len(first.idx) == 0 and first.dropped["moved"] == 24
+    assert sorted(both.idx) == sorted(idx) and both.dropped["moved"] == 0
+
+
+class _Quiet:
+    def advance(self, *_):
+        pass
