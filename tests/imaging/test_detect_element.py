@@ -108,3 +108,18 @@ def test_the_second_pass_keeps_what_the_first_kept_and_adds_the_element(registra
 class _Quiet:
     def advance(self, *_):
         pass
+
+
+def test_bars_narrower_than_the_bar_finder_looks_for_are_not_registered_again(registration, monkeypatch):
+    """Only triplets whose bars the bar finder would look for (``bars.MIN_BAR_PX``) are
+    refined again: with the limit above G5E1's 3.3 px the shifted element stays dropped."""
+    ctx, sim = registration
+    bars, idx = _element(ctx, 5, 1)
+    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
+    off = _shifted(ctx, 1.3 * w_ref / np.sqrt(2) * np.array([1.0, 1.0]))
+    h, w = sim.image.shape
+    inside = np.zeros(len(ctx.corners_u), bool)
+    inside[idx] = True
+    monkeypatch.setattr(core, "MIN_BAR_PX", 1.1 * w_ref)
+    first, both = core._refine_twice(off, ctx.target, inside, w, h, 3.0, _Quiet())
+    assert both is first and len(both.idx) == 0
