@@ -97,3 +97,16 @@ def test_newton_invert_solves_each_row():
 
     x = np.array([[1.0, 2.0], [-3.0, 0.5]])
     assert np.allclose(newton_invert(func, jac, func(x), np.zeros_like(x)), x, atol=1e-10)
+
+
+def test_fit_pixels_on_a_flat_patch_reports_no_correlation_and_no_warning():
+    """Pixels all of one value (the uniform fill around a turned image) gave a NaN ``ncc``
+    with numpy's divide warning; it is 0."""
+    import warnings
+
+    data, _ = _bars_problem()
+    flat = PixelData(np.full_like(data.values, 0.5), data.base_u, data.basis, data.ref)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = fit_pixels(flat, FitStart(np.zeros((3, 2)), 0.15, 0.7, 1.0), FitOptions(fit_sigma=True))
+    assert res.ncc == 0.0

@@ -252,7 +252,8 @@ def fit_pixels(data: PixelData, start: FitStart, options: FitOptions) -> LMResul
     except np.linalg.LinAlgError:
         cov = np.full((len(theta),) * 2, np.nan)
     model = values - cur[0]
-    ncc = float(np.corrcoef(values, model)[0, 1]) if np.std(model) > 0 else 0.0
+    # a flat patch (e.g. the uniform fill of a turned image's canvas) has no correlation to report
+    ncc = float(np.corrcoef(values, model)[0, 1]) if np.std(model) > 0 and np.std(values) > 0 else 0.0
     return LMResult(c, float(a_), float(b_), float(s), cost, cov, converged, n_iter, ncc)
 
 
