@@ -923,10 +923,11 @@ def _refine_twice(ctx: TripletContext, target, inside, w, h, m, bar) -> tuple[_K
     all kept corners together.  Returns the first pass and the union of both (the first
     pass itself when nothing was refined again)."""
     first = _refine_triplets(target, inside, w, h, m, functools.partial(refine_triplet, ctx), bar)
-    # only bars the bar finder looks for (MIN_BAR_PX): registered on their own, G7E2-E5 of
-    # the real LAB-UMK image (bars 0.7-1.0 px) came 1.0-1.5 bar widths off the prediction of
-    # the benchmark's anchors, which counts them as wrong ids
-    resolved = target.bar_width / ctx.um_per_px >= MIN_BAR_PX
+    # only bars the bar finder looks for (MIN_BAR_PX) and wider than the registration's blur:
+    # registered on their own, G7E2-E5 of the real LAB-UMK image (bars 0.7-1.0 px) came
+    # 1.0-1.5 bar widths off the prediction of the benchmark's anchors, which counts them as
+    # wrong ids, and bars under a blur of 5 px (the detection sweep) 1-2 px off their truth
+    resolved = target.bar_width / ctx.um_per_px >= max(MIN_BAR_PX, ctx.sigma)
     retry = [
         bars for bars, reason, _ in first.failed if reason in ("moved", "contrast") and resolved[bars[0]]
     ]
