@@ -90,17 +90,29 @@ def test_an_element_off_by_more_than_half_a_bar_is_registered_again(registration
         assert np.hypot(*(xy - right[tuple(tb)]).T).max() < 0.05
 
 
+def _twice_on_g5e1(ctx, sim, **changes):
+    """``_refine_twice`` on G5E1 alone, the registration (``ctx`` with ``changes``) shifted
+    by 1.3 bar widths diagonally there: ``(first, both)``."""
+    bars, idx = _element(ctx, 5, 1)
+    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
+    off = _shifted(replace(ctx, **changes), 1.3 * w_ref / np.sqrt(2) * np.array([1.0, 1.0]))
+    h, w = sim.image.shape
+    inside = np.zeros(len(ctx.corners_u), bool)
+    inside[idx] = True
+    return core._refine_twice(off, ctx.target, inside, w, h, 3.0, _Quiet())
+
+
+def _g5e1_bar_px(ctx):
+    bars, _ = _element(ctx, 5, 1)
+    return float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
+
+
 def test_the_second_pass_keeps_what_the_first_kept_and_adds_the_element(registration):
     """``_refine_twice`` on the shifted registration of one element's neighbourhood: the
     first pass drops G5E1 (moved), the union has its 24 corners back."""
     ctx, sim = registration
-    bars, idx = _element(ctx, 5, 1)
-    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
-    off = _shifted(ctx, 1.3 * w_ref / np.sqrt(2) * np.array([1.0, 1.0]))
-    h, w = sim.image.shape
-    inside = np.zeros(len(ctx.corners_u), bool)
-    inside[idx] = True
-    first, both = core._refine_twice(off, ctx.target, inside, w, h, 3.0, _Quiet())
+    _, idx = _element(ctx, 5, 1)
+    first, both = _twice_on_g5e1(ctx, sim)
     assert len(first.idx) == 0 and first.dropped["moved"] == 24
     assert sorted(both.idx) == sorted(idx) and both.dropped["moved"] == 0
 
@@ -114,14 +126,8 @@ def test_bars_narrower_than_the_bar_finder_looks_for_are_not_registered_again(re
     """Only triplets whose bars the bar finder would look for (``bars.MIN_BAR_PX``) are
     refined again: with the limit above G5E1's 3.3 px the shifted element stays dropped."""
     ctx, sim = registration
-    bars, idx = _element(ctx, 5, 1)
-    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
-    off = _shifted(ctx, 1.3 * w_ref / np.sqrt(2) * np.array([1.0, 1.0]))
-    h, w = sim.image.shape
-    inside = np.zeros(len(ctx.corners_u), bool)
-    inside[idx] = True
-    monkeypatch.setattr(core, "MIN_BAR_PX", 1.1 * w_ref)
-    first, both = core._refine_twice(off, ctx.target, inside, w, h, 3.0, _Quiet())
+    monkeypatch.setattr(core, "MIN_BAR_PX", 1.1 * _g5e1_bar_px(ctx))
+    first, both = _twice_on_g5e1(ctx, sim)
     assert both is first and len(both.idx) == 0
 
 
@@ -129,11 +135,5 @@ def test_bars_under_a_blur_wider_than_themselves_are_not_registered_again(regist
     """Nor those narrower than the registration's blur: under a blur of 5 px the detection
     sweep's G5 corners came 1-2 px off their truth when registered on their own."""
     ctx, sim = registration
-    bars, idx = _element(ctx, 5, 1)
-    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
-    off = _shifted(replace(ctx, sigma=1.1 * w_ref), 1.3 * w_ref / np.sqrt(2) * np.array([1.0, 1.0]))
-    h, w = sim.image.shape
-    inside = np.zeros(len(ctx.corners_u), bool)
-    inside[idx] = True
-    first, both = core._refine_twice(off, ctx.target, inside, w, h, 3.0, _Quiet())
+    first, both = _twice_on_g5e1(ctx, sim, sigma=1.1 * _g5e1_bar_px(ctx))
     assert both is first
