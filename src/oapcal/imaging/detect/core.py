@@ -1167,16 +1167,19 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
     ctx = TripletContext(img, warp, start.rects, start.masks, target, corners_u, pred, res.a, res.b, sigma,
                          um_per_px, opts.max_stderr_px, opts.ambiguity_ratio,
                          orientation_matrix(best)[0, 0] == 0)  # fmt: skip
+
+    def judged(k: _Kept):
+        return check_consistency(corners_u[k.idx], k.xy, target.corner_width_um[k.idx] / um_per_px,
+                                 opts.consistency_model)  # fmt: skip
+
     first, kept = _refine_twice(ctx, target, inside, w, h, m, bar)
-    check = check_consistency(corners_u[kept.idx], kept.xy, target.corner_width_um[kept.idx] / um_per_px,
-                              opts.consistency_model)  # fmt: skip
+    check = judged(kept)
     if check.status != 0 and kept is not first:
         # the elements registered one by one must not cost the registration its corners: the
         # union is kept only when it passes the global check (its outliers then dropped),
         # else the first pass alone is judged
         kept = first
-        check = check_consistency(corners_u[kept.idx], kept.xy, target.corner_width_um[kept.idx] / um_per_px,
-                                  opts.consistency_model)  # fmt: skip
+        check = judged(kept)
     # expected: the corners of resolved bars (as the triplet path counts them) and any
     # narrower ones kept, so that the coverage of both paths means the same
     expected = inside & (target.corner_width_um / um_per_px >= RESOLVED_BAR_PX)

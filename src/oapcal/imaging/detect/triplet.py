@@ -70,21 +70,11 @@ class _Local:
 def refine_triplet(ctx: TripletContext, bars, idx):
     """Local affine refinement of the triplet of ``bars`` (corner indices ``idx``); returns
     (drop reason or None, xy, stderr, info) (:class:`TripletContext` for the start)."""
-    local = _local_pixels(ctx, bars, idx)
-    if local is None:
-        return "outside", None, None, None
-    a, b = ctx.a, ctx.b
-    if a is None:
-        a, b = _linear_contrast(local.data, ctx.sigma, b)
-        if a is None:
-            return "contrast", None, None, None
-    # Bounds: the blur at most about a bar width (beyond, the bars are not resolved and the
-    # corners are meaningless), the local correction at most a bar width anywhere.
-    w_ref, sigma = local.w_ref, ctx.sigma
-    options = FitOptions(
-        fit_sigma=True, sigma_max=max(1.2 * w_ref, 1.5 * sigma, 1.0), max_shift=max(w_ref, 2.0)
-    )
-    res = fit_pixels(local.data, FitStart(np.zeros((3, 2)), a, b, sigma), options)
+    # the local correction at most a bar width anywhere
+    reason, local, res, b = _fit_local(ctx, bars, idx, widths=1.0, floor_px=2.0)
+    if reason is not None:
+        return reason, None, None, None
+    w_ref = local.w_ref
     func, jac = _local_warp(ctx.warp, local, res.coef)
     pred = ctx.pred[idx]
     xy = newton_invert(func, jac, ctx.corners_u[idx], pred)
@@ -108,20 +98,12 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     which may move it by up to :data:`ELEMENT_MAX_SHIFT` bar widths, and the element's
     corners predicted through it; None when the fit fails or its contrast is not the
     registration's (``core._refine_twice`` says why)."""
-    local = _local_pixels(ctx, bars, idx)
-    if local is None:
-        return None
-    a, b = ctx.a, ctx.b
-    if a is None:
-        a, b = _linear_contrast(local.data, ctx.sigma, b)
-        if a is None:
-            return None
-    w_ref, sigma = local.w_ref, ctx.sigma
-    options = FitOptions(
-        fit_sigma=True, sigma_max=max(1.2 * w_ref, 1.5 * sigma, 1.0), max_shift=ELEMENT_MAX_SHIFT * w_ref
-    )
-    res = fit_pixels(local.data, FitStart(np.zeros((3, 2)), a, b, sigma), options)
-    if not (res.converged and np.isfinite(res.coef).all()) or np.sign(res.b) != np.sign(b):
+    reason, local, res, b = _fit_local(ctx, bars, idx, widths=ELEMENT_MAX_SHIFT, floor_px=0.0)
+    if (
+        reason is not None
+        or not (res.converged and np.isfinite(res.coef).all())
+        or np.sign(res.b) != np.sign(b)
+    ):
         return None
     warp = _with_affine(ctx.warp, local, res.coef)
     pred = ctx.pred.copy()
@@ -129,6 +111,28 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     if not np.isfinite(pred[idx]).all():
         return None
     return replace(ctx, warp=warp, pred=pred)
+
+
+def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float):
+    """The local affine correction of the registration fitted to the pixels around ``bars``
+    (corner indices ``idx``), moving no pixel by more than ``widths`` bar widths (at least
+    ``floor_px``), for :func:`refine_triplet` and :func:`refine_element`: ``(drop reason or
+    None, local pixels, fit, starting contrast)``.  The blur is bounded by about a bar width:
+    beyond, the bars are not resolved and the corners are meaningless."""
+    local = _local_pixels(ctx, bars, idx)
+    if local is None:
+        return "outside", None, None, None
+    a, b = ctx.a, ctx.b
+    if a is None:
+        a, b = _linear_contrast(local.data, ctx.sigma, b)
+        if a is None:
+            return "contrast", None, None, None
+    w_ref, sigma = local.w_ref, ctx.sigma
+    options = FitOptions(
+        fit_sigma=True, sigma_max=max(1.2 * w_ref, 1.5 * sigma, 1.0), max_shift=max(widths * w_ref, floor_px)
+    )
+    res = fit_pixels(local.data, FitStart(np.zeros((3, 2)), a, b, sigma), options)
+    return None, local, res, b
 
 
 def _with_affine(warp: PolyWarp, local: _Local, coef: np.ndarray) -> PolyWarp:
