@@ -69,7 +69,9 @@ from oapcal.records import ImageSize
 #: the last level (blur None) uses the image as it is and fits the blur.
 LEVELS = ((6.0, 1), (3.0, 2), (1.5, 3), (None, 4))
 #: Reason keys of dropped triplets, in the order they are checked.
-DROP_REASONS = ("not_converged", "contrast", "moved", "ambiguous", "uncertain", "outside", "inconsistent")
+DROP_REASONS = (
+    "not_converged", "contrast", "moved", "ambiguous", "uncertain", "outside", "inconsistent", "unresolved"
+)
 #: The orientation is ambiguous when the second-best orientation's correlation reaches
 #: this fraction of the best (measured on relay images: about 0.6).
 ORIENTATION_RATIO = 0.9

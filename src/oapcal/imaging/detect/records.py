@@ -107,7 +107,9 @@ class DroppedCounts(Record):
     """Corners dropped, by reason (:data:`~oapcal.imaging.detect.core.DROP_REASONS`, in that
     order); a reason with none is left out of the keys."""
 
-    _OPTIONAL = ("not_converged", "contrast", "moved", "ambiguous", "uncertain", "outside", "inconsistent")
+    _OPTIONAL = (
+        "not_converged", "contrast", "moved", "ambiguous", "uncertain", "outside", "inconsistent", "unresolved"
+    )  # fmt: skip
 
     not_converged: int | None = None
     contrast: int | None = None
@@ -116,6 +118,7 @@ class DroppedCounts(Record):
     uncertain: int | None = None
     outside: int | None = None
     inconsistent: int | None = None
+    unresolved: int | None = None
 
     @classmethod
     def from_counts(cls, counts: Mapping) -> DroppedCounts:
