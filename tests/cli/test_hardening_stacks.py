@@ -492,20 +492,30 @@ def test_stale_temporary_files_are_removed_and_live_ones_kept(tmp_path, small_ca
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
 def test_terminated_run_leaves_no_temporary_file(tmp_path, sig):
     calib = write_calibration(tmp_path / "c.json", params=SMALL, image_size=(64, 48))
-    _imwrite(tmp_path / "s.tif", _frames(20000, dtype=np.uint8))
-    out = tmp_path / "o"
-    proc = subprocess.Popen([sys.executable, "-m", "oapcal", "correct", str(calib), str(tmp_path / "s.tif"),
-                             "--out-dir", str(out), "--quiet", "--interp", "lanczos"],
-                            stderr=subprocess.PIPE, text=True, preexec_fn=_interruptible)  # fmt: skip
-    deadline = time.monotonic() + 60
-    while not any(p.name.startswith(".s.") for p in (out.iterdir() if out.exists() else [])):
-        assert time.monotonic() < deadline and proc.poll() is None
-        time.sleep(0.05)
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 128 + sig, err
-    assert "Traceback" not in err
-    assert _visible(out) == []
+    # the signal must reach the run while it writes: a run that finished first (on a loaded
+    # machine 20,000 small frames can) tested nothing, and is made again on a longer stack
+    for attempt, n_frames in enumerate((20000, 80000)):
+        stack = tmp_path / f"s{attempt}.tif"
+        _imwrite(stack, _frames(n_frames, dtype=np.uint8))
+        out = tmp_path / f"o{attempt}"
+        proc = subprocess.Popen([sys.executable, "-m", "oapcal", "correct", str(calib), str(stack),
+                                 "--out-dir", str(out), "--quiet", "--interp", "lanczos"],
+                                stderr=subprocess.PIPE, text=True, preexec_fn=_interruptible)  # fmt: skip
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and not any(
+            p.name.startswith(f".{stack.stem}.") for p in (out.iterdir() if out.exists() else [])
+        ):
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+        if proc.returncode == 0:
+            continue  # finished before the signal
+        assert proc.returncode == 128 + sig, err
+        assert "Traceback" not in err
+        assert _visible(out) == []
+        return
+    pytest.fail("every run finished before the signal reached it")
 
 
 @pytest.mark.slow
