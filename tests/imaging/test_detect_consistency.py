@@ -123,3 +123,39 @@ def test_rescue_never_runs_on_a_refused_alignment(relay_pairs):
     xy_d[:100] += 2 * width[:100, None]  # a third of the target one bar period off
     check = check_consistency(xy_u, xy_d, width)
     assert check.status == 1 and not check.consistent.any() and check.rescued == 0
+
+
+def _kept(idx, xy):
+    from oapcal.imaging.detect.core import _Kept
+
+    return _Kept(np.asarray(idx), np.asarray(xy), np.full(len(idx), 0.02), {}, [])
+
+
+def test_a_refused_union_keeps_what_the_first_pass_reaches_and_never_a_slipped_element():
+    """``core._grown_from_first``: the first pass (group 4, G5E1-E2) passed the check, the
+    union with the second pass (G5E3-E6, registered one by one) did not; the second pass's
+    right corners are kept through the cubic map grown from the first, an element registered
+    18 px off is not, and the first pass's flagged corners stay flagged."""
+    from oapcal.imaging.detect.core import _grown_from_first
+
+    xy_u, xy_d, width = _non_radial_pairs(amplitude_px=1.0)
+    t = usaf_target((4, 5))
+    g4 = np.array([c.startswith(("G4", "G5E1", "G5E2")) for c in t.corner_ids])
+    slipped = np.array([c.startswith("G5E4") for c in t.corner_ids])
+    xy_d = xy_d.copy()
+    xy_d[slipped, 1] += 18.0
+    one_bar_off = np.flatnonzero(g4)[5]
+    xy_d[one_bar_off, 0] += width[one_bar_off]
+    first = _kept(np.flatnonzero(g4), xy_d[g4])
+    check = check_consistency(xy_u[g4], xy_d[g4], width[g4])
+    assert check.status == 0 and not check.consistent[5]
+    union = _kept(np.arange(len(xy_u)), xy_d)
+    kept, both = _grown_from_first(first, union, check, xy_u, t, 4.8)
+    assert kept is union and len(both.consistent) == len(xy_u)
+    assert not both.consistent[slipped].any()
+    in_first = np.flatnonzero(g4)
+    np.testing.assert_array_equal(both.consistent[in_first], check.consistent)  # as judged before
+    # G5E3, beside the first pass's G5E2, is reached; G5E5-E6 only through the slipped G5E4
+    # may stay flagged (the growth steps at most 3 bar widths)
+    assert both.consistent[[c.startswith("G5E3") for c in t.corner_ids]].all()
+    assert both.n_inconsistent == int((~both.consistent).sum())

@@ -358,3 +358,17 @@ def test_a_blurred_micrograph_through_a_misaligned_relay_is_detected_with_its_fi
     case = next(c for c in bench.cases(False, 5) if c.name == "labumk, misaligned s2")
     for d in bench.run_case(case, src, tmp_path, models=(), images=False)["detections"]:
         _assert_all_found(d, reference_px=1.0)
+
+
+@pytest.mark.slow
+def test_a_refused_union_keeps_the_second_pass_corners_the_first_pass_reaches(tmp_path):
+    """The LAB-UMK micrograph through the misaligned relay of seed 3: the union of both
+    refinements (group 5's elements registered one by one) failed the global check (Eq. (1)
+    `full` rms 0.89 px against 0.75: the field bends there) and its first pass alone was kept,
+    132 of 216 corners.  Now the second pass's corners that a cubic map grown from the first
+    pass reaches are added (``core._grown_from_first``): no wrong id, more corners."""
+    src = bench.source_truth("labumk_negative.tif")
+    case = next(c for c in bench.cases(False, 5) if c.name == "labumk, misaligned s3")
+    for d in bench.run_case(case, src, tmp_path, models=(), images=False)["detections"]:
+        assert d["code"] == 0, d["message"]
+        assert d["wrong_ids"] == 0 and d["found"] >= 150 and d["max_error_px"] < 1.0

@@ -19,7 +19,7 @@ CONSISTENCY_MAX_FRACTION = 0.25
 #: and a wrong alignment at 161 px that was smooth enough to fit (0.93 px).
 CONSISTENCY_MAX_RMS_PX = 0.75
 #: A pair off the model is tested against the cubic map of the kept pairs only within this
-#: many of its bar widths from one of them (:func:`_rescue`).
+#: many of its bar widths from one of them (:func:`grow_consistent`).
 RESCUE_STEP_WIDTHS = 3.0
 
 
@@ -82,7 +82,7 @@ def check_consistency(
 
     A flagged pair is kept after all (``rescued``) when it follows the cubic polynomial
     map fitted to the unflagged pairs within the same kind of limit, grown outwards from
-    them a few bar widths at a time (:func:`_rescue`): Eq. (1) has no perspective term, so
+    them a few bar widths at a time (:func:`grow_consistent`): Eq. (1) has no perspective term, so
     through a misaligned relay behind a tilted camera (keystone) its own misfit exceeds half
     a narrow bar's width where a cubic map still fits every right pair to a few hundredths
     of a px.  The refusals above are decided on the model's flags alone, before the
@@ -123,7 +123,7 @@ def check_consistency(
             f"the global alignment is doubtful: the {model} model fits the matched corners with an rms "
             f"residual of {rms:.2f} px (limit {max_rms_px:g} px); nothing was kept",
         )  # fmt: skip
-    rescued = _rescue(xy_u, xy_d, width_px, keep, floor_px, n_sigma)
+    rescued = grow_consistent(xy_u, xy_d, width_px, keep, floor_px, n_sigma)
     keep = keep | rescued
     return Consistency(keep, model, rms, worst, int((~keep).sum()), rescued=int(rescued.sum()))
 
@@ -172,7 +172,7 @@ def _cubic_residuals(xy_u, xy_d, keep):
     return np.hypot(*(PolyWarp.fit(xy_u[keep], xy_d[keep], 3)(xy_u) - xy_d).T)
 
 
-def _rescue(xy_u, xy_d, width_px, keep, floor_px, n_sigma):
+def grow_consistent(xy_u, xy_d, width_px, keep, floor_px=CONSISTENCY_FLOOR_PX, n_sigma=CONSISTENCY_SIGMAS):
     """The flagged pairs (``~keep``) that the cubic map of the pairs already kept predicts
     within :func:`_residual_limit`, grown outwards from the kept pairs: each round fits the
     cubic to the pairs kept so far and tests only the flagged pairs at most

@@ -108,7 +108,8 @@ class DroppedCounts(Record):
     order); a reason with none is left out of the keys."""
 
     _OPTIONAL = (
-        "not_converged", "contrast", "moved", "ambiguous", "uncertain", "outside", "inconsistent", "unresolved"
+        "not_converged", "contrast", "moved", "ambiguous", "uncertain", "outside", "inconsistent",
+        "unresolved",
     )  # fmt: skip
 
     not_converged: int | None = None
