@@ -159,3 +159,21 @@ def test_a_refused_union_keeps_what_the_first_pass_reaches_and_never_a_slipped_e
     # may stay flagged (the growth steps at most 3 bar widths)
     assert both.consistent[[c.startswith("G5E3") for c in t.corner_ids]].all()
     assert both.n_inconsistent == int((~both.consistent).sum())
+
+
+def test_a_triplet_with_a_corner_off_the_map_is_dropped_whole():
+    """``core._whole_triplets``: one flagged corner drops its triplet's other corners (one
+    local fit made them all), and no corner of another triplet."""
+    from oapcal.imaging.detect.core import _whole_triplets
+
+    t = usaf_target((4, 5))
+    idx = np.arange(len(t.corner_ids))
+    consistent = np.ones(len(idx), bool)
+    flagged = t.corner_ids.index("G5E2H1C3")
+    consistent[flagged] = False
+    keep = _whole_triplets(consistent, idx, t)
+    dropped = {t.corner_ids[i] for i in np.flatnonzero(~keep)}
+    assert dropped == {c for c in t.corner_ids if c.startswith("G5E2H")}
+    # a subset of the corners, in any triplet order, and nothing flagged: nothing dropped
+    some = idx[::3]
+    np.testing.assert_array_equal(_whole_triplets(np.ones(len(some), bool), some, t), True)
