@@ -11,19 +11,22 @@ from oapcal.imaging.detect import triplet as T
 from oapcal.imaging.detect.warp import PolyWarp
 
 
-def test_the_element_correction_is_the_local_warp_as_one_polywarp():
-    """``_with_affine`` gives the map ``_local_warp`` evaluates, to rounding."""
+def test_the_local_correction_is_the_registration_plus_the_affine_term_as_one_polywarp():
+    """``_with_affine`` gives the registration plus ``[1, (x - x_t) / l_t] @ coef`` (the
+    local fit's basis), and its Jacobian, to rounding."""
     rng = np.random.default_rng(3)
     warp = PolyWarp(
         np.array([300.0, 200.0]), 250.0, rng.normal(size=(10, 2)) * [[100], [200], [200], *[[5]] * 7], 3
     )
-    local = T._Local(None, np.array([120.0, 340.0]), 17.0, 4.0)
+    x_t, l_t = np.array([120.0, 340.0]), 17.0
+    local = T._Local(None, x_t, l_t, 4.0)
     coef = rng.normal(size=(3, 2)) * [[1.5], [0.3], [0.3]]
     x = rng.uniform(0, 640, size=(50, 2))
-    func, jac = T._local_warp(warp, local, coef)
     both = T._with_affine(warp, local, coef)
-    np.testing.assert_allclose(both(x), func(x), rtol=0, atol=1e-9)
-    np.testing.assert_allclose(both.jacobian(x), jac(x), rtol=0, atol=1e-9)
+    expected = warp(x) + np.column_stack([np.ones(len(x)), (x - x_t) / l_t]) @ coef
+    np.testing.assert_allclose(both(x), expected, rtol=0, atol=1e-9)
+    jac = warp.jacobian(x) + (coef[1:].T / l_t)[None]
+    np.testing.assert_allclose(both.jacobian(x), jac, rtol=0, atol=1e-9)
 
 
 @pytest.fixture(scope="module")

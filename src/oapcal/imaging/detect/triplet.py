@@ -82,9 +82,9 @@ def refine_triplet(ctx: TripletContext, bars, idx):
     if reason is not None:
         return reason, None, None, None
     w_ref = local.w_ref
-    func, jac = _local_warp(ctx.warp, local, res.coef)
+    warp = _with_affine(ctx.warp, local, res.coef)
     pred = ctx.pred[idx]
-    xy = newton_invert(func, jac, ctx.corners_u[idx], pred)
+    xy = newton_invert(warp, warp.jacobian, ctx.corners_u[idx], pred)
     if not (res.converged and np.isfinite(xy).all() and np.isfinite(res.cov).all()):
         return "not_converged", None, None, None
     if np.sign(res.b) != np.sign(b) or not 0.4 < res.b / b < 2.5:
@@ -95,7 +95,7 @@ def refine_triplet(ctx: TripletContext, bars, idx):
         return "unresolved", None, None, None
     if _ambiguous(ctx, local, res, bars):
         return "ambiguous", None, None, None
-    se = _corner_stderr(local, res, jac, xy)
+    se = _corner_stderr(local, res, warp.jacobian, xy)
     if se.max() > ctx.max_stderr_px:
         return "uncertain", None, None, None
     return None, xy, se, {"ncc": res.ncc, "sigma": res.sigma, "b": res.b}
@@ -146,8 +146,8 @@ def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float
 
 def _with_affine(warp: PolyWarp, local: _Local, coef: np.ndarray) -> PolyWarp:
     """``warp`` plus the local affine correction ``coef`` (in the basis ``1, (x - x_t) / l_t``
-    of :func:`_local_warp`) as one :class:`PolyWarp`: the same map, in ``warp``'s basis
-    (``1, (x - centre) / scale, ...``)."""
+    of the local pixels, :func:`_local_pixels`) as one :class:`PolyWarp`: the same map, in
+    ``warp``'s basis (``1, (x - centre) / scale, ...``)."""
     k = warp.scale / local.l_t
     shift = (warp.centre - local.x_t) / local.l_t
     out = warp.coef.copy()
@@ -191,19 +191,6 @@ def _linear_contrast(data: PixelData, sigma: float, b_sign: float):
     if not (np.isfinite(b0) and np.sign(b0) == np.sign(b_sign) and abs(b0) > 1e-6):
         return None, None
     return a, float(b0)
-
-
-def _local_warp(warp: PolyWarp, local: _Local, coef: np.ndarray):
-    """The registration plus the fitted local affine correction, and its Jacobian."""
-    x_t, l_t = local.x_t, local.l_t
-
-    def func(x):
-        return warp(x) + np.column_stack([np.ones(len(x)), (x - x_t) / l_t]) @ coef
-
-    def jac(x):
-        return warp.jacobian(x) + (coef[1:].T / l_t)[None]
-
-    return func, jac
 
 
 def _ambiguous(ctx: TripletContext, local: _Local, res, bars) -> bool:
