@@ -155,10 +155,35 @@ def test_a_refused_union_keeps_what_the_first_pass_reaches_and_never_a_slipped_e
     assert not both.consistent[slipped].any()
     in_first = np.flatnonzero(g4)
     np.testing.assert_array_equal(both.consistent[in_first], check.consistent)  # as judged before
-    # G5E3, beside the first pass's G5E2, is reached; G5E5-E6 only through the slipped G5E4
-    # may stay flagged (the growth steps at most 3 bar widths)
+    # G5E3, beside the first pass's G5E2, is reached, a triplet's corners together; G5E5-E6
+    # only through the slipped G5E4 may stay flagged (the growth steps at most 3 bar widths)
     assert both.consistent[[c.startswith("G5E3") for c in t.corner_ids]].all()
+    for triplet in ("G5E3H", "G5E3V", "G5E5H", "G5E5V", "G5E6H", "G5E6V"):
+        member = np.array([c.startswith(triplet) for c in t.corner_ids])
+        assert both.consistent[member].all() or not both.consistent[member].any(), triplet
     assert both.n_inconsistent == int((~both.consistent).sum())
+
+
+def test_the_growth_tests_a_triplet_together():
+    """``grow_consistent(groups=...)``: a triplet's far end, five bar widths from its near
+    end and beyond one growth step of every kept pair, is tested with the near end (without
+    groups it is not reached); a pair off by 30 px is never reached."""
+    from oapcal.imaging.detect.checks import grow_consistent
+
+    xy_u, xy_d, width = _non_radial_pairs(amplitude_px=0.0)
+    t = usaf_target((4, 5))
+    keep = np.array([c.startswith("G4") for c in t.corner_ids])
+    # the near ends (C0, C3) of G5E2H's bars kept, the far ends (C1, C2) to be tested
+    near_end = np.array([c.startswith("G5E2H") and c[-2:] in ("C0", "C3") for c in t.corner_ids])
+    keep |= near_end
+    far_end = np.array([c.startswith("G5E2H") and c[-2:] in ("C1", "C2") for c in t.corner_ids])
+    rest = ~keep & ~far_end
+    xy_d = xy_d.copy()
+    xy_d[rest] += 30.0  # nothing else can be reached
+    groups = np.array([c[:5] for c in t.corner_ids])
+    with_groups = grow_consistent(xy_u, xy_d, width, keep, groups=groups)
+    assert with_groups[far_end].all() and not with_groups[rest].any()
+    assert not grow_consistent(xy_u, xy_d, width, keep)[far_end].any()  # beyond one step
 
 
 def test_a_triplet_with_a_corner_off_the_map_is_dropped_whole():

@@ -172,7 +172,9 @@ def _cubic_residuals(xy_u, xy_d, keep):
     return np.hypot(*(PolyWarp.fit(xy_u[keep], xy_d[keep], 3)(xy_u) - xy_d).T)
 
 
-def grow_consistent(xy_u, xy_d, width_px, keep, floor_px=CONSISTENCY_FLOOR_PX, n_sigma=CONSISTENCY_SIGMAS):
+def grow_consistent(
+    xy_u, xy_d, width_px, keep, floor_px=CONSISTENCY_FLOOR_PX, n_sigma=CONSISTENCY_SIGMAS, groups=None
+):
     """The flagged pairs (``~keep``) that the cubic map of the pairs already kept predicts
     within :func:`_residual_limit`, grown outwards from the kept pairs: each round fits the
     cubic to the pairs kept so far and tests only the flagged pairs at most
@@ -181,7 +183,9 @@ def grow_consistent(xy_u, xy_d, width_px, keep, floor_px=CONSISTENCY_FLOOR_PX, n
     widths beyond the kept pairs).  A pair matched one bar off is a bar width from its own
     place, twice the largest limit, and is never rescued, nor used by a later round; a right
     pair that only Eq. (1)'s misfit put over the limit is.  Needs twice the cubic's 10 terms
-    of unflagged pairs."""
+    of unflagged pairs.  ``groups`` (a label per pair, e.g. its triplet): a group's pairs
+    are tested together, as soon as one of them is within the step (a triplet's far end is
+    five bar widths from its near end)."""
     from scipy.spatial import cKDTree
 
     ok = keep.copy()
@@ -190,11 +194,10 @@ def grow_consistent(xy_u, xy_d, width_px, keep, floor_px=CONSISTENCY_FLOOR_PX, n
     while not ok.all():
         r = _cubic_residuals(xy_u, xy_d, ok)
         dist, _ = cKDTree(xy_u[ok]).query(xy_u)
-        new = (
-            ~ok
-            & (dist <= RESCUE_STEP_WIDTHS * width_px)
-            & (r <= _residual_limit(r, ok, width_px, floor_px, n_sigma))
-        )
+        near = dist <= RESCUE_STEP_WIDTHS * width_px
+        if groups is not None:
+            near = np.isin(groups, groups[near])
+        new = ~ok & near & (r <= _residual_limit(r, ok, width_px, floor_px, n_sigma))
         if not new.any():
             break
         ok |= new

@@ -862,10 +862,15 @@ def _whole_triplets(consistent: np.ndarray, idx: np.ndarray, target) -> np.ndarr
     below the check's limit: through a misaligned relay, 3 of the 12 corners of the LAB-UMK
     render's G5E2H (seed 0) were flagged and the other 9 kept, 1.5 px off the truth with
     standard errors of 0.05 px."""
-    bar = np.asarray(idx, int) // 4
-    key = np.array([f"{g} {e} {o}" for g, e, o in zip(
-        target.bar_group[bar], target.bar_element[bar], target.bar_orientation[bar])])  # fmt: skip
+    key = _triplet_keys(idx, target)
     return consistent & ~np.isin(key, key[~consistent])
+
+
+def _triplet_keys(idx, target) -> np.ndarray:
+    """The triplet of each corner (indices ``idx`` in ``target``, 4 per bar), as a label."""
+    bar = np.asarray(idx, int) // 4
+    return np.array([f"{g} {e} {o}" for g, e, o in zip(
+        target.bar_group[bar], target.bar_element[bar], target.bar_orientation[bar])])  # fmt: skip
 
 
 def _model_boxes(target, source, u_ref, size, orient, near_um=None):
@@ -996,7 +1001,8 @@ def _grown_from_first(first: _Kept, union: _Kept, check, corners_u, target, um_p
     check and the first pass passed it (``check``): the first pass's consistent corners, and
     those of the second pass that a cubic map of them predicts, grown outwards a few bar
     widths at a time (:func:`~oapcal.imaging.detect.checks.grow_consistent`, as the check's
-    rescue); the rest of the second pass counts as inconsistent.
+    rescue), a triplet's corners tested together; the rest of the second pass counts as
+    inconsistent.
 
     Why: through a misaligned relay behind a tilted camera Eq. (1)'s misfit over the field
     grows with the finer group (the LAB-UMK render of seed 3: `full` rms 0.52 px on the
@@ -1006,7 +1012,9 @@ def _grown_from_first(first: _Kept, union: _Kept, check, corners_u, target, um_p
     the element registered 18 px off."""
     in_first = np.isin(union.idx, first.idx[check.consistent])
     width = target.corner_width_um[union.idx] / um_per_px
-    grown = grow_consistent(corners_u[union.idx], union.xy, width, in_first)
+    groups = _triplet_keys(union.idx, target)
+    grown = grow_consistent(corners_u[union.idx], union.xy, width, in_first, groups=groups)
+    grown &= ~np.isin(union.idx, first.idx)  # the first pass's verdicts stand
     consistent = in_first | grown
     both = dataclasses.replace(
         check,
