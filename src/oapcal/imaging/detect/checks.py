@@ -65,6 +65,7 @@ def check_consistency(
     n_sigma: float = CONSISTENCY_SIGMAS,
     max_fraction: float = CONSISTENCY_MAX_FRACTION,
     max_rms_px: float = CONSISTENCY_MAX_RMS_PX,
+    groups=None,
 ) -> Consistency:
     """Check that matched pairs follow one smooth distortion: fit ``model``
     (:func:`oapcal.fitting.fit`, the pixel start) to the pairs and flag every pair whose
@@ -86,7 +87,8 @@ def check_consistency(
     through a misaligned relay behind a tilted camera (keystone) its own misfit exceeds half
     a narrow bar's width where a cubic map still fits every right pair to a few hundredths
     of a px.  The refusals above are decided on the model's flags alone, before the
-    rescue; ``rms_px`` and ``max_px`` are the model's.
+    rescue; ``rms_px`` and ``max_px`` are the model's.  ``groups`` (a label per pair, e.g.
+    its triplet): the rescue tests a group's pairs together (:func:`grow_consistent`).
 
     ``model="auto"``: ``full`` from 40 pairs, ``paper`` from 16, no check below
     (``model`` None in the result); ``None``: no check.  When the model's fit does not
@@ -123,7 +125,7 @@ def check_consistency(
             f"the global alignment is doubtful: the {model} model fits the matched corners with an rms "
             f"residual of {rms:.2f} px (limit {max_rms_px:g} px); nothing was kept",
         )  # fmt: skip
-    rescued = grow_consistent(xy_u, xy_d, width_px, keep, floor_px, n_sigma)
+    rescued = grow_consistent(xy_u, xy_d, width_px, keep, floor_px, n_sigma, groups)
     keep = keep | rescued
     return Consistency(keep, model, rms, worst, int((~keep).sum()), rescued=int(rescued.sum()))
 

@@ -796,7 +796,7 @@ def _detect_from_pose(img, found: _PoseFound, opts: _Options, empty, bar):
     sigmas = [info["sigma"] for info in kept.infos]
     bar.stage("consistency check")
     check = check_consistency(corners_u[kept.idx], kept.xy, target.corner_width_um[kept.idx] / u_ref,
-                              opts.consistency_model)  # fmt: skip
+                              opts.consistency_model, groups=_triplet_keys(kept.idx, target))  # fmt: skip
     bar.advance()
     sigma_ref = float(np.median(sigmas)) if sigmas else float("nan")
     common = dict(
@@ -1229,7 +1229,7 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
 
     def judged(k: _Kept):
         return check_consistency(corners_u[k.idx], k.xy, target.corner_width_um[k.idx] / um_per_px,
-                                 opts.consistency_model)  # fmt: skip
+                                 opts.consistency_model, groups=_triplet_keys(k.idx, target))  # fmt: skip
 
     first, kept = _refine_twice(ctx, target, inside, w, h, m, bar)
     check = judged(kept)
