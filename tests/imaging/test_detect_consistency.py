@@ -186,19 +186,22 @@ def test_the_growth_tests_a_triplet_together():
     assert not grow_consistent(xy_u, xy_d, width, keep)[far_end].any()  # beyond one step
 
 
-def test_a_triplet_with_a_corner_off_the_map_is_dropped_whole():
-    """``core._whole_triplets``: one flagged corner drops its triplet's other corners (one
-    local fit made them all), and no corner of another triplet."""
+def test_a_triplet_with_corners_off_the_map_is_dropped_whole():
+    """``core._whole_triplets``: two flagged corners drop their triplet's other corners (one
+    local fit made them all), and no corner of another triplet; one flagged corner is its own."""
     from oapcal.imaging.detect.core import _whole_triplets
 
     t = usaf_target((4, 5))
     idx = np.arange(len(t.corner_ids))
     consistent = np.ones(len(idx), bool)
-    flagged = t.corner_ids.index("G5E2H1C3")
-    consistent[flagged] = False
+    consistent[t.corner_ids.index("G5E2H1C3")] = False
+    consistent[t.corner_ids.index("G4E1V0C0")] = False
+    one = _whole_triplets(consistent, idx, t)
+    np.testing.assert_array_equal(one, consistent)
+    consistent[t.corner_ids.index("G5E2H2C1")] = False
     keep = _whole_triplets(consistent, idx, t)
     dropped = {t.corner_ids[i] for i in np.flatnonzero(~keep)}
-    assert dropped == {c for c in t.corner_ids if c.startswith("G5E2H")}
+    assert dropped == {c for c in t.corner_ids if c.startswith("G5E2H")} | {"G4E1V0C0"}
     # a subset of the corners, in any triplet order, and nothing flagged: nothing dropped
     some = idx[::3]
     np.testing.assert_array_equal(_whole_triplets(np.ones(len(some), bool), some, t), True)

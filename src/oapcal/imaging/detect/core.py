@@ -83,6 +83,8 @@ DROP_REASONS = (
 #: The orientation is ambiguous when the second-best orientation's correlation reaches
 #: this fraction of the best (measured on relay images: about 0.6).
 ORIENTATION_RATIO = 0.9
+#: A triplet with this many corners off the smooth map is dropped whole (:func:`_whole_triplets`).
+WHOLE_TRIPLET_FLAGS = 2
 #: The registration is refused when fewer than this fraction of the corners it expects
 #: inside the image pass the local checks (a wrong orientation keeps none).
 MIN_KEPT_FRACTION = 0.25
@@ -854,16 +856,20 @@ def _finish(empty, target, corners_u, kept: _Kept, check, common) -> Detection:
 
 
 def _whole_triplets(consistent: np.ndarray, idx: np.ndarray, target) -> np.ndarray:
-    """``consistent`` with every corner of a triplet that has a corner off the smooth map
-    flagged too (``idx`` the corners' indices in ``target``, 4 per bar).
+    """``consistent`` with every corner of a triplet that has :data:`WHOLE_TRIPLET_FLAGS`
+    or more corners off the smooth map flagged too (``idx`` the corners' indices in
+    ``target``, 4 per bar).
 
     Why: a triplet's corners come from one local fit; when some of them are off the map, the
     fit is off (a partial slip, or a neighbour's light), and the rest carry the same error
     below the check's limit: through a misaligned relay, 3 of the 12 corners of the LAB-UMK
     render's G5E2H (seed 0) were flagged and the other 9 kept, 1.5 px off the truth with
-    standard errors of 0.05 px."""
+    standard errors of 0.05 px.  One corner off is that corner's own (Eq. (1)'s misfit at
+    the field's edge): under the detection sweep's 80 px of distortion, four triplets had
+    one corner flagged each and their other 44 corners were within 0.37 px of the truth."""
     key = _triplet_keys(idx, target)
-    return consistent & ~np.isin(key, key[~consistent])
+    labels, counts = np.unique(key[~consistent], return_counts=True)
+    return consistent & ~np.isin(key, labels[counts >= WHOLE_TRIPLET_FLAGS])
 
 
 def _triplet_keys(idx, target) -> np.ndarray:
