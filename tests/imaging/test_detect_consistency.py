@@ -186,22 +186,26 @@ def test_the_growth_tests_a_triplet_together():
     assert not grow_consistent(xy_u, xy_d, width, keep)[far_end].any()  # beyond one step
 
 
-def test_a_triplet_with_corners_off_the_map_is_dropped_whole():
-    """``core._whole_triplets``: two flagged corners drop their triplet's other corners (one
-    local fit made them all), and no corner of another triplet; one flagged corner is its own."""
+def test_a_triplet_with_corners_off_the_map_is_dropped_whole_when_the_rest_is_off_too():
+    """``core._whole_triplets``: the other corners of a triplet with flagged corners are
+    dropped when they too are off the cubic map of the rest (one local fit made them all:
+    here 0.8 px), kept when they are on it (bars cut by the image's edge), and no corner of
+    another triplet is touched."""
     from oapcal.imaging.detect.core import _whole_triplets
 
+    xy_u, xy_d, _ = _non_radial_pairs(amplitude_px=0.0)
     t = usaf_target((4, 5))
     idx = np.arange(len(t.corner_ids))
+    ids = np.array(t.corner_ids)
+    off = np.char.startswith(ids, "G5E2H")  # the local fit off: every corner 0.8 px
+    cut = np.char.startswith(ids, "G4E4V")  # two corners off (cut bars), the rest right
+    xy_d = xy_d.copy()
+    xy_d[off, 0] += 0.8
     consistent = np.ones(len(idx), bool)
-    consistent[t.corner_ids.index("G5E2H1C3")] = False
-    consistent[t.corner_ids.index("G4E1V0C0")] = False
-    one = _whole_triplets(consistent, idx, t)
-    np.testing.assert_array_equal(one, consistent)
-    consistent[t.corner_ids.index("G5E2H2C1")] = False
-    keep = _whole_triplets(consistent, idx, t)
-    dropped = {t.corner_ids[i] for i in np.flatnonzero(~keep)}
-    assert dropped == {c for c in t.corner_ids if c.startswith("G5E2H")} | {"G4E1V0C0"}
-    # a subset of the corners, in any triplet order, and nothing flagged: nothing dropped
-    some = idx[::3]
-    np.testing.assert_array_equal(_whole_triplets(np.ones(len(some), bool), some, t), True)
+    consistent[np.flatnonzero(off)[:2]] = False
+    consistent[np.flatnonzero(cut)[:2]] = False
+    keep = _whole_triplets(consistent, idx, t, xy_u, xy_d)
+    assert not keep[off].any()
+    np.testing.assert_array_equal(keep[~off], consistent[~off])
+    # nothing flagged: nothing dropped
+    np.testing.assert_array_equal(_whole_triplets(np.ones(len(idx), bool), idx, t, xy_u, xy_d), True)

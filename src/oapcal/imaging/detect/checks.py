@@ -148,7 +148,7 @@ def _flag_off_model(xy_u, xy_d, width_px, model, floor_px, n_sigma):
             # its fit may not converge: a cubic polynomial map (linear least squares) is
             # the smooth model then.
             model, cubic = "cubic", True
-            r = _cubic_residuals(xy_u, xy_d, keep)
+            r = cubic_residuals(xy_u, xy_d, keep)
         else:
             return (
                 f"the global alignment could not be checked: the {model} model did not converge "
@@ -169,7 +169,7 @@ def _residual_limit(r, keep, width_px, floor_px, n_sigma):
     return np.minimum(max(n_sigma * s, floor_px), 0.5 * width_px)
 
 
-def _cubic_residuals(xy_u, xy_d, keep):
+def cubic_residuals(xy_u, xy_d, keep):
     """Residuals (px) of every pair from the cubic polynomial map fitted to the ``keep`` pairs."""
     return np.hypot(*(PolyWarp.fit(xy_u[keep], xy_d[keep], 3)(xy_u) - xy_d).T)
 
@@ -194,7 +194,7 @@ def grow_consistent(
     if keep.all() or keep.sum() < 2 * len(poly_exponents(3)):
         return ~keep & ok
     while not ok.all():
-        r = _cubic_residuals(xy_u, xy_d, ok)
+        r = cubic_residuals(xy_u, xy_d, ok)
         dist, _ = cKDTree(xy_u[ok]).query(xy_u)
         near = dist <= RESCUE_STEP_WIDTHS * width_px
         if groups is not None:

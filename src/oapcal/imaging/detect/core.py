@@ -32,7 +32,7 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.detect.bars import MIN_BAR_PX
-from oapcal.imaging.detect.checks import check_consistency, grow_consistent, outvoted
+from oapcal.imaging.detect.checks import check_consistency, cubic_residuals, grow_consistent, outvoted
 from oapcal.imaging.detect.pose import HALF_ELEMENT
 from oapcal.imaging.detect.records import (
     ConsistencySummary,
@@ -83,8 +83,12 @@ DROP_REASONS = (
 #: The orientation is ambiguous when the second-best orientation's correlation reaches
 #: this fraction of the best (measured on relay images: about 0.6).
 ORIENTATION_RATIO = 0.9
-#: A triplet with this many corners off the smooth map is dropped whole (:func:`_whole_triplets`).
-WHOLE_TRIPLET_FLAGS = 2
+#: The other corners of a triplet with corners off the smooth map are dropped when their
+#: median residual from the cubic map exceeds this many times its robust rms, and this many
+#: px (:func:`_whole_triplets`).  Measured: such corners of right triplets 0.07-0.22 px
+#: (1.2-2.1 times the robust rms), of triplets off the truth by 0.6-1.5 px 0.48-1.04 px.
+WHOLE_TRIPLET_SIGMAS = 2.0
+WHOLE_TRIPLET_FLOOR_PX = 0.25
 #: The registration is refused when fewer than this fraction of the corners it expects
 #: inside the image pass the local checks (a wrong orientation keeps none).
 MIN_KEPT_FRACTION = 0.25
@@ -833,7 +837,7 @@ def _finish(empty, target, corners_u, kept: _Kept, check, common) -> Detection:
     if check.status != 0:
         dropped["inconsistent"] = len(kept.idx)
         return _replace(empty, dropped=DroppedCounts.from_counts(dropped), message=check.message, **common)
-    keep = _whole_triplets(check.consistent, kept.idx, target)
+    keep = _whole_triplets(check.consistent, kept.idx, target, corners_u[kept.idx], kept.xy)
     dropped["inconsistent"] = int((~keep).sum())
     keep_idx = kept.idx[keep]
     if n_expected == 0 or len(keep_idx) < MIN_KEPT_FRACTION * n_expected:
@@ -855,21 +859,34 @@ def _finish(empty, target, corners_u, kept: _Kept, check, common) -> Detection:
     )
 
 
-def _whole_triplets(consistent: np.ndarray, idx: np.ndarray, target) -> np.ndarray:
-    """``consistent`` with every corner of a triplet that has :data:`WHOLE_TRIPLET_FLAGS`
-    or more corners off the smooth map flagged too (``idx`` the corners' indices in
-    ``target``, 4 per bar).
+def _whole_triplets(consistent: np.ndarray, idx: np.ndarray, target, xy_u, xy_d) -> np.ndarray:
+    """``consistent`` with the other corners of a triplet that has corners off the smooth map
+    flagged too, when their median residual from the cubic map of the consistent pairs
+    (``checks.cubic_residuals``) exceeds :data:`WHOLE_TRIPLET_SIGMAS` times its robust rms
+    and :data:`WHOLE_TRIPLET_FLOOR_PX` (``idx`` the corners' indices in ``target``, 4 per
+    bar; ``xy_u``, ``xy_d`` the pairs).
 
-    Why: a triplet's corners come from one local fit; when some of them are off the map, the
-    fit is off (a partial slip, or a neighbour's light), and the rest carry the same error
-    below the check's limit: through a misaligned relay, 3 of the 12 corners of the LAB-UMK
-    render's G5E2H (seed 0) were flagged and the other 9 kept, 1.5 px off the truth with
-    standard errors of 0.05 px.  One corner off is that corner's own (Eq. (1)'s misfit at
-    the field's edge): under the detection sweep's 80 px of distortion, four triplets had
-    one corner flagged each and their other 44 corners were within 0.37 px of the truth."""
+    Why: a triplet's corners come from one local fit; when some of them are off the map the
+    fit may be off, and the others then carry the same error below the check's limit:
+    through a misaligned relay, 3 of the 12 corners of the LAB-UMK render's G5E2H (seed 0)
+    were flagged and the other 9 kept, 1.5 px off the truth with standard errors of 0.05 px.
+    Where only the flagged corners are off (bars cut by the image's edge, Eq. (1)'s misfit at
+    the field's edge) the others stay: dropping every triplet with two corners flagged cost
+    the real LAB-UMK image turned by 30 degrees 12 corners of G6E5H and G6E6H within 0.08 px
+    of the unturned image's, and one flagged corner each cost the detection sweep's 80 px
+    row 44 corners within 0.37 px of the truth."""
     key = _triplet_keys(idx, target)
-    labels, counts = np.unique(key[~consistent], return_counts=True)
-    return consistent & ~np.isin(key, labels[counts >= WHOLE_TRIPLET_FLAGS])
+    suspect = np.isin(key, key[~consistent]) & consistent
+    if not suspect.any() or consistent.sum() < 2 * 10:
+        return consistent
+    r = cubic_residuals(np.asarray(xy_u, float), np.asarray(xy_d, float), consistent)
+    s = 1.2 * float(np.median(r[consistent]))
+    keep = consistent.copy()
+    for label in np.unique(key[suspect]):
+        members = suspect & (key == label)
+        if float(np.median(r[members])) > max(WHOLE_TRIPLET_SIGMAS * s, WHOLE_TRIPLET_FLOOR_PX):
+            keep[members] = False
+    return keep
 
 
 def _triplet_keys(idx, target) -> np.ndarray:
