@@ -1,12 +1,14 @@
-"""Where an image shows nothing: blank (constant) areas.
+"""Where an image shows nothing: blank areas, padding at one grey level.
 
-An image turned, shifted or cropped onto a larger canvas has its padding at one grey level,
-and a field stop clipped to black or a saturated patch is one level too.  No bar can be seen
-there, so neither the pose search nor the registration expects a triplet or a corner there
-(a single element turned by 30 degrees had its neighbours predicted in the padding, counted
-missing, and was refused even when named).  An area is blank where every pixel of a
-``BLANK_WINDOW_PX`` square round it has the same value: a real sensor's noise, however dark
-or bright the scene, varies between neighbours.
+An image turned, shifted or cropped onto a larger canvas has its padding at one grey level.
+No bar can be seen there, so neither the pose search nor the registration expects a triplet
+or a corner there (a single element turned by 30 degrees had its neighbours predicted in the
+padding, counted missing, and was refused even when named).  An area is blank where every
+pixel of a ``BLANK_WINDOW_PX`` square round it has the same value, and that value lies
+strictly between the image's darkest and brightest: a real sensor's noise varies between
+neighbours, and a constant area at the darkest or brightest level may be the target's own
+background, clipped by the sensor or rendered without noise, where a missing triplet is
+evidence against a pose (such areas are not blank).
 """
 
 from __future__ import annotations
@@ -18,13 +20,13 @@ BLANK_WINDOW_PX = 5
 
 
 def blank_mask(image: np.ndarray) -> np.ndarray | None:
-    """Pixels of ``image`` (2-D) in a constant area (bool, the image's shape), or None when
-    there are none (the usual case: nothing to check later)."""
+    """Pixels of ``image`` (2-D) in a blank area (module docstring; bool, the image's shape),
+    or None when there are none (the usual case: nothing to check later)."""
     import cv2
 
     img = np.ascontiguousarray(image, dtype=np.float32)
     k = cv2.getStructuringElement(cv2.MORPH_RECT, (BLANK_WINDOW_PX, BLANK_WINDOW_PX))
-    blank = cv2.dilate(img, k) == cv2.erode(img, k)
+    blank = (cv2.dilate(img, k) == cv2.erode(img, k)) & (img > img.min()) & (img < img.max())
     return blank if blank.any() else None
 
 
