@@ -69,12 +69,10 @@ def _bars_in_mask(mask: np.ndarray, min_w: float, max_w: float) -> np.ndarray:
     """Bar-like blobs of a binary mask: rows ``cx, cy, w, l, angle`` (angle of the long axis)."""
     import cv2
 
-    # Outer boundaries only: a hole's boundary is a blob of the other polarity, found there
-    # (as a hole it is the same bar with the wrong polarity, about 2 px too wide).
-    contours, hier = cv2.findContours(mask.astype(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
     out = []
-    for c, (*_, parent) in zip(contours, hier[0] if hier is not None else ()):
-        if parent >= 0 or len(c) < 4:
+    for c in contours:
+        if len(c) < 4:
             continue
         area = cv2.contourArea(c)
         if area < ASPECT_RANGE[0] * min_w * min_w * 0.7:
@@ -85,8 +83,7 @@ def _bars_in_mask(mask: np.ndarray, min_w: float, max_w: float) -> np.ndarray:
             continue
         # contourArea measures the polygon through the boundary pixel centres: add half a
         # pixel all round before comparing with the rectangle.
-        filled = area + 0.5 * cv2.arcLength(c, True)
-        if filled < MIN_FILL * (w + 1) * (length + 1):
+        if (area + 0.5 * cv2.arcLength(c, True)) < MIN_FILL * (w + 1) * (length + 1):
             continue
         # The width reported is the blob's across its length from its second moments, a
         # filled rectangle's own (sqrt(12 var), the same convention as the rectangle's),

@@ -32,7 +32,6 @@ import numpy as np
 
 from oapcal.errors import DataError
 from oapcal.imaging.detect.bars import MIN_BAR_PX
-from oapcal.imaging.detect.blank import blank_mask, blank_near
 from oapcal.imaging.detect.checks import check_consistency, cubic_residuals, grow_consistent, outvoted
 from oapcal.imaging.detect.pose import HALF_ELEMENT
 from oapcal.imaging.detect.records import (
@@ -358,8 +357,6 @@ class _PoseFound:
     result: object
     trips: object
     mirror_from_digits: dict | None = None
-    #: the image's blank areas (:mod:`.blank`; None: none)
-    blank: np.ndarray | None = None
 
 
 def _detect(img, groups, opts: _Options, progress) -> Detection:
@@ -456,10 +453,9 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
 
     bar.stage("finding bar triplets")
     trips = find_triplets(img)
-    blank = blank_mask(img)
     bar.advance()
     bar.stage("pose search")
-    tried = _try_layouts(trips, img.shape, groups, opts, blank=blank)
+    tried = _try_layouts(trips, img.shape, groups, opts)
     top = max(tried, key=lambda r: r[0])[4]
     if not opts.anchors and not any(r[1] for r in tried) and top.pose is not None:
         # the seeds' own angles found no pose in any layout, the best one too little: every
@@ -469,7 +465,7 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
         # search narrowed to it can leave two poses of 10 triplets each where the turned
         # seeds find 16 (a real micrograph through the relay, turned 135 degrees, mirrored)
         if top.kind in ("not_found", "ambiguous"):
-            turned = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True, blank=blank)
+            turned = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
             if top.kind == "not_found" or any(r[1] for r in turned):
                 tried = turned
     elif not opts.anchors and opts.layout is None and not tried[0][1] and any(r[1] for r in tried):
@@ -477,7 +473,7 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
         # before another maker's layout is believed (through the aligned relay turned by
         # 225 degrees the default layout's seeds stall at 10 triplets, turned they match 18,
         # where the whole-target layout's 17 then fail the registration)
-        turned = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True, blank=blank)
+        turned = _try_layouts(trips, img.shape, groups, opts, turned_seeds=True)
         if turned[0][1]:
             tried = turned
     default = tried[0]
@@ -487,12 +483,12 @@ def _search_pose(img, groups, opts: _Options, bar) -> _PoseFound:
     _, _, layout, ref, pres = tried[0]
     digits = None
     if pres.kind == "ambiguous" and pres.param == ("mirror",) and opts.mirror == "auto":
-        pres, digits = _mirror_from_digits(img, trips, layout, ref, pres, groups, opts, blank)
+        pres, digits = _mirror_from_digits(img, trips, layout, ref, pres, groups, opts)
     bar.advance()
-    return _PoseFound(layout, usaf_target(groups, layout_name=layout), ref, pres, trips, digits, blank)
+    return _PoseFound(layout, usaf_target(groups, layout_name=layout), ref, pres, trips, digits)
 
 
-def _mirror_from_digits(img, trips, layout, ref, pres, groups, opts: _Options, blank=None):
+def _mirror_from_digits(img, trips, layout, ref, pres, groups, opts: _Options):
     """The pose search again with the mirror that the printed numbers show, when the bars
     left only the mirror open (:mod:`.digits`): ``(result, evidence)``; the refusal as it
     was, and no evidence, when the numbers do not decide it."""
@@ -504,7 +500,7 @@ def _mirror_from_digits(img, trips, layout, ref, pres, groups, opts: _Options, b
     ev = mirror_from_digits(img, _full_target(layout), pose.s, pose.lin, pose.t, centres, polarity)
     if ev.mirrored is None:
         return pres, None
-    res = _pose_search(trips, ref, img.shape, groups, opts, ev.mirrored, blank=blank)
+    res = _pose_search(trips, ref, img.shape, groups, opts, ev.mirrored)
     if res.status != 0:
         return pres, None
     evidence = {"mirrored": ev.mirrored, "ncc_unmirrored": round(ev.ncc_unmirrored, 4),
@@ -512,28 +508,26 @@ def _mirror_from_digits(img, trips, layout, ref, pres, groups, opts: _Options, b
     return res, evidence
 
 
-def _pose_search(
-    trips, ref, shape, groups, opts: _Options, mirror: bool | None, turned_seeds: bool = False, blank=None
-):
+def _pose_search(trips, ref, shape, groups, opts: _Options, mirror: bool | None, turned_seeds: bool = False):
     """:func:`~.pose.search_pose` of ``trips`` against ``ref`` with the options' scale,
-    orientation and anchors, ``mirror`` (None: either) and the image's ``blank`` areas."""
+    orientation and anchors, and ``mirror`` (None: either)."""
     from oapcal.imaging.detect.pose import search_pose
 
     return search_pose(
         trips, ref, shape, um_per_px=opts.um_per_px, listed=np.isin(ref.group, groups),
         orientation=None if opts.orientation == "auto" else opts.orientation, mirror=mirror,
-        anchors=opts.anchors, turned_seeds=turned_seeds, blank=blank,
+        anchors=opts.anchors, turned_seeds=turned_seeds,
     )  # fmt: skip
 
 
-def _try_layouts(trips, shape, groups, opts: _Options, turned_seeds: bool = False, blank=None) -> list:
+def _try_layouts(trips, shape, groups, opts: _Options, turned_seeds: bool = False) -> list:
     """The pose search in every layout: rows ``(score, found, layout, reference triplets,
     result)``."""
     tried = []
     mirror = None if opts.mirror == "auto" else opts.mirror == "yes"
     for layout in [opts.layout] if opts.layout is not None else _layouts():
         ref = _reference_triplets(layout)
-        res = _pose_search(trips, ref, shape, groups, opts, mirror, turned_seeds, blank)
+        res = _pose_search(trips, ref, shape, groups, opts, mirror, turned_seeds)
         score = res.pose.score if res.pose is not None else -np.inf
         tried.append((score, res.status == 0, layout, ref, res))
     return tried
@@ -759,8 +753,6 @@ class _DenseStart:
     anchors: list | None = None
     score_table: dict = field(default_factory=dict)
     max_degree: int = LEVELS[-1][1]
-    #: the image's blank areas (:mod:`.blank`; None: none)
-    blank: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -797,8 +789,8 @@ def _detect_from_pose(img, found: _PoseFound, opts: _Options, empty, bar):
     warp = _warp_from_points(trips.centre[ii], u_img, pose, target, u_ref, orient, (w, h))
     pred = warp.inverse(corners_u)
     m = 3.0
-    # only corners of bars that are resolved, where the image shows something, count as expected
-    inside = _imaged(found.blank, pred, m, (w, h)) & (target.corner_width_um * pose.s >= RESOLVED_BAR_PX)
+    # only corners of bars that are resolved count as expected
+    inside = ImageSize(w, h).contains(pred, m) & (target.corner_width_um * pose.s >= RESOLVED_BAR_PX)
     scale_ref = pose.s * u_ref  # reference px per camera px
     sigma = float(np.hypot(opts.sigma_hint_px, np.sqrt(1 / 12))) * scale_ref
     swap_axes = orientation_matrix(orient)[0, 0] == 0
@@ -822,14 +814,8 @@ def _detect_from_pose(img, found: _PoseFound, opts: _Options, empty, bar):
     )
     elements = {(int(found.ref.group[j]), int(found.ref.element[j])) for _, j in pose.matches}
     start = _DenseStart(orient, warp, rects, masks, polarity, _pose_anchors(target, found.ref, pose, trips),
-                        max_degree=dense_degree_limit(len(elements)), blank=found.blank)  # fmt: skip
+                        max_degree=dense_degree_limit(len(elements)))  # fmt: skip
     return _finish(empty, target, corners_u, kept, check, common), start
-
-
-def _imaged(blank, pred, margin: float, size) -> np.ndarray:
-    """Which predicted corners ``pred`` (camera px) the image shows: ``margin`` px inside it
-    and not in a blank area (:mod:`.blank`); only these are expected."""
-    return ImageSize(*size).contains(pred, margin) & ~blank_near(blank, pred)
 
 
 def _view_boxes(target, layout, pose, u_ref, size, orient):
@@ -1228,8 +1214,7 @@ def _correlation_start(img, target, um_per_px, orientation, orientation_ratio):
     rects = target.rectangles_px(um_per_px, (w, h), best)
     s, shift, _, sign = found  # camera = s u + shift
     model_rects, masks = _model_boxes(target, target, um_per_px, (w, h), best)
-    return _DenseStart(best, initial_warp(s, shift, rects), model_rects, masks, sign, score_table=score_table,
-                       blank=blank_mask(img))  # fmt: skip
+    return _DenseStart(best, initial_warp(s, shift, rects), model_rects, masks, sign, score_table=score_table)
 
 
 def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, bar, empty) -> Detection:
@@ -1260,7 +1245,7 @@ def _dense_levels(img, target, um_per_px, start: _DenseStart, opts: _Options, ba
         return _replace(empty, message=slip, ncc=global_ncc)
     pred = warp.inverse(corners_u)
     m = 3.0
-    inside = _imaged(start.blank, pred, m, (w, h))
+    inside = ImageSize(w, h).contains(pred, m)
     ctx = TripletContext(img, warp, start.rects, start.masks, target, corners_u, pred, res.a, res.b, sigma,
                          um_per_px, opts.max_stderr_px, opts.ambiguity_ratio,
                          orientation_matrix(best)[0, 0] == 0)  # fmt: skip

@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from oapcal.imaging.detect.bars import Triplets
-from oapcal.imaging.detect.blank import blank_near
 from oapcal.imaging.detect.warp import PolyWarp, normalisation, poly_exponents
 
 #: Penalty per resolvable reference triplet predicted inside the image but not found.
@@ -184,8 +183,6 @@ class _Scene:
     tree: object
     shape: tuple[int, int]
     listed: np.ndarray | None = None
-    #: the image's blank areas (:mod:`.blank`; None: none): no triplet is expected there
-    blank: np.ndarray | None = None
 
     @functools.cached_property  # once per search: every scoring of a chunk of hypotheses reads it
     def finest_expected_px(self) -> float:
@@ -216,10 +213,6 @@ def _score(
     half = 3.6 * wpred  # half the diagonal of a 5w x 5w triplet, and a little
     inside = (pred[..., 0] > half) & (pred[..., 0] < w - 1 - half)
     inside &= (pred[..., 1] > half) & (pred[..., 1] < h - 1 - half)
-    if scene.blank is not None:
-        # nor where the image shows nothing (padding, a clipped field stop): the triplet's
-        # centre and the middles of its footprint's sides (5 bar widths square)
-        inside &= ~blank_near(scene.blank, pred, 0.7 * half)
     expected = inside & (wpred >= scene.finest_expected_px)
     ok, match = _matched(pred, wpred, apred, scene, anchor, loose, width_tol)
     weight = np.ones(len(ref.width)) if listed is None else np.where(listed, 1.0, 0.25)
@@ -562,7 +555,6 @@ def search_pose(
     mirror: bool | None = None,
     anchors=(),
     turned_seeds: bool = False,
-    blank: np.ndarray | None = None,
 ) -> PoseResult:
     """Find the pose (module docstring).  ``listed`` marks the reference triplets of the
     groups the user named (weighted 1; others 0.25).  ``orientation`` (a key of
@@ -572,8 +564,6 @@ def search_pose(
     from the named triplets and keep only poses that honour them (:mod:`.anchor`).
     ``turned_seeds``: every seed also turned by :data:`SEED_TURNS_DEG` (three times the
     hypotheses; the detection asks for it only when no layout's search found a pose).
-    ``blank`` (optional, bool of the image's shape): where the image shows nothing
-    (:func:`~oapcal.imaging.detect.blank.blank_mask`); no triplet is expected there.
 
     The steps: every pairing of an image triplet with a reference triplet proposes poses
     (:func:`_hypotheses`); each is scored (:func:`_score_hypotheses`); the best are
@@ -592,7 +582,7 @@ def search_pose(
         return _no_hypothesis_result(img, anchors, um_per_px)
     if turned_seeds:
         hyps = _turned_seeds(hyps)
-    scene = _Scene(ref, img, cKDTree(img.centre), shape, listed, blank)
+    scene = _Scene(ref, img, cKDTree(img.centre), shape, listed)
     scores = _score_hypotheses(hyps, scene)
     refined = _refined_poses(hyps, scores, scene, top)
     if anchors:
