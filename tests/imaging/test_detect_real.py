@@ -214,39 +214,3 @@ def test_any_rotation_mirror_unknown_scale_shading_and_jpeg(angle, flip):
     # convention; the pose writes a left-right mirror as a top-bottom one turned by 180
     expected = -angle if not flip else -180.0 - angle
     assert abs((det.pose["best"]["rotation_deg"] - expected + 180) % 360 - 180) < 1.0
-
-
-def _turned(img, angle):
-    """``img`` turned by ``angle`` degrees (counter-clockwise on screen) onto a canvas that
-    holds it all, padded at its median; and the 2 x 3 map of its pixels into the canvas."""
-    import cv2
-
-    h, w = img.shape
-    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), angle, 1.0)
-    nw = int(np.ceil(w * abs(m[0, 0]) + h * abs(m[0, 1])))
-    nh = int(np.ceil(h * abs(m[0, 0]) + w * abs(m[0, 1])))
-    m[0, 2] += (nw - 1) / 2 - (w - 1) / 2
-    m[1, 2] += (nh - 1) / 2 - (h - 1) / 2
-    src = img.astype(np.float32)
-    return cv2.warpAffine(src, m, (nw, nh), flags=cv2.INTER_LINEAR, borderValue=float(np.median(src))), m
-
-
-@pytest.mark.slow
-@needs_real
-def test_a_real_image_turned_by_30_degrees_is_detected_without_an_anchor():
-    """LAB-UMK turned by 30 degrees: its bars' rectangles measured 1.1 px wider than
-    unturned, the triplets were not grouped and the image was refused ("only 7 of the 17
-    triplets"); now its corners are found, each where the unturned image's lies (measured:
-    median 0.07 px, 8 of 342 over 0.4 px, at most 1.1 px at bars cut by the micrograph's
-    edge, whose turned neighbourhood is padding)."""
-    img = _read("labumk_negative.tif")
-    base = detect_usaf(img, (4, 5, 6, 7))
-    turned, m = _turned(img, 30.0)
-    det = detect_usaf(turned, (4, 5, 6, 7))
-    assert det.status == 0, det.message
-    at = dict(zip(base.ids, base.xy_d @ m[:, :2].T + m[:, 2]))
-    common = [k for k, i in enumerate(det.ids) if i in at]
-    assert len(common) >= 300
-    err = np.hypot(*(det.xy_d[common] - np.array([at[det.ids[k]] for k in common])).T)
-    # a wrong id would be a bar width (5 px and more) from its place
-    assert np.median(err) < 0.15 and np.percentile(err, 90) < 0.3 and err.max() < 1.2
