@@ -26,7 +26,8 @@ def _triplet_image(angle_deg: float, blur: float = 1.0) -> tuple[np.ndarray, np.
     centres = np.array([c + k * 2 * WIDTH * normal for k in (-1, 0, 1)])
     big = np.zeros((SIZE * ss, SIZE * ss), np.float32)
     for m in centres:
-        quad = [m + sa * LENGTH / 2 * along + sn * WIDTH / 2 * normal for sa, sn in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        signs = ((-1, -1), (1, -1), (1, 1), (-1, 1))
+        quad = [m + sa * LENGTH / 2 * along + sn * WIDTH / 2 * normal for sa, sn in signs]
         pts = np.round(((np.array(quad) + 0.5) * ss - 0.5) * 16).astype(np.int32)  # 4 fractional bits
         cv2.fillPoly(big, [pts], 1.0, lineType=cv2.LINE_8, shift=4)
     img = cv2.resize(big, (SIZE, SIZE), interpolation=cv2.INTER_AREA)
@@ -51,6 +52,7 @@ def test_a_triplet_is_found_at_any_angle_with_its_width(angle):
 def test_a_turned_bar_measures_no_wider_than_an_unturned_one():
     """Each bar's reported width, turned by 7.5-172.5 degrees, is at most 0.3 px over its
     width unturned (the rectangle round the blob was up to 1.3 px over it)."""
+
     def widths(angle):
         img, centres = _triplet_image(angle)
         bars, pol = find_bars(img)
