@@ -66,7 +66,9 @@ class Triplets:
 
 
 def _bars_in_mask(mask: np.ndarray, min_w: float, max_w: float) -> np.ndarray:
-    """Bar-like blobs of a binary mask: rows ``cx, cy, w, l, angle`` (angle of the long axis)."""
+    """Bar-like blobs of a binary mask: rows ``cx, cy, w, l, angle, w_moments`` (angle of
+    the long axis; ``w`` the width of the blob's minimum-area rectangle, ``w_moments`` its
+    width from its second moments, :func:`find_bars`)."""
     import cv2
 
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
@@ -85,25 +87,26 @@ def _bars_in_mask(mask: np.ndarray, min_w: float, max_w: float) -> np.ndarray:
         # pixel all round before comparing with the rectangle.
         if (area + 0.5 * cv2.arcLength(c, True)) < MIN_FILL * (w + 1) * (length + 1):
             continue
-        # The width reported is the blob's across its length from its second moments, a
-        # filled rectangle's own (sqrt(12 var), the same convention as the rectangle's),
-        # never more than the rectangle's: a bar turned off the pixel axes has staircase
-        # edges, and the rectangle round them is up to 1.2 px wider (the LAB-UMK micrograph
-        # turned by 30 degrees: 8.1 px, its moments' 7.1, the unturned bar's 7.0 and 6.9),
-        # which failed the triplet's spacing test and refused the image.
         m = cv2.moments(c)
         var = 0.5 * (m["mu20"] + m["mu02"]) - np.hypot(0.5 * (m["mu20"] - m["mu02"]), m["mu11"])
-        if m["m00"] > 0 and var > 0:
-            w = min(w, float(np.sqrt(12.0 * var / m["m00"])))
+        w_mom = min(w, float(np.sqrt(12.0 * var / m["m00"]))) if m["m00"] > 0 and var > 0 else w
         theta = np.deg2rad(ang) if a >= b else np.deg2rad(ang + 90.0)
-        out.append((cx, cy, w, length, theta % np.pi))
-    return np.array(out, float).reshape(-1, 5)
+        out.append((cx, cy, w, length, theta % np.pi, w_mom))
+    return np.array(out, float).reshape(-1, 6)
 
 
 def find_bars(img: np.ndarray, *, max_bar_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Bars of both polarities in a float image scaled to about ``[0, 1]``.
 
-    Returns ``(bars, polarity)``: rows ``cx, cy, w, l, angle`` and +1 (bright) or -1 (dark).
+    Returns ``(bars, polarity)``: rows ``cx, cy, w, l, angle, w_moments`` and +1 (bright)
+    or -1 (dark).  Two widths, both in the rectangle's convention (a filled ``W`` px wide
+    bar measures ``W - 1``): ``w`` the minimum-area rectangle's, ``w_moments`` the blob's
+    from its second moments (``sqrt(12 var)`` across its length, at most ``w``).  A bar
+    turned off the pixel axes has staircase edges, and the rectangle round them is up to
+    1.2 px wider than the bar unturned (the LAB-UMK micrograph turned by 30 degrees: 8.1 px,
+    unturned 7.0; moments 7.1 and 6.9); a blurred bar's thresholded blob narrows towards its
+    ends, and its moments' width is then the narrower (through a misaligned relay, turned by
+    45 degrees: the rectangle's fitted a triplet's spacing, the moments' did not).
     """
     import cv2
 
@@ -137,10 +140,10 @@ def find_bars(img: np.ndarray, *, max_bar_px: float | None = None) -> tuple[np.n
             found = _bars_in_mask(((g - mid) * pol > 0) & contrast, min_w, max_w)
             if factor != 1.0:
                 found[:, :2] = (found[:, :2] + 0.5) * factor - 0.5
-                found[:, 2:4] *= factor
+                found[:, [2, 3, 5]] *= factor
             rows.append(found)
             pols.append(np.full(len(found), pol))
-    bars = np.concatenate(rows) if rows else np.zeros((0, 5))
+    bars = np.concatenate(rows) if rows else np.zeros((0, 6))
     pol = np.concatenate(pols) if pols else np.zeros(0)
     return _dedupe_bars(bars, pol)
 
@@ -167,7 +170,9 @@ def _dedupe_bars(bars: np.ndarray, pol: np.ndarray) -> tuple[np.ndarray, np.ndar
 def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
     """Triplets: a bar with one bar of the same size and direction on each side, one bar
     period away along the normal, in line.  The period (not the thresholded width, which
-    depends on the threshold) gives the bar width."""
+    depends on the threshold) gives the bar width.  ``bars`` rows ``cx, cy, w, l, angle``
+    and optionally ``w_moments`` (:func:`find_bars`; default ``w``): the spacing's lower
+    limit takes the narrower width, its upper limit the wider (each the more lenient)."""
     empty = Triplets(
         np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, 3, 2))
     )
@@ -177,7 +182,8 @@ def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
 
     tree = cKDTree(bars[:, :2])
     out = []
-    for i, (cx, cy, w, length, th) in enumerate(bars):
+    w_mom = bars[:, 5] if bars.shape[1] > 5 else bars[:, 2]
+    for i, (cx, cy, w, length, th) in enumerate(bars[:, :5]):
         nrm = np.array([-np.sin(th), np.cos(th)])
         along = np.array([np.cos(th), np.sin(th)])
         near = [j for j in tree.query_ball_point((cx, cy), 3.2 * w + 2) if j != i and pol[j] == pol[i]]
@@ -189,8 +195,9 @@ def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
             # the spacing may reach the wider bar's limit: a blurred middle bar between two
             # others thresholds narrower than they do (measured: 4.8 px between two of
             # 6.0 px at a 12.9 px spacing, where its own width allowed 12.8 px); the lower
-            # limit stays the narrower bar's (the limits only widen)
-            w_lo, w_hi = min(w, bars[j, 2]), max(w, bars[j, 2])
+            # limit stays the narrower bar's (the limits only widen), from its moments (a
+            # turned bar's rectangle is too wide, find_bars)
+            w_lo, w_hi = min(w_mom[i], w_mom[j]), max(w, bars[j, 2])
             if (
                 dth < np.deg2rad(10)
                 and abs(da) < 0.2 * length + 1
