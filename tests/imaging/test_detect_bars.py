@@ -1,6 +1,6 @@
 """The bottom-up bar finder (``detect.bars``) at any in-plane angle: the spacing test's lower
 limit takes a bar's width from its blob's second moments (the rectangle round a turned bar's
-staircase edges is up to 1.3 px wider, which failed the test: the real LAB-UMK micrograph
+staircase edges is up to 1.1 px wider, which failed the test: the real LAB-UMK micrograph
 turned by 15, 30 or 60 degrees was refused)."""
 
 import cv2
@@ -51,7 +51,7 @@ def test_a_triplet_is_found_at_any_angle_with_its_width(angle):
 
 def test_a_turned_bar_measures_no_wider_than_an_unturned_one():
     """Each bar's width from its moments, turned by 7.5-172.5 degrees, is at most 0.3 px
-    over its width unturned (the rectangle round the blob is up to 1.3 px over it)."""
+    over its width unturned (the rectangle round the blob is up to 1.1 px over it)."""
 
     def widths(angle):
         img, centres = _triplet_image(angle)

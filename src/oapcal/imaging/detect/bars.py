@@ -103,7 +103,7 @@ def find_bars(img: np.ndarray, *, max_bar_px: float | None = None) -> tuple[np.n
     bar measures ``W - 1``): ``w`` the minimum-area rectangle's, ``w_moments`` the blob's
     from its second moments (``sqrt(12 var)`` across its length, at most ``w``).  A bar
     turned off the pixel axes has staircase edges, and the rectangle round them is up to
-    1.2 px wider than the bar unturned (the LAB-UMK micrograph turned by 30 degrees: 8.1 px,
+    1.1 px wider than the bar unturned (the LAB-UMK micrograph turned by 30 degrees: 8.1 px,
     unturned 7.0; moments 7.1 and 6.9); a blurred bar's thresholded blob narrows towards its
     ends, and its moments' width is then the narrower (through a misaligned relay, turned by
     45 degrees: the rectangle's fitted a triplet's spacing, the moments' did not).
