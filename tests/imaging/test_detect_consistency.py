@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from oapcal.imaging.detect import check_consistency
+from oapcal.imaging.detect.checks import CONSISTENCY_MAX_RMS_PX
 from oapcal.imaging.field import setup1_like_field
 from oapcal.imaging.usaf import usaf_target
 from oapcal.model import distort
@@ -37,6 +38,22 @@ def test_right_pairs_off_eq1_are_kept():
     # every pair is right; Eq. (1) alone (the check before) flagged 8 of them
     assert check.status == 0 and check.model == "full" and check.rms_px > 0.2
     assert check.consistent.all() and check.rescued > 0
+
+
+def test_right_pairs_that_eq1_fits_over_the_rms_limit_pass_when_a_cubic_map_fits_them():
+    """A non-radial term of 8 px at 100 px from the centre: Eq. (1) leaves 0.76 px rms on the
+    consistent pairs, over the 0.75 px limit (refused before), a cubic map 0.03 px."""
+    xy_u, xy_d, width = _non_radial_pairs(amplitude_px=8.0)
+    check = check_consistency(xy_u, xy_d, width)
+    assert check.rms_px > CONSISTENCY_MAX_RMS_PX and check.cubic_rms_px < 0.05
+    assert check.status == 0 and check.consistent.all()
+    assert check.summary()["cubic_rms_px"] == check.cubic_rms_px
+
+
+def test_the_cubic_rms_is_computed_only_when_the_model_misses_the_limit():
+    xy_u, xy_d, width = _non_radial_pairs()
+    check = check_consistency(xy_u, xy_d, width)
+    assert check.rms_px < CONSISTENCY_MAX_RMS_PX and check.cubic_rms_px is None
 
 
 def test_pairs_one_bar_off_are_still_dropped_off_eq1():

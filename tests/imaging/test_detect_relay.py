@@ -163,6 +163,8 @@ def test_consistency_check_refuses_pairs_that_fit_no_smooth_model_well():
     noisy = xy_d + np.random.default_rng(2).normal(0, 0.8, xy_d.shape)  # rms 1.1 px
     check = check_consistency(xy_u, noisy, 10 * width)
     assert check.status == 1 and "doubtful" in check.message
+    # nor does a cubic map: noise is not a smooth distortion
+    assert check.cubic_rms_px > 0.75 and "cubic map" in check.message
 
 
 def test_consistency_check_needs_enough_pairs():

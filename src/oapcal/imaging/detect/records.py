@@ -90,8 +90,11 @@ class PoseInfo(Record):
 class ConsistencySummary(Record):
     """The global consistency check (:class:`~oapcal.imaging.detect.checks.Consistency`)
     as reported: the model fitted (None: not checked), the rms and largest residual (px),
-    the number of inconsistent pairs, its status and message, and the pairs off the model
-    that a cubic map kept (``rescued``)."""
+    the number of inconsistent pairs, its status and message, the pairs off the model
+    that a cubic map kept (``rescued``) and, only when the model's rms exceeded the limit,
+    the cubic map's (``cubic_rms_px``)."""
+
+    _OPTIONAL = ("cubic_rms_px",)
 
     model: str | None
     rms_px: float
@@ -100,6 +103,7 @@ class ConsistencySummary(Record):
     status: int
     message: str
     rescued: int = 0
+    cubic_rms_px: float | None = None
 
 
 @dataclass(frozen=True, eq=False, repr=False)
