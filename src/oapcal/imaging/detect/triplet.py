@@ -115,9 +115,10 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     Why the tangent: an element is registered again where the registration is off by more
     than half a bar width, mostly at the edge of what the image shows of the target, where
     its polynomial (degree up to 4) is least constrained, so its curvature there may be
-    wrong too.  Measured on the LAB-UMK micrograph through misaligned relays (seeds 0 and
-    1): group 5's triplets refined on the registration plus the element's correction came
-    0.4-0.95 px (median) off the truth from every start, on the tangent 0.1-0.4 px.  Why
+    wrong too.  Measured on the LAB-UMK micrograph through misaligned relays: group 5's
+    triplets refined on the registration plus the element's correction came 0.4-0.95 px
+    (median) off the truth from every start (G5E2 then dropped); with the choice, G5E2
+    0.15-0.23 px and G5E3 0.29-0.32 px (0.39-0.48 before).  Why
     not always the tangent: where the registration's curvature is right, the tangent
     leaves out the field's own (a simulated setup-1 field: G5E1's corners 0.16 px off on
     the tangent, 0.02 px on the registration)."""
