@@ -290,12 +290,7 @@ def scene_of(case: Case, src: SourceTruth):
 
     groups = parse_groups(case.centre_groups or case.groups)
     pts = np.array([xy for cid, xy in src.corners.items() if int(cid[1 : cid.index("E")]) in groups])
-    # the groups in view on the axis, at a whole source px: the corners come from the detector
-    # under test, so an unrounded centre moved every render by a few hundredths of a px when
-    # the detector changed, and a decision near its limit with it (measured: the LAB-UMK
-    # render of seed 4, detected without the scale, refused on one render and 192 corners
-    # on the other, 78 % of whose pixels differed, by up to 22 of 255)
-    centre = np.round(0.5 * (pts.min(axis=0) + pts.max(axis=0)))
+    centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))  # the groups in view on the axis
     design = RelayDesign(setup=1, pixel_size_um=4.8, centre=(319.5, 239.5))
     params = relay_params(design, case.misalignment, {"rotation": case.turn_deg})
     placement = Placement(src.um_per_px, tuple(centre), rotation_deg=case.rotation_deg, mirror=case.mirror)
