@@ -50,6 +50,15 @@ def test_right_pairs_that_eq1_fits_over_the_rms_limit_pass_when_a_cubic_map_fits
     assert check.summary()["cubic_rms_px"] == check.cubic_rms_px
 
 
+def test_the_cubic_map_does_not_judge_fewer_than_100_pairs():
+    """96 of the pairs with a 16 px non-radial term: ``full`` leaves 0.84 px, and a cubic map
+    of 20 coefficients is not asked on so few pairs (it fits wrong alignments too)."""
+    xy_u, xy_d, width = _non_radial_pairs(amplitude_px=16.0)
+    k = np.random.default_rng(0).choice(len(xy_u), 96, replace=False)
+    check = check_consistency(xy_u[k], xy_d[k], width[k])
+    assert check.status == 1 and "doubtful" in check.message and check.cubic_rms_px is None
+
+
 def test_the_cubic_rms_is_computed_only_when_the_model_misses_the_limit():
     xy_u, xy_d, width = _non_radial_pairs()
     check = check_consistency(xy_u, xy_d, width)

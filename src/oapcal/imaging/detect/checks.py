@@ -19,6 +19,11 @@ CONSISTENCY_MAX_FRACTION = 0.25
 #: relay at 94 px distortion (0.39 px, the model's own misfit) and a wrong alignment at
 #: 161 px that was smooth enough to fit (0.93 px).
 CONSISTENCY_MAX_RMS_PX = 0.75
+#: The cubic map's rms (:func:`check_consistency`) is judged only on this many consistent
+#: pairs or more, five per coefficient of its 20: on fewer it fits a wrong alignment too (the
+#: single high-magnification element binned 2x with ``G7E1``: 24 pairs, ``paper`` 0.92 px,
+#: the cubic under the limit, 6 of the 24 ids wrong).
+CUBIC_RMS_MIN_PAIRS = 100
 #: A pair off the model is tested against the cubic map of the kept pairs only within this
 #: many of its bar widths from one of them (:func:`grow_consistent`).
 RESCUE_STEP_WIDTHS = 3.0
@@ -83,13 +88,13 @@ def check_consistency(
     ``max_fraction`` of the pairs are flagged (then the model is fitted to wrong pairs
     as much as to right ones and nothing can be trusted), or when the rms residual of
     the rest exceeds ``max_rms_px`` both from the model and from the cubic polynomial map
-    fitted to the same pairs (a wrong alignment can be smooth, but rarely as smooth as a
-    real distortion; the limit is empirical, see :data:`CONSISTENCY_MAX_RMS_PX`).  Why
-    the cubic too: a real target in a real image is not where the drawn layout puts it,
-    and through a misaligned relay behind a tilted camera Eq. (1) misfits its field's edge
-    (the rescue below): the LAB-UMK micrograph, itself 0.8-0.9 px rms off the layout,
-    through misaligned relays left 0.77-0.89 px from ``full`` on right corners, 0.24-0.31
-    px from the cubic.
+    fitted to the same pairs, when there are :data:`CUBIC_RMS_MIN_PAIRS` of them (a wrong
+    alignment can be smooth, but rarely as smooth as a real distortion; the limit is
+    empirical, see :data:`CONSISTENCY_MAX_RMS_PX`).  Why the cubic too: a real target in
+    a real image is not where the drawn layout puts it, and through a misaligned relay
+    behind a tilted camera Eq. (1) misfits its field's edge (the rescue below): the LAB-UMK
+    micrograph, itself 0.8-0.9 px rms off the layout, through the misaligned relay of seed
+    3 left 0.89 px from ``full`` on 245 right corners, 0.31 px from the cubic.
 
     A flagged pair is kept after all (``rescued``) when it follows the cubic polynomial
     map fitted to the unflagged pairs within the same kind of limit, grown outwards from
@@ -130,7 +135,7 @@ def check_consistency(
             f"smooth {model} model (rms residual of the rest {rms:.2f} px); nothing was kept",
         )  # fmt: skip
     cubic_rms = None
-    if not rms <= max_rms_px and model != "cubic" and keep.sum() >= 2 * len(poly_exponents(3)):
+    if not rms <= max_rms_px and model != "cubic" and keep.sum() >= CUBIC_RMS_MIN_PAIRS:
         cubic_rms = float(np.sqrt(np.mean(cubic_residuals(xy_u, xy_d, keep)[keep] ** 2)))
     if not (rms <= max_rms_px or (cubic_rms is not None and cubic_rms <= max_rms_px)):
         cubic = "" if cubic_rms is None else f" and a cubic map with {cubic_rms:.2f} px"
