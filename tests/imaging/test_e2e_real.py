@@ -365,10 +365,12 @@ def test_a_refused_union_keeps_the_second_pass_corners_the_first_pass_reaches(tm
     """The LAB-UMK micrograph through the misaligned relay of seed 3: the union of both
     refinements (group 5's elements registered one by one) failed the global check (Eq. (1)
     `full` rms 0.89 px against 0.75: the field bends there) and its first pass alone was kept,
-    132 of 216 corners.  Now the second pass's corners that a cubic map grown from the first
-    pass reaches are added (``core._grown_from_first``): no wrong id, more corners."""
+    132 of 216 corners.  Then the second pass's corners that a cubic map grown from the first
+    pass reaches were added (``core._grown_from_first``: 168).  Now the union passes the
+    check itself, a cubic map fitting it with 0.31 px rms (``checks.check_consistency``):
+    215 of 216, the largest error 0.92 px.  Either way: no wrong id, more corners."""
     src = bench.source_truth("labumk_negative.tif")
     case = next(c for c in bench.cases(False, 5) if c.name == "labumk, misaligned s3")
     for d in bench.run_case(case, src, tmp_path, models=(), images=False)["detections"]:
         assert d["code"] == 0, d["message"]
-        assert d["wrong_ids"] == 0 and d["found"] >= 150 and d["max_error_px"] < 1.0
+        assert d["wrong_ids"] == 0 and d["found"] >= 200 and d["max_error_px"] < 1.0
