@@ -140,3 +140,59 @@ def test_bars_under_a_blur_wider_than_themselves_are_not_registered_again(regist
     ctx, sim = registration
     first, both = _twice_on_g5e1(ctx, sim, sigma=1.1 * _g5e1_bar_px(ctx))
     assert both is first
+
+
+def _curved(ctx, x_e, amplitude_ref, half_px):
+    """``ctx`` with a spurious curvature in its registration round the camera point ``x_e``:
+    ``amplitude_ref`` reference px at ``half_px`` camera px from it along x and y, nothing
+    (value and slope) at ``x_e`` itself."""
+    warp = ctx.warp
+    rng = np.random.default_rng(0)
+    x = rng.uniform([0, 0], [640, 480], size=(400, 2))
+    z = (x - x_e) / half_px
+    bump = amplitude_ref * np.column_stack([z[:, 0] ** 2 + 0.5 * z[:, 1] ** 2, z[:, 0] * z[:, 1]])
+    extra = PolyWarp.fit(x, bump, warp.degree, centre=warp.centre, scale=warp.scale)
+    curved = warp.with_coef(warp.coef + extra.coef)
+    return replace(ctx, warp=curved, pred=curved.inverse(ctx.corners_u, x0=ctx.pred))
+
+
+def test_the_tangent_touches_the_registration_and_is_affine():
+    rng = np.random.default_rng(4)
+    warp = PolyWarp(
+        np.array([300.0, 200.0]), 250.0, rng.normal(size=(15, 2)) * [[100], [200], [200], *[[5]] * 12], 4
+    )
+    x0 = np.array([410.0, 95.0])
+    tan = warp.tangent(x0)
+    assert tan.degree == 1
+    np.testing.assert_allclose(tan(x0[None]), warp(x0[None]), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(tan.jacobian(x0[None]), warp.jacobian(x0[None]), rtol=0, atol=1e-12)
+    x = rng.uniform(0, 640, size=(20, 2))
+    np.testing.assert_allclose(tan(x), warp(x0[None]) + (x - x0) @ warp.jacobian(x0[None])[0].T, atol=1e-9)
+
+
+@pytest.mark.parametrize("amplitude", [0.0, 1.0])
+def test_an_element_is_registered_again_on_the_registration_or_its_tangent(registration, amplitude):
+    """The registration off by 1.3 bar widths at G5E1, and wrongly curved there by
+    ``amplitude`` reference px at 18 px from the element's centre (as a degree-4 polynomial
+    can be where the image shows little of the target).  Right curvature: the element is
+    registered on the registration itself, its corners where the right registration puts
+    them.  Wrong curvature: on the tangent, within the field's own curvature over a triplet
+    (0.15-0.16 px in this simulated field); registered on the curved registration, as
+    before, both triplets were dropped again as moved."""
+    ctx, _ = registration
+    bars, idx = _element(ctx, 5, 1)
+    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
+    right = {}
+    for tb in (bars[:3], bars[3:]):
+        reason, xy, _, _ = T.refine_triplet(ctx, tb, core._corner_indices(tb))
+        assert reason is None
+        right[tuple(tb)] = xy
+    curved = _curved(ctx, ctx.pred[idx].mean(axis=0), amplitude, 18.0)
+    off = _shifted(curved, 1.3 * w_ref / np.sqrt(2) * np.array([1.0, 1.0]))
+    again = T.refine_element(off, bars, idx)
+    assert again is not None
+    assert again.warp.degree == (ctx.warp.degree if amplitude == 0 else 1)
+    for tb in (bars[:3], bars[3:]):
+        reason, xy, _, _ = T.refine_triplet(again, tb, core._corner_indices(tb))
+        assert reason is None
+        assert np.hypot(*(xy - right[tuple(tb)]).T).max() < (0.02 if amplitude == 0 else 0.2)

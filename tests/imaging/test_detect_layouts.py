@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from oapcal.imaging.detect.layouts import (
+    BETTER_RATIO,
     MIN_CORNERS,
+    RETRY_RATIO,
     SUSPECT_RMS_PX,
     WIDE_BAR_PX,
     better_layout,
@@ -106,6 +108,26 @@ def test_what_is_run_again():
     assert layouts_to_retry(failed, GROUPS, "spaced", lays)[0] == []
     failed.pose = {"status": 1}
     assert layouts_to_retry(failed, GROUPS, "spaced", lays)[0] == []
+
+
+def test_a_wrong_layout_that_the_corners_show_only_dimly_is_run_again_and_judged_by_the_new_run():
+    """Corners detected in a wrong layout carry its error, so the right layout fits them
+    better but not by the factor that keeps a detection (:data:`BETTER_RATIO`): the detection
+    runs again in it (:data:`RETRY_RATIO`), and :func:`prefer` keeps the new run only when its
+    own corners fit its layout clearly better."""
+    ids, xy = _corners("compact", noise_px=0.45, seed=5)
+    rms = layout_residuals(ids, xy, GROUPS, list(LAYOUTS))
+    ratio = rms["compact"] / rms["whole-target"]
+    assert BETTER_RATIO < ratio <= RETRY_RATIO  # the case this rule is for (0.6 here)
+    assert better_layout(ids, xy, GROUPS, "whole-target", list(LAYOUTS))[0] is None
+    assert layouts_to_retry(_det(ids, xy), GROUPS, "whole-target", list(LAYOUTS))[0] == ["compact"]
+    # the new run's corners, refined in the right layout, fit it to their noise: kept
+    _, clean = _corners("compact", seed=5)
+    assert prefer(_det(ids, clean), "compact", _det(ids, xy), "whole-target", GROUPS)
+    # a new run no better than the corners it was asked from: the first detection stays
+    assert not prefer(_det(ids, xy), "compact", _det(ids, xy), "whole-target", GROUPS)
+    # the right layout's own corners, however noisy, never ask for another layout
+    assert layouts_to_retry(_det(ids, xy), GROUPS, "compact", list(LAYOUTS))[0] == []
 
 
 def test_which_detection_is_kept():

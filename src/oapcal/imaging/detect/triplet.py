@@ -72,6 +72,7 @@ class _Local:
     x_t: np.ndarray  # centre and half size of the local affine correction's coordinates
     l_t: float
     w_ref: float  # bar width, reference px
+    xs: np.ndarray | None = None  # the camera pixels (N, 2)
 
 
 def refine_triplet(ctx: TripletContext, bars, idx):
@@ -104,17 +105,41 @@ def refine_triplet(ctx: TripletContext, bars, idx):
 def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     """``ctx`` with its registration corrected for one element (the ``bars`` of both its
     triplets, corner indices ``idx``): an affine correction fitted to the element's pixels,
-    which may move it by up to :data:`ELEMENT_MAX_SHIFT` bar widths, and the element's
-    corners predicted through it; None when the fit fails or its contrast is not the
-    registration's (``core._refine_twice`` says why)."""
-    reason, local, res, b = _fit_local(ctx, bars, idx, widths=ELEMENT_MAX_SHIFT, floor_px=0.0)
-    if (
-        reason is not None
-        or not (res.converged and np.isfinite(res.coef).all())
-        or np.sign(res.b) != np.sign(b)
-    ):
+    which may move it by up to :data:`ELEMENT_MAX_SHIFT` bar widths, added either to the
+    registration or to its tangent at the element's predicted centre
+    (:meth:`PolyWarp.tangent`, an affine map: the registration's curvature left out),
+    whichever fits the same pixels with the lower cost; the element's corners predicted
+    through it.  None when neither fit succeeds or its contrast is not the registration's
+    (``core._refine_twice`` says why).
+
+    Why the tangent: an element is registered again where the registration is off by more
+    than half a bar width, mostly at the edge of what the image shows of the target, where
+    its polynomial (degree up to 4) is least constrained, so its curvature there may be
+    wrong too.  Measured on the LAB-UMK micrograph through misaligned relays: group 5's
+    triplets refined on the registration plus the element's correction came 0.4-0.95 px
+    (median) off the truth from every start (G5E2 then dropped); with the choice, G5E2
+    0.15-0.23 px and G5E3 0.29-0.32 px (0.39-0.48 before).  Why
+    not always the tangent: where the registration's curvature is right, the tangent
+    leaves out the field's own (a simulated setup-1 field: G5E1's corners 0.16 px off on
+    the tangent, 0.02 px on the registration)."""
+    tangent = replace(ctx, warp=ctx.warp.tangent(ctx.pred[idx].mean(axis=0)))
+    best = None
+    xs = None
+    for base in (tangent, ctx):
+        reason, local, res, b = _fit_local(base, bars, idx, widths=ELEMENT_MAX_SHIFT, floor_px=0.0, xs=xs)
+        if local is not None:
+            xs = local.xs  # both bases judged on the same pixels
+        if (
+            reason is not None
+            or not (res.converged and np.isfinite(res.coef).all())
+            or np.sign(res.b) != np.sign(b)
+        ):
+            continue
+        if best is None or res.cost < best[0]:
+            best = (res.cost, _with_affine(base.warp, local, res.coef))
+    if best is None:
         return None
-    warp = _with_affine(ctx.warp, local, res.coef)
+    warp = best[1]
     pred = ctx.pred.copy()
     pred[idx] = warp.inverse(ctx.corners_u[idx], x0=ctx.pred[idx])
     if not np.isfinite(pred[idx]).all():
@@ -122,13 +147,14 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     return replace(ctx, warp=warp, pred=pred)
 
 
-def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float):
+def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float, xs=None):
     """The local affine correction of the registration fitted to the pixels around ``bars``
-    (corner indices ``idx``), moving no pixel by more than ``widths`` bar widths (at least
-    ``floor_px``), for :func:`refine_triplet` and :func:`refine_element`: ``(drop reason or
-    None, local pixels, fit, starting contrast)``.  The blur is bounded by about a bar width:
-    beyond, the bars are not resolved and the corners are meaningless."""
-    local = _local_pixels(ctx, bars, idx)
+    (corner indices ``idx``; or to the camera pixels ``xs``), moving no pixel by more than
+    ``widths`` bar widths (at least ``floor_px``), for :func:`refine_triplet` and
+    :func:`refine_element`: ``(drop reason or None, local pixels, fit, starting
+    contrast)``.  The blur is bounded by about a bar width: beyond, the bars are not
+    resolved and the corners are meaningless."""
+    local = _local_pixels(ctx, bars, idx, xs)
     if local is None:
         return "outside", None, None, None
     a, b = ctx.a, ctx.b
@@ -157,10 +183,10 @@ def _with_affine(warp: PolyWarp, local: _Local, coef: np.ndarray) -> PolyWarp:
     return warp.with_coef(out)
 
 
-def _local_pixels(ctx: TripletContext, bars, idx) -> _Local | None:
-    """The pixels around the triplet (None when fewer than 20) and a raster of its
-    neighbourhood only (bounded, cheap to re-blur for every trial sigma), holding every bar
-    near it."""
+def _local_pixels(ctx: TripletContext, bars, idx, xs=None) -> _Local | None:
+    """The pixels around the triplet (or the camera pixels ``xs``; None when fewer than 20)
+    and a raster of its neighbourhood only (bounded, cheap to re-blur for every trial
+    sigma), holding every bar near it."""
     img, sigma = ctx.img, ctx.sigma
     h, w = img.shape
     w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
@@ -171,7 +197,8 @@ def _local_pixels(ctx: TripletContext, bars, idx) -> _Local | None:
     pad = 3.0 * max(sigma, 1.0) + 2.0 * w_ref + 4.0
     ref = Reference(ctx.rects, margin=pad, window=(lo - pad, hi + pad), masks=ctx.masks,
                     min_step=sigma / CELLS_PER_SIGMA)  # fmt: skip
-    xs = region_pixels(ctx.warp, ref, (w, h), lo, hi, max_pixels=MAX_TRIPLET_PIXELS)
+    if xs is None:
+        xs = region_pixels(ctx.warp, ref, (w, h), lo, hi, max_pixels=MAX_TRIPLET_PIXELS)
     if len(xs) < 20:
         return None
     values = img[xs[:, 1].astype(int), xs[:, 0].astype(int)]
@@ -179,7 +206,7 @@ def _local_pixels(ctx: TripletContext, bars, idx) -> _Local | None:
     x_t = pred.mean(axis=0)
     l_t = max(float(np.ptp(pred, axis=0).max()) / 2, 1.0)
     basis = np.column_stack([np.ones(len(xs)), (xs - x_t) / l_t])
-    return _Local(PixelData(values, ctx.warp(xs), basis, ref), x_t, l_t, w_ref)
+    return _Local(PixelData(values, ctx.warp(xs), basis, ref), x_t, l_t, w_ref, xs)
 
 
 def _linear_contrast(data: PixelData, sigma: float, b_sign: float):

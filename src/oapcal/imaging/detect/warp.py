@@ -89,6 +89,14 @@ class PolyWarp:
     def with_coef(self, coef: np.ndarray) -> PolyWarp:
         return PolyWarp(self.centre, self.scale, coef, self.degree)
 
+    def tangent(self, x0) -> PolyWarp:
+        """The affine map that touches this one at the point ``x0``: the same value and
+        Jacobian there, no curvature (degree 1, centred on ``x0``)."""
+        x0 = np.asarray(x0, float).reshape(1, 2)
+        jac = self.jacobian(x0)[0]  # [u/v, x/y]
+        coef = np.stack([self(x0)[0], jac[:, 0] * self.scale, jac[:, 1] * self.scale])
+        return PolyWarp(x0[0], self.scale, coef, 1)
+
     def affine_inverse(self, u: np.ndarray) -> np.ndarray:
         """Points ``x`` from the affine part of the warp at its centre (Newton's start)."""
         c = self.centre[None, :]
