@@ -196,3 +196,34 @@ def test_an_element_is_registered_again_on_the_registration_or_its_tangent(regis
         reason, xy, _, _ = T.refine_triplet(again, tb, core._corner_indices(tb))
         assert reason is None
         assert np.hypot(*(xy - right[tuple(tb)]).T).max() < (0.02 if amplitude == 0 else 0.2)
+
+
+def test_an_elements_fit_blurs_at_most_a_few_times_the_registrations_blur(registration, monkeypatch):
+    """The element pass fits where an element is in the image's blur: on pixels blurred far
+    beyond it (a canvas's fill, or a region that is not the element's bars) its fitted blur
+    stops at :data:`~oapcal.imaging.detect.triplet.ELEMENT_MAX_BLUR` times the registration's
+    (it ran to 33 times, and blurring the raster that much cost most of the detection's
+    time), while a triplet's own fit may still reach 1.2 bar widths."""
+    import cv2
+
+    ctx, _ = registration
+    bars, idx = _element(ctx, 4, 1)
+    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
+    cap = T.ELEMENT_MAX_BLUR * ctx.sigma
+    assert 1.2 * w_ref > 2 * cap  # the triplet's own limit lies well above the cap here
+    fits = []
+    real = T.fit_pixels
+
+    def spy(data, start, options):
+        res = real(data, start, options)
+        fits.append((options.sigma_max, res.sigma))
+        return res
+
+    monkeypatch.setattr(T, "fit_pixels", spy)
+    smeared = replace(ctx, img=cv2.GaussianBlur(ctx.img, (0, 0), 3 * w_ref))
+    T.refine_element(smeared, bars, idx)
+    assert fits and all(limit <= cap + 1e-9 and sigma <= cap + 1e-9 for limit, sigma in fits)
+    assert max(sigma for _, sigma in fits) > 0.9 * cap  # the smeared pixels ask for more
+    fits.clear()
+    T.refine_triplet(smeared, bars[:3], core._corner_indices(bars[:3]))
+    assert fits[0][0] == pytest.approx(max(1.2 * w_ref, 1.5 * ctx.sigma, 1.0))

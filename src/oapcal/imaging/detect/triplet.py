@@ -21,6 +21,13 @@ from oapcal.imaging.detect.warp import PolyWarp, newton_invert
 #: How far (bar widths) an element's registration (:func:`refine_element`) may move it: its
 #: two triplets, a quarter turn to each other, leave no slip by one bar period.
 ELEMENT_MAX_SHIFT = 2.0
+#: ... and the largest blur (times the registration's) it may fit: the element pass corrects
+#: where an element is, in the image's blur; a fit that blurs its pixels several times more
+#: is not fitting that element's bars (measured: the real FPM micrograph turned by 30 degrees
+#: and mirrored on a 3 Mpx canvas, G3E2 in the canvas's fill fitted 14.9 and 36.5 reference
+#: px against the registration's 1.1, and blurring the raster that much took 38 s of the
+#: detection's 90 s; the LAB-UMK renders' elements fit at most 1.8 times the registration's).
+ELEMENT_MAX_BLUR = 4.0
 #: Largest number of pixels one triplet's fit uses (a regular subsample beyond: a large
 #: triplet has far more pixels than its 8 parameters need).
 MAX_TRIPLET_PIXELS = 12_000
@@ -126,7 +133,9 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     best = None
     xs = None
     for base in (tangent, ctx):
-        reason, local, res, b = _fit_local(base, bars, idx, widths=ELEMENT_MAX_SHIFT, floor_px=0.0, xs=xs)
+        reason, local, res, b = _fit_local(
+            base, bars, idx, widths=ELEMENT_MAX_SHIFT, floor_px=0.0, xs=xs, max_blur=ELEMENT_MAX_BLUR
+        )
         if local is not None:
             xs = local.xs  # both bases judged on the same pixels
         if (
@@ -147,13 +156,14 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     return replace(ctx, warp=warp, pred=pred)
 
 
-def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float, xs=None):
+def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float, xs=None, max_blur=None):
     """The local affine correction of the registration fitted to the pixels around ``bars``
     (corner indices ``idx``; or to the camera pixels ``xs``), moving no pixel by more than
     ``widths`` bar widths (at least ``floor_px``), for :func:`refine_triplet` and
     :func:`refine_element`: ``(drop reason or None, local pixels, fit, starting
     contrast)``.  The blur is bounded by about a bar width: beyond, the bars are not
-    resolved and the corners are meaningless."""
+    resolved and the corners are meaningless; and, given ``max_blur``, by that many times
+    the registration's blur."""
     local = _local_pixels(ctx, bars, idx, xs)
     if local is None:
         return "outside", None, None, None
@@ -163,9 +173,10 @@ def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float
         if a is None:
             return "contrast", None, None, None
     w_ref, sigma = local.w_ref, ctx.sigma
-    options = FitOptions(
-        fit_sigma=True, sigma_max=max(1.2 * w_ref, 1.5 * sigma, 1.0), max_shift=max(widths * w_ref, floor_px)
-    )
+    sigma_max = max(1.2 * w_ref, 1.5 * sigma, 1.0)
+    if max_blur is not None:
+        sigma_max = min(sigma_max, max(max_blur * sigma, 1.5 * sigma, 1.0))
+    options = FitOptions(fit_sigma=True, sigma_max=sigma_max, max_shift=max(widths * w_ref, floor_px))
     res = fit_pixels(local.data, FitStart(np.zeros((3, 2)), a, b, sigma), options)
     return None, local, res, b
 
