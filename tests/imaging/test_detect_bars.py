@@ -116,25 +116,3 @@ def test_a_blob_much_wider_than_a_bar_at_its_place_does_not_remove_it():
     kept, _ = _dedupe_bars(bars, np.ones(3))
     assert len(kept) == 2
     assert kept[:, 2].tolist() == [21.0, 5.6]
-
-
-def test_each_bar_makes_one_triplet_even_beside_the_next_elements_bars():
-    """Elements stack their triplets along the bars' normal, an element gap (a little over a
-    bar period) apart: a bar of each neighbouring element and two of this triplet's make
-    candidates one period off to either side.  The most regular candidate keeps its bars and
-    the others are dropped (measured: G4E5H of a misaligned relay's render turned by 45
-    degrees and mirrored gave three triplets, and the pose slipped)."""
-    from oapcal.imaging.detect.bars import group_triplets
-
-    w, length = 4.0, 20.0
-    # this triplet's bars at 0, 8, 16 px; the neighbours' nearest bars 10 px beyond, a little narrower
-    ys = [-10.0, 0.0, 8.0, 16.0, 26.0]
-    widths = [3.6, 4.0, 4.0, 4.0, 3.6]
-    bars = np.array([[50.0, 50.0 + y, 0.0, 0.0, 0.0, 0.0] for y in ys])
-    bars[:, 2] = widths
-    bars[:, 3] = length
-    bars[:, 5] = widths
-    t = group_triplets(bars, np.ones(len(bars)))
-    assert len(t) == 1
-    np.testing.assert_allclose(t.centre[0], [50.0, 58.0])
-    assert t.width[0] == pytest.approx(w)

@@ -234,23 +234,11 @@ def group_triplets(bars: np.ndarray, pol: np.ndarray) -> Triplets:
                 bad = (
                     abs(dl - dr) / period + np.ptp(widths) / widths.mean() + np.ptp(lengths) / lengths.mean()
                 )
-                out.append((cx, cy, th, wb, lengths.mean(), pol[i], pts, bad, (jl, i, jr)))
+                out.append((cx, cy, th, wb, lengths.mean(), pol[i], pts, bad))
     if not out:
         return empty
-    # Each bar belongs to one triplet: the most regular candidates first, and a candidate that
-    # shares a bar with one kept is dropped.  Why: a target's elements stack their triplets
-    # along the bars' normal, an element gap (a little over a bar period) apart, so a bar of
-    # the next element and two of this one also make a candidate, one period off (measured:
-    # a misaligned relay's render turned by 45 degrees and mirrored, G4E5H's bars with
-    # G4E6H's and G4E4H's made two more triplets, 8 px to either side, and the pose slipped).
+    # one triplet per middle bar position: keep the most regular candidate
     out.sort(key=lambda o: o[7])
-    used: set = set()
-    unique = []
-    for o in out:
-        if used.isdisjoint(o[8]):
-            unique.append(o)
-            used.update(o[8])
-    out = unique
     res = Triplets(
         np.array([o[:2] for o in out]),
         np.array([o[2] for o in out]),
