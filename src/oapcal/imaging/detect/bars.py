@@ -133,36 +133,23 @@ def find_bars(img: np.ndarray, *, max_bar_px: float | None = None) -> tuple[np.n
         lo = cv2.GaussianBlur(cv2.erode(g, k), (0, 0), sm)
         hi = cv2.GaussianBlur(cv2.dilate(g, k), (0, 0), sm)
         mid = 0.5 * (lo + hi)
-        mean = cv2.GaussianBlur(g, (0, 0), sm)
         contrast = (hi - lo) > max(8 * noise / np.sqrt(factor), 0.08)
         min_w = max(MIN_BAR_PX, win / 14.0)
         max_w = win / 2.0
         for pol in (1.0, -1.0):
-            beyond_mid = ((g - mid) * pol > 0) & contrast
-            for mask in (beyond_mid, beyond_mid & ((g - mean) * pol > 0)):
-                found = _bars_in_mask(mask, min_w, max_w)
-                if factor != 1.0:
-                    found[:, :2] = (found[:, :2] + 0.5) * factor - 0.5
-                    found[:, [2, 3, 5]] *= factor
-                rows.append(found)
-                pols.append(np.full(len(found), pol))
+            found = _bars_in_mask(((g - mid) * pol > 0) & contrast, min_w, max_w)
+            if factor != 1.0:
+                found[:, :2] = (found[:, :2] + 0.5) * factor - 0.5
+                found[:, [2, 3, 5]] *= factor
+            rows.append(found)
+            pols.append(np.full(len(found), pol))
     bars = np.concatenate(rows) if rows else np.zeros((0, 6))
     pol = np.concatenate(pols) if pols else np.zeros(0)
     return _dedupe_bars(bars, pol)
 
 
-#: A blob at least this many times narrower than a longer one at the same place is another
-#: bar, not the same one found at another window (:func:`_dedupe_bars`).
-SAME_BAR_WIDTH_RATIO = 2.0
-
-
 def _dedupe_bars(bars: np.ndarray, pol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One bar per place and polarity (the same bar is found at several window sizes, with
-    about the same width).  A blob much wider than a bar at its place
-    (:data:`SAME_BAR_WIDTH_RATIO`) is a triplet's bars merged by a coarse window's threshold,
-    not that bar: it does not remove it (measured: the LAB-UMK micrograph through a
-    misaligned relay, seed 4: a blob 21 x 73 px over G4E4H, whose bars are 5.6-6.1 px wide,
-    removed two of them, and the triplet with them)."""
+    """One bar per place and polarity (the same bar is found at several window sizes)."""
     if len(bars) == 0:
         return bars, pol
     from scipy.spatial import cKDTree
@@ -175,7 +162,7 @@ def _dedupe_bars(bars: np.ndarray, pol: np.ndarray) -> tuple[np.ndarray, np.ndar
         if not keep[i]:
             continue
         for j in tree.query_ball_point(bars[i, :2], max(0.6 * bars[i, 2], 1.5)):
-            if j > i and pol[j] == pol[i] and bars[j, 2] > bars[i, 2] / SAME_BAR_WIDTH_RATIO:
+            if j > i and pol[j] == pol[i]:
                 keep[j] = False
     return bars[keep], pol[keep]
 
