@@ -81,6 +81,12 @@ class _Local:
     w_ref: float  # bar width, reference px
     xs: np.ndarray | None = None  # the camera pixels (N, 2)
 
+    def on(self, warp: PolyWarp) -> _Local:
+        """The same pixels, raster and local coordinates, their reference points through
+        ``warp`` (another base for the same fit: :func:`refine_element`)."""
+        d = self.data
+        return replace(self, data=PixelData(d.values, warp(self.xs), d.basis, d.ref))
+
 
 def refine_triplet(ctx: TripletContext, bars, idx):
     """Local affine refinement of the triplet of ``bars`` (corner indices ``idx``); returns
@@ -131,13 +137,14 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     the tangent, 0.02 px on the registration)."""
     tangent = replace(ctx, warp=ctx.warp.tangent(ctx.pred[idx].mean(axis=0)))
     best = None
-    xs = None
+    shared = None
     for base in (tangent, ctx):
         reason, local, res, b = _fit_local(
-            base, bars, idx, widths=ELEMENT_MAX_SHIFT, floor_px=0.0, xs=xs, max_blur=ELEMENT_MAX_BLUR
-        )
+            base, bars, idx, widths=ELEMENT_MAX_SHIFT, floor_px=0.0, max_blur=ELEMENT_MAX_BLUR,
+            local=None if shared is None else shared.on(base.warp),
+        )  # fmt: skip
         if local is not None:
-            xs = local.xs  # both bases judged on the same pixels
+            shared = local  # both bases judged on the same pixels, with one raster and its blurs
         if (
             reason is not None
             or not (res.converged and np.isfinite(res.coef).all())
@@ -156,15 +163,16 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     return replace(ctx, warp=warp, pred=pred)
 
 
-def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float, xs=None, max_blur=None):
+def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float, max_blur=None, local=None):
     """The local affine correction of the registration fitted to the pixels around ``bars``
-    (corner indices ``idx``; or to the camera pixels ``xs``), moving no pixel by more than
-    ``widths`` bar widths (at least ``floor_px``), for :func:`refine_triplet` and
-    :func:`refine_element`: ``(drop reason or None, local pixels, fit, starting
+    (corner indices ``idx``; or to those of ``local``, :meth:`_Local.on`), moving no pixel
+    by more than ``widths`` bar widths (at least ``floor_px``), for :func:`refine_triplet`
+    and :func:`refine_element`: ``(drop reason or None, local pixels, fit, starting
     contrast)``.  The blur is bounded by about a bar width: beyond, the bars are not
     resolved and the corners are meaningless; and, given ``max_blur``, by that many times
     the registration's blur."""
-    local = _local_pixels(ctx, bars, idx, xs)
+    if local is None:
+        local = _local_pixels(ctx, bars, idx)
     if local is None:
         return "outside", None, None, None
     a, b = ctx.a, ctx.b
@@ -194,10 +202,10 @@ def _with_affine(warp: PolyWarp, local: _Local, coef: np.ndarray) -> PolyWarp:
     return warp.with_coef(out)
 
 
-def _local_pixels(ctx: TripletContext, bars, idx, xs=None) -> _Local | None:
-    """The pixels around the triplet (or the camera pixels ``xs``; None when fewer than 20)
-    and a raster of its neighbourhood only (bounded, cheap to re-blur for every trial
-    sigma), holding every bar near it."""
+def _local_pixels(ctx: TripletContext, bars, idx) -> _Local | None:
+    """The pixels around the triplet (None when fewer than 20) and a raster of its
+    neighbourhood only (bounded, cheap to re-blur for every trial sigma), holding every bar
+    near it."""
     img, sigma = ctx.img, ctx.sigma
     h, w = img.shape
     w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
@@ -208,8 +216,7 @@ def _local_pixels(ctx: TripletContext, bars, idx, xs=None) -> _Local | None:
     pad = 3.0 * max(sigma, 1.0) + 2.0 * w_ref + 4.0
     ref = Reference(ctx.rects, margin=pad, window=(lo - pad, hi + pad), masks=ctx.masks,
                     min_step=sigma / CELLS_PER_SIGMA)  # fmt: skip
-    if xs is None:
-        xs = region_pixels(ctx.warp, ref, (w, h), lo, hi, max_pixels=MAX_TRIPLET_PIXELS)
+    xs = region_pixels(ctx.warp, ref, (w, h), lo, hi, max_pixels=MAX_TRIPLET_PIXELS)
     if len(xs) < 20:
         return None
     values = img[xs[:, 1].astype(int), xs[:, 0].astype(int)]
