@@ -220,10 +220,43 @@ def test_an_elements_fit_blurs_at_most_a_few_times_the_registrations_blur(regist
         return res
 
     monkeypatch.setattr(T, "fit_pixels", spy)
-    smeared = replace(ctx, img=cv2.GaussianBlur(ctx.img, (0, 0), 3 * w_ref))
+    # smeared by 1.5 bar widths: the bars' modulation is gone, the triplets' blobs remain
+    # (their pixels vary by 8 % of the contrast; by 3.5 % under 3 bar widths, which
+    # FLAT_FRACTION calls no bars at all: the next test)
+    smeared = replace(ctx, img=cv2.GaussianBlur(ctx.img, (0, 0), 1.5 * w_ref))
     T.refine_element(smeared, bars, idx)
     assert fits and all(limit <= cap + 1e-9 and sigma <= cap + 1e-9 for limit, sigma in fits)
     assert max(sigma for _, sigma in fits) > 0.9 * cap  # the smeared pixels ask for more
     fits.clear()
     T.refine_triplet(smeared, bars[:3], core._corner_indices(bars[:3]))
     assert fits[0][0] == pytest.approx(max(1.2 * w_ref, 1.5 * ctx.sigma, 1.0))
+
+
+@pytest.mark.parametrize("flat", ["fill", "smeared"])
+def test_an_element_with_a_triplet_showing_no_bars_is_not_registered_again(registration, monkeypatch, flat):
+    """One triplet of G5E1 in a turned canvas's uniform fill (its box set to one value), or
+    the element smeared by 3 bar widths (its pixels vary by 3.5 % of the contrast): the other
+    triplet alone does not pin a move of two bar widths, so the element is not fitted at
+    all (a canvas's fill cost seconds of fitting on a large image, and nothing was kept);
+    with both triplets in view it is (the tests above)."""
+    import cv2
+
+    ctx, _ = registration
+    bars, idx = _element(ctx, 5, 1)
+    w_ref = float(ctx.target.bar_width[bars[0]]) / ctx.um_per_px
+    img = ctx.img.copy()
+    if flat == "fill":
+        h_bars = bars[ctx.target.bar_orientation[bars] == "H"]
+        xy = ctx.pred[core._corner_indices(h_bars)]
+        pad = int(np.ceil(2 * w_ref))  # the box and the registration's shift below
+        c0, r0 = np.floor(xy.min(axis=0)).astype(int) - pad
+        c1, r1 = np.ceil(xy.max(axis=0)).astype(int) + pad
+        img[r0 : r1 + 1, c0 : c1 + 1] = float(np.median(img))
+    else:
+        img = cv2.GaussianBlur(img, (0, 0), 3 * w_ref)
+    fits = []
+    real = T.fit_pixels
+    monkeypatch.setattr(T, "fit_pixels", lambda *a: fits.append(1) or real(*a))
+    shift = 1.3 * w_ref / np.sqrt(2) * np.array([1.0, 1.0])
+    assert T.refine_element(_shifted(replace(ctx, img=img), shift), bars, idx) is None and fits == []
+    assert T.refine_element(_shifted(ctx, shift), bars, idx) is not None

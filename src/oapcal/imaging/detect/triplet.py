@@ -28,6 +28,14 @@ ELEMENT_MAX_SHIFT = 2.0
 #: px against the registration's 1.1, and blurring the raster that much took 38 s of the
 #: detection's 90 s; the LAB-UMK renders' elements fit at most 1.8 times the registration's).
 ELEMENT_MAX_BLUR = 4.0
+#: ... and only where both its triplets show bars: a triplet whose pixels (the box of its
+#: predicted corners) vary by less than this fraction of the registration's contrast
+#: (standard deviation) lies outside what the image shows (a turned canvas's fill, a
+#: saturated or dark region), and the other triplet alone does not pin a move of two bar
+#: widths (measured: on the FPM micrograph turned by 30 degrees on a 3 Mpx canvas, four
+#: group-3 elements with one triplet wholly in the fill took 3.8 s of the detection's 27 s
+#: and none of their triplets was kept).  Sharp bars vary by about half their contrast.
+FLAT_FRACTION = 0.05
 #: Largest number of pixels one triplet's fit uses (a regular subsample beyond: a large
 #: triplet has far more pixels than its 8 parameters need).
 MAX_TRIPLET_PIXELS = 12_000
@@ -134,7 +142,10 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     0.15-0.23 px and G5E3 0.29-0.32 px (0.39-0.48 before).  Why
     not always the tangent: where the registration's curvature is right, the tangent
     leaves out the field's own (a simulated setup-1 field: G5E1's corners 0.16 px off on
-    the tangent, 0.02 px on the registration)."""
+    the tangent, 0.02 px on the registration).  None, without a fit, when one of the
+    triplets shows no bars (:data:`FLAT_FRACTION`)."""
+    if not all(_shows_bars(ctx, bars[ctx.target.bar_orientation[bars] == o]) for o in ("H", "V")):
+        return None
     tangent = replace(ctx, warp=ctx.warp.tangent(ctx.pred[idx].mean(axis=0)))
     best = None
     shared = None
@@ -161,6 +172,21 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     if not np.isfinite(pred[idx]).all():
         return None
     return replace(ctx, warp=warp, pred=pred)
+
+
+def _shows_bars(ctx: TripletContext, bars) -> bool:
+    """Whether the image varies over the box of the predicted corners of the triplet of
+    ``bars`` by at least :data:`FLAT_FRACTION` of the registration's contrast (True when
+    the context has no contrast of its own, ``ctx.a`` None)."""
+    xy = ctx.pred[np.concatenate([4 * np.asarray(bars) + c for c in range(4)])]
+    if ctx.a is None or not np.isfinite(xy).all():
+        return True
+    h, w = ctx.img.shape
+    c0, r0 = np.maximum(np.floor(xy.min(axis=0)).astype(int), 0)
+    c1, r1 = np.minimum(np.ceil(xy.max(axis=0)).astype(int), [w - 1, h - 1])
+    if c1 < c0 or r1 < r0:
+        return False
+    return float(np.std(ctx.img[r0 : r1 + 1, c0 : c1 + 1])) >= FLAT_FRACTION * abs(ctx.b)
 
 
 def _fit_local(ctx: TripletContext, bars, idx, *, widths: float, floor_px: float, max_blur=None, local=None):
