@@ -20,8 +20,11 @@ What it does, per case (``cases``):
 2. **Detect** with the command line, as a user would: ``oapcal detect IMAGE --groups G --out
    points.csv --json``, without and with ``--um-per-px`` (the true object-space pixel), each in
    a subprocess of its own that reports its wall time and peak memory.  Scoring: the source
-   image itself is detected once (un-warped, in-process); every corner found there is mapped
-   through the truth into the camera.  An element is *fully visible* when all 24 of its
+   image's corners, detected once on the un-warped source and kept in
+   ``benchmarks/e2e_source_corners.json`` (:data:`SOURCE_CORNERS`: a detector change does not
+   move the renders; ``--refresh-sources`` detects them again), are mapped through the truth
+   into the camera; each run also detects the sources with the code under test and reports
+   how far its corners are from the kept ones.  An element is *fully visible* when all 24 of its
    corners land >= 3 px inside the image and its bars are >= 2 camera px wide; *coverage* is
    the right ids among those corners.  A detected corner is mapped back through the truth to
    source px; it is a *wrong id* when it lies more than min(3 source px, half the distance to
@@ -61,6 +64,7 @@ import csv
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -77,6 +81,13 @@ REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "real" / "usaf"
 #: (whole_target.png, 130 um/px, shows groups -2 to 1, 66 mm across: not the relay's 1 mm
 #: field; highmag_g7e1.jpg, 0.115 um/px, one element: too small for either camera)
 SOURCES = {"fpm_brightfield.png": (1.02, "4-7"), "labumk_negative.tif": (3.7, "4-7")}
+#: The corners of each source that every render is placed (centred) and scored by, detected
+#: once on the un-warped source and kept with the benchmark, so that a change of the detector
+#: under test leaves the renders as they are (they were centred on the corners that the code
+#: under test found on the source, so a detector change re-rendered every case);
+#: ``--refresh-sources`` detects them again and rewrites the file, and every run reports how
+#: far the detector under test's corners on the sources are from them (``source_check``).
+SOURCE_CORNERS = Path(__file__).with_name("e2e_source_corners.json")
 #: the families fitted (names of ``oapcal fit --model``)
 MODELS = ("paper", "paper+rotation", "full", "relay")
 #: The threshold (px) of a trust region that leaves out only where the map folds over (its
@@ -270,17 +281,84 @@ class SourceTruth:
     layout: str | None
 
 
-def source_truth(name: str) -> SourceTruth:
-    from oapcal.imaging.detect import detect_usaf
-    from oapcal.imaging.usaf import parse_groups
+def source_truth(name: str, detect: bool = False) -> SourceTruth:
+    """The source image and its corners: those kept in :data:`SOURCE_CORNERS`, or, with
+    ``detect`` (or when the file has none for ``name``, said on stderr), detected now."""
     from oapcal.io.imagefile import read_image_grey
 
-    um, groups = SOURCES[name]
+    um, _ = SOURCES[name]
     img = read_image_grey(REAL / name)
-    det = detect_usaf(img, parse_groups(groups))
+    kept = _kept_sources().get(name)
+    if detect or kept is None:
+        if not detect:
+            print(f"{SOURCE_CORNERS.name}: no corners kept for {name}; detecting them now", file=sys.stderr)
+        corners, layout = _detect_source(name, img)
+    else:
+        corners = {cid: np.array(xy, float) for cid, xy in kept["corners"].items()}
+        layout = kept["layout"]
+    return SourceTruth(img, um, corners, layout)
+
+
+def _detect_source(name: str, img: np.ndarray):
+    from oapcal.imaging.detect import detect_usaf
+    from oapcal.imaging.usaf import parse_groups
+
+    det = detect_usaf(img, parse_groups(SOURCES[name][1]))
     if not det.ok:
         raise SystemExit(f"{name}: the un-warped source is not detected ({det.message}); cannot score ids")
-    return SourceTruth(img, um, dict(zip(det.ids, np.asarray(det.xy_d))), det.pose.get("layout"))
+    return dict(zip(det.ids, np.asarray(det.xy_d))), det.pose.get("layout")
+
+
+def _kept_sources() -> dict:
+    if not SOURCE_CORNERS.is_file():
+        return {}
+    return json.loads(SOURCE_CORNERS.read_text())["sources"]
+
+
+def write_source_corners(names) -> None:
+    """Detect every source of ``names`` now and keep its corners in :data:`SOURCE_CORNERS`
+    (``--refresh-sources``)."""
+    import subprocess
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
+    out = {}
+    for name in names:
+        src = source_truth(name, detect=True)
+        out[name] = {
+            "groups": SOURCES[name][1],
+            "layout": src.layout,
+            "corners": {cid: [float(v) for v in xy] for cid, xy in src.corners.items()},
+        }
+    note = (
+        "Corners detected on the un-warped source images (source px, pixel centres at integers) "
+        "by oapcal's detect_usaf; benchmarks/e2e_real.py places and scores every render by them. "
+        "Rewritten by 'benchmarks/e2e_real.py --refresh-sources'."
+    )
+    body = {"note": note, "made_by": f"oapcal at {commit or 'an unknown commit'}", "sources": out}
+    text = json.dumps(body, indent=1)
+    # one corner per line
+    text = re.sub(r"\[\n\s+([-+.\deE]+),\n\s+([-+.\deE]+)\n\s+\]", r"[\1, \2]", text)
+    SOURCE_CORNERS.write_text(text + "\n")
+
+
+def source_check(name: str, kept: SourceTruth) -> dict:
+    """How far the detector under test's corners on the un-warped source are from the kept
+    ones (:data:`SOURCE_CORNERS`): ids in both, in one only, median and largest distance (px)."""
+    now, layout = _detect_source(name, kept.image)
+    common = sorted(set(now) & set(kept.corners))
+    d = np.array([np.hypot(*(now[c] - kept.corners[c])) for c in common]) if common else np.zeros(0)
+    return {
+        "source": name,
+        "kept": len(kept.corners),
+        "now": len(now),
+        "common": len(common),
+        "only_kept": len(set(kept.corners) - set(now)),
+        "only_now": len(set(now) - set(kept.corners)),
+        "median_px": float(np.median(d)) if len(d) else float("nan"),
+        "max_px": float(d.max()) if len(d) else float("nan"),
+        "same_layout": layout == kept.layout,
+    }
 
 
 def scene_of(case: Case, src: SourceTruth):
@@ -904,6 +982,11 @@ def main(argv=None) -> int:
         "--report", type=Path, default=None, help="print the tables of the rows of an earlier --json"
     )
     ap.add_argument("--summary", action="store_true", help="one row per case instead of the full tables")
+    ap.add_argument(
+        "--refresh-sources",
+        action="store_true",
+        help=f"detect the sources' corners again and keep them in {SOURCE_CORNERS.name} (renders move)",
+    )
     args = ap.parse_args(argv)
     if args.report is not None:
         results = json.loads(args.report.read_text())["results"]
@@ -914,7 +997,11 @@ def main(argv=None) -> int:
         return 2
     models = tuple(m.strip() for m in args.models.split(",") if m.strip())
     t_start = time.perf_counter()
+    if args.refresh_sources:
+        write_source_corners(SOURCES)
+        print(f"{SOURCE_CORNERS}: written", file=sys.stderr)
     sources: dict[str, SourceTruth] = {}
+    checks: list[dict] = []
     results = []
     with tempfile.TemporaryDirectory(prefix="e2e_real_") as tmp:
         for case in cases(args.quick, args.seeds):
@@ -922,6 +1009,8 @@ def main(argv=None) -> int:
                 continue
             if case.source not in sources:
                 sources[case.source] = source_truth(case.source)
+                checks.append(source_check(case.source, sources[case.source]))
+                print(format_source_check(checks[-1]), file=sys.stderr, flush=True)
             t0 = time.perf_counter()
             try:
                 res = run_case(case, sources[case.source], Path(tmp), models, images=not args.no_images)
@@ -930,7 +1019,7 @@ def main(argv=None) -> int:
             res["case_s"] = time.perf_counter() - t0
             results.append(res)
             if args.json is not None:  # the rows so far (a long run can be read while it runs)
-                write_rows(args.json, results, time.perf_counter() - t_start)
+                write_rows(args.json, results, time.perf_counter() - t_start, checks)
             print(
                 f"{case.name}: {res['case_s']:.0f} s" + (f" ({res['error']})" if "error" in res else ""),
                 file=sys.stderr,
@@ -938,16 +1027,29 @@ def main(argv=None) -> int:
             )
     total = time.perf_counter() - t_start
     print_report(results, args.summary)
+    print()
+    for check in checks:
+        print(format_source_check(check))
     print(f"\n{len(results)} cases in {total / 60:.1f} min.")
     if args.json is not None:
-        write_rows(args.json, results, total)
+        write_rows(args.json, results, total, checks)
     return 0
 
 
-def write_rows(path: Path, results: list[dict], total_s: float) -> None:
+def format_source_check(c: dict) -> str:
+    return (
+        f"source {c['source']}: {c['kept']} corners kept ({SOURCE_CORNERS.name}), {c['now']} detected now, "
+        f"{c['common']} in both (kept only {c['only_kept']}, now only {c['only_now']}), "
+        f"median {c['median_px']:.4f} px, max {c['max_px']:.4f} px apart"
+        + ("" if c["same_layout"] else ", in another layout")
+    )
+
+
+def write_rows(path: Path, results: list[dict], total_s: float, checks=()) -> None:
     from oapcal.io.jsonfile import json_safe
 
-    path.write_text(json.dumps(json_safe({"results": results, "total_s": total_s}), indent=1))
+    body = {"results": results, "total_s": total_s, "source_check": list(checks)}
+    path.write_text(json.dumps(json_safe(body), indent=1))
 
 
 if __name__ == "__main__":

@@ -113,6 +113,45 @@ def test_the_landmarks_floor_puts_each_corner_at_its_source_position(tmp_path):
     assert np.abs(got - drawn).max() > 0.3
 
 
+def test_the_renders_are_placed_by_the_source_corners_kept_with_the_benchmark(monkeypatch):
+    """Every source has its corners kept in ``benchmarks/e2e_source_corners.json`` and
+    ``source_truth`` takes them from there, without detecting (a detector change then leaves
+    the renders as they are)."""
+    kept = bench._kept_sources()
+    assert set(kept) == set(bench.SOURCES)
+    for entry in kept.values():
+        assert len(entry["corners"]) >= 300 and entry["layout"]
+
+    def no_detection(*_):
+        raise AssertionError("detected")
+
+    monkeypatch.setattr(bench, "_detect_source", no_detection)
+    src = bench.source_truth("labumk_negative.tif")
+    assert src.layout == kept["labumk_negative.tif"]["layout"]
+    cid, xy = next(iter(kept["labumk_negative.tif"]["corners"].items()))
+    np.testing.assert_array_equal(src.corners[cid], xy)
+
+
+def test_refreshed_source_corners_round_trip_and_are_checked_against_the_detector(monkeypatch, tmp_path):
+    """``--refresh-sources`` writes what the detector finds (one corner per line, floats as
+    they are); ``source_check`` reports the detector under test against the kept corners."""
+    found = {"G4E1H0C0": np.array([10.123456789012345, 20.5]), "G4E1H0C1": np.array([30.0, 40.25])}
+    monkeypatch.setattr(bench, "SOURCE_CORNERS", tmp_path / "kept.json")
+    monkeypatch.setattr(bench, "_detect_source", lambda name, img: (dict(found), "compact"))
+    bench.write_source_corners(["labumk_negative.tif"])
+    text = (tmp_path / "kept.json").read_text()
+    assert f'"G4E1H0C0": [{float(found["G4E1H0C0"][0])!r}, 20.5]' in text
+    src = bench.source_truth("labumk_negative.tif")
+    assert src.layout == "compact" and src.corners.keys() == found.keys()
+    np.testing.assert_array_equal(src.corners["G4E1H0C0"], found["G4E1H0C0"])
+    moved = {"G4E1H0C0": found["G4E1H0C0"] + [0.3, 0.4], "G5E1H0C0": np.array([1.0, 1.0])}
+    monkeypatch.setattr(bench, "_detect_source", lambda name, img: (moved, "spaced"))
+    check = bench.source_check("labumk_negative.tif", src)
+    assert check["common"] == 1 and check["only_kept"] == 1 and check["only_now"] == 1
+    assert check["max_px"] == pytest.approx(0.5) and not check["same_layout"]
+    assert "in another layout" in bench.format_source_check(check)
+
+
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     src = bench.source_truth("fpm_brightfield.png")
