@@ -248,6 +248,16 @@ def check_turned(base, det, groups, affine, shape) -> dict:
     return out
 
 
+def _real_images(only: str | None, count: int):
+    """``(file, groups, image, parsed groups)`` of the first ``count`` runs of :data:`RUNS`
+    whose file name contains ``only`` (all without it)."""
+    from oapcal.imaging.usaf import parse_groups
+
+    for name, groups, _, _ in RUNS[:count]:
+        if not only or only in name:
+            yield name, groups, read_image(REAL / name), parse_groups(groups)
+
+
 def run_poses(only: str | None) -> None:
     """Detection of every real image turned, mirrored and binned (:data:`POSES`), in this
     process (``detect_usaf`` with the command's defaults): without an anchor, and, when
@@ -255,16 +265,11 @@ def run_poses(only: str | None) -> None:
     import time
 
     from oapcal.imaging.detect import detect_usaf
-    from oapcal.imaging.usaf import parse_groups
 
     print("| image | transform | anchor | exit | corners | wrong ids | strict | beyond the source | "
           "not in the reference | median (px) | um/px +/- sigma | time (s) | reason |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, groups, _, _ in RUNS[:4]:
-        if only and only not in name:
-            continue
-        img = read_image(REAL / name)
-        g = parse_groups(groups)
+    for name, _, img, g in _real_images(only, 4):
         anchor, opts = POSE_ANCHORS[name]
         base_kw = {"um_per_px": 0.11, "mirror": "no"} if opts.get("mirror_of_base") else {}
         base = detect_usaf(img, g, **base_kw)
@@ -313,18 +318,13 @@ def run_large(only: str | None) -> None:
     import tifffile
 
     from oapcal.imaging.detect import detect_usaf
-    from oapcal.imaging.usaf import parse_groups
     from oapcal.io.points import read_points
 
     workdir = Path(tempfile.mkdtemp(prefix="real_usaf_large_"))
     print("| image | transform | size (px) | exit | time (s) | peak memory (MB) | corners | wrong ids | "
           "strict | median (px) | reason |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, groups, _, _ in RUNS[:3]:
-        if only and only not in name:
-            continue
-        img = read_image(REAL / name)
-        g = parse_groups(groups)
+    for name, groups, img, g in _real_images(only, 3):
         base = detect_usaf(img, g)
         for kind in LARGE_POSES:
             im2, affine = transform(img, kind)
