@@ -56,6 +56,7 @@ from oapcal.imaging.detect.registration import (
     region_pixels,
 )
 from oapcal.imaging.detect.triplet import TripletContext, refine_element, refine_triplet
+from oapcal.imaging.detect.triplet import corner_indices as _corner_indices
 from oapcal.imaging.detect.warp import PolyWarp
 from oapcal.imaging.usaf import (
     ORIENTATIONS,
@@ -1047,11 +1048,6 @@ def _grown_from_first(first: _Kept, union: _Kept, check, corners_u, target, um_p
         rescued=check.rescued + int(grown.sum()),
     )
     return union, both
-
-
-def _corner_indices(bars) -> np.ndarray:
-    """The sorted indices of the four corners of each bar of ``bars``."""
-    return np.sort(np.concatenate([4 * np.asarray(bars) + c for c in range(4)]))
 
 
 def _element_key(target, bars) -> tuple[int, int]:

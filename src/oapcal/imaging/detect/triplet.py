@@ -174,11 +174,16 @@ def refine_element(ctx: TripletContext, bars, idx) -> TripletContext | None:
     return replace(ctx, warp=warp, pred=pred)
 
 
+def corner_indices(bars) -> np.ndarray:
+    """The sorted indices of the four corners of each bar of ``bars``."""
+    return np.sort(np.concatenate([4 * np.asarray(bars) + c for c in range(4)]))
+
+
 def _shows_bars(ctx: TripletContext, bars) -> bool:
     """Whether the image varies over the box of the predicted corners of the triplet of
     ``bars`` by at least :data:`FLAT_FRACTION` of the registration's contrast (True when
     the context has no contrast of its own, ``ctx.a`` None)."""
-    xy = ctx.pred[np.concatenate([4 * np.asarray(bars) + c for c in range(4)])]
+    xy = ctx.pred[corner_indices(bars)]
     if ctx.a is None or not np.isfinite(xy).all():
         return True
     h, w = ctx.img.shape
