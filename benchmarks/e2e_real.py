@@ -318,8 +318,6 @@ def _kept_sources() -> dict:
 def write_source_corners(names) -> None:
     """Detect every source of ``names`` now and keep its corners in :data:`SOURCE_CORNERS`
     (``--refresh-sources``)."""
-    import subprocess
-
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
     out = {}
