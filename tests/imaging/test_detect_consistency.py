@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from oapcal.imaging.detect import check_consistency
-from oapcal.imaging.detect.checks import CONSISTENCY_MAX_RMS_PX
+from oapcal.imaging.detect.checks import CONSISTENCY_MAX_RMS_PX, rms_limit
 from oapcal.imaging.field import setup1_like_field
 from oapcal.imaging.usaf import usaf_target
 from oapcal.model import distort
@@ -63,6 +63,46 @@ def test_the_cubic_rms_is_computed_only_when_the_model_misses_the_limit():
     xy_u, xy_d, width = _non_radial_pairs()
     check = check_consistency(xy_u, xy_d, width)
     assert check.rms_px < CONSISTENCY_MAX_RMS_PX and check.cubic_rms_px is None
+
+
+def _enlarged(factor, scatter_px):
+    """The pairs of :func:`_non_radial_pairs` as a camera with ``factor`` times the pixels
+    would see them (everything about the centre times ``factor``), each corner moved by
+    ``scatter_px`` rms (at the original scale) as a real target is off its drawn layout."""
+    xy_u, xy_d, width = _non_radial_pairs()
+    c = np.array([319.5, 239.5])
+    scatter = np.random.default_rng(0).normal(0, 1 / np.sqrt(2), xy_u.shape) * scatter_px
+    return c + factor * (xy_u - c), c + factor * (xy_d - c + scatter), factor * width
+
+
+def test_the_rms_limit_grows_with_the_bars_on_many_pairs():
+    """A target 0.4 px rms off its layout (the whole-target scan at its own size) seen with 4
+    times the pixels: the residual is 4 times larger, as are the bars; the px limit alone
+    refused it (the cubic map leaves 1.7 px), the bars' width admits it."""
+    xy_u, xy_d, width = _enlarged(4.0, 0.4)
+    check = check_consistency(xy_u, xy_d, width)
+    assert check.status == 0, check.message
+    assert check.rms_px > check.cubic_rms_px > 2 * CONSISTENCY_MAX_RMS_PX
+    assert check.cubic_rms_px <= rms_limit(width[check.consistent])
+    # the same at the original scale passes on the px limit
+    assert check_consistency(*_enlarged(1.0, 0.4)).status == 0
+
+
+def test_a_residual_of_a_fifth_of_the_bars_is_refused_at_any_scale():
+    xy_u, xy_d, width = _non_radial_pairs()
+    scatter = 0.2 * float(np.median(width))
+    check = check_consistency(*_enlarged(4.0, scatter))
+    assert check.status == 1 and "doubtful" in check.message
+    assert check.cubic_rms_px > rms_limit(4.0 * width)
+
+
+def test_rms_limit():
+    """The px limit below 100 pairs whatever their width (a few wide triplets of a wrong
+    alignment fit a smooth map too), and 0.15 of the median bar width above it when more."""
+    assert rms_limit(np.full(99, 40.0)) == CONSISTENCY_MAX_RMS_PX
+    assert rms_limit(np.full(100, 3.0)) == CONSISTENCY_MAX_RMS_PX
+    assert rms_limit(np.r_[np.full(60, 10.0), np.full(40, 100.0)]) == pytest.approx(1.5)
+    assert rms_limit(np.full(100, 10.0), max_rms_px=2.0) == 2.0
 
 
 def test_pairs_one_bar_off_are_still_dropped_off_eq1():

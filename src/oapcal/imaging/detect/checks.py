@@ -19,6 +19,16 @@ CONSISTENCY_MAX_FRACTION = 0.25
 #: relay at 94 px distortion (0.39 px, the model's own misfit) and a wrong alignment at
 #: 161 px that was smooth enough to fit (0.93 px).
 CONSISTENCY_MAX_RMS_PX = 0.75
+#: ... or, on :data:`CUBIC_RMS_MIN_PAIRS` consistent pairs or more, this fraction of their
+#: median bar width (px) when that is more (:func:`rms_limit`).  Why: a real target is not
+#: where the drawn layout puts it by a part of its own size, so a right detection's residual
+#: grows with the image's scale: the whole-target scan and the LAB-UMK micrograph leave
+#: 0.07-0.09 bar widths (0.40 and 0.27 px at their own size; 1.4-2.0 px enlarged 4 and 6.4
+#: times, refused by the px limit alone), a relay with 94 px of distortion 0.11; the wrong
+#: but smooth alignment above 0.27 (0.93 px on bars about 3.5 px wide), a wrong pose kept on
+#: 36 pairs of a 143 px field 0.22.  On the 640 x 480 renders (bars 2-7 px) the px limit is
+#: the larger.
+CONSISTENCY_MAX_RMS_WIDTHS = 0.15
 #: The cubic map's rms (:func:`check_consistency`) is judged only on this many consistent
 #: pairs or more, five per coefficient of its 20: on fewer it fits a wrong alignment too (the
 #: single high-magnification element binned 2x with ``G7E1``: 24 pairs, ``paper`` 0.92 px,
@@ -87,7 +97,8 @@ def check_consistency(
     The alignment is refused (``status`` 1) when the fit does not converge, when more than
     ``max_fraction`` of the pairs are flagged (then the model is fitted to wrong pairs
     as much as to right ones and nothing can be trusted), or when the rms residual of
-    the rest exceeds ``max_rms_px`` both from the model and from the cubic polynomial map
+    the rest exceeds :func:`rms_limit` (``max_rms_px``, or a fraction of the bars' width on
+    many pairs) both from the model and from the cubic polynomial map
     fitted to the same pairs, when there are :data:`CUBIC_RMS_MIN_PAIRS` of them (a wrong
     alignment can be smooth, but rarely as smooth as a real distortion; the limit is
     empirical, see :data:`CONSISTENCY_MAX_RMS_PX`).  Why the cubic too: a real target in
@@ -135,14 +146,15 @@ def check_consistency(
             f"smooth {model} model (rms residual of the rest {rms:.2f} px); nothing was kept",
         )  # fmt: skip
     cubic_rms = None
-    if not rms <= max_rms_px and model != "cubic" and keep.sum() >= CUBIC_RMS_MIN_PAIRS:
+    limit = rms_limit(width_px[keep], max_rms_px)
+    if not rms <= limit and model != "cubic" and keep.sum() >= CUBIC_RMS_MIN_PAIRS:
         cubic_rms = float(np.sqrt(np.mean(cubic_residuals(xy_u, xy_d, keep)[keep] ** 2)))
-    if not (rms <= max_rms_px or (cubic_rms is not None and cubic_rms <= max_rms_px)):
+    if not (rms <= limit or (cubic_rms is not None and cubic_rms <= limit)):
         cubic = "" if cubic_rms is None else f" and a cubic map with {cubic_rms:.2f} px"
         return Consistency(
             ~everything, model, rms, worst, n, 1,
             f"the global alignment is doubtful: the {model} model fits the matched corners with an rms "
-            f"residual of {rms:.2f} px{cubic} (limit {max_rms_px:g} px); nothing was kept",
+            f"residual of {rms:.2f} px{cubic} (limit {limit:.3g} px); nothing was kept",
             cubic_rms_px=cubic_rms,
         )  # fmt: skip
     rescued = grow_consistent(xy_u, xy_d, width_px, keep, floor_px, n_sigma, groups)
@@ -150,6 +162,19 @@ def check_consistency(
     return Consistency(
         keep, model, rms, worst, int((~keep).sum()), rescued=int(rescued.sum()), cubic_rms_px=cubic_rms
     )
+
+
+def rms_limit(width_px: np.ndarray, max_rms_px: float = CONSISTENCY_MAX_RMS_PX) -> float:
+    """The rms residual (px) above which :func:`check_consistency` refuses an alignment whose
+    consistent pairs have bar widths ``width_px``: ``max_rms_px``, or
+    :data:`CONSISTENCY_MAX_RMS_WIDTHS` of their median width when that is more and there are
+    :data:`CUBIC_RMS_MIN_PAIRS` of them (on fewer, a wrong alignment of a few wide triplets
+    fits a smooth map too: the single element binned 2x with ``G7E1``, 24 pairs on bars 17
+    px wide, 6 ids wrong, 0.92 px)."""
+    width_px = np.asarray(width_px, float)
+    if len(width_px) < CUBIC_RMS_MIN_PAIRS:
+        return float(max_rms_px)
+    return float(max(max_rms_px, CONSISTENCY_MAX_RMS_WIDTHS * np.median(width_px)))
 
 
 def _flag_off_model(xy_u, xy_d, width_px, model, floor_px, n_sigma):

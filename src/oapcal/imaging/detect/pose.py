@@ -56,6 +56,15 @@ MIN_FOUND_FRACTION = 0.5
 #: ... with anchors (the identity named by the user, and checked against the bars), this
 #: fraction: the evidence then only has to place the target, not to name it.
 MIN_FOUND_FRACTION_ANCHORED = 0.25
+#: The best pose is refused when more image triplets than it matched are wider than its
+#: widest match by more than :data:`WIDTH_TOL` and matched by nothing
+#: (:func:`unexplained_wider`): the widest bars in view are the surest, and a pose that
+#: leaves them unexplained has taken a finer part of the target for a coarser one.  Measured:
+#: right poses leave 0-0.5 as many (LAB-UMK mirrored and turned: 5 for 11 matched, binned 4
+#: for 8; the FPM frame 2-4 for 42-43, group 3 cut by the image's edge); a wrong pose through
+#: a 143 px field (group 5's column taken for group 4's at 8.7 um/px instead of 4.8) 9 for 6,
+#: and it was kept with 36 wrong ids.
+MAX_UNEXPLAINED_WIDER = 1.0
 #: Matched triplets from which the pose's correction is quadratic (else affine).  Why 8,
 #: not 12: under a setup-1-like field (~40 px) the rows of triplets bend by 5-10 px between
 #: neighbours, which an affine correction leaves, so the pose stalled at 8 of 20 triplets
@@ -805,6 +814,17 @@ def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, scene: _Scen
                f"{n_img} bar triplets found (score {best.score:.1f})")  # fmt: skip
         msg += anchor_hint(best, None, ref, img, anchors)
         return PoseResult(best, runner, 1, msg, slip_scores, n_img, refined, "not_found", ("anchors",))
+    wider = unexplained_wider(best, img)
+    if len(wider) > MAX_UNEXPLAINED_WIDER * len(best.matches):
+        msg = (
+            f"the target was not found reliably: the best pose ({len(best.matches)} triplets, scale "
+            f"{1 / best.s:.4g} um/px) leaves {len(wider)} wider bar triplets found unexplained"
+        )
+        msg += anchor_hint(best, None, ref, img, anchors)
+        if um_per_px is None:
+            msg += ", or give um_per_px"
+        param = ("anchors", "um_per_px")
+        return PoseResult(best, runner, 1, msg, slip_scores, n_img, refined, "not_found", param)
     others = [p for p in refined if p is not best and not _same_pose(best, p)]
     rivals = [("another pose", p) for p in others]
     rivals += [(f"the pose slipped by {k}", p) for k, p in slips.items()]
@@ -841,6 +861,16 @@ def _judge(best: Pose, refined: list[Pose], slips: dict, um_per_px, scene: _Scen
                 msg += ", or um_per_px (to within 6 %)"
             return PoseResult(best, rival, 1, msg, slip_scores, n_img, refined, "ambiguous", param)
     return PoseResult(best, runner, 0, "ok", slip_scores, n_img, refined)
+
+
+def unexplained_wider(pose: Pose, img: Triplets) -> list[int]:
+    """The image triplets that ``pose`` matched to nothing and whose bars are wider than
+    its widest match by more than :data:`WIDTH_TOL` (widest first)."""
+    matched = {i for i, _ in pose.matches}
+    if not matched:
+        return []
+    widest = max(float(img.width[i]) for i in matched)
+    return [int(i) for i in np.argsort(-img.width) if i not in matched and img.width[i] > WIDTH_TOL * widest]
 
 
 def anchor_hint(best: Pose, rival: Pose | None, ref, img, anchors=()) -> str:
