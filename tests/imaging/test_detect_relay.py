@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from oapcal.imaging.detect import check_consistency, detect_usaf, evaluate_detection
+from oapcal.imaging.detect.checks import rms_limit
 from oapcal.imaging.field import setup1_like_field
 from oapcal.imaging.simulate import simulate_image
 from oapcal.imaging.usaf import (
@@ -159,12 +160,17 @@ def test_consistency_check_refuses_a_wrong_alignment():
 
 
 def test_consistency_check_refuses_pairs_that_fit_no_smooth_model_well():
+    """Noise of a fifth of the bars' median width (rms; bars 10 times as wide, so that no
+    pair is off by half its own width): over the limit, which on this many pairs is 0.15
+    of that width (``checks.rms_limit``)."""
     xy_u, xy_d, width = _smooth_pairs()
-    noisy = xy_d + np.random.default_rng(2).normal(0, 0.8, xy_d.shape)  # rms 1.1 px
-    check = check_consistency(xy_u, noisy, 10 * width)
+    wide = 10 * width
+    sd = 0.2 * float(np.median(wide)) / np.sqrt(2)
+    noisy = xy_d + np.random.default_rng(2).normal(0, sd, xy_d.shape)
+    check = check_consistency(xy_u, noisy, wide)
     assert check.status == 1 and "doubtful" in check.message
     # nor does a cubic map: noise is not a smooth distortion
-    assert check.cubic_rms_px > 0.75 and "cubic map" in check.message
+    assert check.cubic_rms_px > rms_limit(wide) > 0.75 and "cubic map" in check.message
 
 
 def test_consistency_check_needs_enough_pairs():
