@@ -106,3 +106,41 @@ def test_a_coarser_copy_of_a_reference_keeps_its_region():
     u = np.array([[16.5, 80.0], [50.0, 80.0], [120.0, 10.0]])
     got, want = (r.sample(u, 4.0, derivatives=False)[0] for r in (coarse, ref))
     np.testing.assert_allclose(got, want, atol=0.01)
+
+
+def _levels_seen(image, groups=(4, 5), **kw):
+    """detect_usaf on ``image`` with every dense registration level's fit recorded: (start
+    blur, fitted blur, raster cell) per level."""
+    from unittest import mock
+
+    from oapcal.imaging.detect import core, detect_usaf
+
+    seen = []
+    real = core.fit_pixels
+
+    def spy(data, start, options):
+        res = real(data, start, options)
+        seen.append((start.sigma, res.sigma, data.ref.step))
+        return res
+
+    with mock.patch.object(core, "fit_pixels", spy):
+        det = detect_usaf(image, groups, **kw)
+    return det, seen
+
+
+@pytest.mark.slow  # one detection, 5-10 s
+def test_registration_levels_follow_a_soft_images_blur():
+    """A soft image (blur 3.5 px against the 1 px hint): every level fits the blur, so the
+    finest starts near the image's own and its raster's cells are a quarter of it, not the
+    half px a sharp image's raster has (a soft 2048 px canvas spent 8-13 s there)."""
+    from oapcal.imaging.simulate import simulate_image
+
+    sim = simulate_image((4, 5), sigma_px=3.5, snr=50.0, seed=0)
+    det, seen = _levels_seen(sim.image, um_per_px=sim.um_per_px)
+    assert det.ok, det.message
+    # core fits the registration's levels alone: four per registration, the finest last
+    assert seen and len(seen) % 4 == 0
+    for k in range(3, len(seen), 4):
+        start, fitted, step = seen[k]
+        assert 2.5 < start < 5.0 and 2.5 < fitted < 5.0
+        assert step >= 0.9 * start / CELLS_PER_SIGMA > 0.5
