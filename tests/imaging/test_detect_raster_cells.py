@@ -130,9 +130,10 @@ def _levels_seen(image, groups=(4, 5), **kw):
 
 @pytest.mark.slow  # one detection, 5-10 s
 def test_registration_levels_follow_a_soft_images_blur():
-    """A soft image (blur 3.5 px against the 1 px hint): every level fits the blur, so the
-    finest starts near the image's own and its raster's cells are a quarter of it, not the
-    half px a sharp image's raster has (a soft 2048 px canvas spent 8-13 s there)."""
+    """A soft image (blur 3.5 px against the 1 px hint): the finest level starts from the
+    blur the last blurred level's registration shows (``registration.blur_estimate``), on
+    cells of a quarter of it, not the half px a sharp image's raster has (a soft 2048 px
+    canvas spent 8-13 s there); a sharp one keeps the hint and the raster."""
     from oapcal.imaging.simulate import simulate_image
 
     sim = simulate_image((4, 5), sigma_px=3.5, snr=50.0, seed=0)
@@ -144,3 +145,31 @@ def test_registration_levels_follow_a_soft_images_blur():
         start, fitted, step = seen[k]
         assert 2.5 < start < 5.0 and 2.5 < fitted < 5.0
         assert step >= 0.9 * start / CELLS_PER_SIGMA > 0.5
+
+
+@pytest.mark.slow  # one detection, 5-10 s
+def test_a_sharp_images_finest_level_starts_from_the_hint():
+    from oapcal.imaging.simulate import simulate_image
+
+    sim = simulate_image((4, 5), sigma_px=0.8, snr=50.0, seed=0)
+    det, seen = _levels_seen(sim.image, um_per_px=sim.um_per_px)
+    assert det.ok, det.message
+    assert seen and len(seen) % 4 == 0
+    hint = float(np.hypot(1.0, np.sqrt(1 / 12)))
+    for k in range(3, len(seen), 4):
+        assert seen[k][0] == pytest.approx(hint) and seen[k][2] == pytest.approx(1 / RASTER_OVERSAMPLE)
+
+
+def test_blur_estimate_finds_a_rasters_blur():
+    """The estimate of a raster's own blur from pixels of it blurred by 3 px more than a
+    level's 1.5 px: within the sqrt(2) steps of its search."""
+    from oapcal.imaging.detect.registration import PixelData, blur_estimate
+
+    ref = Reference(RECTS, margin=60)
+    yy, xx = np.mgrid[ref.lo[1] : ref.hi[1] : 1.0, ref.lo[0] : ref.hi[0] : 1.0]
+    u = np.column_stack([xx.ravel(), yy.ravel()])
+    for sigma in (1.0, 3.0, 6.0):
+        values = 0.1 + 0.8 * ref.sample(u, float(np.hypot(1.5, sigma)), derivatives=False)[0]
+        data = PixelData(values, u, np.zeros((len(u), 1)), ref)
+        est = blur_estimate(data, np.zeros((1, 2)), 1.5, 1.0)
+        assert sigma / np.sqrt(2) <= est <= sigma * np.sqrt(2)
