@@ -49,7 +49,6 @@ from oapcal.imaging.detect.registration import (
     FitStart,
     PixelData,
     Reference,
-    blur_estimate,
     camera_sigma,
     find_target,
     fit_pixels,
@@ -1300,8 +1299,8 @@ def _register_levels(img, ref: Reference, fit: FitStart, warp: PolyWarp, max_deg
         u0 = warp(xs)
         xs = xs[np.lexsort((u0[:, 0], np.floor(u0[:, 1])))]
         model_sigma = sigma if blur is None else float(np.hypot(blur, sigma))
-        # a level's raster needs no finer cells than a fraction of its blur
-        level_ref = ref.with_min_step(model_sigma / CELLS_PER_SIGMA)
+        # a blurred level's raster needs no finer cells than a fraction of its blur
+        level_ref = ref if blur is None else ref.with_min_step(model_sigma / CELLS_PER_SIGMA)
         data = PixelData(values_img[xs[:, 1].astype(int), xs[:, 0].astype(int)], np.zeros((len(xs), 2)),
                          warp.basis(xs), level_ref)  # fmt: skip
         options = FitOptions(fit_sigma=blur is None, sigma_max=max(8.0, 2 * model_sigma))
@@ -1313,16 +1312,6 @@ def _register_levels(img, ref: Reference, fit: FitStart, warp: PolyWarp, max_deg
             return {"message": msg, "ncc": res.ncc}
         if blur is None:
             sigma = res.sigma
-        elif LEVELS[-1][0] is None and (blur, degree) == LEVELS[-2]:
-            # A soft image: the finest level starts from the image's blur, on cells of a quarter
-            # of it, when that is coarser than the raster's own.  From the hint (1 px) alone, a
-            # 2048 px canvas whose blur is 7.8 px crept there on cells of half a px, 8-13 s of
-            # 40 iterations on a raster of 6 M cells.  A sharper image keeps the hint and the
-            # raster (an estimate near the hint as a start moved LAB-UMK renders' fits to a
-            # worse optimum).
-            est = blur_estimate(data, res.coef, blur, fit.sigma)
-            if est / CELLS_PER_SIGMA > ref.step:
-                sigma = est
     if res.ncc < 0.5:
         msg = f"registration failed (model-image correlation {res.ncc:.2f} < 0.5)"
         return {"message": msg, "ncc": res.ncc}

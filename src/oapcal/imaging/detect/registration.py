@@ -38,8 +38,6 @@ CELLS_PER_SIGMA = 4.0
 COARSE_BLUR_CELLS = 12.0
 #: Smallest blur sigma a fit may reach (reference px).
 SIGMA_MIN = 0.05
-#: Largest blur sigma :func:`blur_estimate` considers (reference px).
-SIGMA_MAX_ESTIMATE = 64.0
 #: Blur sigma (raster cells) from which :meth:`Reference.sigma_derivative` takes the
 #: Laplacian of the blurred raster (error under 1.2 %) instead of a difference of two blurs.
 LAPLACIAN_MIN_CELLS = 1.5
@@ -207,26 +205,6 @@ def _bilinear(raster: np.ndarray, coords) -> np.ndarray:
     from scipy.ndimage import map_coordinates
 
     return map_coordinates(raster, coords, order=1, cval=0.0)
-
-
-def blur_estimate(data: PixelData, coef: np.ndarray, extra_blur: float, start: float) -> float:
-    """The image's own blur sigma (reference px) at the warp ``coef``: of ``start`` times
-    ``sqrt(2) ** k`` (k = 0, 1, ...), the one whose model, the raster blurred by it and by
-    ``extra_blur`` more, correlates best with ``data``'s pixel values (the first whose next
-    correlates less).  A coarse estimate, for the start of a fit that refines it."""
-    u = data.base_u + data.basis @ coef
-
-    def ncc(s):
-        r = data.ref.sample(u, float(np.hypot(extra_blur, s)), derivatives=False)[0]
-        return float(np.corrcoef(data.values, r)[0, 1])
-
-    s, best = start, ncc(start)
-    while s * np.sqrt(2) <= SIGMA_MAX_ESTIMATE:
-        nxt = ncc(s * np.sqrt(2))
-        if not nxt > best:
-            break
-        s, best = s * np.sqrt(2), nxt
-    return float(s)
 
 
 @dataclass(frozen=True)
