@@ -106,3 +106,52 @@ def test_a_coarser_copy_of_a_reference_keeps_its_region():
     u = np.array([[16.5, 80.0], [50.0, 80.0], [120.0, 10.0]])
     got, want = (r.sample(u, 4.0, derivatives=False)[0] for r in (coarse, ref))
     np.testing.assert_allclose(got, want, atol=0.01)
+
+
+def _shift_fit(sigma_true, follow=True):
+    """A translation-and-blur fit of pixels of the three-bar raster blurred by ``sigma_true``
+    and shifted by (0.3, -0.2) px, from the 1 px hint: (result, rasters rebuilt)."""
+    from unittest import mock
+
+    from oapcal.imaging.detect import registration as R
+
+    ref = Reference(RECTS, margin=60)
+    yy, xx = np.mgrid[-10:176:0.5, -10:176:0.5]
+    u = np.column_stack([xx.ravel(), yy.ravel()])
+    values = 0.1 + 0.8 * ref.sample(u + [0.3, -0.2], sigma_true, derivatives=False)[0]
+    data = R.PixelData(values, u, np.ones((len(u), 1)), Reference(RECTS, margin=60))
+    built = []
+    real = Reference.with_min_step
+
+    def spy(self, min_step):
+        built.append(min_step)
+        return real(self, min_step)
+
+    factor = R.FOLLOW_BLUR_FACTOR if follow else np.inf
+    start = R.FitStart(np.zeros((1, 2)), 0.0, 1.0, 1.04)
+    with mock.patch.object(Reference, "with_min_step", spy):
+        with mock.patch.object(R, "FOLLOW_BLUR_FACTOR", factor):
+            res = R.fit_pixels(data, start, R.FitOptions(fit_sigma=True))
+    return res, built
+
+
+def test_a_fit_of_a_wide_blur_follows_it_with_coarser_cells():
+    """From the 1 px hint to a 6 px blur: the raster is rebuilt as the blur grows (cells of a
+    quarter of it), and the fit ends where the fit on the fine raster throughout ends (the
+    shift within 0.005 px, the blur within 1 %), in fewer blurs of a smaller raster."""
+    res, built = _shift_fit(6.0)
+    fine, none = _shift_fit(6.0, follow=False)
+    assert built and not none
+    assert max(built) >= 4.0 / CELLS_PER_SIGMA
+    assert res.converged and fine.converged
+    np.testing.assert_allclose(res.coef, fine.coef, atol=0.005)
+    assert res.sigma == pytest.approx(fine.sigma, rel=0.01)
+    np.testing.assert_allclose(res.coef[0], [0.3, -0.2], atol=0.01)
+
+
+def test_a_sharp_fit_keeps_its_raster():
+    res, built = _shift_fit(1.2)
+    fine, _ = _shift_fit(1.2, follow=False)
+    assert not built
+    np.testing.assert_array_equal(res.coef, fine.coef)
+    assert res.sigma == fine.sigma
