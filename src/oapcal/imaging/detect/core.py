@@ -43,7 +43,6 @@ from oapcal.imaging.detect.records import (
     with_changes,
 )
 from oapcal.imaging.detect.registration import (
-    CELLS_PER_SIGMA,
     MAX_FIT_PIXELS,
     FitOptions,
     FitStart,
@@ -1300,7 +1299,7 @@ def _register_levels(img, ref: Reference, fit: FitStart, warp: PolyWarp, max_deg
         xs = xs[np.lexsort((u0[:, 0], np.floor(u0[:, 1])))]
         model_sigma = sigma if blur is None else float(np.hypot(blur, sigma))
         # a blurred level's raster needs no finer cells than a fraction of its blur
-        level_ref = ref if blur is None else ref.with_min_step(model_sigma / CELLS_PER_SIGMA)
+        level_ref = ref if blur is None else ref.for_blur(model_sigma)
         data = PixelData(values_img[xs[:, 1].astype(int), xs[:, 0].astype(int)], np.zeros((len(xs), 2)),
                          warp.basis(xs), level_ref)  # fmt: skip
         options = FitOptions(fit_sigma=blur is None, sigma_max=max(8.0, 2 * model_sigma))

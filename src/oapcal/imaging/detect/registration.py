@@ -99,6 +99,11 @@ class Reference:
         out.lo, out.hi = self.lo.copy(), self.hi.copy()
         return out
 
+    def for_blur(self, sigma: float) -> Reference:
+        """The same reference with cells no finer than a blur of ``sigma`` needs
+        (:data:`CELLS_PER_SIGMA` per sigma; :meth:`with_min_step`)."""
+        return self.with_min_step(sigma / CELLS_PER_SIGMA)
+
     @property
     def nbytes(self) -> int:
         return int(self.cover.nbytes * (1 + 3 * RASTER_CACHE))
@@ -300,7 +305,7 @@ class _PixelProblem:
         ref = self.data.ref
         if s / CELLS_PER_SIGMA < FOLLOW_BLUR_FACTOR * ref.step:
             return False
-        self.data = replace(self.data, ref=ref.with_min_step(s / CELLS_PER_SIGMA))
+        self.data = replace(self.data, ref=ref.for_blur(s))
         return True
 
     def jacobian(self, cur) -> np.ndarray:
